@@ -1,0 +1,1 @@
+"""Thin Zenoh adapters around the vergence library: one module per process, each with main(...)."""

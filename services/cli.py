@@ -1,0 +1,52 @@
+"""The `vergence` command: each sub-command lives in its own module, imported only when it runs, so that
+`vergence match` never loads zenoh. A module provides configure(parser) and run(args) -> exit code."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name: (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "match": ("services.match", "decide where the master fovea lies in the slave image (no Zenoh)"),
+    "sim": ("services.sim", "closed loop on the simulated rig, in one process (no Zenoh)"),
+    "bench": ("services.bench", "benchmarks: kernel, pipeline"),
+    "up": ("services.up", "an embedded router and every process on this machine"),
+    "router": ("services.router", "a Zenoh router"),
+    "capture": ("services.capture", "read a stereo source and publish frames"),
+    "worker": ("services.worker", "compute layer 4 for a shard of each frame"),
+    "reducer": ("services.reducer", "gather shards, decide, publish profile and command"),
+    "actuator": ("services.actuator", "drive the slave pan motor"),
+    "monitor": ("services.monitor", "live view of the correlation topics"),
+    "record": ("services.record", "record every vergence/<rig>/** message to a file"),
+    "replay": ("services.replay", "publish a recording again"),
+}
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="vergence", description="Dynamic vergence control for active stereo vision")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (modname, help_) in COMMANDS.items():
+        sp = sub.add_parser(name, help=help_, description=help_)
+        if name == only:
+            importlib.import_module(modname).configure(sp)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    name = next((a for a in argv if not a.startswith("-")), None)
+    if name not in COMMANDS:
+        build_parser().print_help()
+        return 0 if name is None and any(a in ("-h", "--help") for a in argv) else 2
+    args = build_parser(name).parse_args(argv)
+    mod = importlib.import_module(COMMANDS[name][0])
+    try:
+        return int(mod.run(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

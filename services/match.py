@@ -1,0 +1,68 @@
+"""`vergence match MASTER SLAVE [--at X,Y ...]`: the network on an image pair, one decision per point."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import cv2
+
+from vergence import BorderError, Params, match
+from vergence.config import ConfigError, load
+
+
+def _point(text: str) -> tuple[int, int]:
+    try:
+        x, y = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--at wants X,Y in pixels, got {text!r}") from None
+    return x, y
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("master", help="master (fixed camera) image file")
+    p.add_argument("slave", help="slave (panning camera) image file")
+    p.add_argument("--at", type=_point, action="append", metavar="X,Y",
+                   help="fovea centre in the master image, repeatable (default: the image centre)")
+    p.add_argument("--window", type=int, default=None, help="fovea side w in pixels, odd (default 15)")
+    p.add_argument("--vsearch", type=int, default=None, help="rows R searched above and below (default 2)")
+    p.add_argument("--faithful", action="store_true", help="the paper's network: every extension off")
+    p.add_argument("--config", metavar="FILE", help="settings TOML; its [network] table sets the parameters")
+    p.add_argument("--json", action="store_true", help="one JSON object per point")
+
+
+def read_gray(path: str):
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"cannot read image {path!r}: no such file")
+    img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise FileNotFoundError(f"cannot read image {path!r}: missing or not an image OpenCV can decode")
+    return img
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        base = load(args.config).network
+        if args.faithful:
+            base = Params.paper(window=base.window)
+        params = Params.build(**{**base.__dict__, "window": args.window, "vsearch": args.vsearch})
+        master, slave = read_gray(args.master), read_gray(args.slave)
+        if master.shape != slave.shape:
+            raise ValueError(f"images differ in size: {args.master} is {master.shape[1]} x {master.shape[0]}, "
+                             f"{args.slave} is {slave.shape[1]} x {slave.shape[0]}")
+        results = [match(master, slave, at, params) for at in (args.at or [None])]
+    except (FileNotFoundError, ValueError, BorderError, ConfigError, TypeError) as e:
+        print(f"vergence match: {e}", file=sys.stderr)
+        return 2
+    for m in results:
+        d = m.decision
+        if args.json:
+            print(json.dumps(m.to_dict()))
+        else:
+            side = {-1: "left", 0: "centre", 1: "right"}[d.direction]
+            print(f"({m.x}, {m.y}) w={m.window}: k*={d.k} (k_c={d.k_centre}) offset {d.offset_px:+.2f} px "
+                  f"{side} {d.magnitude} px, v={d.v:+d}, confidence {d.confidence:.3f}"
+                  f"{'' if d.confident else ' (abstains)'}")
+    return 0

@@ -1,0 +1,92 @@
+"""The one Zenoh session builder and the shared options of every process.
+
+Every process takes the options of zenoh-python's examples (--mode, --connect, --listen, --zenoh-config),
+plus --rig (the key prefix) and --config (our TOML settings). Clients connect to the router at
+tcp/127.0.0.1:7447 unless told otherwise; multicast scouting is off (explicit endpoints only) and the lease
+is short (1 s) so that a frozen process is noticed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import threading
+
+import zenoh
+
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+LEASE_MS = 1000
+
+
+def add_options(p: argparse.ArgumentParser, mode: str = "client") -> None:
+    g = p.add_argument_group("zenoh")
+    g.add_argument("--mode", "-m", choices=["peer", "client", "router"], default=mode,
+                   help=f"zenoh session mode (default {mode})")
+    g.add_argument("--connect", "-e", action="append", default=None, metavar="ENDPOINT",
+                   help=f"endpoint to connect to, repeatable (default {DEFAULT_ROUTER} for clients)")
+    g.add_argument("--listen", "-l", action="append", default=None, metavar="ENDPOINT",
+                   help="endpoint to listen on, repeatable")
+    g.add_argument("--zenoh-config", metavar="FILE", help="a zenoh JSON5 config file, applied first")
+    p.add_argument("--rig", default=None, help="rig name, the key prefix vergence/<rig>/ (default: head)")
+    p.add_argument("--config", metavar="FILE", help="vergence settings (TOML)")
+
+
+def zenoh_config(mode: str = "client", connect: list[str] | None = None, listen: list[str] | None = None,
+                 config_file: str | None = None) -> zenoh.Config:
+    conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    if connect is None and mode == "client" and not config_file:
+        connect = [DEFAULT_ROUTER]
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if not config_file:
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("transport/link/tx/lease", str(LEASE_MS))
+        conf.insert_json5("transport/link/tx/keep_alive", "4")
+        if mode == "client":
+            # keep trying to reach the router: at start and after it restarts
+            conf.insert_json5("connect/timeout_ms", "-1")
+    return conf
+
+
+def config_from_args(args: argparse.Namespace) -> zenoh.Config:
+    return zenoh_config(args.mode, args.connect, args.listen, args.zenoh_config)
+
+
+def open_session(conf: zenoh.Config) -> zenoh.Session:
+    return zenoh.open(conf)
+
+
+def alive_key(rig: str, role: str, name: str | None = None) -> str:
+    """vergence/<rig>/alive/<role>/<id>; id defaults to <hostname>-<pid> and always ends in -<pid>."""
+    if name is None:
+        name = f"{os.uname().nodename}-{os.getpid()}"
+    elif not name.endswith(f"-{os.getpid()}"):
+        name = f"{name}-{os.getpid()}"
+    return f"vergence/{rig}/alive/{role}/{name}"
+
+
+class Stop:
+    """A threading.Event set by SIGINT/SIGTERM: loops poll it, so every process exits cleanly."""
+
+    def __init__(self, install: bool = True):
+        self.event = threading.Event()
+        if install:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, self._handler)
+
+    def _handler(self, signum, frame):
+        self.event.set()
+
+    def is_set(self) -> bool:
+        return self.event.is_set()
+
+    def set(self) -> None:
+        self.event.set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        return self.event.wait(timeout)

@@ -1,0 +1,154 @@
+"""Typed settings for every process, loaded from one TOML file; errors name the offending field.
+
+    rig = "head"
+    [network]   # vergence.match.Params: window, vsearch, circular, subpixel, min_margin, ...
+    [capture]   # source, rate_hz, preview_hz, focal_px, master
+    [reducer]   # deadline_ms
+    [control]   # gain, dead_band_px, max_step_deg, min_deg, max_deg
+    [actuator]  # driver, port, and the motor (see vergence.motors)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .control import ControlSettings
+from .match import Params
+
+__all__ = ["ConfigError", "CaptureSettings", "ReducerSettings", "ActuatorSettings", "Settings", "load",
+           "from_dict"]
+
+
+class ConfigError(ValueError):
+    """A settings file or value that is wrong; the message names the field."""
+
+
+@dataclass(frozen=True)
+class CaptureSettings:
+    """source: sim[:...] | files:L,R | video:L,R | camera:0,1. rate_hz: frames per second (0: as fast as
+    the source gives them). preview_hz: rate of the downscaled preview. focal_px: focal length in pixels
+    (0: the source's own, else 0.8 x width). master: which camera is the fixed one, left or right."""
+
+    source: str = "sim"
+    rate_hz: float = 30.0
+    preview_hz: float = 2.0
+    preview_width: int = 160
+    focal_px: float = 0.0
+    master: str = "left"
+
+
+@dataclass(frozen=True)
+class ReducerSettings:
+    """deadline_ms: a frame whose shards are not all in by then is dropped and counted."""
+
+    deadline_ms: float = 50.0
+
+
+@dataclass(frozen=True)
+class ActuatorSettings:
+    """driver: sim | dynamixel | line. port: a pyserial URL (/dev/ttyUSB0, socket://host:port, loop://)."""
+
+    driver: str = "sim"
+    port: str = ""
+    state_hz: float = 50.0
+
+
+@dataclass(frozen=True)
+class Settings:
+    rig: str = "head"
+    network: Params = field(default_factory=Params)
+    capture: CaptureSettings = field(default_factory=CaptureSettings)
+    reducer: ReducerSettings = field(default_factory=ReducerSettings)
+    control: ControlSettings = field(default_factory=ControlSettings)
+    actuator: ActuatorSettings = field(default_factory=ActuatorSettings)
+
+
+def _coerce(path: str, value, tp):
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        tp = args[0]
+        origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        return _build(path, value, tp)
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+    elif tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+    elif tp is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+    elif tp is str:
+        if isinstance(value, str):
+            return value
+    elif origin in (list, tuple):
+        (inner, *_) = typing.get_args(tp)
+        if isinstance(value, (list, tuple)):
+            return type(value)(_coerce(f"{path}[{i}]", v, inner) for i, v in enumerate(value))
+    else:
+        return value
+    raise ConfigError(f"{path}: expected {getattr(tp, '__name__', tp)}, got {value!r}")
+
+
+def _build(path: str, data, cls):
+    if dataclasses.is_dataclass(data) and isinstance(data, cls):
+        return data
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path or 'settings'}: expected a table, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        where = f"{path}." if path else ""
+        raise ConfigError(f"{where}{unknown[0]}: unknown setting; known here: {', '.join(sorted(names))}")
+    kw = {k: _coerce(f"{path}.{k}" if path else k, v, hints[k]) for k, v in data.items()}
+    try:
+        return cls(**kw)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"{path or 'settings'}: {e}") from None
+
+
+def from_dict(data: dict, cls=Settings):
+    """Settings (or any settings dataclass) from a plain dict, checked field by field."""
+    return _build("", data, cls)
+
+
+def load(path: str | Path | None = None, cls=Settings):
+    """Settings from a TOML file (defaults when path is None). A missing file, bad TOML or a bad field
+    raises ConfigError that says which."""
+    if path is None:
+        return cls()
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as e:
+        raise ConfigError(f"cannot read settings file {p}: {e.strerror}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{p}: not valid TOML: {e}") from None
+    try:
+        return _build("", data, cls)
+    except ConfigError as e:
+        raise ConfigError(f"{p}: {e}") from None
+
+
+def replace(settings, **changes):
+    """dataclasses.replace that checks types like the loader (section.field=value overrides)."""
+    data = dataclasses.asdict(settings)
+    for dotted, value in changes.items():
+        d = data
+        *parents, leaf = dotted.split(".")
+        for part in parents:
+            d = d.setdefault(part, {})
+        d[leaf] = value
+    return _build("", data, type(settings))

@@ -1,0 +1,133 @@
+"""Layers 2-4: the correlation of the fovea with every window of the band, on exact integers.
+
+y(k) = sum over the window of (255 - out(i, j, k)), out the mean absolute feature difference, equals
+255 * w * w - S(k) / 3 with S(k) the integer sum of absolute differences over the three planes. The kernel
+computes S for offsets k0..k1-1 only, so any split of 0..K-1 concatenates to the unsplit result.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+__all__ = ["sad", "correlate", "scores_from_sad", "support_weights"]
+
+CIRCULAR_D = True  # default of the circular direction comparison (an extension; faithful turns it off)
+
+
+@numba.njit(cache=True, nogil=True)
+def _sad(fovea, band, k0, k1, circular, out):
+    nplanes, w, _ = fovea.shape
+    nv = band.shape[1] - w + 1
+    n = k1 - k0
+    acc = np.empty(n, np.int32)
+    for v in range(nv):
+        for c in range(nplanes):
+            circ = circular and c == 2
+            for i in range(w):
+                row = band[c, v + i]
+                acc[:] = 0
+                for j in range(w):
+                    f = np.int32(fovea[c, i, j])
+                    base = k0 + j
+                    if circ:
+                        for k in range(n):
+                            d = abs(np.int32(row[base + k]) - f)
+                            acc[k] += min(d, 256 - d)
+                    else:
+                        for k in range(n):
+                            acc[k] += abs(np.int32(row[base + k]) - f)
+                for k in range(n):
+                    out[v, k] += acc[k]
+
+
+@numba.njit(cache=True, nogil=True)
+def _sad_weighted(fovea, band, weights, k0, k1, circular, out):
+    nplanes, w, _ = fovea.shape
+    nv = band.shape[1] - w + 1
+    n = k1 - k0
+    acc = np.empty(n, np.int32)
+    for v in range(nv):
+        for c in range(nplanes):
+            circ = circular and c == 2
+            for i in range(w):
+                row = band[c, v + i]
+                acc[:] = 0
+                for j in range(w):
+                    f = np.int32(fovea[c, i, j])
+                    wt = np.int32(weights[i, j])
+                    if wt == 0:
+                        continue
+                    base = k0 + j
+                    if circ:
+                        for k in range(n):
+                            d = abs(np.int32(row[base + k]) - f)
+                            acc[k] += wt * min(d, 256 - d)
+                    else:
+                        for k in range(n):
+                            acc[k] += wt * abs(np.int32(row[base + k]) - f)
+                for k in range(n):
+                    out[v, k] += acc[k]
+
+
+def _check(fovea: np.ndarray, band: np.ndarray, k0: int, k1: int | None) -> tuple[int, int]:
+    if fovea.dtype != np.uint8 or band.dtype != np.uint8:
+        raise TypeError("fovea and band must be uint8 feature planes")
+    if fovea.ndim != 3 or band.ndim != 3 or fovea.shape[1] != fovea.shape[2]:
+        raise ValueError(f"fovea must be (3, w, w) and band (3, w + 2R, W); got {fovea.shape} and {band.shape}")
+    nplanes, w, _ = fovea.shape
+    if band.shape[0] != nplanes or band.shape[1] < w or (band.shape[1] - w) % 2 or band.shape[2] < w:
+        raise ValueError(f"band {band.shape} does not fit fovea {fovea.shape}: want ({nplanes}, w + 2R, W >= w)")
+    kk = band.shape[2] - w + 1
+    k1 = kk if k1 is None else k1
+    if not (0 <= k0 <= k1 <= kk):
+        raise ValueError(f"offsets {k0}..{k1} outside 0..{kk}")
+    return k0, k1
+
+
+def sad(fovea: np.ndarray, band: np.ndarray, k0: int = 0, k1: int | None = None, *, circular: bool = True,
+        weights: np.ndarray | None = None) -> np.ndarray:
+    """S(v, k): integer sums of absolute feature differences, a (2R + 1, k1 - k0) int64 array.
+
+    circular compares the direction plane on the circle (min(|dD|, 256 - |dD|)); weights, a (w, w) array
+    of small non-negative integers, weighs each fovea pixel (adaptive support weights)."""
+    k0, k1 = _check(fovea, band, k0, k1)
+    w = fovea.shape[1]
+    out = np.zeros((band.shape[1] - w + 1, k1 - k0), np.int64)
+    fovea = np.ascontiguousarray(fovea)
+    band = np.ascontiguousarray(band)
+    if weights is None:
+        _sad(fovea, band, k0, k1, circular, out)
+    else:
+        weights = np.ascontiguousarray(weights, dtype=np.uint8)
+        if weights.shape != (w, w):
+            raise ValueError(f"weights must be ({w}, {w}), got {weights.shape}")
+        _sad_weighted(fovea, band, weights, k0, k1, circular, out)
+    return out
+
+
+def scores_from_sad(s: np.ndarray, window: int, weight_sum: int | None = None) -> np.ndarray:
+    """Layer-4 scores y = 255 * w * w - S / 3 (with support weights: normalised to the same scale)."""
+    if weight_sum is None:
+        return 255.0 * window * window - s / 3.0
+    return 255.0 * window * window - s * (window * window / (3.0 * weight_sum))
+
+
+def correlate(fovea: np.ndarray, band: np.ndarray, k0: int = 0, k1: int | None = None, *,
+              circular: bool = True, weights: np.ndarray | None = None) -> np.ndarray:
+    """Layer-4 scores y(k) for offsets k0..k1-1: 1-D when the band is w rows tall, (2R + 1, k1 - k0) when
+    it is taller (vertical search, row v is the vertical shift v - R)."""
+    s = sad(fovea, band, k0, k1, circular=circular, weights=weights)
+    w = fovea.shape[1]
+    y = scores_from_sad(s, w, None if weights is None else int(weights.astype(np.int64).sum()))
+    return y[0] if y.shape[0] == 1 else y
+
+
+def support_weights(fovea: np.ndarray, gamma: float = 12.0, levels: int = 8) -> np.ndarray:
+    """Adaptive support weights (Yoon & Kweon 2006) of the fovea: each pixel weighed by the likeness of its
+    intensity to the centre pixel, exp(-|I - I_c| / gamma), quantised to integers 0..levels so that the
+    kernel stays exact and sharding stays bit-identical."""
+    i = fovea[0].astype(np.float64)
+    c = fovea.shape[1] // 2
+    wt = np.exp(-np.abs(i - i[c, c]) / gamma)
+    return np.rint(wt * levels).astype(np.uint8)

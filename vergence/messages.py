@@ -1,0 +1,317 @@
+"""Every message on the wire: a dataclass per kind, msgpack maps with a schema version `v`.
+
+Decoding never trusts its input: a message that is not a map, lacks a field, has a field of the wrong
+type, or arrays whose sizes do not agree with their shape fields raises MessageError, which services count
+and skip. Arrays travel as binary fields (raw little-endian bytes), never as lists of numbers.
+"""
+
+from __future__ import annotations
+
+import math
+import types
+import typing
+from dataclasses import MISSING, asdict, dataclass, field, fields
+from typing import ClassVar
+
+import msgpack
+import numpy as np
+
+__all__ = ["SCHEMA", "MessageError", "Frame", "Partial", "Profile", "Command", "MotorState", "Preview",
+           "KINDS", "decode"]
+
+SCHEMA = 1
+MAX_MESSAGE = 64 * 1024 * 1024
+
+
+class MessageError(ValueError):
+    """A message that cannot be decoded or fails validation."""
+
+
+def _check_type(name: str, value, tp) -> object:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        tp = next(a for a in args if a is not type(None))
+        origin = typing.get_origin(tp)
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise MessageError(f"field {name!r}: expected a number, got {type(value).__name__}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise MessageError(f"field {name!r}: expected an integer, got {type(value).__name__}")
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise MessageError(f"field {name!r}: expected a boolean, got {type(value).__name__}")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise MessageError(f"field {name!r}: expected a string, got {type(value).__name__}")
+        return value
+    if tp is bytes:
+        if not isinstance(value, (bytes, bytearray)):
+            raise MessageError(f"field {name!r}: expected bytes, got {type(value).__name__}")
+        return bytes(value)
+    if origin is list:
+        (inner,) = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)):
+            raise MessageError(f"field {name!r}: expected a list, got {type(value).__name__}")
+        return [_check_type(f"{name}[{i}]", x, inner) for i, x in enumerate(value)]
+    raise TypeError(f"unsupported field type {tp!r}")  # a programming error, not bad input
+
+
+class Message:
+    """Base of every message: to_bytes / from_bytes with validation."""
+
+    KIND: ClassVar[str] = ""
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["v"] = SCHEMA
+        return d
+
+    def to_bytes(self) -> bytes:
+        return msgpack.packb(self.to_dict(), use_bin_type=True)
+
+    @classmethod
+    def from_dict(cls, d) -> "Message":
+        if not isinstance(d, dict):
+            raise MessageError(f"{cls.KIND}: expected a map, got {type(d).__name__}")
+        if d.get("v") != SCHEMA:
+            raise MessageError(f"{cls.KIND}: schema version {d.get('v')!r}, this build speaks {SCHEMA}")
+        hints = typing.get_type_hints(cls)
+        kw = {}
+        for f in fields(cls):
+            if f.name not in d:
+                if f.default is not MISSING or f.default_factory is not MISSING:
+                    continue
+                raise MessageError(f"{cls.KIND}: missing field {f.name!r}")
+            kw[f.name] = _check_type(f"{cls.KIND}.{f.name}", d[f.name], hints[f.name])
+        msg = cls(**kw)
+        msg.validate()
+        return msg
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> "Message":
+        try:
+            d = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, max_buffer_size=MAX_MESSAGE)
+        except Exception as e:  # msgpack raises a zoo of exception types on garbage
+            raise MessageError(f"{cls.KIND}: not msgpack ({type(e).__name__}: {e})") from None
+        return cls.from_dict(d)
+
+    def validate(self) -> None:
+        """Cross-field checks; raise MessageError."""
+
+
+def _array(name: str, data: bytes, dtype, shape: tuple[int, ...]) -> np.ndarray:
+    dt = np.dtype(dtype)
+    if any(s < 0 for s in shape):
+        raise MessageError(f"{name}: negative shape {shape}")
+    if len(data) != dt.itemsize * math.prod(shape):
+        raise MessageError(f"{name}: {len(data)} bytes do not make a {dt.name} array of shape {shape}")
+    return np.frombuffer(data, dtype=dt).reshape(shape)
+
+
+def _finite(name: str, *values: float) -> None:
+    for x in values:
+        if not math.isfinite(x):
+            raise MessageError(f"{name}: not a finite number ({x})")
+
+
+@dataclass
+class Frame(Message):
+    """vergence/<rig>/frame: what layer 1 needs of one stereo frame, and the shard plan for it.
+
+    fovea: the (w+2) x (w+2) gray master strip around (x, y) with its Sobel margin; band: the
+    (w+2R+2) x (W+2) gray slave strip. plan: [[worker id, k0, k1], ...] covering 0..K-1, K = W - w + 1.
+    pan_rad: the slave pan at capture time; focal_px the focal length used to turn pixels into angles."""
+
+    KIND: ClassVar[str] = "frame"
+    rig: str
+    frame: int
+    t_capture_ns: int
+    pan_rad: float
+    width: int
+    height: int
+    x: int
+    y: int
+    window: int
+    vsearch: int
+    focal_px: float
+    fovea: bytes
+    band: bytes
+    plan: list[list[str | int]] = field(default_factory=list)
+    circular: bool = True
+    support: bool = False
+
+    @property
+    def k_count(self) -> int:
+        return self.width - self.window + 1
+
+    def fovea_strip(self) -> np.ndarray:
+        return _array("frame.fovea", self.fovea, np.uint8, (self.window + 2, self.window + 2))
+
+    def band_strip(self) -> np.ndarray:
+        return _array("frame.band", self.band, np.uint8, (self.window + 2 * self.vsearch + 2, self.width + 2))
+
+    def validate(self) -> None:
+        if self.window < 1 or self.window % 2 == 0 or self.window > self.width:
+            raise MessageError(f"frame.window {self.window} must be odd and at most width {self.width}")
+        if self.vsearch < 0 or self.window + 2 * self.vsearch > self.height:
+            raise MessageError(f"frame.vsearch {self.vsearch} does not fit height {self.height}")
+        _finite("frame.pan_rad", self.pan_rad)
+        _finite("frame.focal_px", self.focal_px)
+        if self.focal_px <= 0:
+            raise MessageError("frame.focal_px must be positive")
+        self.fovea_strip()
+        self.band_strip()
+        covered = 0
+        for entry in self.plan:
+            if len(entry) != 3 or not isinstance(entry[0], str) or not all(
+                    isinstance(v, int) and not isinstance(v, bool) for v in entry[1:]):
+                raise MessageError(f"frame.plan entry {entry!r} is not [worker, k0, k1]")
+            if entry[1] != covered or entry[2] <= entry[1]:
+                raise MessageError(f"frame.plan is not a partition of 0..{self.k_count - 1}: {self.plan!r}")
+            covered = entry[2]
+        if self.plan and covered != self.k_count:
+            raise MessageError(f"frame.plan covers 0..{covered - 1}, not 0..{self.k_count - 1}")
+
+    def shard(self, worker: str) -> tuple[int, int] | None:
+        """This worker's k-range in the frame's plan, or None."""
+        for wid, k0, k1 in self.plan:
+            if wid == worker:
+                return int(k0), int(k1)
+        return None
+
+
+@dataclass
+class Partial(Message):
+    """vergence/<rig>/correlation/<worker>: one worker's layer-4 scores y(v, k) for k0..k1-1, float64."""
+
+    KIND: ClassVar[str] = "partial"
+    rig: str
+    frame: int
+    t_capture_ns: int
+    worker: str
+    k0: int
+    k1: int
+    rows: int
+    scores: bytes
+    texture: float = 0.0
+    t_done_ns: int = 0
+
+    def array(self) -> np.ndarray:
+        return _array("partial.scores", self.scores, "<f8", (self.rows, self.k1 - self.k0))
+
+    def validate(self) -> None:
+        if self.k1 <= self.k0 or self.k0 < 0 or self.rows < 1:
+            raise MessageError(f"partial: bad range k0={self.k0} k1={self.k1} rows={self.rows}")
+        self.array()
+
+
+@dataclass
+class Profile(Message):
+    """vergence/<rig>/profile: the full layer-4 scores of a frame (rows x K float64), winner, confidence."""
+
+    KIND: ClassVar[str] = "profile"
+    rig: str
+    frame: int
+    t_capture_ns: int
+    t_reduced_ns: int
+    width: int
+    window: int
+    rows: int
+    scores: bytes
+    k: int
+    k_sub: float
+    v_shift: int
+    k_centre: int
+    direction: int
+    magnitude: int
+    offset_px: float
+    confidence: float
+    confident: bool
+    texture: float
+    pan_rad: float
+    workers: list[str] = field(default_factory=list)
+
+    def array(self) -> np.ndarray:
+        return _array("profile.scores", self.scores, "<f8", (self.rows, self.width - self.window + 1))
+
+    def validate(self) -> None:
+        if self.window < 1 or self.window > self.width or self.rows < 1:
+            raise MessageError(f"profile: bad shape width={self.width} window={self.window} rows={self.rows}")
+        self.array()
+
+
+@dataclass
+class Command(Message):
+    """vergence/<rig>/command: pan_rad, the absolute target pan of the slave (pan at capture + correction)."""
+
+    KIND: ClassVar[str] = "command"
+    rig: str
+    frame: int
+    t_capture_ns: int
+    pan_rad: float
+    correction_rad: float
+    direction: int
+    magnitude_px: float
+    confidence: float
+    t_sent_ns: int = 0
+
+
+@dataclass
+class MotorState(Message):
+    """vergence/<rig>/motor/state: where the slave pan is, where it is going, and what safety did."""
+
+    KIND: ClassVar[str] = "motor_state"
+    rig: str
+    t_ns: int
+    pan_rad: float
+    goal_rad: float
+    min_rad: float
+    max_rad: float
+    status: str
+    driver: str = "sim"
+    frame: int = -1
+    t_capture_ns: int = 0
+    at_limit: bool = False
+    clamped: int = 0
+    ignored: int = 0
+    errors: int = 0
+    note: str = ""
+
+
+@dataclass
+class Preview(Message):
+    """vergence/<rig>/preview: downscaled gray master and slave images (width x height each), low rate."""
+
+    KIND: ClassVar[str] = "preview"
+    rig: str
+    frame: int
+    t_capture_ns: int
+    width: int
+    height: int
+    scale: float
+    master: bytes
+    slave: bytes
+    pan_rad: float = 0.0
+
+    def images(self) -> tuple[np.ndarray, np.ndarray]:
+        shape = (self.height, self.width)
+        return _array("preview.master", self.master, np.uint8, shape), _array("preview.slave", self.slave,
+                                                                               np.uint8, shape)
+
+    def validate(self) -> None:
+        self.images()
+
+
+KINDS: dict[str, type[Message]] = {c.KIND: c for c in (Frame, Partial, Profile, Command, MotorState, Preview)}
+
+
+def decode(cls: type[Message], data: bytes) -> Message:
+    """cls.from_bytes, for symmetry with services that pick the class from the key."""
+    return cls.from_bytes(data)

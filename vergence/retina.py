@@ -1,0 +1,138 @@
+"""Layer 1, the retina: the three features I, G, D of the master fovea and the slave band.
+
+Only two strips of each image are ever read: the fovea (w x w around the fixation point) of the master
+and the band (the full width, the same rows, plus 2R rows for vertical search) of the slave, each with
+a one-pixel margin for the Sobel kernels. Outside the image the margin is mirrored (OpenCV's
+BORDER_REFLECT_101), so features of a strip equal those of the whole image computed with cv2.Sobel.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numba
+import numpy as np
+
+__all__ = ["BorderError", "gray", "strip", "fovea_strip", "band_strip", "planes", "features", "check_point"]
+
+
+class BorderError(ValueError):
+    """The requested window does not fit in the image."""
+
+
+def gray(img: np.ndarray) -> np.ndarray:
+    """A uint8 grayscale view of an image (BGR, BGRA or already gray)."""
+    if img.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        img = cv2.cvtColor(np.ascontiguousarray(img), code)
+    if img.dtype != np.uint8:
+        raise TypeError(f"images must be 8-bit, got {img.dtype}")
+    return img
+
+
+def _reflect(idx: np.ndarray, n: int) -> np.ndarray:
+    """BORDER_REFLECT_101 for indices at most one outside 0..n-1."""
+    idx = np.where(idx < 0, -idx, idx)
+    return np.where(idx >= n, 2 * (n - 1) - idx, idx)
+
+
+def strip(img: np.ndarray, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+    """Rows r0..r1-1 and columns c0..c1-1 of a gray image with a one-pixel mirrored margin.
+
+    Colour images are converted for the rows that are read only."""
+    h, w = img.shape[:2]
+    if r0 < 0 or c0 < 0 or r1 > h or c1 > w or r0 >= r1 or c0 >= c1:
+        raise BorderError(f"region rows {r0}..{r1 - 1}, columns {c0}..{c1 - 1} is outside the {w} x {h} image")
+    if 1 <= r0 and r1 + 1 <= h:
+        rows = img[r0 - 1 : r1 + 1]
+    else:
+        rows = img[_reflect(np.arange(r0 - 1, r1 + 1), h)]
+    rows = gray(rows)
+    if 1 <= c0 and c1 + 1 <= w:
+        return np.ascontiguousarray(rows[:, c0 - 1 : c1 + 1])
+    return np.ascontiguousarray(rows[:, _reflect(np.arange(c0 - 1, c1 + 1), w)])
+
+
+def check_point(shape: tuple[int, ...], x: int, y: int, window: int, vsearch: int = 0) -> None:
+    """Raise BorderError (saying why) unless a w x w fovea at (x, y) and its band fit in the image."""
+    h, w = shape[:2]
+    if window < 1 or window % 2 == 0:
+        raise BorderError(f"window must be a positive odd number of pixels, got {window}")
+    if window > w or window + 2 * vsearch > h:
+        raise BorderError(f"window {window} (+-{vsearch} rows of vertical search) is larger than the {w} x {h} image")
+    half = window // 2
+    if not (half <= x < w - half):
+        raise BorderError(f"point ({x}, {y}) is too close to the left/right border for window {window}: "
+                          f"x must be in {half}..{w - half - 1}")
+    if not (half + vsearch <= y < h - half - vsearch):
+        raise BorderError(f"point ({x}, {y}) is too close to the top/bottom border for window {window} and "
+                          f"vertical search {vsearch}: y must be in {half + vsearch}..{h - half - vsearch - 1}")
+
+
+def fovea_strip(master: np.ndarray, x: int, y: int, window: int) -> np.ndarray:
+    """The (w+2, w+2) gray strip of the master fovea centred at (x, y), with its Sobel margin."""
+    half = window // 2
+    return strip(master, y - half, y + half + 1, x - half, x + half + 1)
+
+
+def band_strip(slave: np.ndarray, y: int, window: int, vsearch: int = 0) -> np.ndarray:
+    """The (w+2R+2, W+2) gray strip of the slave band on rows y-w/2-R .. y+w/2+R, with its Sobel margin."""
+    half = window // 2 + vsearch
+    return strip(slave, y - half, y + half + 1, 0, slave.shape[1])
+
+
+@numba.njit(cache=True, nogil=True)
+def _planes(s, out):
+    h = s.shape[0] - 2
+    n = s.shape[1] - 2
+    scale = 128.0 / math.pi
+    for i in range(h):
+        for j in range(n):
+            a = np.int32(s[i, j])
+            b = np.int32(s[i, j + 1])
+            c = np.int32(s[i, j + 2])
+            d = np.int32(s[i + 1, j])
+            f = np.int32(s[i + 1, j + 2])
+            g = np.int32(s[i + 2, j])
+            k = np.int32(s[i + 2, j + 1])
+            m = np.int32(s[i + 2, j + 2])
+            gx = (c + 2 * f + m) - (a + 2 * d + g)
+            gy = (g + 2 * k + m) - (a + 2 * b + c)
+            out[0, i, j] = s[i + 1, j + 1]
+            m2 = gx * gx + gy * gy
+            if m2 == 0:
+                out[1, i, j] = 0
+                out[2, i, j] = 0
+            else:
+                mag = int(math.sqrt(m2) * 0.25 + 0.5)
+                out[1, i, j] = 255 if mag > 255 else mag
+                ang = math.atan2(gy, gx)
+                if ang < 0.0:
+                    ang += 2.0 * math.pi
+                out[2, i, j] = int(ang * scale + 0.5) & 255
+
+
+def planes(s: np.ndarray) -> np.ndarray:
+    """Features of the interior of a gray strip with a one-pixel margin: a (3, h-2, n-2) uint8 array.
+
+    Plane 0 is the intensity I, plane 1 the Sobel gradient magnitude G = min(255, round(|grad| / 4)),
+    plane 2 the direction D = round(atan2(Gy, Gx) * 256 / 2pi) mod 256, 0 where the gradient is 0."""
+    if s.ndim != 2 or s.dtype != np.uint8 or s.shape[0] < 3 or s.shape[1] < 3:
+        raise ValueError(f"a strip must be a 2-D uint8 array of at least 3 x 3, got {s.dtype} {s.shape}")
+    out = np.empty((3, s.shape[0] - 2, s.shape[1] - 2), np.uint8)
+    _planes(np.ascontiguousarray(s), out)
+    return out
+
+
+def features(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = None, window: int = 15,
+             vsearch: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Layer 1 for one fixation point: (fovea (3, w, w), band (3, w + 2R, W)), both uint8.
+
+    at is (x, y) in the master image, the image centre (W // 2, H // 2) by default."""
+    if master.shape[:2] != slave.shape[:2]:
+        raise ValueError(f"master and slave differ in size: {master.shape[1]} x {master.shape[0]} and "
+                         f"{slave.shape[1]} x {slave.shape[0]}")
+    x, y = at if at is not None else (master.shape[1] // 2, master.shape[0] // 2)
+    check_point(master.shape, x, y, window, vsearch)
+    return planes(fovea_strip(master, x, y, window)), planes(band_strip(slave, y, window, vsearch))
