@@ -33,8 +33,15 @@ def _check_type(name: str, value, tp) -> object:
         args = typing.get_args(tp)
         if value is None and type(None) in args:
             return None
-        tp = next(a for a in args if a is not type(None))
-        origin = typing.get_origin(tp)
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _check_type(name, value, a)
+            except MessageError as e:
+                errors.append(str(e))
+        raise MessageError(errors[0] if len(errors) == 1 else f"field {name!r}: unexpected {type(value).__name__}")
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise MessageError(f"field {name!r}: expected a number, got {type(value).__name__}")
