@@ -9,7 +9,7 @@ import numpy as np
 from . import kernel, retina
 from .decide import Decision, decide, texture
 
-__all__ = ["Params", "Match", "match", "FAITHFUL"]
+__all__ = ["Params", "Match", "match", "decide_scores", "lr_consistent", "FAITHFUL"]
 
 
 @dataclass(frozen=True)
@@ -87,28 +87,41 @@ class Match:
         return d
 
 
+def decide_scores(scores: np.ndarray, fovea: np.ndarray, x: int, params: Params,
+                  master_band: np.ndarray | None = None, slave_band: np.ndarray | None = None) -> Decision:
+    """Layer 4's scores -> a Decision for the fovea (planes (3, w, w)) centred on master column x.
+
+    With params.lr_check and both bands' planes ((3, w + 2R, W), the same rows) given, a confident decision
+    must also pass the left-right check (lr_consistent). This is the one decision step of both match() and
+    the distributed reducer."""
+    w = fovea.shape[1]
+    d = decide(scores, w, k_centre=x - w // 2, subpixel=params.subpixel, tex=texture(fovea),
+               min_texture=params.min_texture, min_margin=params.min_margin)
+    if params.lr_check and d.confident and master_band is not None and slave_band is not None:
+        d = replace(d, confident=lr_consistent(master_band, slave_band, x, d, params))
+    return d
+
+
+def lr_consistent(master_band: np.ndarray, slave_band: np.ndarray, x: int, d: Decision, params: Params) -> bool:
+    """Left-right consistency: the winning slave window, matched back along the same rows of the master,
+    lands within params.lr_tolerance px of where the forward match says it should."""
+    half = x - d.k_centre
+    w = 2 * half + 1
+    r0 = d.v + (slave_band.shape[1] - w) // 2
+    sf = np.ascontiguousarray(slave_band[:, r0 : r0 + w, d.k : d.k + w])
+    mb = np.ascontiguousarray(master_band[:, r0 : r0 + w, :])
+    back = kernel.correlate(sf, mb, circular=params.circular)
+    bd = decide(back, w, k_centre=0, subpixel=params.subpixel)
+    expected = x - (d.k_sub - d.k)
+    return abs((bd.k_sub + half) - expected) <= params.lr_tolerance
+
+
 def _one(master, slave, x, y, w, p: Params) -> Decision:
     fovea, band = retina.features(master, slave, (x, y), w, p.vsearch)
     weights = kernel.support_weights(fovea, p.support_gamma) if p.support else None
     scores = kernel.correlate(fovea, band, circular=p.circular, weights=weights)
-    tex = texture(fovea)
-    d = decide(scores, w, k_centre=x - w // 2, subpixel=p.subpixel, tex=tex, min_texture=p.min_texture,
-               min_margin=p.min_margin)
-    if p.lr_check and d.confident:
-        d = replace(d, confident=_back_ok(master, slave, x, y, w, d, p))
-    return d
-
-
-def _back_ok(master, slave, x, y, w, d: Decision, p: Params) -> bool:
-    """Left-right consistency: the winning slave window, matched back into the master, lands on x."""
-    xs, ys = d.k + w // 2, y + d.v
-    try:
-        sf, mb = retina.features(slave, master, (xs, ys), w, p.vsearch)
-    except retina.BorderError:
-        return False
-    back = kernel.correlate(sf, mb, circular=p.circular)
-    bd = decide(back, w, k_centre=xs - w // 2, subpixel=p.subpixel, min_margin=0.0, min_texture=0.0)
-    return abs((bd.k_sub + w // 2) - (x + (d.k_sub - d.k))) <= p.lr_tolerance
+    mband = retina.planes(retina.band_strip(master, y, w, p.vsearch)) if p.lr_check else None
+    return decide_scores(scores, fovea, x, p, mband, band)
 
 
 def match(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = None,
