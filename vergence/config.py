@@ -19,6 +19,7 @@ from pathlib import Path
 
 from .control import ControlSettings
 from .match import Params
+from .motors.base import MotorSettings
 
 __all__ = ["ConfigError", "CaptureSettings", "ReducerSettings", "ActuatorSettings", "Settings", "load",
            "from_dict"]
@@ -51,11 +52,13 @@ class ReducerSettings:
 
 @dataclass(frozen=True)
 class ActuatorSettings:
-    """driver: sim | dynamixel | line. port: a pyserial URL (/dev/ttyUSB0, socket://host:port, loop://)."""
+    """driver: sim | dynamixel | line. port: a pyserial URL (/dev/ttyUSB0, socket://host:port, loop://).
+    state_hz: rate of vergence/<rig>/motor/state. motor: the motor ([actuator.motor], vergence.motors)."""
 
     driver: str = "sim"
     port: str = ""
     state_hz: float = 50.0
+    motor: MotorSettings = field(default_factory=MotorSettings)
 
 
 @dataclass(frozen=True)

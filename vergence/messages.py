@@ -103,8 +103,10 @@ class Message:
 
     @classmethod
     def from_bytes(cls, data: bytes) -> "Message":
+        if len(data) > MAX_MESSAGE:
+            raise MessageError(f"{cls.KIND}: {len(data)} bytes, more than {MAX_MESSAGE}")
         try:
-            d = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, max_buffer_size=MAX_MESSAGE)
+            d = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True)
         except Exception as e:  # msgpack raises a zoo of exception types on garbage
             raise MessageError(f"{cls.KIND}: not msgpack ({type(e).__name__}: {e})") from None
         return cls.from_dict(d)
@@ -290,6 +292,8 @@ class MotorState(Message):
     ignored: int = 0
     errors: int = 0
     note: str = ""
+    malformed: int = 0  # command messages that failed to decode, skipped
+    commands: int = 0  # command messages received (valid or not)
 
 
 @dataclass

@@ -1,0 +1,296 @@
+"""Motor layer without serial ports: settings, the safety layer (property-based), the simulated motor, and
+the actuator loop (MotorLoop) with a fake clock."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from vergence.config import ConfigError, from_dict
+from vergence.messages import Command, MotorState
+from vergence.motors import Disconnected, MotorSettings, PortError, Safety, TransientError, make_driver
+from vergence.motors.base import Driver
+from vergence.motors.runner import MotorLoop
+from vergence.motors.simulated import SimMotor
+
+DEG = math.pi / 180
+
+
+class Clock:
+    def __init__(self, t: float = 100.0):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def cmd(pan, frame=1, t=0, **kw) -> Command:
+    return Command(rig="head", frame=frame, t_capture_ns=t, pan_rad=pan, correction_rad=0.0, direction=0,
+                   magnitude_px=0.0, confidence=1.0, **kw)
+
+
+# -- settings -------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("pan, ticks", [(0.0, 2048), (math.pi / 2, 3072), (-math.pi / 2, 1024),
+                                        (0.001, 2049), (0.0007, 2048), (math.radians(45), 2560),
+                                        (math.radians(-45), 1536)])
+def test_ticks_default(pan, ticks):
+    m = MotorSettings()
+    assert m.to_ticks(pan) == ticks == round(2048 + pan * 4096 / (2 * math.pi))
+
+
+def test_ticks_direction_and_zero():
+    m = MotorSettings(direction=-1, zero=1000, ticks_per_rev=2000)
+    assert m.to_ticks(math.pi / 2) == 500
+    assert m.from_ticks(500) == pytest.approx(math.pi / 2)
+
+
+def test_config_motor_table_and_errors():
+    s = from_dict({"actuator": {"driver": "dynamixel", "port": "loop://",
+                                "motor": {"id": 7, "min_deg": -20, "max_step_deg": 2.5}}})
+    assert s.actuator.motor.id == 7 and s.actuator.motor.min_rad == pytest.approx(-20 * DEG)
+    with pytest.raises(ConfigError, match="actuator.motor.speed"):
+        from_dict({"actuator": {"motor": {"speed": 3}}})
+    with pytest.raises(ConfigError, match="direction"):
+        from_dict({"actuator": {"motor": {"direction": 2}}})
+    with pytest.raises(ConfigError, match="min_deg"):
+        from_dict({"actuator": {"motor": {"min_deg": 10, "max_deg": -10}}})
+
+
+def test_make_driver_needs_port():
+    with pytest.raises(PortError, match="list_ports"):
+        make_driver("dynamixel", MotorSettings(), "")
+    with pytest.raises(ValueError, match="unknown driver"):
+        make_driver("stepper", MotorSettings(), "x")
+
+
+# -- safety ---------------------------------------------------------------------------------------------------
+
+def test_safety_clamps_and_ignores():
+    s = Safety(MotorSettings(max_step_deg=10))
+    assert s.command(5 * DEG).goal == pytest.approx(5 * DEG)
+    v = s.command(1e9)
+    assert v.clamped and v.goal == pytest.approx(15 * DEG)
+    for bad in (math.nan, math.inf, -math.inf, "1", None, True):
+        assert s.command(bad).goal is None
+    assert (s.accepted, s.clamped, s.ignored) == (2, 1, 6)
+    for _ in range(10):
+        s.command(-1e300)
+    assert s.goal == pytest.approx(-45 * DEG)
+
+
+def test_safety_stale_frames():
+    s = Safety(MotorSettings(max_age_s=0.5))
+    assert s.command(0.01, frame=5, t_capture_ns=2_000_000_000, now_ns=2_100_000_000).goal is not None
+    assert s.command(0.02, frame=4, t_capture_ns=1_900_000_000, now_ns=2_100_000_000).goal is None  # older
+    assert s.command(0.02, frame=9, t_capture_ns=2_200_000_000, now_ns=2_800_000_000).goal is None  # too old
+    assert s.command(0.03, frame=6, t_capture_ns=2_300_000_000, now_ns=2_400_000_000).goal == 0.03
+    assert s.ignored == 2
+
+
+def test_safety_dead_band():
+    s = Safety(MotorSettings(dead_band_deg=0.5))
+    assert s.command(0.3 * DEG).goal is None and s.held == 1 and s.ignored == 0
+    assert s.command(0.6 * DEG).goal == pytest.approx(0.6 * DEG)
+
+
+targets = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10**30, 10**30),
+                    st.sampled_from([math.nan, math.inf, -math.inf, 1e308, -1e308, 0.785, -0.786, 5e-324]))
+motor_settings = st.builds(
+    MotorSettings,
+    min_deg=st.floats(-90, 0), max_deg=st.floats(0, 90),
+    max_step_deg=st.floats(0.01, 30), dead_band_deg=st.floats(0, 1))
+
+
+@settings(max_examples=300, deadline=None)
+@given(motor_settings, st.floats(-10, 10), st.lists(st.tuples(targets, st.integers(-5, 2**40),
+                                                               st.integers(-5, 2**62)), max_size=60))
+def test_safety_property(ms, start, stream):
+    """Whatever arrives, the goal stays inside the soft limits and never moves more than max_step."""
+    s = Safety(ms, start)
+    lo, hi, step = ms.min_rad, ms.max_rad, math.radians(ms.max_step_deg)
+    assert lo <= s.goal <= hi
+    prev = s.goal
+    n = 0
+    for pan, frame, t in stream:
+        v = s.command(pan, frame, t, now_ns=2**62)
+        n += 1
+        assert lo <= s.goal <= hi
+        assert abs(s.goal - prev) <= step * (1 + 1e-12)
+        if v.goal is not None:
+            assert v.goal == s.goal and math.isfinite(v.goal)
+        else:
+            assert s.goal == prev
+        prev = s.goal
+    assert s.accepted + s.ignored + s.held == n
+    assert s.clamped <= s.accepted
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.one_of(targets.map(lambda p: ("cmd", p)), st.binary(max_size=40).map(lambda b: ("raw", b)),
+                          st.floats(0, 5).map(lambda dt: ("wait", dt))), max_size=60))
+def test_loop_property(stream):
+    """The whole loop with the simulated motor: garbage, NaN, floods and pauses; goal and position stay in
+    the limits, the goal never jumps more than max_step, every message is accounted for."""
+    clock = Clock()
+    ms = MotorSettings(max_step_deg=3, watchdog_s=1.0)
+    loop = MotorLoop(SimMotor(ms, clock=clock), ms, clock=clock, wall_ns=lambda: int(clock.t * 1e9))
+    loop.start()
+    prev = loop.safety.goal
+    frame = 0
+    for kind, x in stream:
+        if kind == "wait":
+            clock.t += x
+            st_ = loop.tick()
+        elif kind == "raw":
+            st_ = loop.command(x)
+        else:
+            frame += 1
+            pan = x if isinstance(x, float) else 1e300 if x > 0 else -1e300 if x < 0 else 0.0
+            st_ = loop.command(cmd(pan, frame=frame))
+        assert isinstance(st_, MotorState)
+        assert st_.min_rad <= st_.goal_rad <= st_.max_rad
+        assert abs(st_.goal_rad - prev) <= 3 * DEG + 1e-12
+        assert st_.min_rad - 1e-9 <= st_.pan_rad <= st_.max_rad + 1e-9
+        prev = st_.goal_rad
+    st_ = loop.state()
+    assert st_.commands == sum(k != "wait" for k, _ in stream)
+    assert st_.malformed + loop.safety.accepted + loop.safety.ignored + loop.safety.held == st_.commands
+
+
+# -- simulated motor ------------------------------------------------------------------------------------------
+
+def test_sim_first_order_and_speed():
+    clock = Clock()
+    m = SimMotor(MotorSettings(tau_s=0.1, max_speed_deg_s=1000), clock=clock)
+    m.open()
+    m.write_goal(0.1)
+    clock.t += 0.1
+    assert m.read_position() == pytest.approx(0.1 * (1 - math.exp(-1)))
+    clock.t += 1.0
+    assert m.read_position() == pytest.approx(0.1, abs=1e-5)
+    m2 = SimMotor(MotorSettings(tau_s=0.0, max_speed_deg_s=90), clock=clock)
+    m2.open()
+    m2.write_goal(math.radians(40))
+    clock.t += 0.2
+    assert m2.read_position() == pytest.approx(math.radians(18))
+    clock.t += 1.0
+    assert m2.read_position() == pytest.approx(math.radians(40))
+
+
+def test_sim_integration_independent_of_polling():
+    c1, c2 = Clock(), Clock()
+    ms = MotorSettings(tau_s=0.05, max_speed_deg_s=60)
+    a, b = SimMotor(ms, clock=c1), SimMotor(ms, clock=c2)
+    for m in (a, b):
+        m.open()
+        m.write_goal(math.radians(30))
+    for _ in range(100):
+        c1.t += 0.003
+        a.read_position()
+    c2.t += 0.3
+    assert a.read_position() == pytest.approx(b.read_position(), abs=1e-12)
+
+
+# -- the loop -------------------------------------------------------------------------------------------------
+
+def test_loop_tracks_commands_and_watchdog():
+    clock = Clock()
+    ms = MotorSettings(watchdog_s=0.5, tau_s=0.05, max_speed_deg_s=1000)
+    loop = MotorLoop(SimMotor(ms, clock=clock), ms, rig="r", clock=clock, wall_ns=lambda: 7)
+    s0 = loop.start()
+    assert s0.status == "ok" and s0.pan_rad == 0.0 and s0.driver == "sim"
+    s1 = loop.command(cmd(0.05, frame=3, t=11).to_bytes())
+    assert (s1.goal_rad, s1.frame, s1.t_capture_ns, s1.rig) == (0.05, 3, 11, "r")
+    clock.t += 0.4
+    s2 = loop.tick()
+    assert s2.pan_rad == pytest.approx(0.05, abs=1e-4) and s2.status == "ok"
+    loop.command(cmd(0.2, frame=4))
+    clock.t += 0.01
+    s3 = loop.tick()
+    assert 0.05 < s3.pan_rad < 0.2
+    clock.t += 0.6  # watchdog: hold where it is
+    s4 = loop.tick()
+    assert s4.status == "hold" and "watchdog" in s4.note
+    assert s4.goal_rad == pytest.approx(s4.pan_rad, abs=1e-9)
+    assert loop.command(cmd(0.1, frame=5)).status == "ok"
+    s5 = loop.command(b"\x93\x01\x02")
+    assert s5.malformed == 1 and s5.commands == 4
+    assert loop.stop().status == "stopped"
+
+
+class FlakyDriver(Driver):
+    """A driver whose faults the test switches on and off."""
+
+    name = "flaky"
+
+    def __init__(self, ms, clock=None):
+        super().__init__(ms)
+        self.clock, self.tries = clock or (lambda: 0.0), []
+        self.present, self.goals, self.mode, self.opens = 0.1, [], "ok", 0
+
+    def open(self):
+        self.tries.append(self.clock())
+        if self.mode == "gone":
+            raise PortError("no such port 'x'")
+        self.opens += 1
+        return self.present
+
+    def close(self, torque_off=True):
+        pass
+
+    def write_goal(self, pan):
+        self._io()
+        self.goals.append(pan)
+        self.present = pan
+
+    def read_position(self):
+        self._io()
+        return self.present
+
+    def _io(self):
+        if self.mode == "gone":
+            raise Disconnected("port x vanished")
+        if self.mode == "crc":
+            self.errors += 3
+            raise TransientError("bad CRC, 3 attempts")
+
+
+def test_loop_reconnects_with_backoff():
+    clock = Clock()
+    ms = MotorSettings(watchdog_s=0)
+    drv = FlakyDriver(ms, clock)
+    loop = MotorLoop(drv, ms, clock=clock, backoff_s=(0.1, 0.4))
+    assert loop.start().goal_rad == pytest.approx(0.1)  # goal starts at the present position
+    drv.mode = "crc"
+    s = loop.command(cmd(0.12, frame=1))
+    assert s.status == "ok" and s.errors == 6 and "CRC" in s.note
+    drv.mode = "gone"
+    assert loop.tick().status == "disconnected"
+    assert loop.command(cmd(0.2, frame=2)).ignored == 1
+    drv.tries = []
+    t_lost = clock.t
+    for _ in range(40):
+        clock.t += 0.05
+        assert loop.tick().status == "disconnected"
+    # first try 0.1 s after the loss, then 0.2, 0.4, 0.4 ... s apart (ticks every 0.05 s)
+    gaps = [b - a for a, b in zip([t_lost] + drv.tries, drv.tries)][:5]
+    for gap, want in zip(gaps, [0.1, 0.2, 0.4, 0.4, 0.4]):
+        assert want - 1e-9 <= gap <= want + 0.05 + 1e-9
+    drv.mode = "ok"
+    clock.t += 0.5
+    st_ = loop.tick()
+    assert st_.status == "ok" and loop.reconnects == 1
+    assert loop.command(cmd(0.15, frame=3)).goal_rad == pytest.approx(0.15)
+    assert drv.goals[-1] == pytest.approx(0.15)
+
+
+def test_loop_port_missing_at_start_is_fatal():
+    ms = MotorSettings()
+    drv = FlakyDriver(ms)
+    drv.mode = "gone"
+    with pytest.raises(PortError):
+        MotorLoop(drv, ms).start()

@@ -1,0 +1,26 @@
+"""Motors: the driver interface and safety layer (base), the simulated motor, Dynamixel Protocol 2.0 and a
+line protocol over serial, and the actuator loop that ties them to commands (runner). No zenoh here."""
+
+from .base import Disconnected, Driver, MotorError, MotorSettings, PortError, Safety, TransientError
+
+__all__ = ["Disconnected", "Driver", "MotorError", "MotorSettings", "PortError", "Safety", "TransientError",
+           "make_driver", "DRIVERS"]
+
+DRIVERS = ("sim", "dynamixel", "line")
+
+
+def make_driver(name: str, settings: MotorSettings, port: str = "") -> Driver:
+    """The driver called `name` (sim | dynamixel | line) for the motor `settings` on `port` (a pyserial URL)."""
+    if name == "sim":
+        from .simulated import SimMotor
+        return SimMotor(settings)
+    if name in ("dynamixel", "line"):
+        if not port:
+            raise PortError(f"driver {name!r} needs a serial port: pass --port URL (e.g. /dev/ttyUSB0) or set "
+                            "[actuator] port; list ports with `python -m serial.tools.list_ports -v`")
+        if name == "dynamixel":
+            from .dynamixel import DynamixelDriver
+            return DynamixelDriver(settings, port)
+        from .line import LineDriver
+        return LineDriver(settings, port)
+    raise ValueError(f"unknown driver {name!r}; choose one of {', '.join(DRIVERS)}")

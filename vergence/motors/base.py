@@ -1,0 +1,218 @@
+"""The motor layer's contracts: per-motor settings, the driver interface, its faults, and the safety layer.
+
+A driver moves one motor to an absolute pan (radians, positive toward increasing image x) and reports where
+the motor is. Drivers know their wire protocol and nothing about commands; the safety layer (Safety) is the
+only way a command becomes a goal: it drops what is not a number or is stale, and bounds what is left by
+the soft limits and the step limit, counting what it clamped or ignored. Nothing here imports zenoh.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+__all__ = ["MotorSettings", "Driver", "MotorError", "PortError", "Disconnected", "TransientError", "Safety",
+           "Verdict"]
+
+
+@dataclass(frozen=True)
+class MotorSettings:
+    """One pan motor, as wired ([actuator.motor] in the settings TOML).
+
+    id: bus id (Dynamixel). baud: serial speed. ticks_per_rev: encoder ticks per turn (Dynamixel X: 4096).
+    zero: the tick count at pan 0 (2048, the centre of an X-series). direction: +1, or -1 when the motor
+    turns the camera toward decreasing image x for increasing ticks. min_deg/max_deg: soft limits of the pan.
+    max_speed_deg_s: the motor's top speed (the simulator's, and Dynamixel Profile Velocity when
+    set_profile_velocity is true; 0 = the motor's own maximum). max_step_deg: the largest change of the goal
+    per command. dead_band_deg: a target closer than this to the goal does not move the motor.
+    watchdog_s: no valid command for this long -> hold the present position (0 = never).
+    max_age_s: a command whose frame was captured longer ago than this is stale and ignored (0 = no check;
+    needs the capture host's clock to agree with ours). torque_off_on_stop: release the motor on exit.
+    timeout_s: serial reply timeout; retries: attempts per transaction before it counts as failed.
+    tau_s, start_deg: the simulated motor's first-order time constant and its starting pan.
+    """
+
+    id: int = 1
+    baud: int = 57600
+    ticks_per_rev: int = 4096
+    zero: int = 2048
+    direction: int = 1
+    min_deg: float = -45.0
+    max_deg: float = 45.0
+    max_speed_deg_s: float = 180.0
+    max_step_deg: float = 10.0
+    dead_band_deg: float = 0.0
+    watchdog_s: float = 2.0
+    max_age_s: float = 0.0
+    torque_off_on_stop: bool = True
+    set_profile_velocity: bool = False
+    timeout_s: float = 0.05
+    retries: int = 3
+    tau_s: float = 0.02
+    start_deg: float = 0.0
+
+    def __post_init__(self):
+        if self.direction not in (1, -1):
+            raise ValueError(f"direction must be 1 or -1, got {self.direction}")
+        if not (math.isfinite(self.min_deg) and math.isfinite(self.max_deg) and self.min_deg <= self.max_deg):
+            raise ValueError(f"min_deg {self.min_deg} must be <= max_deg {self.max_deg}, both finite")
+        if self.ticks_per_rev <= 0:
+            raise ValueError(f"ticks_per_rev must be positive, got {self.ticks_per_rev}")
+        if not (self.max_step_deg > 0 and math.isfinite(self.max_step_deg)):
+            raise ValueError(f"max_step_deg must be a positive number, got {self.max_step_deg}")
+        for name in ("max_speed_deg_s", "dead_band_deg", "watchdog_s", "max_age_s", "tau_s"):
+            v = getattr(self, name)
+            if not (v >= 0 and math.isfinite(v)):
+                raise ValueError(f"{name} must be >= 0, got {v}")
+        if self.retries < 1:
+            raise ValueError(f"retries must be >= 1, got {self.retries}")
+        if not self.timeout_s > 0:
+            raise ValueError(f"timeout_s must be > 0, got {self.timeout_s}")
+        if not 0 <= self.id <= 252:
+            raise ValueError(f"id must be 0..252, got {self.id}")
+
+    @property
+    def min_rad(self) -> float:
+        return math.radians(self.min_deg)
+
+    @property
+    def max_rad(self) -> float:
+        return math.radians(self.max_deg)
+
+    def to_ticks(self, pan_rad: float) -> int:
+        """Goal Position for a pan: round(zero + direction * pan * ticks_per_rev / 2 pi)."""
+        return int(round(self.zero + self.direction * pan_rad * self.ticks_per_rev / (2 * math.pi)))
+
+    def from_ticks(self, ticks: int) -> float:
+        return self.direction * (ticks - self.zero) * 2 * math.pi / self.ticks_per_rev
+
+
+class MotorError(Exception):
+    """Base of the motor faults."""
+
+
+class PortError(MotorError):
+    """The port cannot be opened (missing, busy, no permission): the message names it and the fix."""
+
+
+class Disconnected(MotorError):
+    """The port went away while running (unplugged): reconnect with backoff."""
+
+
+class TransientError(MotorError):
+    """A transaction failed after its retries (timeout, bad CRC, a status error): counted, never fatal."""
+
+
+def port_hint(port: str, err: object) -> str:
+    return (f"cannot open serial port {port!r}: {err}. List the ports with `python -m serial.tools.list_ports "
+            f"-v` (or `ls /dev/serial/by-id/`), then pass --port or set [actuator] port in the settings")
+
+
+class Driver(ABC):
+    """One motor on one port. Positions are pan angles in radians; conversion to device units is the
+    driver's business (MotorSettings.to_ticks). Drivers retry transient faults themselves and count them in
+    `errors`; they raise Disconnected when the port is gone and TransientError when retries ran out."""
+
+    name = "driver"
+
+    def __init__(self, settings: MotorSettings):
+        self.settings = settings
+        self.errors = 0  # failed attempts (timeouts, bad CRC, status errors), retried or not
+
+    @abstractmethod
+    def open(self) -> float:
+        """Connect and enable the motor; returns the present pan. Raises PortError or Disconnected."""
+
+    @abstractmethod
+    def close(self, torque_off: bool = True) -> None:
+        """Release the port (and the motor, when torque_off). Never raises."""
+
+    @abstractmethod
+    def write_goal(self, pan_rad: float) -> None:
+        """Send an absolute goal (already made safe)."""
+
+    @abstractmethod
+    def read_position(self) -> float:
+        """The present pan in radians."""
+
+    def describe(self) -> str:
+        return self.name
+
+
+@dataclass
+class Verdict:
+    """What the safety layer made of one command: goal is None when the motor must not move."""
+
+    goal: float | None
+    clamped: bool = False
+    reason: str = ""  # why it was ignored or clamped ("" when taken as is)
+
+
+class Safety:
+    """Turns untrusted targets into goals: within [min, max], at most max_step from the previous goal.
+
+    A target that is not finite, or comes from a frame captured before the last accepted one (stale), or
+    older than max_age_s, is ignored; one outside the soft limits or too far from the goal is clamped. The
+    goal starts at the present position clamped into the limits. Counters: accepted, clamped, ignored, held (inside the dead band).
+    """
+
+    def __init__(self, settings: MotorSettings, start_rad: float = 0.0):
+        self.s = settings
+        self.lo, self.hi = settings.min_rad, settings.max_rad
+        self.step = math.radians(settings.max_step_deg)
+        self.dead = math.radians(settings.dead_band_deg)
+        self.goal = self._inside(start_rad if math.isfinite(start_rad) else 0.0)
+        self.last_t_capture = -1
+        self.last_frame = -1
+        self.accepted = self.clamped = self.ignored = self.held = 0
+        self.last_reason = ""
+
+    def _inside(self, x: float) -> float:
+        return min(self.hi, max(self.lo, x))
+
+    def reset(self, present_rad: float) -> float:
+        """At (re)connection, or when the watchdog fires: the goal becomes the present position clamped into
+        the limits, so the motor stays where it is (or, found outside the limits, comes back to the nearest
+        one at the motor's own speed). The only goal change not bounded by max_step."""
+        if math.isfinite(present_rad):
+            self.goal = self._inside(present_rad)
+        return self.goal
+
+    def _ignore(self, reason: str) -> Verdict:
+        self.ignored += 1
+        self.last_reason = reason
+        return Verdict(None, reason=reason)
+
+    def command(self, pan_rad: object, frame: int = -1, t_capture_ns: int = 0, now_ns: int | None = None
+                ) -> Verdict:
+        """The goal for one target, or Verdict(None) when the motor keeps its goal."""
+        if isinstance(pan_rad, bool) or not isinstance(pan_rad, (int, float)):
+            return self._ignore(f"target {pan_rad!r} is not a number")
+        x = float(pan_rad)
+        if not math.isfinite(x):
+            return self._ignore(f"target {x} is not finite")
+        if t_capture_ns > 0:
+            if t_capture_ns < self.last_t_capture:
+                return self._ignore(f"stale: frame {frame} captured before frame {self.last_frame}")
+            if self.s.max_age_s > 0 and now_ns is not None and now_ns - t_capture_ns > self.s.max_age_s * 1e9:
+                return self._ignore(f"stale: frame {frame} is {(now_ns - t_capture_ns) / 1e9:.3f} s old")
+            self.last_t_capture = t_capture_ns
+            self.last_frame = frame
+        reasons = []
+        if x < self.lo or x > self.hi:
+            reasons.append(f"target {math.degrees(x):.3g} deg outside [{self.s.min_deg:g}, {self.s.max_deg:g}]")
+            x = self._inside(x)
+        if abs(x - self.goal) > self.step:
+            reasons.append(f"step {math.degrees(x - self.goal):+.3g} deg beyond {self.s.max_step_deg:g}")
+            x = self.goal + math.copysign(self.step, x - self.goal)
+            x = self._inside(x)
+        if abs(x - self.goal) < self.dead and not reasons:
+            self.held += 1
+            return Verdict(None, reason="dead band")
+        self.accepted += 1
+        if reasons:
+            self.clamped += 1
+            self.last_reason = "; ".join(reasons)
+        self.goal = x
+        return Verdict(x, clamped=bool(reasons), reason="; ".join(reasons))

@@ -1,0 +1,190 @@
+"""The actuator's logic without the network: command bytes in, motor goals and MotorState messages out.
+
+services/actuator.py only subscribes, hands the newest command to `MotorLoop.command`, calls `tick` at the
+state rate and publishes what they return. Everything that decides something lives here, so it is tested
+with the simulated motor and a fake clock:
+- malformed messages are counted and skipped (logged once per kind of fault);
+- targets go through the safety layer (limits, step, stale, dead band);
+- the watchdog holds the present position when commands stop;
+- a port lost while running gives status "disconnected", reconnection attempts with exponential backoff, and
+  resumes without a restart; transient faults (timeouts, bad CRC, status errors) are counted, never fatal.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+
+from ..messages import Command, MessageError, MotorState
+from .base import Disconnected, Driver, MotorError, MotorSettings, PortError, Safety, TransientError
+
+__all__ = ["MotorLoop"]
+
+log = logging.getLogger("vergence.actuator")
+
+
+class MotorLoop:
+    """One motor driven by commands. Not thread-safe: call it from one thread."""
+
+    def __init__(self, driver: Driver, settings: MotorSettings, rig: str = "head",
+                 clock: Callable[[], float] = time.monotonic, wall_ns: Callable[[], int] = time.time_ns,
+                 backoff_s: tuple[float, float] = (0.1, 2.0)):
+        self.driver = driver
+        self.s = settings
+        self.rig = rig
+        self.clock = clock
+        self.wall_ns = wall_ns
+        self.backoff = backoff_s
+        self.safety = Safety(settings)
+        self.pan = math.nan
+        self.status = "starting"
+        self.frame = -1
+        self.t_capture_ns = 0
+        self.commands = 0
+        self.malformed = 0
+        self.reconnects = 0
+        self.note = ""
+        self._last_cmd = clock()
+        self._held = False
+        self._retry_at = 0.0
+        self._delay = backoff_s[0]
+        self._logged: set[str] = set()
+
+    # -- lifecycle ----------------------------------------------------------------------------------------
+    def start(self) -> MotorState:
+        """Open the driver; a PortError here is fatal (the caller prints it). Disconnected is retried."""
+        try:
+            present = self.driver.open()
+        except PortError:
+            raise
+        except MotorError as e:
+            self._lost(e)
+            return self.state()
+        self._connected(present)
+        return self.state()
+
+    def stop(self) -> MotorState:
+        self.driver.close(torque_off=self.s.torque_off_on_stop)
+        self.status = "stopped"
+        return self.state()
+
+    # -- inputs -------------------------------------------------------------------------------------------
+    def command(self, data: bytes | Command) -> MotorState | None:
+        """One command message (bytes from the wire, or decoded). Returns the state to publish."""
+        self.commands += 1
+        if not isinstance(data, Command):
+            try:
+                data = Command.from_bytes(data)
+            except MessageError as e:
+                self.malformed += 1
+                self._once("malformed", f"skipping a malformed command: {e}")
+                self.note = f"malformed command: {e}"[:200]
+                return self.state()
+        if self.status == "disconnected":
+            self.safety.ignored += 1
+            self.note = "command ignored: motor disconnected"
+            return self.state()
+        self._last_cmd = self.clock()
+        self._held = False
+        v = self.safety.command(data.pan_rad, data.frame, data.t_capture_ns, self.wall_ns())
+        if v.goal is None:
+            if v.reason and v.reason != "dead band":
+                self.note = f"ignored: {v.reason}"
+                self._once("ignored:" + v.reason.split(":")[0], f"command ignored: {v.reason}")
+        else:
+            self.frame, self.t_capture_ns = data.frame, data.t_capture_ns
+            if v.clamped:
+                self.note = f"clamped: {v.reason}"
+                self._once("clamped", f"command clamped: {v.reason}")
+            if self._io(self.driver.write_goal, v.goal) is not _FAILED:
+                if self.status in ("hold", "starting", "error"):
+                    self.status = "ok"
+        self._read()
+        return self.state()
+
+    def tick(self) -> MotorState:
+        """The periodic step: reconnect when due, watchdog, read the position. Returns the state."""
+        now = self.clock()
+        if self.status == "disconnected":
+            if now >= self._retry_at:
+                self._reconnect()
+            return self.state()
+        wd = self.s.watchdog_s
+        if wd > 0 and not self._held and now - self._last_cmd > wd:
+            self._read()
+            goal = self.safety.reset(self.pan)
+            self._io(self.driver.write_goal, goal)
+            self._held = True
+            self.status = "hold"
+            self.note = f"watchdog: no command for {wd:g} s, holding {math.degrees(goal):.2f} deg"
+            self._once("watchdog", self.note)
+        self._read()
+        return self.state()
+
+    # -- internals ----------------------------------------------------------------------------------------
+    def _once(self, kind: str, text: str) -> None:
+        if kind not in self._logged:
+            self._logged.add(kind)
+            log.warning("%s (logged once)", text)
+
+    def _read(self) -> None:
+        if self.status == "disconnected":
+            return
+        p = self._io(self.driver.read_position)
+        if p is not _FAILED and math.isfinite(p):
+            self.pan = p
+
+    def _io(self, fn, *args):
+        try:
+            return fn(*args)
+        except TransientError as e:
+            self.note = f"fault: {e}"[:200]
+            self._once("transient:" + type(e).__name__, f"motor fault (retried, counted): {e}")
+            return _FAILED
+        except (Disconnected, PortError) as e:
+            self._lost(e)
+            return _FAILED
+
+    def _lost(self, e: Exception) -> None:
+        if self.status != "disconnected":
+            log.warning("motor disconnected: %s; retrying with backoff", e)
+        self.status = "disconnected"
+        self.note = f"disconnected: {e}"[:200]
+        self.driver.close(torque_off=False)
+        self._delay = self.backoff[0]
+        self._retry_at = self.clock() + self._delay
+
+    def _reconnect(self) -> None:
+        try:
+            present = self.driver.open()
+        except MotorError as e:
+            self._delay = min(self.backoff[1], self._delay * 2)
+            self._retry_at = self.clock() + self._delay
+            self.note = f"disconnected: {e}; next try in {self._delay:.2f} s"[:200]
+            return
+        self.reconnects += 1
+        log.warning("motor reconnected (%d)", self.reconnects)
+        self._connected(present)
+
+    def _connected(self, present: float) -> None:
+        self.pan = present
+        self.safety.reset(present)
+        self._io(self.driver.write_goal, self.safety.goal)
+        self.status = "ok"
+        self.note = ""
+        self._last_cmd = self.clock()
+        self._held = False
+
+    def state(self) -> MotorState:
+        s, g = self.safety, self.safety.goal
+        at_limit = g <= s.lo + 1e-12 or g >= s.hi - 1e-12
+        return MotorState(rig=self.rig, t_ns=self.wall_ns(), pan_rad=self.pan if math.isfinite(self.pan) else g,
+                          goal_rad=g, min_rad=s.lo, max_rad=s.hi, status=self.status, driver=self.driver.name,
+                          frame=self.frame, t_capture_ns=self.t_capture_ns, at_limit=at_limit,
+                          clamped=s.clamped, ignored=s.ignored, errors=self.driver.errors, note=self.note,
+                          malformed=self.malformed, commands=self.commands)
+
+
+_FAILED = object()
