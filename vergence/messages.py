@@ -70,6 +70,9 @@ def _check_type(name: str, value, tp) -> object:
     raise TypeError(f"unsupported field type {tp!r}")  # a programming error, not bad input
 
 
+_HINTS: dict[type, dict] = {}
+
+
 class Message:
     """Base of every message: to_bytes / from_bytes with validation."""
 
@@ -89,7 +92,9 @@ class Message:
             raise MessageError(f"{cls.KIND}: expected a map, got {type(d).__name__}")
         if d.get("v") != SCHEMA:
             raise MessageError(f"{cls.KIND}: schema version {d.get('v')!r}, this build speaks {SCHEMA}")
-        hints = typing.get_type_hints(cls)
+        hints = _HINTS.get(cls)
+        if hints is None:  # get_type_hints costs ~140 us: once per class, not per message
+            hints = _HINTS[cls] = typing.get_type_hints(cls)
         kw = {}
         for f in fields(cls):
             if f.name not in d:
@@ -155,6 +160,10 @@ class Frame(Message):
     plan: list[list[str | int]] = field(default_factory=list)
     circular: bool = True
     support: bool = False
+    # additive (services): the master's band strip, same shape as band, for the reducer's left-right check
+    # (empty when the check is off); the support weights' gamma
+    master_band: bytes = b""
+    support_gamma: float = 12.0
 
     @property
     def k_count(self) -> int:
@@ -165,6 +174,13 @@ class Frame(Message):
 
     def band_strip(self) -> np.ndarray:
         return _array("frame.band", self.band, np.uint8, (self.window + 2 * self.vsearch + 2, self.width + 2))
+
+    def master_band_strip(self) -> np.ndarray | None:
+        """The master's band strip (same rows as band), or None when the frame does not carry it."""
+        if not self.master_band:
+            return None
+        return _array("frame.master_band", self.master_band, np.uint8,
+                      (self.window + 2 * self.vsearch + 2, self.width + 2))
 
     def validate(self) -> None:
         if self.window < 1 or self.window % 2 == 0 or self.window > self.width:
@@ -177,6 +193,8 @@ class Frame(Message):
             raise MessageError("frame.focal_px must be positive")
         self.fovea_strip()
         self.band_strip()
+        self.master_band_strip()
+        _finite("frame.support_gamma", self.support_gamma)
         covered = 0
         for entry in self.plan:
             if len(entry) != 3 or not isinstance(entry[0], str) or not all(

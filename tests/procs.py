@@ -1,0 +1,247 @@
+"""Shared helpers for process tests: a real Zenoh router on 127.0.0.1, real `vergence ...` processes in their
+own process groups with their output in log files, bounded waits, and a teardown that leaves nothing behind.
+
+    from procs import Procs                # tests/ has no __init__.py: pytest puts tests/ on sys.path
+
+    def test_something(tmp_path):
+        with Procs(tmp_path) as P:
+            P.router()                      # a router on a free port; P.endpoint is its tcp/127.0.0.1:PORT
+            P.start("worker", "worker")     # `vergence worker --connect <router> --rig <P.rig>`
+            with P.session() as s:          # a zenoh client session of the test itself
+                got = P.wait_key(s, "vergence/%s/command" % P.rig, timeout=10)
+        # leaving the block kills every process group started (SIGINT, then SIGKILL after a grace time)
+
+Every wait has a timeout and raises TimeoutError (with the tail of the process logs) when it expires.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+
+VERGENCE = str(Path(sys.executable).with_name("vergence"))
+
+__all__ = ["free_port", "Proc", "Procs", "wait_for", "VERGENCE"]
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nobody listens on right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(cond, timeout: float, what: str = "condition", interval: float = 0.02, logs=None):
+    """Poll cond() until it returns a true value (returned); TimeoutError after `timeout` seconds."""
+    end = time.monotonic() + timeout
+    while True:
+        v = cond()
+        if v:
+            return v
+        if time.monotonic() > end:
+            raise TimeoutError(f"timed out after {timeout} s waiting for {what}" + (f"\n{logs()}" if logs else ""))
+        time.sleep(interval)
+
+
+class Proc:
+    """One child process in its own process group, stdout and stderr in `log`."""
+
+    def __init__(self, name: str, argv: list[str], log: Path, env: dict | None = None):
+        self.name, self.argv, self.log = name, argv, log
+        self._fh = open(log, "wb")
+        self.p = subprocess.Popen(argv, stdout=self._fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                  start_new_session=True, env=env)
+        self.pid = self.p.pid
+
+    def signal(self, sig: int) -> None:
+        """Send sig to the process only (not its group)."""
+        if self.p.poll() is None:
+            os.kill(self.pid, sig)
+
+    def signal_group(self, sig: int) -> None:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(self.pid, sig)
+
+    def alive(self) -> bool:
+        return self.p.poll() is None
+
+    def wait(self, timeout: float) -> int:
+        """The exit code; TimeoutError when still running after `timeout` s."""
+        try:
+            return self.p.wait(timeout)
+        except subprocess.TimeoutExpired:
+            raise TimeoutError(f"{self.name} (pid {self.pid}) still running after {timeout} s\n{self.tail()}") \
+                from None
+
+    def text(self) -> str:
+        self._fh.flush()
+        try:
+            return self.log.read_text(errors="replace")
+        except OSError:
+            return ""
+
+    def tail(self, n: int = 30) -> str:
+        lines = self.text().splitlines()[-n:]
+        return f"--- {self.name} (pid {self.pid}, rc {self.p.poll()}) {self.log}\n" + "\n".join(lines)
+
+    def stop(self, grace: float = 5.0) -> int | None:
+        """SIGINT to the group, SIGKILL after `grace` s; always reaps. Returns the exit code."""
+        if self.p.poll() is None:
+            self.signal_group(signal.SIGINT)
+            try:
+                self.p.wait(grace)
+            except subprocess.TimeoutExpired:
+                pass
+        self.signal_group(signal.SIGKILL)  # leftovers of the group, even after the leader exited
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self.p.wait(5)
+        self._fh.close()
+        return self.p.poll()
+
+
+class Procs:
+    """A set of processes for one test around one router; a context manager that tears everything down."""
+
+    def __init__(self, tmp_path: Path, rig: str | None = None):
+        self.dir = Path(tmp_path)
+        self.rig = rig or f"t{uuid.uuid4().hex[:8]}"
+        self.procs: list[Proc] = []
+        self.port: int | None = None
+        self.endpoint: str | None = None
+        self._sessions = []
+
+    # -- processes -----------------------------------------------------------------------------------------
+
+    def spawn(self, name: str, argv: list[str], env: dict | None = None) -> Proc:
+        """Start any command (own process group, log in tmp_path/<name>.log)."""
+        e = dict(os.environ if env is None else env)
+        e.setdefault("PYTHONUNBUFFERED", "1")
+        p = Proc(name, argv, self.dir / f"{name}.log", e)
+        self.procs.append(p)
+        return p
+
+    def start(self, name: str, *args: str, connect: bool = True, rig: bool = True) -> Proc:
+        """`vergence <args>` connected to this test's router (--connect) with this test's --rig."""
+        argv = [VERGENCE, *args]
+        if connect:
+            if self.endpoint is None:
+                raise RuntimeError("start the router first (Procs.router())")
+            argv += ["--connect", self.endpoint]
+        if rig:
+            argv += ["--rig", self.rig]
+        return self.spawn(name, argv)
+
+    def router(self, timeout: float = 15.0) -> Proc:
+        """`vergence router` on a free port of 127.0.0.1; returns once it accepts TCP connections."""
+        self.port = free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        p = self.spawn("router", [VERGENCE, "router", "--listen", self.endpoint])
+
+        def up():
+            if not p.alive():
+                raise RuntimeError(f"router exited\n{p.tail()}")
+            with socket.socket() as s:
+                s.settimeout(0.2)
+                return s.connect_ex(("127.0.0.1", self.port)) == 0
+
+        wait_for(up, timeout, "the router to listen", logs=self.logs)
+        return p
+
+    def logs(self) -> str:
+        return "\n".join(p.tail() for p in self.procs)
+
+    # -- the test's own zenoh session ------------------------------------------------------------------------
+
+    def session(self):
+        """A zenoh client session connected to the router (closed at teardown if not before)."""
+        import zenoh
+
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/endpoints", f'["{self.endpoint}"]')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        s = zenoh.open(conf)
+        self._sessions.append(s)
+        return s
+
+    def key(self, suffix: str) -> str:
+        return f"vergence/{self.rig}/{suffix}"
+
+    def collect(self, session, key: str) -> "Collector":
+        """Record every sample on key (with its arrival time) from now on."""
+        return Collector(session, key, self.logs)
+
+    def wait_key(self, session, key: str, timeout: float = 10.0):
+        """The payload (bytes) of the first sample on key, within `timeout` s."""
+        c = self.collect(session, key)
+        try:
+            return c.wait(1, timeout)[0][1]
+        finally:
+            c.close()
+
+    def wait_alive(self, session, role: str, n: int = 1, timeout: float = 15.0) -> list[str]:
+        """Wait until at least n liveliness tokens vergence/<rig>/alive/<role>/* exist; their ids."""
+        def ids():
+            got = [str(r.ok.key_expr).rsplit("/", 1)[1]
+                   for r in session.liveliness().get(self.key(f"alive/{role}/*"), timeout=1.0) if r.ok]
+            return got if len(got) >= n else None
+
+        return wait_for(ids, timeout, f"{n} {role} token(s)", interval=0.1, logs=self.logs)
+
+    # -- teardown -------------------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        for s in self._sessions:
+            with contextlib.suppress(Exception):
+                s.close()
+        self._sessions = []
+        # workers and clients first, the router last
+        for p in reversed(self.procs):
+            p.stop()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class Collector:
+    """Samples of one key as (arrival time.time_ns(), payload bytes), appended from zenoh's thread."""
+
+    def __init__(self, session, key: str, logs=None):
+        self.items: list[tuple[int, bytes, str]] = []
+        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self.logs = logs
+        self.sub = session.declare_subscriber(key, self._on)
+
+    def _on(self, sample) -> None:
+        item = (time.time_ns(), sample.payload.to_bytes(), str(sample.key_expr))
+        with self._lock:
+            self.items.append(item)
+
+    def snapshot(self) -> list[tuple[int, bytes, str]]:
+        with self._lock:
+            return list(self.items)
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def wait(self, n: int, timeout: float) -> list[tuple[int, bytes, str]]:
+        """The first n samples (waiting up to `timeout` s for them)."""
+        wait_for(lambda: len(self.items) >= n, timeout, f"{n} sample(s) on {self.sub.key_expr}", logs=self.logs)
+        return self.snapshot()[:n]
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.sub.undeclare()

@@ -1,0 +1,272 @@
+"""The distributed pipeline's per-step logic, free of any network code.
+
+capture: make_frame (two images -> a messages.Frame carrying only what layer 1 needs, and the shard plan);
+workers: plan_shards (membership -> who computes which k-range), compute_partial (a Frame -> one worker's
+messages.Partial); reducer: Gatherer (Partials -> a complete profile, or a dropped frame at its deadline)
+and reduce (a complete profile -> messages.Profile and messages.Command through vergence.match.decide_scores
+and vergence.control.Controller, the very steps of vergence.match()). The services in services/ only
+subscribe, call these, and publish.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from . import kernel, retina
+from .control import ControlSettings, Controller
+from .decide import Decision
+from .match import Params, decide_scores
+from .messages import Command, Frame, Partial, Profile
+
+__all__ = ["plan_shards", "make_frame", "frame_params", "compute_partial", "reduce", "Gatherer", "Result",
+           "next_window"]
+
+
+def plan_shards(workers, k_count: int) -> list[list]:
+    """Split offsets 0..k_count-1 into contiguous ranges, one per worker (sorted by id, so every process
+    computes the same plan), sizes differing by at most one: [[id, k0, k1], ...]. More workers than offsets:
+    the extra ones get nothing. No worker: []."""
+    ids = sorted(set(workers))[: max(k_count, 0)]
+    n = len(ids)
+    plan = []
+    for i, wid in enumerate(ids):
+        k0 = i * k_count // n
+        k1 = (i + 1) * k_count // n
+        plan.append([wid, k0, k1])
+    return plan
+
+
+def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, pan_rad: float, focal_px: float,
+               params: Params, plan: list[list], at: tuple[int, int] | None = None, window: int | None = None,
+               t_capture_ns: int | None = None) -> Frame:
+    """A Frame for the fovea at `at` (default: the image centre) of the master, window w (default
+    params.window): the fovea and band gray strips with their Sobel margins, and the master band too when
+    params.lr_check needs it. Raises retina.BorderError when the window does not fit."""
+    if t_capture_ns is None:
+        t_capture_ns = time.time_ns()
+    h, wd = master.shape[:2]
+    if slave.shape[:2] != (h, wd):
+        raise ValueError(f"master and slave differ in size: {wd} x {h} and {slave.shape[1]} x {slave.shape[0]}")
+    x, y = at if at is not None else (wd // 2, h // 2)
+    w = params.window if window is None else window
+    retina.check_point(master.shape, x, y, w, params.vsearch)
+    fovea = retina.fovea_strip(master, x, y, w)
+    band = retina.band_strip(slave, y, w, params.vsearch)
+    mband = retina.band_strip(master, y, w, params.vsearch) if params.lr_check else None
+    return Frame(rig=rig, frame=frame, t_capture_ns=t_capture_ns, pan_rad=float(pan_rad), width=wd, height=h,
+                 x=x, y=y, window=w, vsearch=params.vsearch, focal_px=float(focal_px), fovea=fovea.tobytes(),
+                 band=band.tobytes(), plan=plan, circular=params.circular, support=params.support,
+                 master_band=b"" if mband is None else mband.tobytes(), support_gamma=params.support_gamma)
+
+
+def frame_params(frame: Frame, params: Params) -> Params:
+    """The network settings a frame was computed with: the frame's own window, vertical search, direction
+    comparison and support weights over the reducer's decision settings."""
+    return replace(params, window=frame.window, vsearch=frame.vsearch, circular=frame.circular,
+                   support=frame.support, support_gamma=frame.support_gamma)
+
+
+def compute_partial(frame: Frame, worker: str, t_done: bool = True) -> Partial | None:
+    """Layer 4 on this worker's k-range of the frame (None when the plan gives it nothing).
+
+    Only the band columns the range reads are turned into features (planes are local, so the result is
+    bit-identical to the unsharded computation)."""
+    rng = frame.shard(worker)
+    if rng is None:
+        return None
+    k0, k1 = rng
+    w = frame.window
+    fovea = retina.planes(frame.fovea_strip())
+    # planes column j is strip column j + 1: offsets k0..k1-1 read plane columns k0 .. k1 + w - 2
+    sub = frame.band_strip()[:, k0 : k1 + w + 1]
+    band = retina.planes(sub)
+    weights = kernel.support_weights(fovea, frame.support_gamma) if frame.support else None
+    scores = np.atleast_2d(kernel.correlate(fovea, band, circular=frame.circular, weights=weights))
+    return Partial(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, worker=worker, k0=k0, k1=k1,
+                   rows=scores.shape[0], scores=scores.astype("<f8", copy=False).tobytes(),
+                   t_done_ns=time.time_ns() if t_done else 0)
+
+
+def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
+    """vergence.match.decide_scores on a frame's complete scores: the decision of vergence.match() itself.
+
+    The bands' features (for the left-right check) are computed only when the check can change the result,
+    i.e. when the decision without it is confident; decide_scores is then called again with them."""
+    p = frame_params(frame, params)
+    fovea = retina.planes(frame.fovea_strip())
+    y = scores[0] if scores.shape[0] == 1 else scores
+    d = decide_scores(y, fovea, frame.x, p)
+    mstrip = frame.master_band_strip()
+    if p.lr_check and d.confident and mstrip is not None:
+        d = decide_scores(y, fovea, frame.x, p, retina.planes(mstrip), retina.planes(frame.band_strip()))
+    return d
+
+
+def reduce(frame: Frame, scores: np.ndarray, params: Params, controller: Controller,
+           t_reduced_ns: int | None = None) -> tuple[Profile, Command | None]:
+    """A complete profile -> (Profile, Command or None when the controller says not to move)."""
+    d = decide_frame(frame, scores, params)
+    now = time.time_ns() if t_reduced_ns is None else t_reduced_ns
+    workers = [str(e[0]) for e in frame.plan]
+    prof = Profile(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, t_reduced_ns=now,
+                   width=frame.width, window=frame.window, rows=scores.shape[0],
+                   scores=np.ascontiguousarray(scores, "<f8").tobytes(), k=d.k, k_sub=d.k_sub, v_shift=d.v,
+                   k_centre=d.k_centre, direction=d.direction, magnitude=d.magnitude, offset_px=d.offset_px,
+                   confidence=d.confidence, confident=d.confident,
+                   texture=d.texture if math.isfinite(d.texture) else 0.0, pan_rad=frame.pan_rad, workers=workers)
+    target = controller.target(frame.pan_rad, d.offset_px, frame.focal_px, d.confident,
+                               centre_px=frame.x - frame.width // 2)
+    if target is None:
+        return prof, None
+    cmd = Command(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, pan_rad=target,
+                  correction_rad=target - frame.pan_rad, direction=d.direction, magnitude_px=abs(d.offset_px),
+                  confidence=d.confidence, t_sent_ns=time.time_ns())
+    return prof, cmd
+
+
+def next_window(current: int, params: Params, confident: bool | None) -> int:
+    """The dynamic window of the service: grow w by 8 px (up to params.max_window) while the latest profile
+    is not confident, go back to params.window once it is. max_window 0 keeps params.window."""
+    if not params.max_window or confident is None:
+        return current
+    if confident:
+        return params.window
+    return current + 8 if current + 8 <= params.max_window else current
+
+
+@dataclass
+class Result:
+    """A complete frame, reduced: its profile and its command (None: do not move)."""
+
+    frame: Frame
+    profile: Profile
+    command: Command | None
+
+
+@dataclass
+class _Pending:
+    t_first: float
+    frame: Frame | None = None
+    partials: dict[str, Partial] = field(default_factory=dict)
+
+
+class Gatherer:
+    """Assembles workers' Partials into complete profiles, by the plan each Frame carries.
+
+    A frame is complete when its Frame and one Partial per plan entry (same worker, same k-range) are in;
+    it is then reduced at once. A frame not complete `deadline_s` after its first message is dropped and
+    counted; so is every older frame still pending once a newer one completes (a command is never older
+    than one already sent). Nothing is ever published from an incomplete profile.
+
+    counters: frames (Frames accepted), partials, complete, dropped (deadline), superseded, no_plan,
+    unexpected (a Partial for no shard of its frame's plan, or a duplicate), late (for a frame already
+    done or dropped), bad (a Partial that does not fit its frame)."""
+
+    MAX_PENDING = 256
+
+    def __init__(self, params: Params, control: ControlSettings | None = None, deadline_s: float = 0.05):
+        self.params = params
+        self.controller = Controller(control)
+        self.deadline_s = deadline_s
+        self.pending: dict[int, _Pending] = {}
+        self.done_upto = -1  # every frame id <= this is finished (reduced, dropped or superseded)
+        self.counters = dict(frames=0, partials=0, complete=0, dropped=0, superseded=0, no_plan=0,
+                             unexpected=0, late=0, bad=0)
+
+    def _entry(self, frame_id: int, now: float) -> _Pending | None:
+        if frame_id <= self.done_upto:
+            self.counters["late"] += 1
+            return None
+        e = self.pending.get(frame_id)
+        if e is None:
+            if len(self.pending) >= self.MAX_PENDING:
+                oldest = min(self.pending)
+                del self.pending[oldest]
+                self.counters["dropped"] += 1
+            e = self.pending[frame_id] = _Pending(now)
+        return e
+
+    def add_frame(self, frame: Frame, now: float | None = None) -> list[Result]:
+        now = time.monotonic() if now is None else now
+        if not frame.plan:
+            self.counters["no_plan"] += 1
+            return self.expire(now)
+        e = self._entry(frame.frame, now)
+        if e is None:
+            return self.expire(now)
+        if e.frame is not None:
+            self.counters["unexpected"] += 1
+            return self.expire(now)
+        self.counters["frames"] += 1
+        e.frame = frame
+        # partials that came first but do not fit this plan
+        for wid in [w for w, p in e.partials.items() if frame.shard(w) != (p.k0, p.k1)]:
+            del e.partials[wid]
+            self.counters["unexpected"] += 1
+        return self._try(frame.frame, e, now)
+
+    def add_partial(self, partial: Partial, now: float | None = None) -> list[Result]:
+        now = time.monotonic() if now is None else now
+        e = self._entry(partial.frame, now)
+        if e is None:
+            return self.expire(now)
+        self.counters["partials"] += 1
+        if partial.worker in e.partials or (e.frame is not None and
+                                            e.frame.shard(partial.worker) != (partial.k0, partial.k1)):
+            self.counters["unexpected"] += 1
+            return self.expire(now)
+        e.partials[partial.worker] = partial
+        return self._try(partial.frame, e, now)
+
+    def _try(self, fid: int, e: _Pending, now: float) -> list[Result]:
+        out = self.expire(now)
+        f = e.frame
+        if f is None or len(e.partials) != len(f.plan) or fid not in self.pending:
+            return out
+        rows = 2 * f.vsearch + 1
+        parts = []
+        for wid, k0, k1 in f.plan:
+            p = e.partials[wid]
+            a = p.array()
+            if a.shape != (rows, k1 - k0):
+                self.counters["bad"] += 1
+                del self.pending[fid]
+                self.counters["dropped"] += 1
+                self._finish(fid)
+                return out
+            parts.append(a)
+        scores = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+        del self.pending[fid]
+        self._finish(fid)
+        prof, cmd = reduce(f, scores, self.params, self.controller)
+        self.counters["complete"] += 1
+        out.append(Result(f, prof, cmd))
+        return out
+
+    def _finish(self, fid: int) -> None:
+        """Frame fid is done: every older pending frame is superseded."""
+        for old in [k for k in self.pending if k < fid]:
+            del self.pending[old]
+            self.counters["superseded"] += 1
+        self.done_upto = max(self.done_upto, fid)
+
+    def expire(self, now: float | None = None) -> list[Result]:
+        """Drop the frames whose deadline has passed; returns [] (a uniform return for the callers)."""
+        now = time.monotonic() if now is None else now
+        limit = now - self.deadline_s
+        for fid in [k for k, e in self.pending.items() if e.t_first <= limit]:
+            del self.pending[fid]
+            self.counters["dropped"] += 1
+            self.done_upto = max(self.done_upto, fid)
+        return []
+
+    def next_deadline(self) -> float | None:
+        """Monotonic time of the earliest pending deadline, None when nothing is pending."""
+        if not self.pending:
+            return None
+        return min(e.t_first for e in self.pending.values()) + self.deadline_s
+

@@ -1,0 +1,217 @@
+"""Stereo sources for the capture: plain classes that hand out (master, slave) gray image pairs.
+
+    files:LEFT,RIGHT     one image pair, read once, given out again and again
+    video:LEFT,RIGHT     two video files read in step (rewound at the end)
+    camera:0,1           two OpenCV devices (indices or paths)
+    sim[:key=value:...]  the rig simulator (vergence.sim.Rig.from_spec); the slave is rendered at the pan
+                         the capture passes in, so the loop closes through the motor state
+
+Every source has .size (W, H), .focal_px (0: unknown, the capture picks one), .start_pan_rad, read(pan_rad)
+-> (master, slave) uint8 gray arrays (the caller must not modify them), and close(). `master` says which
+camera is the fixed one ("left" or "right"). Errors are SourceError naming the file or device and the fix.
+No network code here.
+"""
+
+from __future__ import annotations
+
+import os
+
+import cv2
+import numpy as np
+
+__all__ = ["SourceError", "Source", "FilesSource", "VideoSource", "CameraSource", "SimSource", "open_source"]
+
+
+class SourceError(ValueError):
+    """A source that cannot be opened or read; the message names it and says how to fix it."""
+
+
+def _gray(img: np.ndarray) -> np.ndarray:
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    return np.ascontiguousarray(img)
+
+
+def _pair(rest: str, kind: str) -> tuple[str, str]:
+    parts = [p.strip() for p in rest.split(",")]
+    if len(parts) != 2 or not all(parts):
+        raise SourceError(f"source {kind}:{rest!r}: want {kind}:LEFT,RIGHT (two items separated by a comma)")
+    return parts[0], parts[1]
+
+
+class Source:
+    """The interface: size, focal_px, start_pan_rad, read(pan_rad), close()."""
+
+    size: tuple[int, int] = (0, 0)
+    focal_px: float = 0.0
+    start_pan_rad: float = 0.0
+
+    def __init__(self, master: str = "left"):
+        if master not in ("left", "right"):
+            raise SourceError(f"capture.master must be 'left' or 'right', got {master!r}")
+        self.swap = master == "right"
+
+    def _order(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return (right, left) if self.swap else (left, right)
+
+    def read(self, pan_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _check_pair(a: np.ndarray, b: np.ndarray, what: str) -> tuple[int, int]:
+    if a.shape != b.shape:
+        raise SourceError(f"{what}: left is {a.shape[1]} x {a.shape[0]}, right is {b.shape[1]} x {b.shape[0]}; "
+                          "both cameras must give images of the same size")
+    return a.shape[1], a.shape[0]
+
+
+class FilesSource(Source):
+    """One still pair, read once at start (no per-frame work: read() returns the same arrays)."""
+
+    def __init__(self, left: str, right: str, master: str = "left"):
+        super().__init__(master)
+        imgs = []
+        for path in (left, right):
+            if not os.path.isfile(path):
+                raise SourceError(f"files source: cannot read {path!r}: no such file")
+            img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+            if img is None:
+                raise SourceError(f"files source: {path!r} is not an image OpenCV can decode")
+            imgs.append(np.ascontiguousarray(img))
+        self.size = _check_pair(imgs[0], imgs[1], f"files:{left},{right}")
+        self.pair = self._order(imgs[0], imgs[1])
+
+    def read(self, pan_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        return self.pair
+
+
+class VideoSource(Source):
+    """Two video files read frame by frame in step; both are rewound when either ends."""
+
+    def __init__(self, left: str, right: str, master: str = "left"):
+        super().__init__(master)
+        self.paths = (left, right)
+        self.caps = []
+        for path in self.paths:
+            if not os.path.isfile(path):
+                self.close()
+                raise SourceError(f"video source: cannot read {path!r}: no such file")
+            cap = cv2.VideoCapture(path)
+            if not cap.isOpened():
+                self.close()
+                raise SourceError(f"video source: OpenCV cannot open {path!r} (not a video, or no codec for it)")
+            self.caps.append(cap)
+        a, b = self._grab()
+        self.size = _check_pair(a, b, f"video:{left},{right}")
+        self.first = self._order(a, b)
+
+    def _grab(self) -> tuple[np.ndarray, np.ndarray]:
+        out = []
+        for cap, path in zip(self.caps, self.paths):
+            ok, img = cap.read()
+            if not ok:
+                cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+                ok, img = cap.read()
+                if not ok:
+                    raise SourceError(f"video source: no frame can be read from {path!r}")
+            out.append(_gray(img))
+        return out[0], out[1]
+
+    def read(self, pan_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        if self.first is not None:
+            pair, self.first = self.first, None
+            return pair
+        return self._order(*self._grab())
+
+    def close(self) -> None:
+        for cap in self.caps:
+            cap.release()
+        self.caps = []
+
+
+class CameraSource(Source):
+    """Two OpenCV capture devices (an index like 0, or a device path like /dev/video2)."""
+
+    def __init__(self, left: str, right: str, master: str = "left", size: tuple[int, int] | None = None):
+        super().__init__(master)
+        self.caps = []
+        self.names = (left, right)
+        for name in self.names:
+            dev = int(name) if name.isdigit() else name
+            cap = cv2.VideoCapture(dev)
+            if not cap.isOpened():
+                self.close()
+                raise SourceError(
+                    f"camera source: cannot open camera {name!r}. Check that it is plugged in and not used by "
+                    "another program, list devices with `ls /dev/video*` (or `v4l2-ctl --list-devices`), "
+                    "check that this user may read them (group 'video'), and pass their indices or paths as "
+                    "camera:LEFT,RIGHT (for example camera:0,2)")
+            if size is not None:
+                cap.set(cv2.CAP_PROP_FRAME_WIDTH, size[0])
+                cap.set(cv2.CAP_PROP_FRAME_HEIGHT, size[1])
+            self.caps.append(cap)
+        a, b = self._grab()
+        self.size = _check_pair(a, b, f"camera:{left},{right}")
+
+    def _grab(self) -> tuple[np.ndarray, np.ndarray]:
+        for cap in self.caps:  # grab both first, then decode: the two exposures are as close as possible
+            cap.grab()
+        out = []
+        for cap, name in zip(self.caps, self.names):
+            ok, img = cap.retrieve()
+            if not ok or img is None:
+                raise SourceError(f"camera source: camera {name!r} gave no image (unplugged, or busy?)")
+            out.append(_gray(img))
+        return out[0], out[1]
+
+    def read(self, pan_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        return self._order(*self._grab())
+
+    def close(self) -> None:
+        for cap in self.caps:
+            cap.release()
+        self.caps = []
+
+
+class SimSource(Source):
+    """The rig simulator: the master view is fixed, the slave is rendered at the pan given to read()."""
+
+    def __init__(self, spec: str = ""):
+        super().__init__("left")
+        from .sim import Rig  # the simulator is only loaded when used
+
+        try:
+            self.rig = Rig.from_spec(spec)
+        except (ValueError, OSError) as e:
+            raise SourceError(str(e)) from None
+        self.size = tuple(self.rig.size)
+        self.focal_px = float(self.rig.focal_px)
+        self.start_pan_rad = float(self.rig.start_pan_rad)
+
+    def read(self, pan_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        return self.rig.render(pan_rad)
+
+
+def open_source(spec: str, master: str = "left") -> Source:
+    """A source from its text: files:L,R | video:L,R | camera:0,1 | sim[:key=value:...]."""
+    kind, _, rest = (spec or "").partition(":")
+    kind = kind.strip()
+    if kind == "files":
+        return FilesSource(*_pair(rest, kind), master=master)
+    if kind == "video":
+        return VideoSource(*_pair(rest, kind), master=master)
+    if kind == "camera":
+        return CameraSource(*_pair(rest, kind), master=master)
+    if kind == "sim":
+        return SimSource(rest)
+    raise SourceError(f"unknown source {spec!r}: want files:LEFT,RIGHT, video:LEFT,RIGHT, camera:0,1 or "
+                      "sim[:key=value:...]")
