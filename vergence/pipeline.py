@@ -23,7 +23,7 @@ from .match import Params, decide_scores
 from .messages import Command, Frame, Partial, Profile
 
 __all__ = ["plan_shards", "make_frame", "frame_params", "compute_partial", "reduce", "Gatherer", "Result",
-           "next_window"]
+           "WindowControl", "Health"]
 
 
 def plan_shards(workers, k_count: int) -> list[list]:
@@ -128,16 +128,6 @@ def reduce(frame: Frame, scores: np.ndarray, params: Params, controller: Control
     return prof, cmd
 
 
-def next_window(current: int, params: Params, confident: bool | None) -> int:
-    """The dynamic window of the service: grow w by 8 px (up to params.max_window) while the latest profile
-    is not confident, go back to params.window once it is. max_window 0 keeps params.window."""
-    if not params.max_window or confident is None:
-        return current
-    if confident:
-        return params.window
-    return current + 8 if current + 8 <= params.max_window else current
-
-
 @dataclass
 class Result:
     """A complete frame, reduced: its profile and its command (None: do not move)."""
@@ -164,9 +154,11 @@ class Gatherer:
 
     counters: frames (Frames accepted), partials, complete, dropped (deadline), superseded, no_plan,
     unexpected (a Partial for no shard of its frame's plan, or a duplicate), late (for a frame already
-    done or dropped), bad (a Partial that does not fit its frame)."""
+    done or dropped), bad (a Partial that does not fit its frame), restarts (frame ids jumped back by more
+    than RESTART_GAP: a new capture)."""
 
     MAX_PENDING = 256
+    RESTART_GAP = 1000
 
     def __init__(self, params: Params, control: ControlSettings | None = None, deadline_s: float = 0.05):
         self.params = params
@@ -175,7 +167,7 @@ class Gatherer:
         self.pending: dict[int, _Pending] = {}
         self.done_upto = -1  # every frame id <= this is finished (reduced, dropped or superseded)
         self.counters = dict(frames=0, partials=0, complete=0, dropped=0, superseded=0, no_plan=0,
-                             unexpected=0, late=0, bad=0)
+                             unexpected=0, late=0, bad=0, restarts=0)
 
     def _entry(self, frame_id: int, now: float) -> _Pending | None:
         if frame_id <= self.done_upto:
@@ -195,6 +187,10 @@ class Gatherer:
         if not frame.plan:
             self.counters["no_plan"] += 1
             return self.expire(now)
+        if frame.frame < self.done_upto - self.RESTART_GAP:  # the capture restarted: its ids start again
+            self.pending.clear()
+            self.done_upto = frame.frame - 1
+            self.counters["restarts"] += 1
         e = self._entry(frame.frame, now)
         if e is None:
             return self.expire(now)
@@ -270,3 +266,63 @@ class Gatherer:
             return None
         return min(e.t_first for e in self.pending.values()) + self.deadline_s
 
+
+
+class WindowControl:
+    """The dynamic window of the service, driven by the profiles coming back to the capture.
+
+    Only a profile computed with the current window counts (frames in flight with an older one are
+    ignored). Not confident: grow w by 8 px up to params.max_window. Confident `patience` times in a row:
+    shrink by 8 px toward params.window, so a scene that needs the larger window does not flip every frame.
+    params.max_window = 0 keeps params.window."""
+
+    def __init__(self, params: Params, patience: int = 30):
+        self.base = params.window
+        self.max = max(params.max_window, params.window) if params.max_window else params.window
+        self.window = self.base
+        self.patience = patience
+        self.streak = 0
+
+    def update(self, window: int, confident: bool) -> int:
+        if window != self.window:
+            return self.window
+        if not confident:
+            self.streak = 0
+            if self.window + 8 <= self.max:
+                self.window += 8
+        else:
+            self.streak += 1
+            if self.streak >= self.patience and self.window - 8 >= self.base:
+                self.window -= 8
+                self.streak = 0
+        return self.window
+
+
+class Health:
+    """Counters of one process and the bad-message policy: count, log once per kind, skip.
+
+    status() is what the services publish as JSON on vergence/<rig>/status/<role>/<id>."""
+
+    def __init__(self, role: str, ident: str, log=None):
+        self.role, self.ident, self.log = role, ident, log
+        self.counters: dict[str, int] = {}
+        self.bad: dict[str, int] = {}
+        self._logged: set[str] = set()
+
+    def count(self, name: str, n: int = 1) -> None:
+        self.counters[name] = self.counters.get(name, 0) + n
+
+    def reject(self, kind: str, err: Exception | str) -> None:
+        """A message of `kind` that failed to decode or validate: counted, logged the first time."""
+        self.bad[kind] = self.bad.get(kind, 0) + 1
+        if kind not in self._logged and self.log is not None:
+            self._logged.add(kind)
+            self.log.warning("bad %s message skipped (further ones are only counted): %s", kind, err)
+
+    def status(self, **extra) -> dict:
+        import os
+
+        d = {"role": self.role, "id": self.ident, "pid": os.getpid(), "t_ns": time.time_ns(),
+             "counters": dict(self.counters), "bad": dict(self.bad)}
+        d.update(extra)
+        return d

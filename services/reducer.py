@@ -1,0 +1,142 @@
+"""`vergence reducer`: gathers the shards of each frame, decides, publishes the profile and the command.
+
+Subscribes to vergence/<rig>/frame and vergence/<rig>/correlation/*; vergence.pipeline.Gatherer assembles
+each frame by the plan the frame carries, drops (and counts) a frame whose shards miss the deadline
+([reducer] deadline_ms), and reduces a complete one with vergence.match.decide_scores and the controller.
+Publishes messages.Profile on vergence/<rig>/profile and, when the controller moves the slave,
+messages.Command on vergence/<rig>/command; never from an incomplete profile. Counters go out as JSON on
+vergence/<rig>/status/reducer/<id> every second and at exit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import queue
+import sys
+import time
+
+import zenoh
+
+from vergence import pipeline
+from vergence.config import ConfigError, load
+from vergence.messages import Frame, MessageError, Partial
+
+from . import session
+
+log = logging.getLogger("vergence.reducer")
+STATUS_S = 1.0
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    session.add_options(p)
+    p.add_argument("--deadline-ms", type=float, default=None, help="drop a frame whose shards are not all in "
+                                                                   "by then (default: settings, 50)")
+
+
+def warm_up(settings) -> None:
+    """Decide once on a synthetic textured frame (left-right check included), so the first real frame
+    does not pay for loading the compiled kernels."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (64, 128), np.uint8)
+    p = dataclasses.replace(settings.network, window=15, vsearch=min(settings.network.vsearch, 2))
+    g = pipeline.Gatherer(p, settings.control)
+    f = pipeline.make_frame(img, img, rig="warm", frame=0, pan_rad=0.0, focal_px=100.0, params=p,
+                            plan=[["w", 0, 128 - 15 + 1]])
+    g.add_frame(f)
+    g.add_partial(pipeline.compute_partial(f, "w"))
+
+
+def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | None = None) -> int:
+    rig = settings.rig
+    warm_up(settings)
+    deadline = (deadline_ms if deadline_ms is not None else settings.reducer.deadline_ms) / 1000.0
+    gatherer = pipeline.Gatherer(settings.network, settings.control, deadline)
+    alive = session.alive_key(rig, "reducer")
+    rid = alive.rsplit("/", 1)[1]
+    health = pipeline.Health("reducer", rid, log)
+    inbox: queue.SimpleQueue = queue.SimpleQueue()
+    prefix = f"vergence/{rig}/correlation/"
+    with session.open_session(conf) as s:
+        pub_profile = s.declare_publisher(f"vergence/{rig}/profile", express=True)
+        pub_command = s.declare_publisher(f"vergence/{rig}/command", express=True)
+        pub_status = s.declare_publisher(f"vergence/{rig}/status/reducer/{rid}")
+        s.declare_subscriber(f"vergence/{rig}/frame", lambda smp: inbox.put((0, smp.payload.to_bytes(), "")))
+        s.declare_subscriber(prefix + "*", lambda smp: inbox.put((1, smp.payload.to_bytes(),
+                                                                  str(smp.key_expr))))
+        token = s.liveliness().declare_token(alive)
+        log.info("reducer %s on vergence/%s/{frame,correlation/*}, deadline %.0f ms", rid, rig, deadline * 1e3)
+
+        def status(**extra) -> bytes:
+            return json.dumps(health.status(gatherer=gatherer.counters, pending=len(gatherer.pending),
+                                            **extra)).encode()
+
+        next_status = time.monotonic() + STATUS_S
+        try:
+            while not stop.is_set():
+                now = time.monotonic()
+                if now >= next_status:
+                    pub_status.put(status())
+                    next_status = now + STATUS_S
+                nd = gatherer.next_deadline()
+                timeout = min(0.1, next_status - now, max(0.0, nd - now) + 1e-4 if nd is not None else 0.1)
+                try:
+                    kind, data, key = inbox.get(timeout=max(timeout, 1e-4))
+                except queue.Empty:
+                    gatherer.expire()
+                    continue
+                if kind == 0:
+                    try:
+                        frame = Frame.from_bytes(data)
+                    except MessageError as e:
+                        health.reject("frame", e)
+                        continue
+                    try:
+                        results = gatherer.add_frame(frame)
+                    except (ValueError, TypeError) as e:  # a frame that validates but cannot be decided on
+                        health.reject("frame", e)
+                        continue
+                else:
+                    try:
+                        part = Partial.from_bytes(data)
+                        if key[len(prefix):] != part.worker:
+                            raise MessageError(f"partial from worker {part.worker!r} on key {key}")
+                    except MessageError as e:
+                        health.reject("partial", e)
+                        continue
+                    try:
+                        results = gatherer.add_partial(part)
+                    except (ValueError, TypeError) as e:
+                        health.reject("partial", e)
+                        continue
+                for r in results:
+                    pub_profile.put(r.profile.to_bytes())
+                    health.count("profiles")
+                    if r.command is not None:
+                        pub_command.put(r.command.to_bytes())
+                        health.count("commands")
+        finally:
+            token.undeclare()
+            pub_status.put(status(exiting=True))
+            log.info("reducer %s exits: %s gatherer %s bad %s", rid, health.counters, gatherer.counters, health.bad)
+    return 0
+
+
+def settings_from_args(args: argparse.Namespace):
+    st = load(args.config)
+    return dataclasses.replace(st, **({"rig": args.rig} if args.rig else {}))
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
+    try:
+        settings = settings_from_args(args)
+    except ConfigError as e:
+        print(f"vergence reducer: {e}", file=sys.stderr)
+        return 2
+    stop = session.Stop()
+    return main(settings, session.config_from_args(args), stop, args.deadline_ms)
