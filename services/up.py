@@ -1,0 +1,131 @@
+"""`vergence up [--workers N] [--source SPEC] [--driver sim] [--listen ENDPOINT]`: the whole pipeline here.
+
+Starts, as child processes: a Zenoh router listening on ENDPOINT (default tcp/127.0.0.1:7447), the actuator,
+N workers, the reducer and the capture, all connected to that router. With no arguments it runs the simulated
+rig. SIGINT (Ctrl-C) or SIGTERM stops the children in order (capture first, router last), each with SIGINT and
+then SIGKILL after a grace time; children also get SIGTERM if `up` itself dies (Linux parent-death signal),
+so nothing is left behind. A child that exits on its own is reported; if the router exits, everything stops.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from vergence.config import ConfigError, load
+
+from . import session
+
+log = logging.getLogger("vergence.up")
+GRACE_S = 5.0
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--workers", "-n", type=int, default=2, help="number of worker processes (default 2)")
+    p.add_argument("--source", default=None, metavar="SPEC", help="capture source (default: settings, sim)")
+    p.add_argument("--driver", default=None, help="actuator driver (default: settings, sim)")
+    p.add_argument("--port", default=None, metavar="URL", help="actuator serial port (real drivers)")
+    p.add_argument("--rate", type=float, default=None, metavar="HZ", help="capture rate (default: settings, 30)")
+    p.add_argument("--listen", "-l", default=session.DEFAULT_ROUTER, metavar="ENDPOINT",
+                   help=f"the embedded router's endpoint, the one every child connects to (default "
+                        f"{session.DEFAULT_ROUTER})")
+    p.add_argument("--no-actuator", action="store_true", help="do not start the actuator (a real one runs "
+                                                                "elsewhere)")
+    p.add_argument("--rig", default=None, help="rig name, the key prefix vergence/<rig>/ (default: head)")
+    p.add_argument("--config", metavar="FILE", help="vergence settings (TOML), passed to every child")
+
+
+def _die_with_parent() -> None:
+    """preexec_fn: SIGTERM this child when its parent dies (Linux), then a session of its own."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+def commands(args: argparse.Namespace, rig: str) -> list[tuple[str, list[str]]]:
+    """(name, argv) of every child, in start order: router, actuator, workers, reducer, capture."""
+    base = [sys.executable, "-m", "services.cli"]
+    common = ["--connect", args.listen, "--rig", rig] + (["--config", args.config] if args.config else [])
+    out = [("router", base + ["router", "--listen", args.listen])]
+    if not args.no_actuator:
+        act = base + ["actuator"] + common
+        if args.driver:
+            act += ["--driver", args.driver]
+        if args.port:
+            act += ["--port", args.port]
+        out.append(("actuator", act))
+    for i in range(args.workers):
+        out.append((f"worker{i + 1}", base + ["worker", "--name", f"w{i + 1}"] + common))
+    out.append(("reducer", base + ["reducer"] + common))
+    cap = base + ["capture"] + common
+    if args.source:
+        cap += ["--source", args.source]
+    if args.rate is not None:
+        cap += ["--rate", str(args.rate)]
+    out.append(("capture", cap))
+    return out
+
+
+def stop_all(children: list[tuple[str, subprocess.Popen]]) -> None:
+    """SIGINT each child (latest started first), wait up to GRACE_S, then SIGKILL its group."""
+    for name, p in reversed(children):
+        if p.poll() is None:
+            try:
+                os.killpg(p.pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass
+            try:
+                p.wait(GRACE_S)
+            except subprocess.TimeoutExpired:
+                log.warning("%s (pid %d) did not stop in %.0f s: killed", name, p.pid, GRACE_S)
+        try:
+            os.killpg(p.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+        p.wait()
+        log.info("%s stopped (exit %s)", name, p.returncode)
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
+    if args.workers < 1:
+        print("vergence up: --workers must be at least 1", file=sys.stderr)
+        return 2
+    try:
+        settings = load(args.config)
+    except ConfigError as e:
+        print(f"vergence up: {e}", file=sys.stderr)
+        return 2
+    rig = args.rig or settings.rig
+    stop = session.Stop()
+    children: list[tuple[str, subprocess.Popen]] = []
+    code = 0
+    try:
+        for name, argv in commands(args, rig):
+            if stop.is_set():
+                break
+            children.append((name, subprocess.Popen(argv, preexec_fn=_die_with_parent, start_new_session=True,
+                                                    stdin=subprocess.DEVNULL)))
+            log.info("started %s (pid %d): %s", name, children[-1][1].pid, " ".join(argv[3:]))
+            if name == "router":
+                time.sleep(0.3)  # let it listen before the clients connect (they retry anyway)
+        reported: set[str] = set()
+        while not stop.wait(0.2):
+            for name, p in children:
+                if p.poll() is not None and name not in reported:
+                    reported.add(name)
+                    log.warning("%s (pid %d) exited with %s", name, p.pid, p.returncode)
+                    if name == "router":
+                        code = 1
+                        stop.set()
+    finally:
+        stop_all(children)
+    return code
