@@ -104,6 +104,14 @@ class TransientError(MotorError):
     """A transaction failed after its retries (timeout, bad CRC, a status error): counted, never fatal."""
 
 
+try:  # pyserial's posix backend lets termios.error (not an OSError) out of flush/reconfigure on a dead tty
+    import termios as _termios
+    _TERMIOS_ERRORS: tuple[type[BaseException], ...] = (_termios.error,)
+except ImportError:  # pragma: no cover - windows
+    _TERMIOS_ERRORS = ()
+IO_ERRORS: tuple[type[BaseException], ...] = (OSError,) + _TERMIOS_ERRORS  # serial.SerialException is an OSError
+
+
 def port_hint(port: str, err: object) -> str:
     return (f"cannot open serial port {port!r}: {err}. List the ports with `python -m serial.tools.list_ports "
             f"-v` (or `ls /dev/serial/by-id/`), then pass --port or set [actuator] port in the settings")
