@@ -94,15 +94,16 @@ def compute_partial(frame: Frame, worker: str, t_done: bool = True) -> Partial |
 def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
     """vergence.match.decide_scores on a frame's complete scores: the decision of vergence.match() itself.
 
-    The bands' features (for the left-right check) are computed only when the check can change the result,
-    i.e. when the decision without it is confident; decide_scores is then called again with them."""
+    The slave band's features (for the left-right check, with the master band's gray strip) are computed
+    only when the check can change the result, i.e. when the decision without it is confident;
+    decide_scores is then called again with them."""
     p = frame_params(frame, params)
     fovea = retina.planes(frame.fovea_strip())
     y = scores[0] if scores.shape[0] == 1 else scores
     d = decide_scores(y, fovea, frame.x, p)
     mstrip = frame.master_band_strip()
     if p.lr_check and d.confident and mstrip is not None:
-        d = decide_scores(y, fovea, frame.x, p, retina.planes(mstrip), retina.planes(frame.band_strip()))
+        d = decide_scores(y, fovea, frame.x, p, mstrip, retina.planes(frame.band_strip()))
     return d
 
 

@@ -1,0 +1,238 @@
+"""vergence.pipeline and vergence.sources: the distributed steps as plain functions, no network."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from vergence import kernel, match, pipeline, retina
+from vergence.control import ControlSettings, Controller
+from vergence.match import Params
+from vergence.messages import Frame, MessageError, Partial
+from vergence.sources import FilesSource, SimSource, SourceError, open_source
+
+SHIFT = 12  # the slave sees the scene 12 px further left: the match lies 12 px right of the centre
+
+
+def textured(h=120, w=200, seed=1, shift=SHIFT):
+    rng = np.random.default_rng(seed)
+    base = cv2.GaussianBlur(rng.integers(0, 256, (h, w + 40), np.uint8), (5, 5), 1.5)
+    return np.ascontiguousarray(base[:, 20 : 20 + w]), np.ascontiguousarray(base[:, 20 - shift : 20 - shift + w])
+
+
+def frame_of(master, slave, params, workers=("a",), fid=1, pan=0.0, focal=100.0, window=None):
+    k = master.shape[1] - (window or params.window) + 1
+    return pipeline.make_frame(master, slave, rig="r", frame=fid, pan_rad=pan, focal_px=focal, params=params,
+                               plan=pipeline.plan_shards(workers, k), window=window)
+
+
+@pytest.mark.parametrize("n,k,expect", [
+    (1, 10, [["w0", 0, 10]]),
+    (2, 10, [["w0", 0, 5], ["w1", 5, 10]]),
+    (3, 10, [["w0", 0, 3], ["w1", 3, 6], ["w2", 6, 10]]),
+    (4, 2, [["w0", 0, 1], ["w1", 1, 2]]),
+    (0, 10, []),
+], ids=["one", "two", "three-uneven", "more-workers-than-offsets", "none"])
+def test_plan_shards(n, k, expect):
+    assert pipeline.plan_shards([f"w{i}" for i in reversed(range(n))], k) == expect
+
+
+def test_plan_is_a_valid_frame_plan():
+    m, s = textured()
+    f = frame_of(m, s, Params(), workers=["z", "b", "m"])
+    assert [e[0] for e in f.plan] == ["b", "m", "z"]
+    Frame.from_bytes(f.to_bytes())  # validates the partition
+
+
+@pytest.mark.parametrize("params", [Params(), Params.paper(), Params(vsearch=0, circular=False),
+                                    Params(support=True)], ids=["default", "paper", "flat", "support"])
+@pytest.mark.parametrize("nworkers", [1, 2, 3])
+def test_shards_concatenate_to_correlate(params, nworkers):
+    m, s = textured()
+    f = Frame.from_bytes(frame_of(m, s, params, workers=[f"w{i}" for i in range(nworkers)]).to_bytes())
+    parts = [Partial.from_bytes(pipeline.compute_partial(f, f"w{i}").to_bytes()) for i in range(nworkers)]
+    got = np.concatenate([p.array() for p in parts], axis=1)
+    fovea, band = retina.features(m, s, window=params.window, vsearch=params.vsearch)
+    w = kernel.support_weights(fovea, params.support_gamma) if params.support else None
+    want = np.atleast_2d(kernel.correlate(fovea, band, circular=params.circular, weights=w))
+    assert got.shape == want.shape == (2 * params.vsearch + 1, m.shape[1] - params.window + 1)
+    assert np.array_equal(got, want)
+    assert pipeline.compute_partial(f, "nobody") is None
+
+
+@pytest.mark.parametrize("params", [Params(max_window=0), Params.paper()], ids=["default", "paper"])
+def test_reduce_equals_match(params):
+    m, s = textured()
+    f = frame_of(m, s, params, pan=0.1, focal=150.0)
+    scores = np.atleast_2d(pipeline.compute_partial(f, "a").array())
+    prof, cmd = pipeline.reduce(f, scores, params, Controller())
+    d = match(m, s, params=params).decision
+    assert (prof.k, prof.k_sub, prof.v_shift, prof.confident) == (d.k, d.k_sub, d.v, d.confident)
+    assert prof.k - prof.k_centre == SHIFT and prof.workers == ["a"]
+    assert cmd is not None and cmd.frame == 1
+    assert cmd.pan_rad == pytest.approx(0.1 + math.atan(d.offset_px / 150.0))
+    assert cmd.correction_rad == pytest.approx(math.atan(d.offset_px / 150.0))
+    assert cmd.direction == 1 and cmd.magnitude_px == pytest.approx(abs(d.offset_px))
+
+
+def test_reduce_flat_fovea_gives_no_command():
+    m = np.full((60, 100), 90, np.uint8)
+    f = frame_of(m, m, Params())
+    prof, cmd = pipeline.reduce(f, np.atleast_2d(pipeline.compute_partial(f, "a").array()), Params(), Controller())
+    assert not prof.confident and cmd is None
+
+
+def gather(params=Params(max_window=0), deadline=0.05):
+    return pipeline.Gatherer(params, ControlSettings(), deadline)
+
+
+def test_gatherer_complete_in_any_order():
+    m, s = textured()
+    f = frame_of(m, s, Params(), workers=["a", "b"])
+    pa, pb = pipeline.compute_partial(f, "a"), pipeline.compute_partial(f, "b")
+    g = gather()
+    assert g.add_partial(pb, now=0.0) == []
+    assert g.add_frame(f, now=0.001) == []
+    (r,) = g.add_partial(pa, now=0.002)
+    assert r.profile.frame == 1 and r.command is not None and r.profile.workers == ["a", "b"]
+    assert g.counters["complete"] == 1 and not g.pending
+    assert g.add_partial(pa, now=0.003) == [] and g.counters["late"] == 1
+
+
+def test_gatherer_drops_at_deadline_and_never_reduces_incomplete():
+    m, s = textured()
+    f = frame_of(m, s, Params(), workers=["a", "b"])
+    g = gather(deadline=0.05)
+    g.add_frame(f, now=0.0)
+    g.add_partial(pipeline.compute_partial(f, "a"), now=0.01)
+    assert g.next_deadline() == pytest.approx(0.05)
+    g.expire(now=0.06)
+    assert g.counters["dropped"] == 1 and not g.pending
+    assert g.add_partial(pipeline.compute_partial(f, "b"), now=0.07) == []  # too late: nothing published
+    assert g.counters["complete"] == 0 and g.counters["late"] == 1
+
+
+def test_gatherer_supersedes_older_frames_and_rejects_foreign_partials():
+    m, s = textured()
+    f1 = frame_of(m, s, Params(), workers=["a", "b"], fid=1)
+    f2 = frame_of(m, s, Params(), workers=["a"], fid=2)  # a worker left: the next frame has a new plan
+    g = gather()
+    g.add_frame(f1, now=0.0)
+    g.add_partial(pipeline.compute_partial(f1, "a"), now=0.0)
+    g.add_frame(f2, now=0.001)
+    wrong = pipeline.compute_partial(f1, "b")
+    wrong.frame = 2  # b's range of frame 1 does not fit frame 2's plan
+    assert g.add_partial(wrong, now=0.002) == [] and g.counters["unexpected"] == 1
+    (r,) = g.add_partial(pipeline.compute_partial(f2, "a"), now=0.003)
+    assert r.frame.frame == 2 and g.counters["superseded"] == 1 and not g.pending
+
+
+def test_gatherer_bad_shape_drops_frame():
+    m, s = textured()
+    f = frame_of(m, s, Params(), workers=["a"])
+    p = pipeline.compute_partial(f, "a")
+    p.rows, p.scores = 1, p.array()[:1].tobytes()  # fits its own sizes, not the frame's 5 rows
+    g = gather()
+    g.add_frame(f, now=0.0)
+    assert g.add_partial(p, now=0.0) == []
+    assert g.counters["bad"] == 1 and g.counters["dropped"] == 1 and g.counters["complete"] == 0
+
+
+def test_gatherer_restart_and_no_plan():
+    m, s = textured()
+    g = gather()
+    g.done_upto = 50_000
+    f = frame_of(m, s, Params(), workers=["a"], fid=1)
+    g.add_frame(f, now=0.0)
+    assert g.counters["restarts"] == 1
+    assert len(g.add_partial(pipeline.compute_partial(f, "a"), now=0.0)) == 1
+    f.plan = []
+    f.frame = 2
+    g.add_frame(f, now=0.0)
+    assert g.counters["no_plan"] == 1
+
+
+def test_frame_master_band_round_trip_and_validation():
+    m, s = textured()
+    f = frame_of(m, s, Params())
+    g = Frame.from_bytes(f.to_bytes())
+    assert np.array_equal(g.master_band_strip(), retina.band_strip(m, 60, 15, 2))
+    assert frame_of(m, s, Params(lr_check=False)).master_band == b""
+    f.master_band = f.master_band[:-1]
+    with pytest.raises(MessageError, match="master_band"):
+        Frame.from_bytes(f.to_bytes())
+
+
+def test_window_control():
+    wc = pipeline.WindowControl(Params(window=15, max_window=31), patience=2)
+    assert wc.update(15, False) == 23
+    assert wc.update(15, False) == 23  # an in-flight profile of the old window does not count
+    assert wc.update(23, False) == 31 and wc.update(31, False) == 31
+    assert wc.update(31, True) == 31 and wc.update(31, True) == 23
+    assert pipeline.WindowControl(Params(max_window=0)).update(15, False) == 15
+
+
+def test_health_counts_and_logs_once(caplog):
+    import logging
+
+    h = pipeline.Health("worker", "w-1", logging.getLogger("t"))
+    with caplog.at_level(logging.WARNING):
+        for _ in range(3):
+            h.reject("frame", "garbage")
+    h.count("partials")
+    st = h.status()
+    assert st["bad"] == {"frame": 3} and st["counters"] == {"partials": 1} and st["role"] == "worker"
+    assert sum("bad frame" in r.message for r in caplog.records) == 1
+
+
+def test_files_source(tmp_path):
+    m, s = textured()
+    cv2.imwrite(str(tmp_path / "l.png"), m)
+    cv2.imwrite(str(tmp_path / "r.png"), s)
+    src = open_source(f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}")
+    a, b = src.read(0.3)
+    assert isinstance(src, FilesSource) and src.size == (200, 120)
+    assert np.array_equal(a, m) and np.array_equal(b, s)
+    a, b = open_source(f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}", master="right").read()
+    assert np.array_equal(a, s)
+
+
+@pytest.mark.parametrize("spec,msg", [
+    ("files:/nonexistent/l.png,/nonexistent/r.png", "/nonexistent/l.png"),
+    ("files:onlyone", "LEFT,RIGHT"),
+    ("video:/nonexistent/a.avi,/nonexistent/b.avi", "no such file"),
+    ("camera:97,98", "camera '97'"),
+    ("nope:1", "unknown source"),
+    ("sim:bogus=1", "bogus"),
+], ids=["missing-file", "one-file", "missing-video", "no-camera", "unknown", "bad-sim-key"])
+def test_source_errors_name_the_problem(spec, msg):
+    with pytest.raises(SourceError, match=msg):
+        open_source(spec)
+
+
+def test_video_source(tmp_path):
+    m, s = textured()
+    for name, img in (("l.avi", m), ("r.avi", s)):
+        vw = cv2.VideoWriter(str(tmp_path / name), cv2.VideoWriter_fourcc(*"MJPG"), 10, (200, 120))
+        if not vw.isOpened():
+            pytest.skip("no MJPG writer in this OpenCV")
+        for _ in range(2):
+            vw.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+        vw.release()
+    src = open_source(f"video:{tmp_path / 'l.avi'},{tmp_path / 'r.avi'}")
+    for _ in range(5):  # rewinds at the end
+        a, b = src.read()
+        assert a.shape == (120, 200) and a.dtype == np.uint8
+        assert np.abs(a.astype(int) - m).mean() < 4
+    src.close()
+
+
+def test_sim_source_renders_at_the_given_pan():
+    src = open_source("sim:size=160x120:focal=128")
+    assert isinstance(src, SimSource) and src.size == (160, 120) and src.focal_px == 128.0
+    a0, b0 = src.read(0.0)
+    a1, b1 = src.read(0.05)
+    assert a0.shape == (120, 160) and np.array_equal(a0, a1) and not np.array_equal(b0, b1)
