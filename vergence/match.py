@@ -20,20 +20,22 @@ class Params:
     circular: compare the direction D on the circle. subpixel: parabola through the winner's neighbours.
     min_margin, min_texture: abstain below this peak-to-rival margin or this mean fovea gradient.
     lr_check: match the winning slave window back into the master band; abstain unless it lands within
-    lr_tolerance px of the fovea. support: adaptive support weights (Yoon & Kweon) on the fovea.
+    lr_tolerance px of the fovea. support: adaptive support weights (Yoon & Kweon) on the fovea, with
+    support_gamma (intensity) and support_radius (distance, px) as their two scales.
     max_window: dynamic window; when not confident, grow w by 8 px per try up to this size (0: off)."""
 
     window: int = 15
     vsearch: int = 2
     circular: bool = True
     subpixel: bool = True
-    min_margin: float = 0.04
+    min_margin: float = 0.03
     min_texture: float = 4.0
     lr_check: bool = True
-    lr_tolerance: float = 1.0
-    support: bool = False
-    support_gamma: float = 12.0
-    max_window: int = 31
+    lr_tolerance: float = 0.75
+    support: bool = True
+    support_gamma: float = 8.0
+    support_radius: float = 7.0
+    max_window: int = 47
 
     @classmethod
     def paper(cls, **overrides) -> "Params":
@@ -91,9 +93,9 @@ def decide_scores(scores: np.ndarray, fovea: np.ndarray, x: int, params: Params,
                   master_band: np.ndarray | None = None, slave_band: np.ndarray | None = None) -> Decision:
     """Layer 4's scores -> a Decision for the fovea (planes (3, w, w)) centred on master column x.
 
-    With params.lr_check and both bands' planes ((3, w + 2R, W), the same rows) given, a confident decision
-    must also pass the left-right check (lr_consistent). This is the one decision step of both match() and
-    the distributed reducer."""
+    With params.lr_check, a confident decision must also pass the left-right check (lr_consistent), given
+    the master band as a gray strip with its margin ((w + 2R + 2, W + 2), retina.band_strip) and the slave
+    band's planes ((3, w + 2R, W)). This is the one decision step of both match() and the reducer."""
     w = fovea.shape[1]
     d = decide(scores, w, k_centre=x - w // 2, subpixel=params.subpixel, tex=texture(fovea),
                min_texture=params.min_texture, min_margin=params.min_margin)
@@ -102,14 +104,16 @@ def decide_scores(scores: np.ndarray, fovea: np.ndarray, x: int, params: Params,
     return d
 
 
-def lr_consistent(master_band: np.ndarray, slave_band: np.ndarray, x: int, d: Decision, params: Params) -> bool:
+def lr_consistent(master_strip: np.ndarray, slave_band: np.ndarray, x: int, d: Decision,
+                  params: Params) -> bool:
     """Left-right consistency: the winning slave window, matched back along the same rows of the master,
-    lands within params.lr_tolerance px of where the forward match says it should."""
+    lands within params.lr_tolerance px of where the forward match says it should. Only the w rows of the
+    master strip at the winning vertical shift are turned into features."""
     half = x - d.k_centre
     w = 2 * half + 1
     r0 = d.v + (slave_band.shape[1] - w) // 2
     sf = np.ascontiguousarray(slave_band[:, r0 : r0 + w, d.k : d.k + w])
-    mb = np.ascontiguousarray(master_band[:, r0 : r0 + w, :])
+    mb = retina.planes(master_strip[r0 : r0 + w + 2])
     back = kernel.correlate(sf, mb, circular=params.circular)
     bd = decide(back, w, k_centre=0, subpixel=params.subpixel)
     expected = x - (d.k_sub - d.k)
@@ -118,10 +122,10 @@ def lr_consistent(master_band: np.ndarray, slave_band: np.ndarray, x: int, d: De
 
 def _one(master, slave, x, y, w, p: Params) -> Decision:
     fovea, band = retina.features(master, slave, (x, y), w, p.vsearch)
-    weights = kernel.support_weights(fovea, p.support_gamma) if p.support else None
+    weights = kernel.support_weights(fovea, p.support_gamma, p.support_radius) if p.support else None
     scores = kernel.correlate(fovea, band, circular=p.circular, weights=weights)
-    mband = retina.planes(retina.band_strip(master, y, w, p.vsearch)) if p.lr_check else None
-    return decide_scores(scores, fovea, x, p, mband, band)
+    mstrip = retina.band_strip(master, y, w, p.vsearch) if p.lr_check else None
+    return decide_scores(scores, fovea, x, p, mstrip, band)
 
 
 def match(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = None,

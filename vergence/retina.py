@@ -51,7 +51,11 @@ def strip(img: np.ndarray, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
     rows = gray(rows)
     if 1 <= c0 and c1 + 1 <= w:
         return np.ascontiguousarray(rows[:, c0 - 1 : c1 + 1])
-    return np.ascontiguousarray(rows[:, _reflect(np.arange(c0 - 1, c1 + 1), w)])
+    out = np.empty((rows.shape[0], c1 - c0 + 2), np.uint8)
+    out[:, 1:-1] = rows[:, c0:c1]
+    out[:, 0] = rows[:, abs(c0 - 1)]
+    out[:, -1] = rows[:, c1 if c1 < w else 2 * (w - 1) - c1]
+    return out
 
 
 def check_point(shape: tuple[int, ...], x: int, y: int, window: int, vsearch: int = 0) -> None:
@@ -83,45 +87,65 @@ def band_strip(slave: np.ndarray, y: int, window: int, vsearch: int = 0) -> np.n
 
 
 @numba.njit(cache=True, nogil=True)
-def _planes(s, out):
+def _gradients(s, out, fx, fy):
+    """I and G into out[0], out[1]; the Sobel gradients into fx, fy (for the direction)."""
     h = s.shape[0] - 2
     n = s.shape[1] - 2
-    scale = 128.0 / math.pi
     for i in range(h):
+        r0 = s[i]
+        r1 = s[i + 1]
+        r2 = s[i + 2]
+        o0 = out[0, i]
+        o1 = out[1, i]
+        ox = fx[i]
+        oy = fy[i]
         for j in range(n):
-            a = np.int32(s[i, j])
-            b = np.int32(s[i, j + 1])
-            c = np.int32(s[i, j + 2])
-            d = np.int32(s[i + 1, j])
-            f = np.int32(s[i + 1, j + 2])
-            g = np.int32(s[i + 2, j])
-            k = np.int32(s[i + 2, j + 1])
-            m = np.int32(s[i + 2, j + 2])
+            a = np.int32(r0[j])
+            b = np.int32(r0[j + 1])
+            c = np.int32(r0[j + 2])
+            d = np.int32(r1[j])
+            f = np.int32(r1[j + 2])
+            g = np.int32(r2[j])
+            k = np.int32(r2[j + 1])
+            m = np.int32(r2[j + 2])
             gx = (c + 2 * f + m) - (a + 2 * d + g)
             gy = (g + 2 * k + m) - (a + 2 * b + c)
-            out[0, i, j] = s[i + 1, j + 1]
-            m2 = gx * gx + gy * gy
-            if m2 == 0:
-                out[1, i, j] = 0
-                out[2, i, j] = 0
-            else:
-                mag = int(math.sqrt(m2) * 0.25 + 0.5)
-                out[1, i, j] = 255 if mag > 255 else mag
-                ang = math.atan2(gy, gx)
-                if ang < 0.0:
-                    ang += 2.0 * math.pi
-                out[2, i, j] = int(ang * scale + 0.5) & 255
+            o0[j] = r1[j + 1]
+            # float32 sqrt is exact on perfect squares below 2**24, so the rounding is exact too
+            mag = np.int32(np.sqrt(np.float32(gx * gx + gy * gy)) * np.float32(0.25) + np.float32(0.5))
+            o1[j] = min(mag, 255)
+            ox[j] = gx
+            oy[j] = gy
+
+
+@numba.njit(cache=True, nogil=True)
+def _direction(ang, fx, fy, out):
+    two_pi = np.float32(2.0 * math.pi)
+    steps = np.float32(128.0 / math.pi)
+    h, n = ang.shape
+    for i in range(h):
+        for j in range(n):
+            a = ang[i, j]
+            if a < 0:
+                a += two_pi
+            q = np.int32(a * steps + np.float32(0.5)) & 255
+            out[i, j] = 0 if fx[i, j] == 0 and fy[i, j] == 0 else q
 
 
 def planes(s: np.ndarray) -> np.ndarray:
     """Features of the interior of a gray strip with a one-pixel margin: a (3, h-2, n-2) uint8 array.
 
     Plane 0 is the intensity I, plane 1 the Sobel gradient magnitude G = min(255, round(|grad| / 4)),
-    plane 2 the direction D = round(atan2(Gy, Gx) * 256 / 2pi) mod 256, 0 where the gradient is 0."""
+    plane 2 the direction D = round(atan2(Gy, Gx) * 256 / 2pi) mod 256, 0 where the gradient is 0.
+    One fused pass for I and G, numpy's vectorised float32 atan2 for D."""
     if s.ndim != 2 or s.dtype != np.uint8 or s.shape[0] < 3 or s.shape[1] < 3:
         raise ValueError(f"a strip must be a 2-D uint8 array of at least 3 x 3, got {s.dtype} {s.shape}")
-    out = np.empty((3, s.shape[0] - 2, s.shape[1] - 2), np.uint8)
-    _planes(np.ascontiguousarray(s), out)
+    h, n = s.shape[0] - 2, s.shape[1] - 2
+    out = np.empty((3, h, n), np.uint8)
+    fx = np.empty((h, n), np.float32)
+    fy = np.empty((h, n), np.float32)
+    _gradients(np.ascontiguousarray(s), out, fx, fy)
+    _direction(np.arctan2(fy, fx), fx, fy, out[2])
     return out
 
 

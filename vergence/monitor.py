@@ -1,0 +1,548 @@
+"""What `vergence monitor` knows about a running rig, and how it draws it: a pure model, no network.
+
+Monitor is fed with (key, bytes, arrival time) exactly as they come off vergence/<rig>/** and with the
+liveliness events of vergence/<rig>/alive/**; it decodes them with vergence.messages, counts and skips the
+malformed ones, and keeps what a user watches: rates, capture-to-command latency percentiles over the last
+seconds, dropped frames, live workers and their shards, pan and target, the latest profile and the recent
+pan history. snapshot() returns a plain Snapshot; render_text() draws the terminal screen (ANSI optional)
+and render_png() the paper's figure 5 (layer 4 against k, winner and centre marked) with the pan history,
+both from a Snapshot, so they are tested without Zenoh.
+
+Clocks: latencies are differences of time.time_ns() stamps taken on the capture and the reducer
+(t_capture_ns, Command.t_sent_ns / Profile.t_reduced_ns): across machines they need synchronised clocks.
+Rates, drops and histories use the monitor's own arrival times.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import messages as m
+
+__all__ = ["Monitor", "Snapshot", "Rate", "kind_of_key", "render_text", "render_png", "png_bytes",
+           "profile_bars"]
+
+# key suffix after vergence/<rig>/ -> message class (correlation/<id> handled apart)
+_KEYS: dict[str, type[m.Message]] = {"frame": m.Frame, "profile": m.Profile, "command": m.Command,
+                                     "motor/state": m.MotorState, "preview": m.Preview}
+
+
+def kind_of_key(key: str) -> tuple[str, str, str] | None:
+    """Split vergence/<rig>/<rest> into (rig, kind, rest). kind is frame, profile, command, motor/state,
+    preview, correlation, alive or '' (unknown); None when the key is not under vergence/."""
+    parts = key.split("/")
+    if len(parts) < 3 or parts[0] != "vergence" or not parts[1]:
+        return None
+    rig, rest = parts[1], "/".join(parts[2:])
+    if rest in _KEYS:
+        return rig, rest, rest
+    if parts[2] in ("correlation", "alive") and len(parts) >= 4:
+        return rig, parts[2], rest
+    return rig, "", rest
+
+
+class Rate:
+    """Events per second over a sliding window of arrival times."""
+
+    def __init__(self, window_s: float):
+        self.window_ns = int(window_s * 1e9)
+        self.times: deque[int] = deque()
+        self.first_ns: int | None = None
+        self.count = 0
+
+    def add(self, t_ns: int) -> None:
+        if self.first_ns is None:
+            self.first_ns = t_ns
+        self.times.append(t_ns)
+        self.count += 1
+
+    def _trim(self, now_ns: int) -> None:
+        while self.times and self.times[0] <= now_ns - self.window_ns:
+            self.times.popleft()
+
+    def per_second(self, now_ns: int) -> float:
+        self._trim(now_ns)
+        if self.first_ns is None or not self.times:
+            return 0.0
+        span = min(self.window_ns, now_ns - self.first_ns)
+        if span < self.window_ns:
+            # still filling the window: the rate between the first and the last arrival
+            n = len(self.times)
+            span = self.times[-1] - self.times[0]
+            return (n - 1) / (span / 1e9) if n >= 2 and span > 0 else 0.0
+        return len(self.times) / (self.window_ns / 1e9)
+
+
+@dataclass
+class Snapshot:
+    """Everything a screen or a picture shows, at one instant (plain data, safe to keep)."""
+
+    rig: str | None
+    now_ns: int
+    window_s: float
+    frames_per_s: float = 0.0
+    profiles_per_s: float = 0.0
+    commands_per_s: float = 0.0
+    frames: int = 0
+    profiles: int = 0
+    commands: int = 0
+    latency_p50_ms: float = math.nan      # capture -> command
+    latency_p99_ms: float = math.nan
+    latency_n: int = 0
+    reduce_p50_ms: float = math.nan       # capture -> profile (reducer done)
+    reduce_p99_ms: float = math.nan
+    dropped: int = 0
+    dropped_from: str = "frames"          # how drops were counted: "frames" seen unanswered, or id "gaps"
+    workers: dict[str, tuple[int, int] | None] = field(default_factory=dict)
+    alive: dict[str, list[str]] = field(default_factory=dict)   # role -> ids
+    plan_frame: int = -1
+    pan_rad: float = math.nan             # actuator's measured position
+    goal_rad: float = math.nan            # actuator's goal
+    target_rad: float = math.nan          # last command's target
+    min_rad: float = math.nan
+    max_rad: float = math.nan
+    motor_status: str = ""
+    at_limit: bool = False
+    profile: m.Profile | None = None
+    command: m.Command | None = None
+    pan_history: list[tuple[float, float]] = field(default_factory=list)     # (seconds before now, pan)
+    target_history: list[tuple[float, float]] = field(default_factory=list)  # (seconds before now, target)
+    malformed: dict[str, int] = field(default_factory=dict)
+    last_error: dict[str, str] = field(default_factory=dict)
+    ignored: int = 0
+
+
+class Monitor:
+    """The model of a live rig, fed from any thread (a lock guards it).
+
+    rig: accept only vergence/<rig>/... (None: any). window_s: rates and latency percentiles cover the
+    last window_s seconds. history_s: length of the pan history. drop_grace_s: a frame seen on the wire
+    with no profile after this long counts as dropped. When no frames are seen (a monitor that does not
+    subscribe to them), drops are the gaps in the profiles' frame ids instead."""
+
+    def __init__(self, rig: str | None = None, window_s: float = 5.0, history_s: float = 30.0,
+                 drop_grace_s: float = 1.0, clock=time.time_ns):
+        self.rig = rig
+        self.window_s = window_s
+        self.history_s = history_s
+        self.drop_grace_ns = int(drop_grace_s * 1e9)
+        self.clock = clock
+        self._lock = threading.Lock()
+        self._rates = {k: Rate(window_s) for k in ("frame", "profile", "command")}
+        self._lat: deque[tuple[int, int]] = deque()       # (arrival, capture->command ns)
+        self._red: deque[tuple[int, int]] = deque()       # (arrival, capture->profile ns)
+        self._pending: dict[int, int] = {}                # frame id -> arrival, awaiting its profile
+        self._answered: deque[int] = deque(maxlen=4096)   # profile ids seen before their frame arrived
+        self._dropped = 0
+        self._gaps = 0
+        self._last_profile_id: int | None = None
+        self._alive: dict[str, set[str]] = {}
+        self._plan: dict[str, tuple[int, int]] = {}
+        self._plan_frame = -1
+        self._partials: dict[str, tuple[int, int]] = {}
+        self._motor: m.MotorState | None = None
+        self._profile: m.Profile | None = None
+        self._command: m.Command | None = None
+        self._pan_hist: deque[tuple[int, float]] = deque()
+        self._target_hist: deque[tuple[int, float]] = deque()
+        self.malformed: dict[str, int] = {}
+        self.last_error: dict[str, str] = {}
+        self.ignored = 0
+        self.listeners: list = []   # callables(kind, message), called under no lock after a good message
+
+    # ---- input -------------------------------------------------------------------------------------
+    def feed(self, key: str, payload: bytes, t_ns: int | None = None) -> m.Message | None:
+        """One sample from the wire. Returns the decoded message, or None when the key is not watched
+        (ignored) or the payload is malformed (counted per kind in self.malformed, never raised)."""
+        t_ns = self.clock() if t_ns is None else t_ns
+        k = kind_of_key(str(key))
+        if k is None or (self.rig is not None and k[0] != self.rig) or k[1] in ("", "alive"):
+            with self._lock:
+                self.ignored += 1
+            return None
+        rig, kind, rest = k
+        cls = m.Partial if kind == "correlation" else _KEYS[kind]
+        try:
+            msg = cls.from_bytes(payload)
+        except m.MessageError as e:
+            with self._lock:
+                self.malformed[kind] = self.malformed.get(kind, 0) + 1
+                self.last_error[kind] = str(e)
+            return None
+        self.add(msg, t_ns)
+        return msg
+
+    def add(self, msg: m.Message, t_ns: int | None = None) -> None:
+        """One decoded message (any of the messages.* classes), received at t_ns."""
+        t_ns = self.clock() if t_ns is None else t_ns
+        with self._lock:
+            if isinstance(msg, m.Frame):
+                self._on_frame(msg, t_ns)
+            elif isinstance(msg, m.Profile):
+                self._on_profile(msg, t_ns)
+            elif isinstance(msg, m.Command):
+                self._on_command(msg, t_ns)
+            elif isinstance(msg, m.MotorState):
+                self._motor = msg
+                self._pan_hist.append((t_ns, msg.pan_rad))
+            elif isinstance(msg, m.Partial):
+                self._partials[msg.worker] = (msg.k0, msg.k1)
+            self._trim(t_ns)
+        for fn in self.listeners:
+            fn(msg.KIND, msg)
+
+    def liveliness(self, key: str, present: bool) -> None:
+        """A liveliness token vergence/<rig>/alive/<role>/<id> appeared (present) or went away."""
+        k = kind_of_key(str(key))
+        if k is None or k[1] != "alive" or (self.rig is not None and k[0] != self.rig):
+            return
+        parts = k[2].split("/")
+        if len(parts) < 3:
+            return
+        role, ident = parts[1], "/".join(parts[2:])
+        with self._lock:
+            ids = self._alive.setdefault(role, set())
+            if present:
+                ids.add(ident)
+            else:
+                ids.discard(ident)
+                self._partials.pop(ident, None)
+
+    def _on_frame(self, f: m.Frame, t: int) -> None:
+        self._rates["frame"].add(t)
+        if f.frame in self._answered:
+            self._answered.remove(f.frame)
+        elif len(self._pending) < 100_000:
+            self._pending[f.frame] = t
+        if f.plan:
+            self._plan = {str(w): (int(a), int(b)) for w, a, b in f.plan}
+            self._plan_frame = f.frame
+
+    def _on_profile(self, p: m.Profile, t: int) -> None:
+        self._rates["profile"].add(t)
+        self._profile = p
+        if self._pending.pop(p.frame, None) is None:
+            self._answered.append(p.frame)
+        last = self._last_profile_id
+        if last is not None and p.frame > last + 1:
+            self._gaps += p.frame - last - 1
+        self._last_profile_id = p.frame
+        if p.t_reduced_ns > 0 and p.t_capture_ns > 0:
+            self._red.append((t, p.t_reduced_ns - p.t_capture_ns))
+
+    def _on_command(self, c: m.Command, t: int) -> None:
+        self._rates["command"].add(t)
+        self._command = c
+        if c.t_capture_ns > 0:
+            sent = c.t_sent_ns if c.t_sent_ns > 0 else t
+            self._lat.append((t, sent - c.t_capture_ns))
+        self._target_hist.append((t, c.pan_rad))
+
+    def _trim(self, now: int) -> None:
+        w = int(self.window_s * 1e9)
+        h = int(self.history_s * 1e9)
+        for dq, span in ((self._lat, w), (self._red, w), (self._pan_hist, h), (self._target_hist, h)):
+            while dq and dq[0][0] <= now - span:
+                dq.popleft()
+        if self._pending:
+            late = [fid for fid, ta in self._pending.items() if ta <= now - self.drop_grace_ns]
+            for fid in late:
+                del self._pending[fid]
+            self._dropped += len(late)
+
+    # ---- output ------------------------------------------------------------------------------------
+    def snapshot(self, now_ns: int | None = None) -> Snapshot:
+        now = self.clock() if now_ns is None else now_ns
+        with self._lock:
+            self._trim(now)
+            s = Snapshot(rig=self.rig, now_ns=now, window_s=self.window_s)
+            s.frames_per_s = self._rates["frame"].per_second(now)
+            s.profiles_per_s = self._rates["profile"].per_second(now)
+            s.commands_per_s = self._rates["command"].per_second(now)
+            s.frames, s.profiles, s.commands = (self._rates[k].count for k in ("frame", "profile", "command"))
+            if self._lat:
+                lat = np.array([x for _, x in self._lat], dtype=np.float64) / 1e6
+                s.latency_p50_ms, s.latency_p99_ms = (float(v) for v in np.percentile(lat, [50, 99]))
+                s.latency_n = len(lat)
+            if self._red:
+                red = np.array([x for _, x in self._red], dtype=np.float64) / 1e6
+                s.reduce_p50_ms, s.reduce_p99_ms = (float(v) for v in np.percentile(red, [50, 99]))
+            if s.frames:
+                s.dropped, s.dropped_from = self._dropped, "frames"
+            else:
+                s.dropped, s.dropped_from = self._gaps, "gaps"
+            s.alive = {r: sorted(ids) for r, ids in sorted(self._alive.items()) if ids}
+            live = set(self._alive.get("worker", set()))
+            shards = dict(self._partials)
+            shards.update(self._plan)
+            s.workers = {w: shards.get(w) for w in sorted(live | set(self._plan))
+                         if w in live or not self._alive.get("worker")}
+            s.plan_frame = self._plan_frame
+            if self._motor is not None:
+                mo = self._motor
+                s.pan_rad, s.goal_rad, s.min_rad, s.max_rad = mo.pan_rad, mo.goal_rad, mo.min_rad, mo.max_rad
+                s.motor_status, s.at_limit = mo.status, mo.at_limit
+            if self._command is not None:
+                s.target_rad = self._command.pan_rad
+            s.profile, s.command = self._profile, self._command
+            s.pan_history = [((now - t) / 1e9, v) for t, v in self._pan_hist]
+            s.target_history = [((now - t) / 1e9, v) for t, v in self._target_hist]
+            s.malformed = dict(self.malformed)
+            s.last_error = dict(self.last_error)
+            s.ignored = self.ignored
+            return s
+
+
+# ---- the terminal screen -------------------------------------------------------------------------------
+_BLOCKS = " ▁▂▃▄▅▆▇█"
+_SPARK = "▁▂▃▄▅▆▇█"
+RED, CYAN, GREEN, YELLOW, DIM, BOLD, RESET = ("\x1b[31m", "\x1b[36m", "\x1b[32m", "\x1b[33m", "\x1b[2m",
+                                              "\x1b[1m", "\x1b[0m")
+
+
+def _winning_row(p: m.Profile) -> np.ndarray:
+    """The layer-4 row of the winner: y(v*, k) for all k (the only row without vertical search)."""
+    y = p.array()
+    vi = p.v_shift + (p.rows - 1) // 2
+    return y[min(max(vi, 0), p.rows - 1)]
+
+
+def profile_bars(p: m.Profile, columns: int, rows: int = 10) -> tuple[list[str], int, int]:
+    """The winner's layer-4 row as `rows` lines of `columns` block characters (column c holds the best
+    y(k) of its k-range), scaled from the row's minimum (empty) to its maximum (full). Returns the lines
+    (top first), the winner's column and the centre's column."""
+    y = _winning_row(p)
+    kk = len(y)
+    columns = max(1, min(columns, kk))
+    edges = np.linspace(0, kk, columns + 1).astype(int)
+    vals = np.array([y[a:max(b, a + 1)].max() for a, b in zip(edges[:-1], edges[1:])])
+    lo, hi = float(y.min()), float(y.max())
+    frac = (vals - lo) / (hi - lo) if hi > lo else np.ones_like(vals)
+    eighths = np.rint(frac * rows * 8).astype(int)
+    lines = []
+    for r in range(rows - 1, -1, -1):
+        cells = np.clip(eighths - r * 8, 0, 8)
+        lines.append("".join(_BLOCKS[c] for c in cells))
+
+    def col(k: int) -> int:
+        return int(min(columns - 1, max(0, np.searchsorted(edges, k, side="right") - 1)))
+
+    return lines, col(p.k), col(p.k_centre)
+
+
+def _deg(rad: float) -> str:
+    return "   --   " if not math.isfinite(rad) else f"{math.degrees(rad):+7.3f}°"
+
+
+def _ms(x: float) -> str:
+    return "--" if not math.isfinite(x) else f"{x:.2f} ms"
+
+
+def sparkline(values: list[float], columns: int, lo: float | None = None, hi: float | None = None) -> str:
+    """values resampled onto `columns` cells of ▁..█ between lo and hi (default: their min and max)."""
+    if not values or columns < 1:
+        return ""
+    v = np.asarray(values, dtype=np.float64)
+    idx = np.linspace(0, len(v) - 1, min(columns, len(v))).round().astype(int)
+    v = v[idx]
+    lo = float(v.min()) if lo is None else lo
+    hi = float(v.max()) if hi is None else hi
+    f = (v - lo) / (hi - lo) if hi > lo else np.full_like(v, 0.5)
+    return "".join(_SPARK[int(round(x * 7))] for x in np.clip(f, 0, 1))
+
+
+def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool = True) -> str:
+    """The monitor's screen as text lines (ANSI colours when color). The profile bars mark the winner
+    (red, ▲) and the centre neuron (cyan, ┴); everything else is a labelled figure."""
+    width = max(40, width)
+
+    def c(code: str, text: str) -> str:
+        return f"{code}{text}{RESET}" if color else text
+
+    out = []
+    when = time.strftime("%H:%M:%S", time.localtime(s.now_ns / 1e9))
+    bad = sum(s.malformed.values())
+    title = f"vergence monitor · rig {s.rig or '*'} · {when}"
+    out.append(c(BOLD, title) + (c(RED, f"   malformed {bad}") if bad else "   malformed 0"))
+    out.append(f"rate   frames {s.frames_per_s:7.1f}/s   profiles {s.profiles_per_s:7.1f}/s   "
+               f"commands {s.commands_per_s:7.1f}/s")
+    pct = 100.0 * s.dropped / s.frames if s.frames else (100.0 * s.dropped / (s.profiles + s.dropped)
+                                                          if s.profiles + s.dropped else 0.0)
+    drop = f"dropped {s.dropped} ({pct:.2f} %{', id gaps' if s.dropped_from == 'gaps' else ''})"
+    out.append(f"seen   frames {s.frames}   profiles {s.profiles}   commands {s.commands}   "
+               + (c(YELLOW, drop) if s.dropped else drop))
+    out.append(f"latency capture→command p50 {_ms(s.latency_p50_ms)}  p99 {_ms(s.latency_p99_ms)}  "
+               f"(n {s.latency_n}, last {s.window_s:g} s)   capture→profile p50 {_ms(s.reduce_p50_ms)}  "
+               f"p99 {_ms(s.reduce_p99_ms)}")
+    out.append("")
+    p = s.profile
+    if p is None:
+        out.append(c(DIM, "no profile yet (waiting on vergence/%s/profile)" % (s.rig or "*")))
+    else:
+        side = {-1: "◀ left", 0: "● centre", 1: "right ▶"}.get(p.direction, "?")
+        conf = c(GREEN, "moves") if p.confident else c(YELLOW, "abstains")
+        age = (s.now_ns - p.t_capture_ns) / 1e9 if p.t_capture_ns else math.nan
+        out.append(f"profile frame {p.frame}  (age {age:.1f} s, w {p.window}, K {p.width - p.window + 1}, "
+                   f"rows {p.rows}, v {p.v_shift:+d}, workers {len(p.workers)})")
+        out.append(f"decision k*={p.k} (sub-px {p.k_sub:.2f})  k_c={p.k_centre}  offset {p.offset_px:+.2f} px  "
+                   f"{side} {p.magnitude} px   confidence {p.confidence:.3f} {conf}   texture {p.texture:.1f}")
+        try:
+            y = _winning_row(p)
+            lines, wc, cc = profile_bars(p, width - 8, bar_rows)
+        except (m.MessageError, ValueError) as e:
+            out.append(c(RED, f"profile not drawable: {e}"))
+        else:
+            ytop, ybot = f"{y.max():.0f}", f"{y.min():.0f}"
+            for i, line in enumerate(lines):
+                label = ytop if i == 0 else ybot if i == len(lines) - 1 else ""
+                if color:
+                    line = "".join(
+                        (RED + ch + RESET) if j == wc else (CYAN + ch + RESET) if j == cc else ch
+                        for j, ch in enumerate(line))
+                out.append(f"{label:>7} {line}")
+            marks = [" "] * len(lines[0])
+            marks[cc] = "┴"
+            marks[wc] = "▲"
+            mark = "".join(marks)
+            if color:
+                mark = mark.replace("▲", RED + "▲" + RESET).replace("┴", CYAN + "┴" + RESET)
+            out.append(" " * 8 + mark)
+            kk = len(y)
+            axis = f"k=0{' ' * max(1, len(lines[0]) - len(str(kk - 1)) - 5)}k={kk - 1}"
+            out.append(" " * 8 + axis)
+            out.append(" " * 8 + f"▲ winner k*={p.k}   ┴ centre k_c={p.k_centre}")
+    out.append("")
+    lim = ""
+    if math.isfinite(s.min_rad) and math.isfinite(s.max_rad):
+        lim = f"   limits {math.degrees(s.min_rad):+.1f}°..{math.degrees(s.max_rad):+.1f}°"
+    status = s.motor_status or "no motor state"
+    if s.at_limit:
+        status += " AT LIMIT"
+    out.append(f"pan {_deg(s.pan_rad)}   goal {_deg(s.goal_rad)}   target {_deg(s.target_rad)}{lim}   "
+               f"status {status}")
+    pans = [v for _, v in s.pan_history]
+    if pans:
+        lo, hi = min(pans), max(pans)
+        out.append(f"pan history ({len(pans)} states, {math.degrees(lo):+.2f}°..{math.degrees(hi):+.2f}°) "
+                   + sparkline(pans, width - 50))
+    out.append("")
+    if s.workers:
+        ws = "   ".join(f"{w} k {r[0]}..{r[1] - 1}" if r else f"{w} (no shard yet)"
+                       for w, r in s.workers.items())
+        out.append(f"workers {len(s.workers)}: {ws}")
+    else:
+        out.append(c(YELLOW, "workers 0: none alive"))
+    others = [f"{role} {', '.join(ids)}" for role, ids in s.alive.items() if role != "worker"]
+    out.append("alive  " + ("   ".join(others) if others else "(no other process seen)"))
+    for kind, n in sorted(s.malformed.items()):
+        out.append(c(RED, f"malformed {kind}: {n} (last: {s.last_error.get(kind, '')[:width - 30]})"))
+    return "\n".join(out)
+
+
+# ---- the picture (the paper's figure 5) ----------------------------------------------------------------
+def render_png(s: Snapshot, width: int = 960, height: int = 720) -> np.ndarray:
+    """The latest profile y(k) against k with the winner (red) and the centre (blue, dashed) marked, and
+    below it the pan and the commanded target over the recent history: a BGR uint8 image."""
+    import cv2
+
+    img = np.full((height, width, 3), 255, np.uint8)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    black, grey = (0, 0, 0), (200, 200, 200)
+    red, blue, orange = (0, 0, 220), (200, 80, 0), (0, 140, 255)
+    left, right = 90, width - 30
+    top1, bot1 = 50, int(height * 0.62)
+    top2, bot2 = bot1 + 60, height - 45
+
+    def text(t: str, x: int, y: int, col=black, scale: float = 0.5) -> None:
+        cv2.putText(img, t, (int(x), int(y)), font, scale, col, 1, cv2.LINE_AA)
+
+    p = s.profile
+    if p is None:
+        text("no profile", left, top1 + 40, red, 0.8)
+    else:
+        y = _winning_row(p)
+        kk = len(y)
+        lo, hi = float(y.min()), float(y.max())
+        pad = (hi - lo) * 0.05 or 1.0
+        lo, hi = lo - pad, hi + pad
+
+        def px(k: float) -> int:
+            return int(round(left + (right - left) * k / max(1, kk - 1)))
+
+        def py(v: float) -> int:
+            return int(round(bot1 - (bot1 - top1) * (v - lo) / (hi - lo)))
+
+        cv2.rectangle(img, (left, top1), (right, bot1), black, 1)
+        for k in range(0, kk, 100):
+            cv2.line(img, (px(k), bot1), (px(k), bot1 + 5), black, 1)
+            text(str(k), px(k) - 10, bot1 + 20)
+        for v in np.linspace(y.min(), y.max(), 5):
+            cv2.line(img, (left - 5, py(v)), (left, py(v)), black, 1)
+            text(f"{v:.0f}", 5, py(v) + 5, black, 0.4)
+        # centre neuron: dashed blue
+        xc = px(p.k_centre)
+        for y0 in range(top1, bot1, 10):
+            cv2.line(img, (xc, y0), (xc, min(y0 + 5, bot1)), blue, 1)
+        pts = np.stack([[px(k) for k in range(kk)], [py(v) for v in y]], axis=1).astype(np.int32)
+        cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, black, 1, cv2.LINE_AA)
+        xw = px(p.k)
+        cv2.line(img, (xw, top1), (xw, bot1), red, 1)
+        cv2.circle(img, (xw, py(float(y[p.k]))), 5, red, 2, cv2.LINE_AA)
+        side = {-1: "left", 0: "centre", 1: "right"}.get(p.direction, "?")
+        text(f"layer 4, frame {p.frame}: winner k*={p.k} ({p.k_sub:.2f}), centre k_c={p.k_centre}, "
+             f"{side} {p.magnitude} px, confidence {p.confidence:.3f}"
+             f"{'' if p.confident else ' (abstains)'}", left, top1 - 15, black, 0.5)
+        text(f"k*={p.k}", min(xw + 4, right - 60), top1 + 18, red)
+        text(f"k_c={p.k_centre}", min(xc + 4, right - 70), top1 + 38, blue)
+        text("k (offset in the slave band)", (left + right) // 2 - 110, bot1 + 40)
+        text("y(k)", 10, top1 - 15)
+
+    # pan history panel
+    cv2.rectangle(img, (left, top2), (right, bot2), black, 1)
+    span = max([t for t, _ in s.pan_history + s.target_history] + [1.0])
+    series = [v for _, v in s.pan_history + s.target_history]
+    text(f"slave pan (blue) and target (orange), last {span:.1f} s, degrees", left, top2 - 12)
+    if series:
+        lo, hi = math.degrees(min(series)), math.degrees(max(series))
+        if hi - lo < 0.1:
+            lo, hi = lo - 0.05, hi + 0.05
+        pad = (hi - lo) * 0.1
+        lo, hi = lo - pad, hi + pad
+
+        def hx(age: float) -> int:
+            return int(round(right - (right - left) * age / span))
+
+        def hy(rad: float) -> int:
+            return int(round(bot2 - (bot2 - top2) * (math.degrees(rad) - lo) / (hi - lo)))
+
+        for v in (lo + pad, hi - pad):
+            text(f"{v:+.2f}", 5, int(round(bot2 - (bot2 - top2) * (v - lo) / (hi - lo))) + 5, black, 0.4)
+        if len(s.pan_history) >= 2:
+            pts = np.array([[hx(a), hy(v)] for a, v in s.pan_history], np.int32)
+            cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, blue, 2, cv2.LINE_AA)
+        elif s.pan_history:
+            a, v = s.pan_history[0]
+            cv2.circle(img, (hx(a), hy(v)), 3, blue, -1)
+        for a, v in s.target_history:
+            cv2.circle(img, (hx(a), hy(v)), 2, orange, -1)
+    else:
+        text("no pan history", left + 10, (top2 + bot2) // 2, grey)
+    text(f"-{span:.1f} s", left, bot2 + 20, black, 0.4)
+    text("now", right - 30, bot2 + 20, black, 0.4)
+    return img
+
+
+def png_bytes(s: Snapshot, width: int = 960, height: int = 720) -> bytes:
+    """render_png encoded as PNG bytes."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", render_png(s, width, height))
+    if not ok:
+        raise RuntimeError("OpenCV could not encode the PNG")
+    return buf.tobytes()

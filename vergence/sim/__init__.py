@@ -1,0 +1,7 @@
+"""The rig simulator: a master and a panning slave camera over a rectified stereo pair, the generated
+scene, a first-order motor, and the closed loop of `vergence sim` (the library only, no Zenoh)."""
+
+from .rig import Rig, homography, rotation
+from .scene import Scene, generate
+
+__all__ = ["Rig", "Scene", "generate", "homography", "rotation"]

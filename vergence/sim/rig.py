@@ -1,0 +1,247 @@
+"""The simulated rig: two cameras rotating about their optical centres in front of a rectified pair.
+
+A camera whose rotation (camera to world) is R sees the pixel p of the unrotated image at K_v R^T K^-1 p,
+so its view is cv2.warpPerspective(image, K_v R^T K^-1). K = [[f,0,cx],[0,f,cy],[0,0,1]] with the
+principal point (cx, cy) = (W // 2, H // 2) of the source pair (the pixel the network's fovea is centred
+on), K_v the same for the rendered view. R = R_y(pan) R_x(tilt): a positive pan turns the camera toward
+increasing image x (the content moves left in the view), a positive tilt toward decreasing y (up).
+
+The master's pan and tilt are set once so that its view centre shows the fixation pixel (X, Y) of LEFT.
+The slave shares the tilt and pans; it is converged when its pan is atan((X - d - cx) / f), d the
+disparity at (X, Y): the point is then on its view's centre column."""
+
+from __future__ import annotations
+
+import math
+import os
+
+import cv2
+import numpy as np
+
+from .scene import generate
+
+__all__ = ["Rig", "rotation", "homography"]
+
+
+def rotation(pan_rad: float, tilt_rad: float) -> np.ndarray:
+    """R = R_y(pan) R_x(tilt), camera to world (x right, y down, z forward)."""
+    cp, sp = math.cos(pan_rad), math.sin(pan_rad)
+    ct, st = math.cos(tilt_rad), math.sin(tilt_rad)
+    ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, ct, -st], [0.0, st, ct]])
+    return ry @ rx
+
+
+def intrinsics(f: float, cx: float, cy: float) -> np.ndarray:
+    return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+
+
+def homography(f: float, src_size: tuple[int, int], view_size: tuple[int, int], pan_rad: float,
+               tilt_rad: float) -> np.ndarray:
+    """K_v R^T K_s^-1: source pixel -> view pixel of a camera rotated by (pan, tilt)."""
+    ks = intrinsics(f, src_size[0] // 2, src_size[1] // 2)
+    kv = intrinsics(f, view_size[0] // 2, view_size[1] // 2)
+    return kv @ rotation(pan_rad, tilt_rad).T @ np.linalg.inv(ks)
+
+
+def _read_gray(path: str, what: str) -> np.ndarray:
+    if not os.path.isfile(path):
+        raise ValueError(f"{what}={path}: no such file")
+    img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise ValueError(f"{what}={path}: not an image OpenCV can decode")
+    return img
+
+
+def _read_disparity(path: str, scale: float) -> np.ndarray:
+    if not os.path.isfile(path):
+        raise ValueError(f"disparity={path}: no such file")
+    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"disparity={path}: not an image OpenCV can decode")
+    if img.ndim == 3:
+        img = img[..., 0]
+    d = img.astype(np.float32) / float(scale)
+    d[img == 0] = np.nan  # Middlebury: 0 is unknown
+    return d
+
+
+class Rig:
+    """Master and slave cameras over a rectified stereo pair (LEFT = master's scene, RIGHT = slave's).
+
+    left, right: uint8 gray images of equal size. disparity: None (unknown), a number (the disparity at
+    the fixation point) or a map of LEFT in pixels (NaN: unknown). fixate: (X, Y) in LEFT (default: its
+    centre). focal: f in pixels (default 0.8 x view width). size: (W, H) of the views (default: the
+    pair's). noise: sigma of Gaussian sensor noise, both cameras, fresh every frame. gain, offset, blur:
+    the slave's photometric difference (slave = gain * I + offset) and defocus (Gaussian sigma, px).
+    vmis_px: vertical misalignment of the slave, an extra tilt that moves its content down by about vmis_px.
+    start_pan_deg: the slave's pan before the loop starts. seed: the noise generator's seed."""
+
+    def __init__(self, left: np.ndarray, right: np.ndarray, *, disparity=None,
+                 fixate: tuple[int, int] | None = None, focal: float | None = None,
+                 size: tuple[int, int] | None = None, noise: float = 0.0, gain: float = 1.0,
+                 offset: float = 0.0, blur: float = 0.0, vmis_px: float = 0.0, start_pan_deg: float = 0.0,
+                 seed: int = 0):
+        if left.ndim != 2 or right.ndim != 2 or left.dtype != np.uint8 or right.dtype != np.uint8:
+            raise ValueError("left and right must be 2-D uint8 gray images")
+        if left.shape != right.shape:
+            raise ValueError(f"left and right differ in size: {left.shape[1]} x {left.shape[0]} and "
+                             f"{right.shape[1]} x {right.shape[0]}")
+        self.left, self.right = left, right
+        hs, ws = left.shape
+        self.src_size = (ws, hs)
+        self.size: tuple[int, int] = tuple(size) if size is not None else (ws, hs)
+        if self.size[0] < 16 or self.size[1] < 16:
+            raise ValueError(f"size={self.size[0]}x{self.size[1]}: views must be at least 16 x 16")
+        self.focal_px: float = float(focal) if focal is not None else 0.8 * self.size[0]
+        if not (self.focal_px > 0 and math.isfinite(self.focal_px)):
+            raise ValueError(f"focal={focal}: must be a positive number of pixels")
+        x, y = fixate if fixate is not None else (ws // 2, hs // 2)
+        if not (0 <= x < ws and 0 <= y < hs):
+            raise ValueError(f"fixate={x},{y}: outside the {ws} x {hs} pair")
+        self.fixation = (int(x), int(y))
+        for name, v in (("noise", noise), ("blur", blur)):
+            if not (v >= 0 and math.isfinite(v)):
+                raise ValueError(f"{name}={v}: must be a finite number >= 0")
+        for name, v in (("gain", gain), ("offset", offset), ("vmis", vmis_px), ("pan", start_pan_deg)):
+            if not math.isfinite(v):
+                raise ValueError(f"{name}={v}: must be a finite number")
+        self.noise, self.gain, self.offset, self.blur = float(noise), float(gain), float(offset), float(blur)
+        self.vmis_px = float(vmis_px)
+        self.start_pan_rad: float = math.radians(start_pan_deg)
+        self.disparity_map = disparity if isinstance(disparity, np.ndarray) else None
+        if self.disparity_map is not None:
+            if self.disparity_map.shape != left.shape:
+                raise ValueError("the disparity map must have the size of LEFT")
+            self.disparity = float(self.disparity_map[self.fixation[1], self.fixation[0]])
+        else:
+            self.disparity = float(disparity) if disparity is not None else math.nan
+        f, (cxs, cys) = self.focal_px, (ws // 2, hs // 2)
+        self.master_pan_rad = math.atan((x - cxs) / f)
+        self.tilt_rad = math.atan(-(y - cys) * math.cos(self.master_pan_rad) / f)
+        self.slave_tilt_rad = self.tilt_rad + math.atan(self.vmis_px / f)
+        # The converged slave pan (NaN when the disparity is unknown).
+        self.truth_pan_rad: float = math.atan((x - self.disparity - cxs) / f)
+        self._rng = np.random.default_rng(seed)
+        self._master = self._warp(left, self.master_pan_rad, self.tilt_rad)
+
+    # -- construction from the capture source text ------------------------------------------------------
+
+    KEYS = ("left", "right", "disparity", "dscale", "d", "fixate", "focal", "size", "noise", "gain",
+            "offset", "blur", "vmis", "pan", "seed")
+
+    @classmethod
+    def from_spec(cls, spec: str) -> "Rig":
+        """A rig from the text after `sim:` ("" = the generated scene, defaults everywhere).
+
+        Items separated by ':' as key=value: left=PATH, right=PATH (a rectified pair), disparity=PATH
+        (ground truth of LEFT, 0 = unknown) with dscale=S (stored value / S = pixels), or d=PX (the
+        disparity at the fixation point); fixate=X,Y (default the centre), focal=F (px), size=WxH (views),
+        noise=SIGMA, gain=G, offset=O, blur=S, vmis=PX, pan=DEG (the slave's start pan), seed=N.
+        A bad key or value raises ValueError naming it."""
+        items: dict[str, str] = {}
+        for item in (spec or "").split(":"):
+            if not item.strip():
+                continue
+            key, eq, value = item.partition("=")
+            key = key.strip()
+            if not eq:
+                raise ValueError(f"sim source item {item!r} is not key=value; keys: {', '.join(cls.KEYS)}")
+            if key not in cls.KEYS:
+                raise ValueError(f"sim source: unknown key {key!r}; keys: {', '.join(cls.KEYS)}")
+            items[key] = value.strip()
+        return cls.from_options(**items)
+
+    @classmethod
+    def from_options(cls, **items: str | None) -> "Rig":
+        """The same as from_spec, from keyword strings (None: default); used by `vergence sim`."""
+        items = {k: v for k, v in items.items() if v is not None}
+
+        def num(key, conv=float, default=None):
+            if key not in items:
+                return default
+            try:
+                v = conv(items[key])
+            except ValueError:
+                raise ValueError(f"sim source: {key}={items[key]!r} is not a {conv.__name__}") from None
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ValueError(f"sim source: {key}={items[key]!r} is not finite")
+            return v
+
+        def pair(key, sep, conv):
+            if key not in items:
+                return None
+            try:
+                a, b = (conv(p) for p in items[key].lower().split(sep))
+            except ValueError:
+                raise ValueError(f"sim source: {key}={items[key]!r} must be two numbers as A{sep}B") from None
+            return a, b
+
+        opts = dict(fixate=pair("fixate", ",", int), focal=num("focal"), size=pair("size", "x", int),
+                    noise=num("noise", default=0.0), gain=num("gain", default=1.0),
+                    offset=num("offset", default=0.0), blur=num("blur", default=0.0),
+                    vmis_px=num("vmis", default=0.0), start_pan_deg=num("pan", default=0.0),
+                    seed=num("seed", int, 0))
+        if ("left" in items) != ("right" in items):
+            raise ValueError("sim source: left= and right= go together (a rectified pair)")
+        try:
+            if "left" in items:
+                left, right = _read_gray(items["left"], "left"), _read_gray(items["right"], "right")
+                disparity = None
+                if "disparity" in items:
+                    disparity = _read_disparity(items["disparity"], num("dscale", default=1.0))
+                elif "d" in items:
+                    disparity = num("d")
+                return cls(left, right, disparity=disparity, **opts)
+            for key in ("disparity", "dscale", "d"):
+                if key in items:
+                    raise ValueError(f"sim source: {key}= needs left= and right= (the generated scene "
+                                     "knows its own disparity)")
+            sc = generate(opts["seed"])
+            if opts["size"] is None:
+                opts["size"] = (640, 480)
+            return cls(sc.left, sc.right, disparity=sc.disparity, **opts)
+        except ValueError as e:
+            msg = str(e)
+            raise ValueError(msg if msg.startswith("sim source") else f"sim source: {msg}") from None
+
+    # -- rendering ----------------------------------------------------------------------------------------
+
+    def _warp(self, img: np.ndarray, pan: float, tilt: float) -> np.ndarray:
+        h = homography(self.focal_px, self.src_size, self.size, pan, tilt)
+        return cv2.warpPerspective(img, h, self.size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                   borderValue=0)
+
+    def _noisy(self, img: np.ndarray) -> np.ndarray:
+        if self.noise <= 0:
+            return img
+        n = self._rng.standard_normal(img.shape, dtype=np.float32) * np.float32(self.noise)
+        return np.clip(img.astype(np.float32) + n, 0, 255).astype(np.uint8)
+
+    def render(self, slave_pan_rad: float) -> tuple[np.ndarray, np.ndarray]:
+        """(master, slave) uint8 gray views, the slave panned to slave_pan_rad (radians)."""
+        if not math.isfinite(slave_pan_rad):
+            raise ValueError(f"slave pan {slave_pan_rad} is not finite")
+        slave = self._warp(self.right, slave_pan_rad, self.slave_tilt_rad)
+        if self.blur > 0:
+            slave = cv2.GaussianBlur(slave, (0, 0), self.blur)
+        if self.gain != 1.0 or self.offset != 0.0:
+            lin = slave.astype(np.float32) * np.float32(self.gain) + np.float32(self.offset)
+            slave = np.clip(lin, 0, 255).astype(np.uint8)
+        return self._noisy(self._master), self._noisy(slave)
+
+    # -- ground truth -------------------------------------------------------------------------------------
+
+    @property
+    def one_px_rad(self) -> float:
+        """atan(1 / f): the pan of one pixel at the view centre (the convergence tolerance)."""
+        return math.atan(1.0 / self.focal_px)
+
+    def error_px(self, slave_pan_rad: float) -> float:
+        """f tan(pan - truth): how many pixels the slave has turned past the converged pan (positive: too far
+        right, the fixated point is then left of the slave's centre). NaN when the truth is unknown."""
+        return self.focal_px * math.tan(slave_pan_rad - self.truth_pan_rad)
+
+    def pan_off_truth(self, px: float) -> float:
+        """The slave pan that puts the fixated point px pixels left of the slave's centre (truth + px)."""
+        return math.atan((self.fixation[0] - self.disparity - self.src_size[0] // 2 + px) / self.focal_px)

@@ -1,0 +1,77 @@
+"""A stereo scene the package generates itself: textured fronto-parallel planes at several depths.
+
+The pair is rectified and consistent by construction: every layer is a texture defined in LEFT coordinates
+with an integer disparity d, so a point at column x of LEFT is at column x - d of RIGHT on the same row,
+and the nearer layer hides the farther one in both images. The disparity map of LEFT is exact (no
+unknown pixels), so the converged pan of any fixation point is known. No external data, deterministic by
+seed."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+__all__ = ["Scene", "generate", "texture"]
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A rectified pair (uint8 gray, equal size) and the disparity of LEFT in pixels (NaN: unknown)."""
+
+    left: np.ndarray
+    right: np.ndarray
+    disparity: np.ndarray
+
+
+def texture(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    """Multi-scale noise (fine grain to blobs) as uint8: textured at every scale the network looks at."""
+    acc = np.zeros((h, w), np.float32)
+    for sigma, weight in ((0.8, 0.6), (2.0, 1.0), (5.0, 1.0), (12.0, 0.8)):
+        n = rng.standard_normal((h, w), dtype=np.float32)
+        n = cv2.GaussianBlur(n, (0, 0), sigma)
+        acc += weight * n / (n.std() + 1e-6)
+    acc = (acc - acc.mean()) / (acc.std() + 1e-6)
+    return np.clip(128.0 + 48.0 * acc, 0, 255).astype(np.uint8)
+
+
+def generate(seed: int = 0, size: tuple[int, int] = (960, 720)) -> Scene:
+    """A background plane (d = 8 px) and boxes and discs at 12..40 px, one of them on the image centre.
+
+    size is (W, H) of the pair; the rig renders smaller views out of it, so that a rotated camera still
+    sees texture instead of the black outside of the images."""
+    rng = np.random.default_rng(seed)
+    w, h = size
+    dmax = 48
+    wide = w + dmax
+    # (disparity, mask in LEFT coordinates over the wide canvas): far to near.
+    layers: list[tuple[int, np.ndarray]] = [(8, np.ones((h, wide), bool))]
+    objects = []
+    for _ in range(7):
+        d = int(rng.integers(12, 41))
+        cx, cy = int(rng.integers(0, w)), int(rng.integers(0, h))
+        objects.append((d, cx, cy))
+    # One object on the centre, so that the default fixation has a clear depth.
+    objects.append((24, w // 2, h // 2))
+    objects.sort(key=lambda o: o[0])
+    for i, (d, cx, cy) in enumerate(objects):
+        m = np.zeros((h, wide), np.uint8)
+        rx, ry = int(rng.integers(w // 16, w // 6)), int(rng.integers(h // 12, h // 5))
+        if i % 2:
+            cv2.ellipse(m, (cx, cy), (rx, ry), 0, 0, 360, 1, -1)
+        else:
+            cv2.rectangle(m, (cx - rx, cy - ry), (cx + rx, cy + ry), 1, -1)
+        layers.append((d, m.astype(bool)))
+    left = np.zeros((h, w), np.uint8)
+    right = np.zeros((h, w), np.uint8)
+    disp = np.zeros((h, w), np.float32)
+    for d, mask in layers:
+        tex = texture(rng, h, wide)
+        ml = mask[:, :w]
+        left[ml] = tex[:, :w][ml]
+        disp[ml] = d
+        # RIGHT(x) = layer(x + d): the layer's texture and mask shifted left by d.
+        mr = mask[:, d:d + w]
+        right[mr] = tex[:, d:d + w][mr]
+    return Scene(left, right, disp)
