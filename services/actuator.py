@@ -63,8 +63,12 @@ def serve(loop: MotorLoop, publish, inbox: Latest, stop: session.Stop, state_hz:
     import time
     period = 1.0 / state_hz if state_hz > 0 else 0.02
     next_tick = time.monotonic()
+    seen = 0
     while not stop.is_set():
         data = inbox.take(max(0.0, min(0.1, next_tick - time.monotonic())))
+        if inbox.superseded != seen:
+            n, seen = inbox.superseded - seen, inbox.superseded
+            loop.superseded(n)
         if data is not None:
             publish(loop.command(data))
         now = time.monotonic()

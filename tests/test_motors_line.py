@@ -31,8 +31,8 @@ def test_lines_on_the_wire(dev):
     drv.read_position()
     drv.close()
     goal = round(2048 + 0.25 * 4096 / (2 * math.pi))
-    assert bytes(d.rx) == f"Q\nE 1\nP {goal}\nQ\nE 0\n".encode()
-    assert emu.goals == [goal] and not emu.enabled
+    assert bytes(d.rx) == f"Q\nP 2000\nE 1\nP {goal}\nQ\nE 0\n".encode()
+    assert emu.goals == [2000, goal] and not emu.enabled
 
 
 def test_faults_retried_and_counted(dev):
@@ -64,7 +64,7 @@ def test_device_without_enable(tmp_path):
         assert not drv.enable_supported
         drv.write_goal(-0.1)
         drv.close()
-        assert emu.goals == [round(2048 - 0.1 * 4096 / (2 * math.pi))]
+        assert emu.goals == [2048, round(2048 - 0.1 * 4096 / (2 * math.pi))]
     finally:
         d.close()
 

@@ -126,6 +126,7 @@ class LineDriver(Driver):
             except TransientError as e:
                 raise TransientError(f"no answer to Q from the controller on {self.url} at "
                                      f"{self.settings.baud} baud ({e}); check the baud rate and the firmware")
+            self.goto(present)  # hold where it is before enabling (the device may keep an old goal)
             self.enable(True)
             return self.settings.from_ticks(present)
         except BaseException:

@@ -104,6 +104,15 @@ class MotorLoop:
         self._read()
         return self.state()
 
+    def superseded(self, n: int) -> None:
+        """n commands were replaced by a newer one before the motor thread took them (a flood): they count
+        as received and ignored."""
+        if n > 0:
+            self.commands += n
+            self.safety.ignored += n
+            self.note = f"{n} command(s) superseded by newer ones"
+            self._once("superseded", "commands arrive faster than the motor takes them: only the newest is used")
+
     def tick(self) -> MotorState:
         """The periodic step: reconnect when due, watchdog, read the position. Returns the state."""
         now = self.clock()
@@ -170,8 +179,8 @@ class MotorLoop:
 
     def _connected(self, present: float) -> None:
         self.pan = present
-        self.safety.reset(present)
-        self._io(self.driver.write_goal, self.safety.goal)
+        if self.safety.reset(present) != present:  # found outside the soft limits: bring it back in
+            self._io(self.driver.write_goal, self.safety.goal)
         self.status = "ok"
         self.note = ""
         self._last_cmd = self.clock()

@@ -1,0 +1,195 @@
+"""The real `vergence actuator` process, driven by Zenoh commands through a real router on 127.0.0.1.
+
+The device emulators run in a thread of this test process on a pseudo-terminal; the actuator opens it
+through a symlink, which the test re-points to a new pty to simulate unplugging and replugging an adapter
+(a pty cannot be reopened once its master is closed, but the path the actuator knows stays the same)."""
+
+from __future__ import annotations
+
+import math
+import signal
+import subprocess
+import time
+
+import pytest
+from emulators.dynamixel import DynamixelEmulator
+from emulators.line import LineEmulator
+from emulators.pty import PtyDevice
+from procs import VERGENCE, Procs, wait_for
+
+from vergence.messages import Command, MotorState
+from vergence.motors.dynamixel import Inst, instruction_packet
+
+
+def command(rig: str, pan: float, frame: int) -> bytes:
+    return Command(rig=rig, frame=frame, t_capture_ns=time.time_ns(), pan_rad=pan, correction_rad=0.0,
+                   direction=0, magnitude_px=0.0, confidence=1.0).to_bytes()
+
+
+def states(col) -> list[MotorState]:
+    return [MotorState.from_bytes(b) for _, b, _ in col.snapshot()]
+
+
+def wait_state(col, pred, timeout: float, what: str, logs, after: int = 0) -> MotorState:
+    """The newest state (among those received after the first `after`) for which pred holds."""
+    def found():
+        return next((s for s in reversed(states(col)[after:]) if pred(s)), None)
+    return wait_for(found, timeout, what, logs=logs)
+
+
+def ticks(pan: float) -> int:
+    return round(2048 + pan * 4096 / (2 * math.pi))
+
+
+def test_sim_actuator(tmp_path):
+    with Procs(tmp_path) as P:
+        P.router()
+        act = P.start("actuator", "actuator", "--driver", "sim")
+        s = P.session()
+        col = P.collect(s, P.key("motor/state"))
+        P.wait_alive(s, "actuator")
+        col.wait(1, 10)
+        n0, t0 = len(col), time.monotonic()
+        time.sleep(1.0)
+        rate = (len(col) - n0) / (time.monotonic() - t0)
+        assert 40 <= rate <= 60, rate  # state_hz = 50
+        pub = s.declare_publisher(P.key("command"))
+        pub.put(command(P.rig, 0.1, 1))
+        st = wait_state(col, lambda m: m.frame == 1, 5, "state of frame 1", P.logs)
+        assert st.goal_rad == pytest.approx(0.1) and st.driver == "sim" and st.status == "ok"
+        st = wait_state(col, lambda m: abs(m.pan_rad - 0.1) < 1e-4, 5, "the motor at 0.1", P.logs)
+        for i, bad in enumerate([math.nan, math.inf, 1e300, -1e300]):
+            pub.put(command(P.rig, bad, 2 + i))
+            time.sleep(0.05)  # one at a time: a burst would be coalesced (see the flood test)
+        pub.put(b"\x00garbage")
+        time.sleep(0.05)
+        pub.put(b"")
+        st = wait_state(col, lambda m: m.commands == 7, 5, "7 commands counted", P.logs)
+        assert (st.ignored, st.clamped, st.malformed) == (2, 2, 2)
+        # +1e300 then -1e300: one step up (10 deg) then one step down, never past the limits
+        assert st.goal_rad == pytest.approx(0.1)
+        assert max(m.goal_rad for m in states(col)) == pytest.approx(0.1 + math.radians(10))
+        act.signal(signal.SIGINT)
+        assert act.wait(10) == 0
+        assert states(col)[-1].status == "stopped"
+
+
+def test_missing_port_exits_with_hint():
+    r = subprocess.run([VERGENCE, "actuator", "--driver", "dynamixel", "--port", "/dev/ttyUSB_NOPE9",
+                        "--connect", "tcp/127.0.0.1:9"], capture_output=True, text=True, timeout=20)
+    assert r.returncode == 2
+    assert "/dev/ttyUSB_NOPE9" in r.stderr and "python -m serial.tools.list_ports" in r.stderr
+
+
+def test_dynamixel_actuator_bytes_state_and_replug(tmp_path):
+    emu = DynamixelEmulator(present=2048 + 100)
+    dev = PtyDevice(emu, str(tmp_path / "ttyDXL"))
+    try:
+        with Procs(tmp_path) as P:
+            P.router()
+            act = P.start("actuator", "actuator", "--driver", "dynamixel", "--port", dev.link, "--id", "1",
+                          "--baud", "1000000")
+            s = P.session()
+            col = P.collect(s, P.key("motor/state"))
+            P.wait_alive(s, "actuator")
+            wait_state(col, lambda m: m.status == "ok", 10, "status ok", P.logs)
+            # start-up: ping, mode read, present read, goal = present, torque on
+            insts = [(inst, bytes(p)) for _, inst, p in emu.packets[:6]]
+            assert insts[0] == (Inst.PING, b"")
+            assert (Inst.WRITE, bytes.fromhex("40 00 01")) in insts
+            assert emu.get("torque_enable") == 1 and emu.goal_writes[0] == 2148
+            pub = s.declare_publisher(P.key("command"))
+            for i, pan in enumerate([0.05, 0.1, -0.02], start=1):
+                pub.put(command(P.rig, pan, i))
+                st = wait_state(col, lambda m, i=i: m.frame == i, 5, f"state of frame {i}", P.logs)
+                assert st.goal_rad == pytest.approx(pan)
+            wait_for(lambda: emu.goal_writes[-1] == ticks(-0.02), 5, "the last goal written")
+            assert emu.goal_writes == [2148, ticks(0.05), ticks(0.1), ticks(-0.02)]
+            # the goal on the wire, byte for byte (Goal Position 116, 4 bytes, little-endian)
+            assert instruction_packet(1, Inst.WRITE, bytes([116, 0]) + ticks(0.1).to_bytes(4, "little")) \
+                in bytes(dev.rx)
+            st = wait_state(col, lambda m: abs(m.pan_rad + 0.02) < 2 * math.pi / 4096, 5, "present = goal", P.logs)
+            assert st.driver == "dynamixel" and st.errors == 0
+            # a corrupted reply and a lost one: retried and counted
+            emu.corrupt_next, emu.drop_next = 1, 1
+            st = wait_state(col, lambda m: m.errors >= 2, 5, "2 errors counted", P.logs)
+            assert st.status == "ok"
+            # unplug the adapter, then plug it back: same path, a new pty
+            dev.unplug()
+            wait_state(col, lambda m: m.status == "disconnected", 5, "status disconnected", P.logs)
+            time.sleep(0.3)
+            n = len(col)
+            dev.replug()
+            wait_state(col, lambda m: m.status == "ok", 10, "status ok again", P.logs, after=n)
+            pub.put(command(P.rig, 0.03, 10))
+            wait_state(col, lambda m: m.frame == 10, 5, "state of frame 10", P.logs)
+            wait_for(lambda: emu.goal_writes[-1] == ticks(0.03), 5, "the goal after the replug")
+            act.signal(signal.SIGINT)
+            assert act.wait(10) == 0
+            assert emu.get("torque_enable") == 0  # torque off on stop (the default)
+    finally:
+        dev.close()
+
+
+def test_line_actuator(tmp_path):
+    emu = LineEmulator(position=0)
+    dev = PtyDevice(emu, str(tmp_path / "ttyACM"))
+    conf = tmp_path / "head.toml"
+    conf.write_text('[actuator]\ndriver = "line"\nport = "%s"\n[actuator.motor]\nticks_per_rev = 3200\n'
+                    'zero = 0\ndirection = -1\n' % dev.link)
+    try:
+        with Procs(tmp_path) as P:
+            P.router()
+            act = P.start("actuator", "actuator", "--config", str(conf))
+            s = P.session()
+            col = P.collect(s, P.key("motor/state"))
+            wait_state(col, lambda m: m.status == "ok", 10, "status ok", P.logs)
+            pub = s.declare_publisher(P.key("command"))
+            pub.put(command(P.rig, 0.15, 1))
+            st = wait_state(col, lambda m: m.frame == 1 and abs(m.pan_rad - 0.15) < 0.002, 5, "at 0.15", P.logs)
+            assert st.driver == "line"
+            want = round(-0.15 * 3200 / (2 * math.pi))
+            assert emu.goals == [0, want]
+            assert f"P {want}\n".encode() in bytes(dev.rx)
+            dev.unplug()
+            wait_state(col, lambda m: m.status == "disconnected", 5, "status disconnected", P.logs)
+            n = len(col)
+            dev.replug()
+            wait_state(col, lambda m: m.status == "ok", 10, "ok again", P.logs, after=n)
+            pub.put(command(P.rig, 0.1, 2))
+            wait_for(lambda: emu.goals[-1] == round(-0.1 * 3200 / (2 * math.pi)), 5, "goal after replug")
+            act.signal(signal.SIGINT)
+            assert act.wait(10) == 0
+            assert bytes(dev.rx).endswith(b"E 0\n")
+    finally:
+        dev.close()
+
+
+def test_flood_keeps_goal_safe(tmp_path):
+    """Thousands of commands in a burst, garbage among them: the actuator keeps up by taking the newest,
+    counts the rest, and no goal leaves the limits or jumps more than max_step (1 deg here)."""
+    conf = tmp_path / "a.toml"
+    conf.write_text("[actuator.motor]\nmax_step_deg = 1.0\nmin_deg = -20\nmax_deg = 20\n")
+    with Procs(tmp_path) as P:
+        P.router()
+        P.start("actuator", "actuator", "--driver", "sim", "--config", str(conf))
+        s = P.session()
+        col = P.collect(s, P.key("motor/state"))
+        P.wait_alive(s, "actuator")
+        col.wait(1, 10)
+        pub = s.declare_publisher(P.key("command"))
+        import random
+        rnd = random.Random(5)
+        n = 3000
+        for i in range(n):
+            r = rnd.random()
+            if r < 0.1:
+                pub.put(bytes(rnd.randrange(256) for _ in range(rnd.randrange(20))))
+            else:
+                pan = rnd.choice([math.nan, math.inf, -math.inf, 1e9, -1e9, rnd.uniform(-1, 1)])
+                pub.put(command(P.rig, pan, i))
+        st = wait_state(col, lambda m: m.commands == n, 15, f"{n} commands accounted for", P.logs)
+        assert st.ignored + st.malformed > 0
+        goals = [m.goal_rad for m in states(col)]
+        assert all(-math.radians(20) - 1e-12 <= g <= math.radians(20) + 1e-12 for g in goals)
+        assert max(abs(b - a) for a, b in zip(goals, goals[1:])) <= math.radians(1.0) + 1e-9
