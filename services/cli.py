@@ -11,7 +11,7 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "match": ("services.match", "decide where the master fovea lies in the slave image (no Zenoh)"),
     "sim": ("services.sim", "closed loop on the simulated rig, in one process (no Zenoh)"),
-    "bench": ("services.bench", "benchmarks: kernel, pipeline"),
+    "bench": ("services.bench", "benchmarks: kernel, match, pipeline"),
     "up": ("services.up", "an embedded router and every process on this machine"),
     "router": ("services.router", "a Zenoh router"),
     "capture": ("services.capture", "read a stereo source and publish frames"),

@@ -1,0 +1,254 @@
+"""Layers 1-5 against plain reference implementations written here from ALGORITHM.md."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import vergence
+from vergence import kernel, retina
+from vergence.decide import centre_offset, decide
+
+
+# ---- plain references (slow, obvious) -------------------------------------------------------------------------
+
+def ref_features(img: np.ndarray) -> np.ndarray:
+    """I, G, D of a whole gray image, as ALGORITHM.md states them (float64 maths, OpenCV's default border)."""
+    gx = cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=3)
+    gy = cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=3)
+    g = np.sqrt(gx**2 + gy**2)
+    gq = np.minimum(255, np.floor(g / 4 + 0.5))
+    ang = np.arctan2(gy, gx) % (2 * math.pi)
+    dq = np.floor(ang * 256 / (2 * math.pi) + 0.5) % 256
+    dq[g == 0] = 0
+    return np.stack([img, gq, dq]).astype(np.uint8)
+
+
+def ref_sad(fovea: np.ndarray, band: np.ndarray, circular: bool = False) -> np.ndarray:
+    """S(v, k) = sum over the window and the three planes of |difference| (integers)."""
+    c, w, _ = fovea.shape
+    nv, kk = band.shape[1] - w + 1, band.shape[2] - w + 1
+    f = fovea.astype(np.int64)
+    s = np.empty((nv, kk), np.int64)
+    for v in range(nv):
+        for k in range(kk):
+            e = np.abs(f - band[:, v : v + w, k : k + w].astype(np.int64))
+            if circular:
+                e[2] = np.minimum(e[2], 256 - e[2])
+            s[v, k] = e.sum()
+    return s
+
+
+def ref_scores(fovea: np.ndarray, band: np.ndarray, circular: bool = False) -> np.ndarray:
+    """y(v, k) = sum over the window of 255 - (|dI| + |dG| + |dD|) / 3."""
+    c, w, _ = fovea.shape
+    nv, kk = band.shape[1] - w + 1, band.shape[2] - w + 1
+    f = fovea.astype(np.int64)
+    y = np.empty((nv, kk))
+    for v in range(nv):
+        for k in range(kk):
+            e = np.abs(f - band[:, v : v + w, k : k + w].astype(np.int64))
+            if circular:
+                e[2] = np.minimum(e[2], 256 - e[2])
+            y[v, k] = np.sum(255 - e.sum(axis=0) / 3)
+    return y
+
+
+def ref_match(master: np.ndarray, slave: np.ndarray, x: int, y: int, w: int = 15) -> int:
+    """The paper's winner k* for the fovea at (x, y): features of the whole images, argmax of layer 4."""
+    fm, fs = ref_features(master), ref_features(slave)
+    h = w // 2
+    return int(np.argmax(ref_scores(fm[:, y - h : y + h + 1, x - h : x + h + 1], fs[:, y - h : y + h + 1, :])[0]))
+
+
+# ---- layer 1 ------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("region", [(0, 60, 0, 50), (5, 20, 0, 50), (0, 10, 3, 9), (50, 60, 40, 50), (10, 25, 10, 20)],
+                         ids=["whole", "band", "top-left", "bottom-right", "inside"])
+def test_strip_features_equal_whole_image_features(region):
+    img = cv2.GaussianBlur(np.random.default_rng(3).integers(0, 256, (60, 50), dtype=np.uint8), (3, 3), 0.8)
+    r0, r1, c0, c1 = region
+    assert np.array_equal(retina.planes(retina.strip(img, r0, r1, c0, c1)), ref_features(img)[:, r0:r1, c0:c1])
+
+
+@pytest.mark.parametrize("grad,expect_d", [("right", 0), ("down", 64), ("left", 128), ("up", 192)])
+def test_direction_feature_is_full_circle(grad, expect_d):
+    ramp = np.tile(np.arange(0, 100, 10, dtype=np.uint8), (10, 1))  # intensity grows to the right
+    img = {"right": ramp, "left": ramp[:, ::-1], "down": ramp.T, "up": ramp.T[::-1]}[grad]
+    p = retina.planes(np.ascontiguousarray(img))
+    assert (p[2, 2:-2, 2:-2] == expect_d).all()
+    assert (p[1, 2:-2, 2:-2] == 20).all()  # Sobel of a 10/px ramp is 4 * 2 * 10 = 80; G = 80 / 4
+    flat = retina.planes(np.full((5, 5), 77, np.uint8))
+    assert flat[0].min() == 77 and not flat[1].any() and not flat[2].any()
+
+
+def test_gradient_magnitude_saturates_at_255():
+    step = np.zeros((5, 5), np.uint8)
+    step[:, 3:] = 255  # Sobel gives 1020, 1020 / 4 = 255 exactly; a diagonal step would exceed it
+    step2 = np.tril(np.full((5, 5), 255, np.uint8))
+    assert retina.planes(step)[1].max() == 255
+    assert retina.planes(step2)[1].max() == 255
+
+
+def test_colour_images_are_converted_for_the_strips_only():
+    rng = np.random.default_rng(0)
+    bgr = rng.integers(0, 256, (40, 60, 3), dtype=np.uint8)
+    gray = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    f1, b1 = vergence.features(bgr, bgr, (30, 20), 9, 2)
+    f2, b2 = vergence.features(gray, gray, (30, 20), 9, 2)
+    assert np.array_equal(f1, f2) and np.array_equal(b1, b2)
+    assert f1.shape == (3, 9, 9) and b1.shape == (3, 13, 60)
+
+
+@pytest.mark.parametrize("x,y,w,r,msg", [(3, 20, 15, 0, "left/right"), (30, 2, 15, 0, "top/bottom"),
+                                         (30, 10, 15, 4, "top/bottom"), (30, 20, 14, 0, "odd"),
+                                         (30, 20, 71, 0, "larger")])
+def test_border_errors_say_why(x, y, w, r, msg):
+    img = np.zeros((40, 60), np.uint8)
+    with pytest.raises(vergence.BorderError, match=msg):
+        vergence.features(img, img, (x, y), w, r)
+
+
+# ---- layers 2-4 ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("circular", [False, True], ids=["linear-D", "circular-D"])
+@pytest.mark.parametrize("w,nv,width", [(15, 1, 64), (15, 5, 40), (3, 1, 3), (31, 3, 50), (47, 1, 60)])
+def test_kernel_equals_reference(w, nv, width, circular):
+    rng = np.random.default_rng(w * 100 + nv)
+    fovea = rng.integers(0, 256, (3, w, w), dtype=np.uint8)
+    band = rng.integers(0, 256, (3, w + nv - 1, width), dtype=np.uint8)
+    y = kernel.correlate(fovea, band, circular=circular)
+    assert np.array_equal(kernel.sad(fovea, band, circular=circular), ref_sad(fovea, band, circular))
+    assert np.allclose(np.atleast_2d(y), ref_scores(fovea, band, circular), rtol=0, atol=1e-6)
+    assert y.ndim == (1 if nv == 1 else 2)
+
+
+def test_weighted_kernel_equals_reference():
+    rng = np.random.default_rng(7)
+    fovea = rng.integers(0, 256, (3, 31, 31), dtype=np.uint8)
+    band = rng.integers(0, 256, (3, 33, 70), dtype=np.uint8)
+    wt = rng.integers(0, 9, (31, 31), dtype=np.uint8)
+    s = kernel.sad(fovea, band, weights=wt, circular=False)
+    ref = np.array([[np.sum(np.abs(fovea.astype(np.int64) - band[:, v : v + 31, k : k + 31]) * wt)
+                     for k in range(40)] for v in range(3)])
+    assert np.array_equal(s, ref)
+
+
+def test_identical_window_scores_maximum():
+    rng = np.random.default_rng(1)
+    band = rng.integers(0, 256, (3, 15, 200), dtype=np.uint8)
+    fovea = band[:, :, 120:135].copy()
+    y = kernel.correlate(fovea, band)
+    assert y[120] == 255 * 15 * 15 and int(np.argmax(y)) == 120
+
+
+@settings(max_examples=60, deadline=None)
+@given(w=st.integers(1, 12).map(lambda h: 2 * h - 1), r=st.integers(0, 3), extra=st.integers(0, 60),
+       cuts=st.lists(st.floats(0, 1), max_size=4), seed=st.integers(0, 2**31 - 1), circ=st.booleans(),
+       weighted=st.booleans())
+def test_any_split_of_k_concatenates_to_the_whole(w, r, extra, cuts, seed, circ, weighted):
+    rng = np.random.default_rng(seed)
+    width = w + extra
+    fovea = rng.integers(0, 256, (3, w, w), dtype=np.uint8)
+    band = rng.integers(0, 256, (3, w + 2 * r, width), dtype=np.uint8)
+    wt = rng.integers(0, 9, (w, w), dtype=np.uint8) if weighted else None
+    kk = width - w + 1
+    bounds = sorted({0, kk, *(int(c * kk) for c in cuts)})
+    whole = kernel.correlate(fovea, band, circular=circ, weights=wt)
+    parts = [kernel.correlate(fovea, band, a, b, circular=circ, weights=wt) for a, b in zip(bounds, bounds[1:])]
+    assert np.array_equal(np.concatenate(parts, axis=-1), whole)
+
+
+def test_kernel_rejects_bad_shapes():
+    f = np.zeros((3, 15, 15), np.uint8)
+    with pytest.raises(ValueError, match="does not fit"):
+        kernel.correlate(f, np.zeros((3, 16, 100), np.uint8))
+    with pytest.raises(ValueError, match="outside"):
+        kernel.correlate(f, np.zeros((3, 15, 100), np.uint8), 10, 200)
+    with pytest.raises(TypeError):
+        kernel.correlate(f.astype(np.int16), np.zeros((3, 15, 100), np.uint8))
+
+
+# ---- winner-takes-all and layer 5 ---------------------------------------------------------------------------
+
+def test_centre_neuron_is_313_for_640_and_15():
+    assert centre_offset(640, 15) == 313
+
+
+@pytest.mark.parametrize("winner,direction,magnitude", [(300, -1, 13), (313, 0, 0), (340, 1, 27)])
+def test_layer5_direction_and_magnitude(winner, direction, magnitude):
+    y = np.zeros(626)
+    y[winner] = 1000.0
+    d = decide(y, 15, subpixel=False)
+    assert (d.k, d.k_centre, d.direction, d.magnitude, d.offset_px) == (winner, 313, direction, magnitude,
+                                                                          winner - 313)
+
+
+def test_subpixel_parabola_vertex():
+    k = np.arange(100, dtype=float)
+    y = 5000 - 3.0 * (k - 40.3) ** 2
+    d = decide(y, 15)
+    assert d.k == 40 and d.k_sub == pytest.approx(40.3, abs=1e-9)
+    assert decide(y, 15, subpixel=False).k_sub == 40
+
+
+def test_vertical_search_reports_the_row_shift():
+    y = np.zeros((5, 50))
+    y[4, 20] = 9.0  # row 4 of 5 = shift +2
+    d = decide(y, 15)
+    assert (d.k, d.v) == (20, 2)
+
+
+def test_margin_is_zero_for_a_tie_and_one_without_rival():
+    y = np.zeros(60)
+    y[10] = y[40] = 100.0
+    assert decide(y, 15).confidence == 0.0 and not decide(y, 15).confident
+    assert decide(np.array([1.0, 5.0, 1.0]), 3).confidence == 1.0
+
+
+@pytest.mark.parametrize("fill", [0, 128], ids=["black", "flat-grey"])
+def test_textureless_fovea_abstains(fill):
+    master = np.full((120, 160), fill, np.uint8)
+    slave = np.random.default_rng(0).integers(0, 256, (120, 160), dtype=np.uint8)
+    m = vergence.match(master, slave)
+    assert not m.confident and m.decision.texture == 0.0
+    assert vergence.match(master, slave, faithful=True).confident  # the paper has no abstention
+
+
+# ---- the whole network ---------------------------------------------------------------------------------------
+
+def shifted_pair(shift: int, seed: int = 0, size=(240, 320)):
+    """A textured master and the same scene seen `shift` px further left by the slave (disparity = shift)."""
+    rng = np.random.default_rng(seed)
+    big = cv2.GaussianBlur(rng.integers(0, 256, (size[0], size[1] + 64), dtype=np.uint8), (5, 5), 1.2)
+    return big[:, 32 : 32 + size[1]].copy(), big[:, 32 + shift : 32 + shift + size[1]].copy()
+
+
+@pytest.mark.parametrize("shift", [-20, -3, 0, 7, 25])
+def test_match_recovers_a_known_shift(shift):
+    master, slave = shifted_pair(shift)
+    for params in (vergence.Params(), vergence.FAITHFUL):
+        m = vergence.match(master, slave, params=params)
+        assert m.confident
+        assert m.decision.k == 160 - 7 - shift and m.offset_px == pytest.approx(-shift, abs=0.05)
+        assert m.decision.direction == -int(np.sign(shift))
+
+
+def test_vertical_misalignment_is_found_by_vertical_search():
+    master, slave = shifted_pair(5, seed=2)
+    slave = np.roll(slave, 2, axis=0)  # slave content 2 rows lower
+    m = vergence.match(master, slave, vsearch=3)
+    assert m.decision.v == 2 and m.offset_px == pytest.approx(-5.0, abs=0.02)
+
+
+def test_faithful_params_turn_every_extension_off():
+    p = vergence.FAITHFUL
+    assert (p.vsearch, p.circular, p.subpixel, p.min_margin, p.min_texture, p.lr_check, p.support,
+            p.max_window) == (0, False, False, 0.0, 0.0, False, False, 0)
+    with pytest.raises(TypeError, match="unknown parameter"):
+        vergence.Params.build(windw=3)

@@ -1,0 +1,126 @@
+"""Benchmarks of the library, each against baselines measured in the same run (interleaved), so that the
+ratios hold on a noisy, shared machine. No zenoh here: the pipeline benchmark lives in services/."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from . import kernel, retina
+from .match import Params, match
+
+__all__ = ["KernelCase", "CASES", "bench_kernel", "bench_match", "numpy_correlate", "opencv_correlate"]
+
+
+@dataclass(frozen=True)
+class KernelCase:
+    width: int
+    window: int
+    rows: int  # V = 2R + 1
+
+    @property
+    def name(self) -> str:
+        return f"W={self.width} w={self.window} V={self.rows}"
+
+
+CASES = [KernelCase(W, w, v) for W in (640, 1920, 3840) for w in (15, 31) for v in (1, 33)]
+
+
+def opencv_correlate(fovea: np.ndarray, band: np.ndarray) -> np.ndarray:
+    """What an OpenCV user would reach for: TM_SQDIFF of each float32 feature plane, summed."""
+    f = fovea.astype(np.float32)
+    b = band.astype(np.float32)
+    return sum(cv2.matchTemplate(b[c], f[c], cv2.TM_SQDIFF) for c in range(f.shape[0]))
+
+
+def numpy_correlate(fovea: np.ndarray, band: np.ndarray) -> np.ndarray:
+    """A plain vectorised numpy L1 over all (v, k) at once, one window pixel at a time."""
+    c, w, _ = fovea.shape
+    nv, kk = band.shape[1] - w + 1, band.shape[2] - w + 1
+    b = band.astype(np.int16)
+    s = np.zeros((nv, kk), np.int32)
+    for p in range(c):
+        for i in range(w):
+            for j in range(w):
+                s += np.abs(b[p, i : i + nv, j : j + kk] - np.int16(fovea[p, i, j]))
+    return 255.0 * w * w - s / 3.0
+
+
+def _inputs(case: KernelCase, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (case.window + case.rows + 1, case.width + 2), dtype=np.uint8),
+                           (5, 5), 1.0)
+    band = retina.planes(img)
+    h = case.window // 2
+    r = (case.rows - 1) // 2
+    cx = case.width // 2
+    fovea = np.ascontiguousarray(band[:, r : r + case.window, cx - h : cx + h + 1])
+    return fovea, band
+
+
+def _median_ms(samples: list[float]) -> float:
+    return float(np.median(samples) * 1e3)
+
+
+def bench_kernel(cases=CASES, repeats: int = 7, min_time: float = 0.02, numpy_limit: float = 2.0,
+                 progress=None) -> list[dict]:
+    """For each case, the three implementations in turn (A B C A B C ...): medians in ms and ratios.
+    The numpy baseline is skipped (None) for cases where one call takes longer than numpy_limit seconds."""
+    rows = []
+    for case in cases:
+        fovea, band = _inputs(case)
+        impls = {"correlate": lambda: kernel.correlate(fovea, band), "opencv": lambda: opencv_correlate(fovea, band),
+                 "numpy": lambda: numpy_correlate(fovea, band)}
+        kernel.correlate(fovea, band)  # compile / warm
+        t0 = time.perf_counter()
+        impls["numpy"]()
+        if time.perf_counter() - t0 > numpy_limit:
+            del impls["numpy"]
+        times: dict[str, list[float]] = {k: [] for k in impls}
+        for _ in range(repeats):
+            for name, fn in impls.items():
+                n, t0 = 0, time.perf_counter()
+                while True:
+                    fn()
+                    n += 1
+                    el = time.perf_counter() - t0
+                    if el >= min_time or name == "numpy":
+                        break
+                times[name].append(el / n)
+        med = {k: _median_ms(v) for k, v in times.items()}
+        row = {"case": case.name, "width": case.width, "window": case.window, "rows": case.rows,
+               "correlate_ms": med["correlate"], "opencv_ms": med["opencv"], "numpy_ms": med.get("numpy"),
+               "ratio_vs_opencv": med["correlate"] / med["opencv"],
+               "ratio_vs_numpy": med["correlate"] / med["numpy"] if "numpy" in med else None}
+        rows.append(row)
+        if progress:
+            progress(row)
+    return rows
+
+
+def bench_match(repeats: int = 400, seed: int = 0) -> dict:
+    """vergence.match for one point of a 640 x 480 pair (default and faithful params), after warm-up,
+    interleaved; and what the layer-1 features and the kernel take of it."""
+    rng = np.random.default_rng(seed)
+    big = cv2.GaussianBlur(rng.integers(0, 256, (480, 700), dtype=np.uint8), (5, 5), 1.2)
+    master, slave = big[:, :640].copy(), big[:, 12:652].copy()
+    default, paper = Params(), Params.paper()
+    x, y = 320, 240
+    fns = {"match": lambda: match(master, slave, None, default),
+           "match_faithful": lambda: match(master, slave, None, paper),
+           "features": lambda: retina.features(master, slave, (x, y), 15, default.vsearch)}
+    fovea, band = retina.features(master, slave, (x, y), 15, default.vsearch)
+    fns["kernel"] = lambda: kernel.correlate(fovea, band)
+    for fn in fns.values():
+        for _ in range(20):
+            fn()
+    times: dict[str, list[float]] = {k: [] for k in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t0)
+    return {k + "_ms": _median_ms(v) for k, v in times.items()}
