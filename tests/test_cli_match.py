@@ -1,0 +1,77 @@
+"""`vergence match` as a user runs it: a real process, JSON out, one-line errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from middlebury import ROOT, load, needs_data
+
+
+def vergence(*args, timeout=60):
+    return subprocess.run([sys.executable, "-m", "services.cli", *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    d = tmp_path_factory.mktemp("pair")
+    rng = np.random.default_rng(0)
+    big = cv2.GaussianBlur(rng.integers(0, 256, (120, 220), dtype=np.uint8), (5, 5), 1.2)
+    cv2.imwrite(str(d / "m.png"), big[:, 10:210])
+    cv2.imwrite(str(d / "s.png"), big[:, 16:216])  # slave sees the scene 6 px further right: offset -6
+    cv2.imwrite(str(d / "small.png"), big[:50, :50])
+    (d / "junk.png").write_bytes(b"not an image")
+    return d
+
+
+def test_json_one_line_per_point_in_order(pair):
+    r = vergence("match", str(pair / "m.png"), str(pair / "s.png"), "--at", "60,50", "--at", "140,70", "--json")
+    assert r.returncode == 0, r.stderr
+    rows = [json.loads(line) for line in r.stdout.splitlines()]
+    assert [(o["x"], o["y"]) for o in rows] == [(60, 50), (140, 70)]
+    for o in rows:
+        assert o["offset_px"] == pytest.approx(-6, abs=0.05) and o["confident"] is True
+        assert o["k"] == o["x"] - 7 - 6 and o["direction"] == -1 and o["magnitude"] == 6
+        assert 0 < o["confidence"] <= 1
+
+
+def test_faithful_is_integer_and_default_point_is_the_centre(pair):
+    r = vergence("match", str(pair / "m.png"), str(pair / "s.png"), "--faithful", "--json", "--window", "9")
+    o = json.loads(r.stdout)
+    assert (o["x"], o["y"], o["window"], o["offset_px"], o["k"]) == (100, 60, 9, -6.0, 100 - 4 - 6)
+
+
+def test_human_output(pair):
+    r = vergence("match", str(pair / "m.png"), str(pair / "s.png"))
+    assert r.returncode == 0 and "offset -6.00 px left 6 px" in r.stdout
+
+
+@pytest.mark.parametrize("args,says", [
+    (["missing.png", "s.png"], "no such file"),
+    (["junk.png", "s.png"], "not an image"),
+    (["m.png", "small.png"], "differ in size"),
+    (["m.png", "s.png", "--window", "301"], "larger than"),
+    (["m.png", "s.png", "--at", "3,50"], "too close to the left/right border"),
+    (["m.png", "s.png", "--at", "60,118", "--vsearch", "2"], "too close to the top/bottom border"),
+    (["m.png", "s.png", "--at", "six,7"], "X,Y"),
+], ids=["missing", "unreadable", "sizes", "window", "border-x", "border-y", "bad-point"])
+def test_errors_exit_nonzero_with_one_line(pair, args, says):
+    args = [str(pair / a) if a.endswith(".png") else a for a in args]
+    r = vergence("match", *args)
+    assert r.returncode != 0
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert says in lines[-1] and (len(lines) == 1 or "usage:" in r.stderr)
+
+
+@needs_data
+def test_on_a_real_pair():
+    _, _, disp = load("cones")
+    r = vergence("match", str(ROOT / "cones/left.png"), str(ROOT / "cones/right.png"), "--at", "300,200", "--json")
+    o = json.loads(r.stdout)
+    assert o["confident"] and o["offset_px"] == pytest.approx(-disp[200, 300], abs=1.0)

@@ -1,0 +1,142 @@
+"""Every message kind: round trip, and garbage in any shape raises MessageError and nothing else."""
+
+from __future__ import annotations
+
+import math
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from vergence import messages as M
+from vergence.config import ConfigError, Settings, from_dict, load
+
+
+def frame(**kw) -> M.Frame:
+    base = dict(rig="head", frame=7, t_capture_ns=123, pan_rad=0.1, width=40, height=30, x=20, y=15, window=5,
+                vsearch=1, focal_px=50.0, fovea=bytes(49), band=bytes(9 * 42), plan=[["a-1", 0, 20], ["b-2", 20, 36]])
+    base.update(kw)
+    return M.Frame(**base)
+
+
+SAMPLES = {
+    "frame": frame(),
+    "partial": M.Partial(rig="head", frame=7, t_capture_ns=1, worker="a-1", k0=0, k1=4, rows=2,
+                         scores=np.arange(8, dtype="<f8").tobytes()),
+    "profile": M.Profile(rig="head", frame=7, t_capture_ns=1, t_reduced_ns=2, width=10, window=5, rows=1,
+                         scores=np.zeros(6).tobytes(), k=3, k_sub=3.2, v_shift=0, k_centre=3, direction=0,
+                         magnitude=0, offset_px=0.2, confidence=0.5, confident=True, texture=9.0, pan_rad=0.0),
+    "command": M.Command(rig="head", frame=7, t_capture_ns=1, pan_rad=0.2, correction_rad=0.01, direction=1,
+                         magnitude_px=3.0, confidence=0.4),
+    "motor_state": M.MotorState(rig="head", t_ns=5, pan_rad=0.1, goal_rad=0.2, min_rad=-0.7, max_rad=0.7,
+                                status="ok"),
+    "preview": M.Preview(rig="head", frame=1, t_capture_ns=1, width=4, height=2, scale=0.1, master=bytes(8),
+                         slave=bytes(8)),
+}
+
+
+@pytest.mark.parametrize("kind", list(SAMPLES))
+def test_round_trip(kind):
+    msg = SAMPLES[kind]
+    data = msg.to_bytes()
+    assert msgpack.unpackb(data)["v"] == M.SCHEMA
+    assert M.KINDS[kind].from_bytes(data) == msg
+
+
+def test_arrays_travel_as_binary():
+    p = M.Partial.from_bytes(SAMPLES["partial"].to_bytes())
+    assert p.array().tolist() == [[0, 1, 2, 3], [4, 5, 6, 7]]
+    raw = msgpack.unpackb(SAMPLES["partial"].to_bytes())
+    assert isinstance(raw["scores"], bytes)
+
+
+@pytest.mark.parametrize("change,says", [
+    (dict(fovea=bytes(48)), "fovea"),
+    (dict(band=bytes(10)), "band"),
+    (dict(window=4), "odd"),
+    (dict(plan=[["a", 0, 10]]), "covers"),
+    (dict(plan=[["a", 0, 10], ["b", 12, 36]]), "partition"),
+    (dict(plan=[["a", 0]]), "plan entry"),
+    (dict(pan_rad=math.nan), "finite"),
+    (dict(focal_px=-1.0), "positive"),
+])
+def test_frame_validation_names_the_field(change, says):
+    d = frame().to_dict()
+    d.update(change)
+    with pytest.raises(M.MessageError, match=says):
+        M.Frame.from_bytes(msgpack.packb(d, use_bin_type=True))
+
+
+@pytest.mark.parametrize("kind", list(SAMPLES))
+@pytest.mark.parametrize("mutation", ["missing", "wrong-type", "old-schema", "not-a-map", "list"])
+def test_wrong_types_and_fields_raise_message_error(kind, mutation):
+    d = SAMPLES[kind].to_dict()
+    name = next(iter(k for k in d if k != "v"))
+    if mutation == "missing":
+        del d[name]
+    elif mutation == "wrong-type":
+        d[name] = {"x": 1}
+    elif mutation == "old-schema":
+        d["v"] = 0
+    elif mutation == "not-a-map":
+        d = "frame"
+    else:
+        d = [1, 2, 3]
+    with pytest.raises(M.MessageError):
+        M.KINDS[kind].from_bytes(msgpack.packb(d, use_bin_type=True))
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.binary(max_size=300), kind=st.sampled_from(sorted(SAMPLES)))
+def test_random_bytes_only_ever_raise_message_error(data, kind):
+    try:
+        M.KINDS[kind].from_bytes(data)
+    except M.MessageError:
+        pass
+
+
+@settings(max_examples=200, deadline=None)
+@given(kind=st.sampled_from(sorted(SAMPLES)), key=st.text(max_size=8),
+       value=st.one_of(st.none(), st.booleans(), st.integers(-2**63, 2**64 - 1), st.floats(), st.text(max_size=5), st.binary(max_size=5),
+                       st.lists(st.integers(-2**63, 2**63 - 1), max_size=3)))
+def test_any_field_value_only_ever_raises_message_error(kind, key, value):
+    d = SAMPLES[kind].to_dict()
+    d[key if key else next(iter(d))] = value
+    try:
+        M.KINDS[kind].from_bytes(msgpack.packb(d, use_bin_type=True))
+    except M.MessageError:
+        pass
+
+
+# ---- settings --------------------------------------------------------------------------------------------------
+
+def test_settings_from_toml(tmp_path):
+    p = tmp_path / "v.toml"
+    p.write_text('rig = "left-head"\n[network]\nwindow = 21\nfaithful = 1\n')
+    with pytest.raises(ConfigError, match=r"network\.faithful: unknown setting"):
+        load(p)
+    p.write_text('rig = "left-head"\n[network]\nwindow = 21\n[control]\ngain = 0.5\n')
+    s = load(p)
+    assert (s.rig, s.network.window, s.control.gain, s.network.vsearch) == ("left-head", 21, 0.5, Settings().network.vsearch)
+
+
+@pytest.mark.parametrize("data,says", [
+    ({"network": {"window": "big"}}, "network.window: expected int"),
+    ({"capture": {"rate_hz": True}}, "capture.rate_hz: expected float"),
+    ({"control": 3}, "control: expected a table"),
+    ({"colour": 1}, "colour: unknown setting"),
+])
+def test_bad_settings_name_the_field(data, says):
+    with pytest.raises(ConfigError, match=says):
+        from_dict(data)
+
+
+def test_unreadable_or_bad_toml_says_which_file(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read settings file"):
+        load(tmp_path / "nope.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("rig = \n")
+    with pytest.raises(ConfigError, match="bad.toml: not valid TOML"):
+        load(bad)
