@@ -13,6 +13,7 @@ import dataclasses
 import logging
 import sys
 import threading
+import time
 
 from vergence.config import ConfigError, load
 from vergence.motors import DRIVERS, PortError, make_driver
@@ -60,7 +61,6 @@ class Latest:
 
 def serve(loop: MotorLoop, publish, inbox: Latest, stop: session.Stop, state_hz: float) -> None:
     """Run the motor loop until stop: commands as they come, a state every 1/state_hz."""
-    import time
     period = 1.0 / state_hz if state_hz > 0 else 0.02
     next_tick = time.monotonic()
     seen = 0

@@ -217,3 +217,11 @@ def test_loop_survives_unplug_and_replug(dxl):
     loop.stop()
     assert emu.get("torque_enable") == 0
     assert os.path.islink(dev.link)
+
+
+def test_profile_velocity_from_max_speed(dxl):
+    emu, dev = dxl
+    drv = DynamixelDriver(MotorSettings(set_profile_velocity=True, max_speed_deg_s=180), dev.link)
+    drv.open()
+    assert emu.get("profile_velocity") == round(180 / 6 / 0.229) == 131  # 0.229 rpm per unit
+    drv.close()

@@ -197,7 +197,10 @@ class Safety:
         """The goal for one target, or Verdict(None) when the motor keeps its goal."""
         if isinstance(pan_rad, bool) or not isinstance(pan_rad, (int, float)):
             return self._ignore(f"target {pan_rad!r} is not a number")
-        x = float(pan_rad)
+        try:
+            x = float(pan_rad)
+        except OverflowError:
+            x = math.inf
         if not math.isfinite(x):
             return self._ignore(f"target {x} is not finite")
         if t_capture_ns > 0:
