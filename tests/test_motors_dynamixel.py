@@ -225,3 +225,32 @@ def test_profile_velocity_from_max_speed(dxl):
     drv.open()
     assert emu.get("profile_velocity") == round(180 / 6 / 0.229) == 131  # 0.229 rpm per unit
     drv.close()
+
+
+def test_driver_over_socket_url():
+    """socket:// (a serial-to-TCP bridge such as ser2net) works like a tty: serial_for_url."""
+    import socket
+    import threading
+
+    emu = DynamixelEmulator()
+    srv = socket.create_server(("127.0.0.1", 0))
+    port = srv.getsockname()[1]
+
+    def serve():
+        conn, _ = srv.accept()
+        with conn:
+            while data := conn.recv(4096):
+                conn.sendall(emu.feed(data))
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    try:
+        drv = DynamixelDriver(MotorSettings(), f"socket://127.0.0.1:{port}")
+        assert drv.open() == 0.0
+        drv.write_goal(-0.1)
+        assert emu.goal_writes[-1] == round(2048 - 0.1 * 4096 / (2 * math.pi))
+        drv.close()
+        assert emu.get("torque_enable") == 0
+    finally:
+        srv.close()
+        t.join(5)
