@@ -161,10 +161,24 @@ class Procs:
 
     # -- the test's own zenoh session ------------------------------------------------------------------------
 
-    def session(self):
-        """A zenoh client session connected to the router (closed at teardown if not before)."""
+    def wait_port(self, timeout: float = 20.0) -> None:
+        """Wait until something accepts TCP connections on the endpoint's port (a router started by
+        another process, `vergence up` say)."""
+        port = int(self.endpoint.rsplit(":", 1)[1])
+
+        def up():
+            with socket.socket() as s:
+                s.settimeout(0.2)
+                return s.connect_ex(("127.0.0.1", port)) == 0
+
+        wait_for(up, timeout, f"a listener on {self.endpoint}", interval=0.1, logs=self.logs)
+
+    def session(self, timeout: float = 20.0):
+        """A zenoh client session connected to the router (closed at teardown if not before); waits up to
+        `timeout` s for the router to listen."""
         import zenoh
 
+        self.wait_port(timeout)
         conf = zenoh.Config()
         conf.insert_json5("mode", '"client"')
         conf.insert_json5("connect/endpoints", f'["{self.endpoint}"]')

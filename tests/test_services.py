@@ -1,0 +1,281 @@
+"""The distributed pipeline as real processes over a real Zenoh router on 127.0.0.1 (tests/procs.py).
+
+Each test has its own router on a free port and its own rig name; every wait is bounded; teardown kills
+every process group it started."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import time
+
+import cv2
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+
+from procs import Procs, free_port, wait_for
+from vergence import kernel, pipeline, retina
+from vergence.config import load
+from vergence.messages import Command, Frame, MessageError, Partial, Profile
+
+RATE = 40  # frames per second in these tests: light on a shared 2-core machine
+
+
+@pytest.fixture
+def pair(tmp_path):
+    """A 320 x 120 textured pair; the slave sees the scene 12 px further left."""
+    rng = np.random.default_rng(3)
+    base = cv2.GaussianBlur(rng.integers(0, 256, (120, 360), np.uint8), (5, 5), 1.5)
+    left, right = base[:, 20:340], base[:, 8:328]
+    cv2.imwrite(str(tmp_path / "l.png"), left)
+    cv2.imwrite(str(tmp_path / "r.png"), right)
+    return f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}"
+
+
+def config(tmp_path, text: str = "") -> str:
+    p = tmp_path / "settings.toml"
+    p.write_text("[network]\nmax_window = 0\n[capture]\npreview_hz = 0\n" + text)
+    return str(p)
+
+
+def status(P, s, role: str, timeout: float = 5.0) -> dict:
+    """The latest status JSON of each process of a role: {id: status}."""
+    c = P.collect(s, P.key(f"status/{role}/*"))
+    try:
+        c.wait(1, timeout)
+        time.sleep(1.1)  # every process of the role has published once
+        out = {}
+        for _, b, k in c.snapshot():
+            out[k.rsplit("/", 1)[1]] = json.loads(b)
+        return out
+    finally:
+        c.close()
+
+
+def by_frame(items, cls):
+    out = {}
+    for t, b, _ in items:
+        m = cls.from_bytes(b)
+        out[m.frame] = (t, m)
+    return out
+
+
+def expected(frame: Frame) -> np.ndarray:
+    fovea = retina.planes(frame.fovea_strip())
+    band = retina.planes(frame.band_strip())
+    w = kernel.support_weights(fovea, frame.support_gamma) if frame.support else None
+    return np.atleast_2d(kernel.correlate(fovea, band, circular=frame.circular, weights=w))
+
+
+def test_profile_equals_correlate_with_1_2_3_workers(tmp_path, pair):
+    cfg = config(tmp_path)
+    with Procs(tmp_path) as P:
+        P.router()
+        P.start("reducer", "reducer", "--config", cfg)
+        P.start("w1", "worker", "--name", "w1", "--config", cfg)
+        s = P.session()
+        P.wait_alive(s, "worker", 1)
+        frames = P.collect(s, P.key("frame"))
+        profiles = P.collect(s, P.key("profile"))
+        P.start("capture", "capture", "--source", pair, "--rate", str(RATE), "--config", cfg)
+        for n in (1, 2, 3):
+            if n > 1:
+                P.start(f"w{n}", "worker", "--name", f"w{n}", "--config", cfg)
+            ids = P.wait_alive(s, "worker", n)
+            start = len(profiles)
+            seen = wait_for(lambda: [m for _, m in by_frame(profiles.snapshot()[start:], Profile).values()
+                                     if len(m.workers) == n][:3] or None, 20, f"profiles from {n} workers",
+                            logs=P.logs)
+            fr = by_frame(frames.snapshot(), Frame)
+            params = load(cfg).network
+            for prof in seen:
+                f = fr[prof.frame][1]
+                assert sorted(prof.workers) == sorted(ids)
+                assert np.array_equal(prof.array(), expected(f))  # bit-identical to the in-process kernel
+                d = pipeline.decide_frame(f, prof.array(), params)
+                assert (prof.k, prof.k_sub, prof.confident) == (d.k, d.k_sub, d.confident)
+                assert prof.k - prof.k_centre == 12 and prof.confident
+
+
+def test_kill_and_add_workers_commands_continue_never_incomplete(tmp_path, pair):
+    cfg = config(tmp_path)
+    with Procs(tmp_path) as P:
+        P.router()
+        P.start("reducer", "reducer", "--config", cfg)
+        workers = {n: P.start(f"w{n}", "worker", "--name", f"w{n}", "--config", cfg) for n in (1, 2)}
+        s = P.session()
+        P.wait_alive(s, "worker", 2)
+        frames, parts = P.collect(s, P.key("frame")), P.collect(s, P.key("correlation/*"))
+        commands, profiles = P.collect(s, P.key("command")), P.collect(s, P.key("profile"))
+        P.start("capture", "capture", "--source", pair, "--rate", str(RATE), "--config", cfg)
+        commands.wait(5, 20)
+        workers[3] = P.start("w3", "worker", "--name", "w3", "--config", cfg)
+        wait_for(lambda: any(len(m.workers) == 3 for _, m in by_frame(profiles.snapshot(), Profile).values()),
+                 20, "a profile from 3 workers", logs=P.logs)
+        t_kill = time.time_ns()
+        workers[2].signal(signal.SIGKILL)
+        time.sleep(3.0)  # the lease (1 s) expires, the capture re-plans
+        t_end = time.time_ns()
+        time.sleep(0.3)
+        fr = by_frame(frames.snapshot(), Frame)
+        cmd = by_frame(commands.snapshot(), Command)
+        prof = by_frame(profiles.snapshot(), Profile)
+        got = {}
+        for t, b, _ in parts.snapshot():
+            p = Partial.from_bytes(b)
+            got.setdefault(p.frame, {})[p.worker] = (t, p)
+        # never a command from an incomplete profile: every command's frame had every shard of its plan
+        for fid, (t_cmd, c) in cmd.items():
+            assert fid in fr and fid in prof, (fid, sorted(fr)[:3], sorted(fr)[-3:], len(fr), len(cmd))
+            f = fr[fid][1]
+            assert prof[fid][1].array().shape[1] == f.k_count
+            for wid, k0, k1 in f.plan:
+                assert wid in got.get(fid, {}), (fid, wid, f.plan, got.get(fid))
+                t_p, p = got[fid][wid]
+                assert (p.k0, p.k1) == (k0, k1) and t_p <= t_cmd + 2_000_000
+        # commands continue after the loss, with a bounded number of frames lost around it
+        after = [fid for fid, (_, f) in fr.items() if f.t_capture_ns > t_kill]
+        lost = [fid for fid in after if fid not in cmd and fr[fid][1].t_capture_ns < t_end]
+        assert len(lost) <= 2.5 * RATE, f"{len(lost)} frames lost after SIGKILL"
+        late = [fid for fid in after if fr[fid][1].t_capture_ns > t_kill + 2_000_000_000]
+        assert late and all(fid in cmd for fid in late[:-2]), "commands did not resume with 2 workers"
+        assert all(len(fr[fid][1].plan) == 2 for fid in late)
+        assert workers[1].alive() and workers[3].alive()
+
+
+def test_sigstop_worker_frames_dropped_not_queued(tmp_path, pair):
+    cfg = config(tmp_path)
+    with Procs(tmp_path) as P:
+        P.router()
+        reducer = P.start("reducer", "reducer", "--config", cfg, "--deadline-ms", "40")
+        w1 = P.start("w1", "worker", "--name", "w1", "--config", cfg)
+        P.start("w2", "worker", "--name", "w2", "--config", cfg)
+        s = P.session()
+        P.wait_alive(s, "worker", 2)
+        frames, parts = P.collect(s, P.key("frame")), P.collect(s, P.key("correlation/*"))
+        commands = P.collect(s, P.key("command"))
+        P.start("capture", "capture", "--source", pair, "--rate", str(RATE), "--config", cfg)
+        commands.wait(5, 20)
+        before = status(P, s, "reducer")
+        dropped0 = next(iter(before.values()))["gatherer"]["dropped"]
+        t_stop = time.time_ns()
+        w1.signal(signal.SIGSTOP)
+        time.sleep(0.6)  # shorter than the lease: the worker stays in the plan
+        w1.signal(signal.SIGCONT)
+        t_cont = time.time_ns()
+        n_cmd = len(commands)
+        commands.wait(n_cmd + 10, 10)  # the pipeline recovers
+        after = status(P, s, "reducer")
+        dropped = next(iter(after.values()))["gatherer"]["dropped"] - dropped0
+        assert 0.3 * RATE <= dropped <= 2 * RATE, dropped
+        # not queued: after SIGCONT the stopped worker computes at most one stale frame (its ring holds one)
+        fr = by_frame(frames.snapshot(), Frame)
+        w1_id = [k for k in P.wait_alive(s, "worker", 2) if k.startswith("w1-")][0]
+        stale = [p.frame for _, b, k in parts.snapshot() if k.endswith(w1_id)
+                 for p in [Partial.from_bytes(b)] if fr.get(p.frame) and
+                 t_stop < fr[p.frame][1].t_capture_ns < t_cont - 100_000_000]
+        assert len(stale) <= 2, stale
+        cmds = by_frame(commands.snapshot(), Command)
+        resumed = [fid for fid, (_, c) in cmds.items() if c.t_capture_ns > t_cont]
+        assert len(resumed) >= 10 and reducer.alive()
+
+
+def _garbage(rng: random.Random, frame: Frame, part: Partial) -> list[bytes]:
+    f = frame.to_dict()
+    p = part.to_dict()
+    out = [bytes(rng.getrandbits(8) for _ in range(rng.randint(0, 300))) for _ in range(5)]
+    out += [b"", msgpack.packb([1, 2, 3]), msgpack.packb({"v": 1}), msgpack.packb("frame"),
+            msgpack.packb({**f, "v": 99}), msgpack.packb({**f, "window": "15"}), msgpack.packb({**f, "fovea": 7}),
+            msgpack.packb({**f, "band": f["band"][:-3]}), msgpack.packb({**f, "plan": [["x", 0, 5]]}),
+            msgpack.packb({**f, "pan_rad": float("nan")}), msgpack.packb({**p, "scores": p["scores"][:-8]}),
+            msgpack.packb({**p, "k1": -1}), msgpack.packb({**p, "rows": True}), msgpack.packb({**p, "worker": 3})]
+    return out
+
+
+def test_garbage_on_every_key_kills_nothing(tmp_path, pair):
+    cfg = config(tmp_path)
+    with Procs(tmp_path) as P:
+        P.router()
+        procs = [P.start("reducer", "reducer", "--config", cfg), P.start("w1", "worker", "--name", "w1", "--config", cfg),
+                 P.start("actuator", "actuator", "--driver", "sim", "--config", cfg)]
+        s = P.session()
+        P.wait_alive(s, "worker", 1)
+        cfg_dyn = str(tmp_path / "dyn.toml")
+        with open(cfg_dyn, "w") as fh:  # the capture with the dynamic window also listens to profiles
+            fh.write("[network]\nmax_window = 31\n[capture]\npreview_hz = 0\n")
+        frames, commands = P.collect(s, P.key("frame")), P.collect(s, P.key("command"))
+        procs.append(P.start("capture", "capture", "--source", pair, "--rate", str(RATE), "--config", cfg_dyn))
+        parts = P.collect(s, P.key("correlation/*"))
+        commands.wait(3, 20)
+        frame = Frame.from_bytes(frames.snapshot()[-1][1])
+        part = Partial.from_bytes(parts.snapshot()[-1][1])
+        rng = random.Random(7)
+        junk = _garbage(rng, frame, part)
+        keys = ["frame", "correlation/" + part.worker, "correlation/intruder", "motor/state", "profile", "command"]
+        for _ in range(3):
+            for k in keys:
+                for b in junk:
+                    s.put(P.key(k), b, congestion_control=zenoh.CongestionControl.BLOCK)
+                time.sleep(0.05)
+        def valid():
+            out = []
+            for _, b, _ in commands.snapshot():
+                try:
+                    out.append(Command.from_bytes(b))
+                except MessageError:
+                    pass
+            return out
+
+        last_id = frame.frame
+        for _, b, _ in frames.snapshot():  # the newest real frame once the garbage is out
+            try:
+                last_id = max(last_id, Frame.from_bytes(b).frame)
+            except MessageError:
+                pass
+        wait_for(lambda: len([c for c in valid() if c.frame > last_id]) >= 20, 15, "commands after the garbage",
+                 logs=P.logs)
+        assert all(p.alive() for p in procs), P.logs()
+        st = {r: status(P, s, r) for r in ("worker", "reducer", "capture")}
+        (w,) = st["worker"].values()
+        (r,) = st["reducer"].values()
+        (c,) = st["capture"].values()
+        assert w["bad"]["frame"] >= 3  # its RingChannel(1) keeps only the newest of a burst
+        assert r["bad"]["frame"] >= 3 * 10 and r["bad"]["partial"] >= 3 * 2 * 10
+        assert c["bad"]["motor_state"] >= 3 * len(junk) and c["bad"]["profile"] >= 3 * len(junk)
+        # no garbage frame was ever turned into a command
+        assert all(c.magnitude_px < 14 and c.rig == P.rig for c in valid())
+
+
+def _pids_with(text: str) -> list[int]:
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/cmdline", "rb") as fh:
+                    if text.encode() in fh.read():
+                        out.append(int(d))
+            except OSError:
+                pass
+    return out
+
+
+def test_up_sigint_leaves_nothing_behind(tmp_path, pair):
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    with Procs(tmp_path) as P:
+        P.endpoint = endpoint
+        up = P.start("up", "up", "--listen", endpoint, "--source", pair, "--workers", "2", "--rate", "20",
+                     "--config", config(tmp_path), connect=False)
+        s = P.session()
+        cmds = P.collect(s, P.key("command"))
+        cmds.wait(3, 30)
+        children = [p for p in _pids_with(P.rig) if p != up.pid]
+        assert len(children) >= 5  # router is not named by rig; actuator, 2 workers, reducer, capture
+        up.signal(signal.SIGINT)
+        assert up.wait(20) == 0
+        wait_for(lambda: not _pids_with(P.rig) and not _pids_with(endpoint), 5, "no process left", logs=P.logs)
+        assert "router stopped (exit 0)" in up.text()
