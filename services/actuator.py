@@ -26,7 +26,8 @@ log = logging.getLogger("vergence.actuator")
 
 def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
-    p.add_argument("--driver", choices=DRIVERS, default=None, help="motor driver (default: settings, else sim)")
+    p.add_argument("--driver", choices=DRIVERS, default=None,
+                   help="motor driver (default: from the settings, else sim)")
     p.add_argument("--port", default=None, metavar="URL",
                    help="serial port or pyserial URL: /dev/ttyUSB0, socket://host:port, loop:// "
                         "(list ports: python -m serial.tools.list_ports -v)")
@@ -95,7 +96,8 @@ def main(settings, conf, stop: session.Stop) -> int:
     try:
         pub = s.declare_publisher(f"vergence/{rig}/motor/state")
         inbox = Latest()
-        sub = s.declare_subscriber(f"vergence/{rig}/command", lambda sample: inbox.put(sample.payload.to_bytes()))
+        sub = s.declare_subscriber(f"vergence/{rig}/command",
+                                   lambda sample: inbox.put(sample.payload.to_bytes()))
         token = s.liveliness().declare_token(session.alive_key(rig, "actuator"))
 
         def publish(state):

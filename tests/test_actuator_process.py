@@ -108,7 +108,8 @@ def test_dynamixel_actuator_bytes_state_and_replug(tmp_path):
             # the goal on the wire, byte for byte (Goal Position 116, 4 bytes, little-endian)
             assert instruction_packet(1, Inst.WRITE, bytes([116, 0]) + ticks(0.1).to_bytes(4, "little")) \
                 in bytes(dev.rx)
-            st = wait_state(col, lambda m: abs(m.pan_rad + 0.02) < 2 * math.pi / 4096, 5, "present = goal", P.logs)
+            st = wait_state(col, lambda m: abs(m.pan_rad + 0.02) < 2 * math.pi / 4096, 5, "present = goal",
+                            P.logs)
             assert st.driver == "dynamixel" and st.errors == 0
             # a corrupted reply and a lost one: retried and counted
             emu.corrupt_next, emu.drop_next = 1, 1
@@ -146,7 +147,8 @@ def test_line_actuator(tmp_path):
             wait_state(col, lambda m: m.status == "ok", 10, "status ok", P.logs)
             pub = s.declare_publisher(P.key("command"))
             pub.put(command(P.rig, 0.15, 1))
-            st = wait_state(col, lambda m: m.frame == 1 and abs(m.pan_rad - 0.15) < 0.002, 5, "at 0.15", P.logs)
+            st = wait_state(col, lambda m: m.frame == 1 and abs(m.pan_rad - 0.15) < 0.002, 5, "at 0.15",
+                            P.logs)
             assert st.driver == "line"
             want = round(-0.15 * 3200 / (2 * math.pi))
             assert emu.goals == [0, want]

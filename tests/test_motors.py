@@ -32,7 +32,7 @@ def cmd(pan, frame=1, t=0, **kw) -> Command:
                    magnitude_px=0.0, confidence=1.0, **kw)
 
 
-# -- settings -------------------------------------------------------------------------------------------------
+# -- settings ------------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("pan, ticks", [(0.0, 2048), (math.pi / 2, 3072), (-math.pi / 2, 1024),
                                         (0.001, 2049), (0.0007, 2048), (math.radians(45), 2560),
@@ -67,7 +67,7 @@ def test_make_driver_needs_port():
         make_driver("stepper", MotorSettings(), "x")
 
 
-# -- safety ---------------------------------------------------------------------------------------------------
+# -- safety --------------------------------------------------------------------------------------------------
 
 def test_safety_clamps_and_ignores():
     s = Safety(MotorSettings(max_step_deg=10))
@@ -161,7 +161,7 @@ def test_loop_property(stream):
     assert st_.malformed + loop.safety.accepted + loop.safety.ignored + loop.safety.held == st_.commands
 
 
-# -- simulated motor ------------------------------------------------------------------------------------------
+# -- simulated motor -----------------------------------------------------------------------------------------
 
 def test_sim_first_order_and_speed():
     clock = Clock()
@@ -195,7 +195,7 @@ def test_sim_integration_independent_of_polling():
     assert a.read_position() == pytest.approx(b.read_position(), abs=1e-12)
 
 
-# -- the loop -------------------------------------------------------------------------------------------------
+# -- the loop ------------------------------------------------------------------------------------------------
 
 def test_loop_tracks_commands_and_watchdog():
     clock = Clock()

@@ -23,12 +23,13 @@ def hx(s: str) -> bytes:
     return bytes.fromhex(s)
 
 
-# -- packets --------------------------------------------------------------------------------------------------
+# -- packets -------------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("packet, built", [
     # e-Manual, Protocol 2.0: ping id 1; read 4 bytes at 132 (Present Position); write 512 to 116 (Goal)
     ("FF FF FD 00 01 03 00 01 19 4E", lambda: instruction_packet(1, Inst.PING)),
-    ("FF FF FD 00 01 07 00 02 84 00 04 00 1D 15", lambda: instruction_packet(1, Inst.READ, hx("84 00 04 00"))),
+    ("FF FF FD 00 01 07 00 02 84 00 04 00 1D 15",
+     lambda: instruction_packet(1, Inst.READ, hx("84 00 04 00"))),
     ("FF FF FD 00 01 09 00 03 74 00 00 02 00 00 CA 89",
      lambda: instruction_packet(1, Inst.WRITE, hx("74 00 00 02 00 00"))),
     # the status of a ping: model 1030 (0x0406), firmware 0x26
@@ -86,7 +87,7 @@ def test_control_table_addresses():
     assert XSERIES["present_position"][:2] == (132, 4)
 
 
-# -- the emulator alone ---------------------------------------------------------------------------------------
+# -- the emulator alone --------------------------------------------------------------------------------------
 
 def test_emulator_eeprom_locked_while_torque_on():
     emu = DynamixelEmulator()
@@ -106,12 +107,12 @@ def test_emulator_eeprom_locked_while_torque_on():
 def test_emulator_goal_limit_in_position_mode():
     emu = DynamixelEmulator()
     emu.feed(instruction_packet(1, Inst.WRITE, hx("40 00 01")))
-    assert emu.feed(instruction_packet(1, Inst.WRITE, (116).to_bytes(2, "little") + (5000).to_bytes(4, "little"))
-                    ) == status_packet(1, 6)
+    goal_5000 = (116).to_bytes(2, "little") + (5000).to_bytes(4, "little")
+    assert emu.feed(instruction_packet(1, Inst.WRITE, goal_5000)) == status_packet(1, 6)
     assert emu.get("goal_position") == 2048
 
 
-# -- the driver on a pseudo-terminal --------------------------------------------------------------------------
+# -- the driver on a pseudo-terminal -------------------------------------------------------------------------
 
 @pytest.fixture
 def dxl(tmp_path):

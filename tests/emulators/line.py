@@ -10,8 +10,8 @@ import time
 
 
 class LineEmulator:
-    def __init__(self, position: int = 2048, speed_steps_s: float = 20000.0, lo: int = -10**6, hi: int = 10**6,
-                 supports_enable: bool = True, banner: str = "", clock=time.monotonic):
+    def __init__(self, position: int = 2048, speed_steps_s: float = 20000.0, lo: int = -10**6,
+                 hi: int = 10**6, supports_enable: bool = True, banner: str = "", clock=time.monotonic):
         self.lock = threading.Lock()
         self.position = float(position)
         self.goal = position

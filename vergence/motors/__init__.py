@@ -10,14 +10,14 @@ DRIVERS = ("sim", "dynamixel", "line")
 
 
 def make_driver(name: str, settings: MotorSettings, port: str = "") -> Driver:
-    """The driver called `name` (sim | dynamixel | line) for the motor `settings` on `port` (a pyserial URL)."""
+    """The driver called `name` (sim | dynamixel | line) for the motor `settings` on `port` (pyserial URL)."""
     if name == "sim":
         from .simulated import SimMotor
         return SimMotor(settings)
     if name in ("dynamixel", "line"):
         if not port:
-            raise PortError(f"driver {name!r} needs a serial port: pass --port URL (e.g. /dev/ttyUSB0) or set "
-                            "[actuator] port; list ports with `python -m serial.tools.list_ports -v`")
+            raise PortError(f"driver {name!r} needs a serial port: pass --port URL (e.g. /dev/ttyUSB0) "
+                            "or set [actuator] port; list ports with `python -m serial.tools.list_ports -v`")
         if name == "dynamixel":
             from .dynamixel import DynamixelDriver
             return DynamixelDriver(settings, port)

@@ -109,12 +109,14 @@ try:  # pyserial's posix backend lets termios.error (not an OSError) out of flus
     _TERMIOS_ERRORS: tuple[type[BaseException], ...] = (_termios.error,)
 except ImportError:  # pragma: no cover - windows
     _TERMIOS_ERRORS = ()
-IO_ERRORS: tuple[type[BaseException], ...] = (OSError,) + _TERMIOS_ERRORS  # serial.SerialException is an OSError
+# serial.SerialException is an OSError
+IO_ERRORS: tuple[type[BaseException], ...] = (OSError,) + _TERMIOS_ERRORS
 
 
 def port_hint(port: str, err: object) -> str:
-    return (f"cannot open serial port {port!r}: {err}. List the ports with `python -m serial.tools.list_ports "
-            f"-v` (or `ls /dev/serial/by-id/`), then pass --port or set [actuator] port in the settings")
+    return (f"cannot open serial port {port!r}: {err}. List the ports with "
+            f"`python -m serial.tools.list_ports -v` (or `ls /dev/serial/by-id/`), then pass --port or set "
+            f"[actuator] port in the settings")
 
 
 class Driver(ABC):
@@ -162,7 +164,8 @@ class Safety:
 
     A target that is not finite, or comes from a frame captured before the last accepted one (stale), or
     older than max_age_s, is ignored; one outside the soft limits or too far from the goal is clamped. The
-    goal starts at the present position clamped into the limits. Counters: accepted, clamped, ignored, held (inside the dead band).
+    goal starts at the present position clamped into the limits. Counters: accepted, clamped, ignored, held
+    (inside the dead band).
     """
 
     def __init__(self, settings: MotorSettings, start_rad: float = 0.0):
@@ -212,7 +215,8 @@ class Safety:
             self.last_frame = frame
         reasons = []
         if x < self.lo or x > self.hi:
-            reasons.append(f"target {math.degrees(x):.3g} deg outside [{self.s.min_deg:g}, {self.s.max_deg:g}]")
+            reasons.append(f"target {math.degrees(x):.3g} deg outside "
+                           f"[{self.s.min_deg:g}, {self.s.max_deg:g}]")
             x = self._inside(x)
         if abs(x - self.goal) > self.step:
             reasons.append(f"step {math.degrees(x - self.goal):+.3g} deg beyond {self.s.max_step_deg:g}")

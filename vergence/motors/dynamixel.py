@@ -328,8 +328,8 @@ class DynamixelDriver(Driver):
             # hold where it is before enabling torque (the goal register may hold an old target)
             self.write("goal_position", present)
             self.write("torque_enable", 1)
-            log.info("Dynamixel model %d firmware %d, id %d: torque on at %d ticks", self.model, self.firmware,
-                     self.settings.id, present)
+            log.info("Dynamixel model %d firmware %d, id %d: torque on at %d ticks", self.model,
+                     self.firmware, self.settings.id, present)
             return self.settings.from_ticks(present)
         except BaseException:
             self.close(torque_off=False)

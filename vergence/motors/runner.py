@@ -111,7 +111,7 @@ class MotorLoop:
             self.commands += n
             self.safety.ignored += n
             self.note = f"{n} command(s) superseded by newer ones"
-            self._once("superseded", "commands arrive faster than the motor takes them: only the newest is used")
+            self._once("superseded", "commands arrive faster than the motor takes them: the newest is used")
 
     def tick(self) -> MotorState:
         """The periodic step: reconnect when due, watchdog, read the position. Returns the state."""
@@ -189,7 +189,8 @@ class MotorLoop:
     def state(self) -> MotorState:
         s, g = self.safety, self.safety.goal
         at_limit = g <= s.lo + 1e-12 or g >= s.hi - 1e-12
-        return MotorState(rig=self.rig, t_ns=self.wall_ns(), pan_rad=self.pan if math.isfinite(self.pan) else g,
+        pan = self.pan if math.isfinite(self.pan) else g
+        return MotorState(rig=self.rig, t_ns=self.wall_ns(), pan_rad=pan,
                           goal_rad=g, min_rad=s.lo, max_rad=s.hi, status=self.status, driver=self.driver.name,
                           frame=self.frame, t_capture_ns=self.t_capture_ns, at_limit=at_limit,
                           clamped=s.clamped, ignored=s.ignored, errors=self.driver.errors, note=self.note,
