@@ -150,8 +150,8 @@ def test_identical_window_scores_maximum():
 @settings(max_examples=60, deadline=None)
 @given(w=st.integers(1, 12).map(lambda h: 2 * h - 1), r=st.integers(0, 3), extra=st.integers(0, 60),
        cuts=st.lists(st.floats(0, 1), max_size=4), seed=st.integers(0, 2**31 - 1), circ=st.booleans(),
-       weighted=st.booleans())
-def test_any_split_of_k_concatenates_to_the_whole(w, r, extra, cuts, seed, circ, weighted):
+       weighted=st.booleans(), threads=st.integers(1, 3))
+def test_any_split_of_k_concatenates_to_the_whole(w, r, extra, cuts, seed, circ, weighted, threads):
     rng = np.random.default_rng(seed)
     width = w + extra
     fovea = rng.integers(0, 256, (3, w, w), dtype=np.uint8)
@@ -159,7 +159,7 @@ def test_any_split_of_k_concatenates_to_the_whole(w, r, extra, cuts, seed, circ,
     wt = rng.integers(0, 9, (w, w), dtype=np.uint8) if weighted else None
     kk = width - w + 1
     bounds = sorted({0, kk, *(int(c * kk) for c in cuts)})
-    whole = kernel.correlate(fovea, band, circular=circ, weights=wt)
+    whole = kernel.correlate(fovea, band, circular=circ, weights=wt, threads=threads)
     parts = [kernel.correlate(fovea, band, a, b, circular=circ, weights=wt) for a, b in zip(bounds, bounds[1:])]
     assert np.array_equal(np.concatenate(parts, axis=-1), whole)
 
