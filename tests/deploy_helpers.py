@@ -1,0 +1,99 @@
+"""Helpers for the cluster deployment tests (tests/test_deploy_*.py): the deploy/ configs made runnable on
+127.0.0.1 with secrets from deploy/make-certs.sh in a temporary directory, and a router started from them.
+
+The deploy/ files name /etc/vergence/secrets and listen on 0.0.0.0:7447 (their place in a container); the
+tests rewrite exactly those two strings, so what is tested is the committed file."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import subprocess
+from pathlib import Path
+
+from procs import VERGENCE, Proc, Procs, free_port, wait_for
+
+ROOT = Path(__file__).resolve().parent.parent
+DEPLOY = ROOT / "deploy"
+SECRETS_IN_CONFIGS = "/etc/vergence/secrets"
+ROLES = ("capture", "worker", "reducer", "actuator", "monitor", "record", "replay")
+
+
+def make_secrets(out: Path, *router_names: str) -> Path:
+    """Run deploy/make-certs.sh into `out` (configs pointing at `out`); returns `out`."""
+    if shutil.which("openssl") is None:
+        import pytest
+
+        pytest.skip("openssl is not installed (apt-get install openssl)")
+    env = dict(os.environ, SECRETS_DIR=str(out))
+    r = subprocess.run(["sh", str(DEPLOY / "make-certs.sh"), "-o", str(out), *(router_names or ("localhost", "127.0.0.1"))],
+                       env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def passwords(secrets: Path) -> dict[str, str]:
+    return dict(line.split(":", 1) for line in (secrets / "users.txt").read_text().split())
+
+
+def router_config(variant: str, secrets: Path, dest: Path, host: str = "127.0.0.1", port: int | None = None) \
+        -> tuple[Path, str]:
+    """deploy/router.json5 (variant "tls") or router-tcp.json5 ("tcp") with the secrets at `secrets` and the
+    listener on host:port (a free port by default). Returns (file, endpoint)."""
+    name = "router.json5" if variant == "tls" else "router-tcp.json5"
+    port = port or free_port()
+    text = (DEPLOY / name).read_text()
+    assert SECRETS_IN_CONFIGS in text and f"{variant}/0.0.0.0:7447" in text
+    text = text.replace(SECRETS_IN_CONFIGS, str(secrets)).replace(f"{variant}/0.0.0.0:7447", f"{variant}/{host}:{port}")
+    dest.write_text(text)
+    return dest, f"{variant}/{host}:{port}"
+
+
+def client_config_file(secrets: Path, role: str, variant: str, endpoint: str, dest: Path) -> Path:
+    """The per-role client config written by make-certs.sh, pointed at `endpoint` (a copy in `dest`)."""
+    src = secrets / "clients" / (f"{role}.json5" if variant == "tls" else f"{role}-tcp.json5")
+    text = src.read_text()
+    old = f'"{variant}/localhost:7447"' if f'"{variant}/localhost:7447"' in text else None
+    assert old is not None, f"{src} does not connect to {variant}/localhost:7447"
+    dest.write_text(text.replace(old, json.dumps(endpoint)))
+    return dest
+
+
+def client_session(secrets: Path, role: str, variant: str, endpoint: str, timeout_ms: int = 3000, **override):
+    """A zenoh session of the test with a role's identity; override = {"transport/auth/usrpwd/password": ...}.
+    The connect timeout is bounded (the deployed configs retry forever)."""
+    import zenoh
+
+    src = secrets / "clients" / (f"{role}.json5" if variant == "tls" else f"{role}-tcp.json5")
+    conf = zenoh.Config.from_file(str(src))
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("connect/timeout_ms", str(timeout_ms))
+    for k, v in override.items():
+        conf.insert_json5(k, json.dumps(v))
+    return zenoh.open(conf)
+
+
+def start_router(P: Procs, config: Path, endpoint: str, name: str = "router", prefix: list[str] | None = None,
+                 timeout: float = 15.0) -> Proc:
+    """`vergence router --zenoh-config config` (optionally under a prefix such as `ip netns exec NS`);
+    returns once its port accepts TCP connections (checked from the same namespace when prefixed)."""
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    p = P.spawn(name, [*(prefix or []), VERGENCE, "router", "--zenoh-config", str(config)])
+    P.endpoint, P.port = endpoint, int(port)
+
+    def up():
+        if not p.alive():
+            raise RuntimeError(f"router exited\n{p.tail()}")
+        if prefix:
+            r = subprocess.run([*prefix, "python3", "-c",
+                                f"import socket,sys; s=socket.socket(); s.settimeout(0.2); "
+                                f"sys.exit(s.connect_ex(({host!r},{port})))"], capture_output=True, timeout=5)
+            return r.returncode == 0
+        with socket.socket() as s:
+            s.settimeout(0.2)
+            return s.connect_ex((host, int(port))) == 0
+
+    wait_for(up, timeout, f"the router to listen on {endpoint}", interval=0.1, logs=P.logs)
+    return p
