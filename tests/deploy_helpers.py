@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -54,10 +55,9 @@ def router_config(variant: str, secrets: Path, dest: Path, host: str = "127.0.0.
 def client_config_file(secrets: Path, role: str, variant: str, endpoint: str, dest: Path) -> Path:
     """The per-role client config written by make-certs.sh, pointed at `endpoint` (a copy in `dest`)."""
     src = secrets / "clients" / (f"{role}.json5" if variant == "tls" else f"{role}-tcp.json5")
-    text = src.read_text()
-    old = f'"{variant}/localhost:7447"' if f'"{variant}/localhost:7447"' in text else None
-    assert old is not None, f"{src} does not connect to {variant}/localhost:7447"
-    dest.write_text(text.replace(old, json.dumps(endpoint)))
+    text, n = re.subn(r'endpoints: \["[^"]*"\]', f"endpoints: [{json.dumps(endpoint)}]", src.read_text())
+    assert n == 1, f"{src}: no single connect endpoint"
+    dest.write_text(text)
     return dest
 
 
