@@ -13,7 +13,7 @@
 #   router.pem router-key.pem         the router's certificate (CN=router)
 #   <role>.pem <role>-key.pem         a client certificate per role (CN=<role>)
 #   users.txt                         <role>:<password> per line: the router's usrpwd dictionary_file
-#   clients/<role>.json5              a client config per role: tls + mutual TLS + user/password
+#   clients/<role>-tls.json5          a client config per role: tls + mutual TLS + user/password
 #   clients/<role>-tcp.json5          the same over plain tcp (user/password only), for a private network
 # Existing files are kept (delete OUT_DIR to start over); the paths inside the configs are
 # SECRETS_DIR (default /etc/vergence/secrets, where docker-compose.yml mounts OUT_DIR).
@@ -83,7 +83,7 @@ for role in $(echo "$ROLES" | tr , ' '); do
     fi
     password=$(grep "^$role:" "$OUT/users.txt" | head -n1 | cut -d: -f2-)
     for variant in tls tcp; do
-        if [ $variant = tls ]; then file="$OUT/clients/$role.json5"; else file="$OUT/clients/$role-tcp.json5"; fi
+        file="$OUT/clients/$role-$variant.json5"
         {
             echo "// vergence $role: a Zenoh client of the cluster router ($variant), made by make-certs.sh"
             echo "{"

@@ -41,9 +41,9 @@ def passwords(secrets: Path) -> dict[str, str]:
 
 def router_config(variant: str, secrets: Path, dest: Path, host: str = "127.0.0.1", port: int | None = None) \
         -> tuple[Path, str]:
-    """deploy/router.json5 (variant "tls") or router-tcp.json5 ("tcp") with the secrets at `secrets` and the
+    """deploy/router-tls.json5 (variant "tls") or router-tcp.json5 ("tcp") with the secrets at `secrets` and the
     listener on host:port (a free port by default). Returns (file, endpoint)."""
-    name = "router.json5" if variant == "tls" else "router-tcp.json5"
+    name = f"router-{variant}.json5"
     port = port or free_port()
     text = (DEPLOY / name).read_text()
     assert SECRETS_IN_CONFIGS in text and f"{variant}/0.0.0.0:7447" in text
@@ -54,7 +54,7 @@ def router_config(variant: str, secrets: Path, dest: Path, host: str = "127.0.0.
 
 def client_config_file(secrets: Path, role: str, variant: str, endpoint: str, dest: Path) -> Path:
     """The per-role client config written by make-certs.sh, pointed at `endpoint` (a copy in `dest`)."""
-    src = secrets / "clients" / (f"{role}.json5" if variant == "tls" else f"{role}-tcp.json5")
+    src = secrets / "clients" / f"{role}-{variant}.json5"
     text, n = re.subn(r'endpoints: \["[^"]*"\]', f"endpoints: [{json.dumps(endpoint)}]", src.read_text())
     assert n == 1, f"{src}: no single connect endpoint"
     dest.write_text(text)
@@ -66,7 +66,7 @@ def client_session(secrets: Path, role: str, variant: str, endpoint: str, timeou
     The connect timeout is bounded (the deployed configs retry forever)."""
     import zenoh
 
-    src = secrets / "clients" / (f"{role}.json5" if variant == "tls" else f"{role}-tcp.json5")
+    src = secrets / "clients" / f"{role}-{variant}.json5"
     conf = zenoh.Config.from_file(str(src))
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     conf.insert_json5("connect/timeout_ms", str(timeout_ms))

@@ -1,6 +1,6 @@
 """Several hosts on one machine: network namespaces joined by veth pairs to a bridge (ip netns, as root).
 
-    host "r" 10.77.0.1  the router (deploy/router.json5: TLS, mutual TLS, user/password, ACL), the capture,
+    host "r" 10.77.0.1  the router (deploy/router-tls.json5: TLS, mutual TLS, user/password, ACL), the capture,
                         the reducer and an observer that records frames and profiles
     host "a" 10.77.0.2  a worker
     host "b" 10.77.0.3  a worker

@@ -1,4 +1,4 @@
-"""The cluster's security as deployed (deploy/router.json5, deploy/router-tcp.json5, deploy/make-certs.sh),
+"""The cluster's security as deployed (deploy/router-tls.json5, deploy/router-tcp.json5, deploy/make-certs.sh),
 with real `vergence router` processes on 127.0.0.1 and zenoh clients of the test or real services:
 - no credentials or a wrong password cannot connect; a wrong CA, a client certificate from another CA or none
   at all fails TLS;
@@ -49,7 +49,7 @@ def connects(secrets, role, variant, endpoint, **override) -> bool:
 def test_router_configs_share_one_acl():
     """router.json5 and router-tcp.json5 carry the same rules and policies; TLS subjects also need the
     certificate's common name. Both disable multicast and gossip scouting."""
-    tls = zenoh.Config.from_file(str(DEPLOY / "router.json5"))
+    tls = zenoh.Config.from_file(str(DEPLOY / "router-tls.json5"))
     tcp = zenoh.Config.from_file(str(DEPLOY / "router-tcp.json5"))
     import json
 
