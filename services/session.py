@@ -50,6 +50,10 @@ def zenoh_config(mode: str = "client", connect: list[str] | None = None, listen:
         if mode == "client":
             # keep trying to reach the router: at start and after it restarts
             conf.insert_json5("connect/timeout_ms", "-1")
+            # retry every 0.1-0.5 s (zenoh's default backs off to seconds): back within 0.5 s of a router
+            # restart however long it was down (tests/test_deploy_restart.py)
+            conf.insert_json5("connect/retry",
+                              '{"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}')
     return conf
 
 
