@@ -36,7 +36,10 @@ shift $((OPTIND - 1))
 [ $# -gt 0 ] || set -- router localhost 127.0.0.1
 ROUTER_HOST=$1
 
-command -v openssl >/dev/null || { echo "make-certs.sh: openssl not found: install it (apt-get install openssl)" >&2; exit 1; }
+if ! command -v openssl >/dev/null; then
+    echo "make-certs.sh: openssl not found: install it (apt-get install openssl)" >&2
+    exit 1
+fi
 mkdir -p "$OUT/clients"
 umask 077
 
@@ -65,7 +68,7 @@ leaf() {  # leaf NAME EXTENDED_KEY_USAGE [SUBJECT_ALT_NAME]
         echo "basicConstraints=critical,CA:FALSE"
         echo "keyUsage=critical,digitalSignature,keyEncipherment"
         echo "extendedKeyUsage=$2"
-        [ -n "${3:-}" ] && echo "subjectAltName=$3"
+        if [ -n "${3:-}" ]; then echo "subjectAltName=$3"; fi
     } >"$ext"
     openssl req -new -key "$OUT/$1-key.pem" -subj "/CN=$1" -out "$OUT/$1.csr"
     openssl x509 -req -in "$OUT/$1.csr" -CA "$OUT/ca.pem" -CAkey "$OUT/ca-key.pem" -CAcreateserial \
@@ -88,8 +91,10 @@ for role in $(echo "$ROLES" | tr , ' '); do
             echo "// vergence $role: a Zenoh client of the cluster router ($variant), made by make-certs.sh"
             echo "{"
             echo "  mode: \"client\","
+            echo "  // retry forever, every 0.1-0.5 s: back within 0.5 s of a router restart"
             echo "  connect: { endpoints: [\"$variant/$ROUTER_HOST:$ROUTER_PORT\"], timeout_ms: -1,"
-            echo "             retry: { period_init_ms: 100, period_max_ms: 500, period_increase_factor: 2 } },"
+            echo "             retry: { period_init_ms: 100, period_max_ms: 500,"
+            echo "                      period_increase_factor: 2 } },"
             echo "  scouting: { multicast: { enabled: false }, gossip: { enabled: false } },"
             echo "  transport: {"
             echo "    link: {"

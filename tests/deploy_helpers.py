@@ -29,8 +29,9 @@ def make_secrets(out: Path, *router_names: str) -> Path:
 
         pytest.skip("openssl is not installed (apt-get install openssl)")
     env = dict(os.environ, SECRETS_DIR=str(out))
-    r = subprocess.run(["sh", str(DEPLOY / "make-certs.sh"), "-o", str(out), *(router_names or ("localhost", "127.0.0.1"))],
-                       env=env, capture_output=True, text=True, timeout=60)
+    names = router_names or ("localhost", "127.0.0.1")
+    r = subprocess.run(["sh", str(DEPLOY / "make-certs.sh"), "-o", str(out), *names], env=env,
+                       capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     return out
 
@@ -41,13 +42,14 @@ def passwords(secrets: Path) -> dict[str, str]:
 
 def router_config(variant: str, secrets: Path, dest: Path, host: str = "127.0.0.1", port: int | None = None) \
         -> tuple[Path, str]:
-    """deploy/router-tls.json5 (variant "tls") or router-tcp.json5 ("tcp") with the secrets at `secrets` and the
-    listener on host:port (a free port by default). Returns (file, endpoint)."""
+    """deploy/router-<variant>.json5 (variant "tls" or "tcp") with the secrets at `secrets` and the listener
+    on host:port (a free port by default). Returns (file, endpoint)."""
     name = f"router-{variant}.json5"
     port = port or free_port()
     text = (DEPLOY / name).read_text()
     assert SECRETS_IN_CONFIGS in text and f"{variant}/0.0.0.0:7447" in text
-    text = text.replace(SECRETS_IN_CONFIGS, str(secrets)).replace(f"{variant}/0.0.0.0:7447", f"{variant}/{host}:{port}")
+    text = text.replace(SECRETS_IN_CONFIGS, str(secrets))
+    text = text.replace(f"{variant}/0.0.0.0:7447", f"{variant}/{host}:{port}")
     dest.write_text(text)
     return dest, f"{variant}/{host}:{port}"
 
@@ -61,8 +63,9 @@ def client_config_file(secrets: Path, role: str, variant: str, endpoint: str, de
     return dest
 
 
-def client_session(secrets: Path, role: str, variant: str, endpoint: str, timeout_ms: int = 3000, **override):
-    """A zenoh session of the test with a role's identity; override = {"transport/auth/usrpwd/password": ...}.
+def client_session(secrets: Path, role: str, variant: str, endpoint: str, timeout_ms: int = 3000,
+                   **override):
+    """A zenoh session of the test with a role's identity; override = {"transport/auth/usrpwd/user": ...}.
     The connect timeout is bounded (the deployed configs retry forever)."""
     import zenoh
 

