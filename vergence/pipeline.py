@@ -103,7 +103,13 @@ def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
     d = decide_scores(y, fovea, frame.x, p)
     mstrip = frame.master_band_strip()
     if p.lr_check and d.confident and mstrip is not None:
-        d = decide_scores(y, fovea, frame.x, p, mstrip, retina.planes(frame.band_strip()))
+        # The check reads the slave band's features at the winning window's columns k..k+w-1 only: compute
+        # those (all rows), not the whole band. tests/test_pipeline.py holds this equal to match().
+        w = frame.window
+        band = frame.band_strip()
+        sband = np.zeros((3, band.shape[0] - 2, band.shape[1] - 2), np.uint8)
+        sband[:, :, d.k : d.k + w] = retina.planes(band[:, d.k : d.k + w + 2])
+        d = decide_scores(y, fovea, frame.x, p, mstrip, sband)
     return d
 
 

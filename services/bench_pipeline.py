@@ -1,0 +1,238 @@
+"""`vergence bench pipeline [--workers N ...] [--rate HZ] [--frames N] [--heavy] [--json]`.
+
+Measures the distributed pipeline as deployed: a router, N workers, the reducer and the capture run as real
+processes on this machine; the capture publishes a synthetic textured pair (the slave sees the scene 12 px
+further left, so every frame yields a command) at a fixed rate, and this process subscribes to the commands.
+Reported per run: capture-to-command latency p50/p99/max (the command's arrival here minus the frame's
+t_capture_ns: one more hop than the actuator sees), throughput, frames dropped (published frames without a
+command), beside the in-process vergence.match time on the same images (overhead = p50 / match).
+Without --rate: 100 Hz, then 250, 500, 1000, 1500, 2000 Hz until a run drops frames or misses p99 <= 3 ms
+(the highest rate held without drops is the last clean one). --heavy adds the heavy setting (3840 x 1080,
+w = 31, vertical search +-16) at a few Hz, where sharding pays.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+RATES = [100, 250, 500, 1000, 1500, 2000]
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--workers", type=int, nargs="+", default=[1, 2], metavar="N", help="worker counts (default 1 2)")
+    p.add_argument("--rate", type=float, default=None, metavar="HZ", help="one rate only (default: a ramp)")
+    p.add_argument("--seconds", type=float, default=2.0, help="length of each run (default 2 s)")
+    p.add_argument("--heavy", action="store_true", help="also the heavy setting: 3840 wide, w=31, +-16 rows")
+    p.add_argument("--faithful", action="store_true", help="the paper's network (no extension)")
+    p.add_argument("--peer", action="store_true", help="pipeline processes in peer mode: direct links between "
+                                                       "them, the router only for discovery")
+    p.add_argument("--json", action="store_true", help="one JSON object per run")
+
+
+def synthetic_pair(width: int, height: int, shift: int = 12, seed: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    base = cv2.GaussianBlur(rng.integers(0, 256, (height, width + 2 * shift), np.uint8), (5, 5), 1.5)
+    return (np.ascontiguousarray(base[:, shift : shift + width]), np.ascontiguousarray(base[:, :width]))
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Cluster:
+    """A router, a reducer and N workers as child processes (own process groups), torn down on exit."""
+
+    def __init__(self, workdir: Path, rig: str, config: str, workers: int, peer: bool = False):
+        self.dir, self.rig, self.config = workdir, rig, config
+        self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        self.procs: list[subprocess.Popen] = []
+        self.extra = ["--mode", "peer", "--listen", "tcp/127.0.0.1:0"] if peer else []
+        self.spawn("router", "router", "--listen", self.endpoint, client=False)
+        time.sleep(0.3)
+        for i in range(workers):
+            self.spawn(f"worker{i}", "worker", "--name", f"b{i}")
+        self.spawn("reducer", "reducer")
+
+    def spawn(self, name: str, *args: str, client: bool = True) -> subprocess.Popen:
+        argv = [sys.executable, "-m", "services.cli", *args]
+        if client:
+            argv += ["--connect", self.endpoint, "--rig", self.rig, "--config", self.config] + self.extra
+        log = open(self.dir / f"{name}.log", "ab")
+        p = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                             start_new_session=True)
+        log.close()
+        self.procs.append(p)
+        return p
+
+    def close(self) -> None:
+        for p in reversed(self.procs):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGINT)
+        for p in reversed(self.procs):
+            try:
+                p.wait(5)
+            except subprocess.TimeoutExpired:
+                pass
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+
+
+def _session(endpoint: str):
+    import zenoh
+
+    from . import session
+
+    return zenoh.open(session.zenoh_config("client", [endpoint]))
+
+
+def _wait(cond, timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def in_process_ms(master, slave, params, n: int = 30) -> float:
+    """Median time of vergence.match on the pair, in ms."""
+    from vergence import match
+
+    match(master, slave, params=params)
+    ts = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        match(master, slave, params=params)
+        ts.append(time.perf_counter() - t0)
+    return float(np.median(ts) * 1e3)
+
+
+def run_rate(cl: Cluster, s, source: str, rate: float, frames: int) -> dict:
+    """One capture run at `rate` for `frames` frames; latency of the commands that came back."""
+    from vergence.messages import Command
+
+    got: list[tuple[int, bytes]] = []
+    lock = threading.Lock()
+
+    def on_cmd(sample):
+        t = time.time_ns()
+        with lock:
+            got.append((t, sample.payload.to_bytes()))
+
+    sub = s.declare_subscriber(f"vergence/{cl.rig}/command", on_cmd)
+    try:
+        cap = cl.spawn("capture", "capture", "--source", source, "--rate", str(rate), "--frames", str(frames))
+        try:
+            cap.wait(frames / rate * 3 + 30)
+        except subprocess.TimeoutExpired:
+            os.killpg(cap.pid, signal.SIGKILL)
+            cap.wait()
+        time.sleep(0.3)
+    finally:
+        sub.undeclare()
+    cmds = [(t, Command.from_bytes(b)) for t, b in got]
+    lat = np.array([(t - c.t_capture_ns) / 1e6 for t, c in cmds]) if cmds else np.array([np.nan])
+    red = np.array([(c.t_sent_ns - c.t_capture_ns) / 1e6 for _, c in cmds]) if cmds else np.array([np.nan])
+    caps = sorted(c.t_capture_ns for _, c in cmds)
+    span = (caps[-1] - caps[0]) / 1e9 if len(caps) > 1 else float("nan")
+    return dict(rate_hz=rate, frames=frames, commands=len(cmds), drops=frames - len(cmds),
+                p50_ms=float(np.percentile(lat, 50)), p99_ms=float(np.percentile(lat, 99)),
+                max_ms=float(lat.max()), reducer_p99_ms=float(np.percentile(red, 99)),
+                throughput_hz=(len(caps) - 1) / span if span == span and span > 0 else float("nan"))
+
+
+def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: Path, rates: list[float],
+                  emit) -> list[dict]:
+    from vergence.match import Params
+
+    master, slave = synthetic_pair(width, height)
+    lp, rp = workdir / f"{name}-l.png", workdir / f"{name}-r.png"
+    cv2.imwrite(str(lp), master)
+    cv2.imwrite(str(rp), slave)
+    params = Params.paper(**net) if args.faithful else Params(**net)
+    cfg = workdir / f"{name}.toml"
+    lines = ["[network]"] + [f"{k} = {json.dumps(v)}" for k, v in dataclasses.asdict(params).items()]
+    cfg.write_text("\n".join(lines + ["[capture]", "preview_hz = 0"]) + "\n")
+    base_ms = in_process_ms(master, slave, params, n=30 if width < 2000 else 3)
+    rows = []
+    for nw in args.workers:
+        cl = Cluster(workdir, f"bench{os.getpid()}{name}{nw}", str(cfg), nw, args.peer)
+        try:
+            s = _session(cl.endpoint)
+            try:
+                alive = f"vergence/{cl.rig}/alive/worker/*"
+                ok = _wait(lambda: len(list(s.liveliness().get(alive, timeout=0.5))) >= nw, 60)
+                if not ok:
+                    raise RuntimeError(f"the {nw} worker(s) did not come up; see the logs in {workdir}")
+                time.sleep(0.5)
+                for rate in rates:
+                    frames = max(20, int(rate * args.seconds))
+                    r = run_rate(cl, s, f"files:{lp},{rp}", rate, frames)
+                    r.update(setting=name, width=width, window=params.window, vsearch=params.vsearch, workers=nw,
+                             match_ms=base_ms, overhead=r["p50_ms"] / base_ms)
+                    rows.append(r)
+                    emit(r)
+                    if args.rate is None and rate >= 100 and (r["drops"] > 0 or r["p99_ms"] > 3.0):
+                        break
+            finally:
+                s.close()
+        finally:
+            cl.close()
+    return rows
+
+
+def run(args: argparse.Namespace) -> int:
+    import logging
+
+    logging.basicConfig(level=logging.WARNING)
+
+    def emit(r: dict) -> None:
+        if args.json:
+            print(json.dumps(r), flush=True)
+        else:
+            print(f"{r['setting']:6s} {r['width']:5d}px w={r['window']:<2d} R={r['vsearch']:<2d} "
+                  f"{r['workers']} worker(s) {r['rate_hz']:6.0f} Hz: {r['commands']:5d}/{r['frames']:<5d} cmds "
+                  f"drops {r['drops']:4d}  p50 {r['p50_ms']:6.2f} ms  p99 {r['p99_ms']:6.2f} ms  "
+                  f"max {r['max_ms']:6.1f} ms  thr {r['throughput_hz']:7.1f} Hz  match {r['match_ms']:6.2f} ms  "
+                  f"overhead x{r['overhead']:.2f}", flush=True)
+
+    with tempfile.TemporaryDirectory(prefix="vergence-bench-") as d:
+        work = Path(d)
+        rates = [args.rate] if args.rate else RATES
+        try:
+            bench_setting("vga", 640, 480, {"window": 15, "max_window": 0}, args, work, rates, emit)
+            if args.heavy:
+                hr = [args.rate] if args.rate else [2.0]
+                bench_setting("heavy", 3840, 1080, {"window": 31, "vsearch": 16, "max_window": 0}, args, work,
+                              hr, emit)
+        except (RuntimeError, KeyboardInterrupt) as e:
+            print(f"vergence bench pipeline: {e}", file=sys.stderr)
+            for log in sorted(work.glob("*.log")):
+                print(f"--- {log.name}\n{log.read_text(errors='replace')[-800:]}", file=sys.stderr)
+            return 1
+    return 0
+
+
+if __name__ == "__main__":
+    _p = argparse.ArgumentParser(prog="vergence bench pipeline")
+    configure(_p)
+    sys.exit(run(_p.parse_args()))
