@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 RATES = [100, 250, 500, 1000, 1500, 2000]
+HEAVY_RATES = [10, 25, 50, 100]
 WARM_FRAMES = 20  # the first frames of a fresh capture process are slow (imports, first messages)
 
 
@@ -132,7 +133,7 @@ def run_rate(cl: Cluster, s, source: str, rate: float, frames: int) -> dict:
     frames; the latency of the commands that came back for those."""
     from vergence.messages import Command
 
-    warm = WARM_FRAMES
+    warm = min(WARM_FRAMES, max(2, frames // 5))
     got: list[tuple[int, bytes]] = []
     lock = threading.Lock()
 
@@ -167,7 +168,9 @@ def run_rate(cl: Cluster, s, source: str, rate: float, frames: int) -> dict:
 
 
 def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: Path, rates: list[float],
-                  emit) -> list[dict]:
+                  emit, p99_limit: float = 3.0) -> list[dict]:
+    """Runs at each rate in turn (the first always; a later one only while the previous one had no drop and
+    p99 <= p99_limit ms), for each worker count."""
     from vergence.match import Params
 
     master, slave = synthetic_pair(width, height)
@@ -191,13 +194,13 @@ def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: 
                     raise RuntimeError(f"the {nw} worker(s) did not come up; see the logs in {workdir}")
                 time.sleep(0.5)
                 for rate in rates:
-                    frames = max(20, int(rate * args.seconds))
+                    frames = max(10, int(rate * args.seconds))
                     r = run_rate(cl, s, f"files:{lp},{rp}", rate, frames)
                     r.update(setting=name, width=width, window=params.window, vsearch=params.vsearch, workers=nw,
                              match_ms=base_ms, overhead=r["p50_ms"] / base_ms)
                     rows.append(r)
                     emit(r)
-                    if args.rate is None and rate > 100 and (r["drops"] > 0 or r["p99_ms"] > 3.0):
+                    if args.rate is None and rate > rates[0] and (r["drops"] > 0 or r["p99_ms"] > p99_limit):
                         break
             finally:
                 s.close()
@@ -227,9 +230,9 @@ def run(args: argparse.Namespace) -> int:
         try:
             bench_setting("vga", 640, 480, {"window": 15, "max_window": 0}, args, work, rates, emit)
             if args.heavy:
-                hr = [args.rate] if args.rate else [2.0]
+                hr = [args.rate] if args.rate else HEAVY_RATES
                 bench_setting("heavy", 3840, 1080, {"window": 31, "vsearch": 16, "max_window": 0}, args, work,
-                              hr, emit)
+                              hr, emit, p99_limit=float("inf"))
         except (RuntimeError, KeyboardInterrupt) as e:
             print(f"vergence bench pipeline: {e}", file=sys.stderr)
             for log in sorted(work.glob("*.log")):

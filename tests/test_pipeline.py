@@ -144,8 +144,14 @@ def test_gatherer_bad_shape_drops_frame():
 def test_gatherer_restart_and_no_plan():
     m, s = textured()
     g = gather()
-    g.done_upto = 50_000
-    f = frame_of(m, s, Params(), workers=["a"], fid=1)
+    old = frame_of(m, s, Params(), workers=["a"], fid=5)
+    g.add_frame(old, now=0.0)
+    assert len(g.add_partial(pipeline.compute_partial(old, "a"), now=0.0)) == 1
+    stale = pipeline.compute_partial(old, "a")
+    stale.frame, stale.t_capture_ns = 3, old.t_capture_ns - 1  # reordered, older: late
+    assert g.add_partial(stale, now=0.0) == [] and g.counters["late"] == 1
+    f = frame_of(m, s, Params(), workers=["a"], fid=1)  # a new capture: ids from 1 again, later times
+    f.t_capture_ns = old.t_capture_ns + 1
     g.add_frame(f, now=0.0)
     assert g.counters["restarts"] == 1
     assert len(g.add_partial(pipeline.compute_partial(f, "a"), now=0.0)) == 1

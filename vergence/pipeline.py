@@ -147,6 +147,7 @@ class Result:
 @dataclass
 class _Pending:
     t_first: float
+    t_capture_ns: int = 0
     frame: Frame | None = None
     partials: dict[str, Partial] = field(default_factory=dict)
 
@@ -162,10 +163,9 @@ class Gatherer:
     counters: frames (Frames accepted), partials, complete, dropped (deadline), superseded, no_plan,
     unexpected (a Partial for no shard of its frame's plan, or a duplicate), late (for a frame already
     done or dropped), bad (a Partial that does not fit its frame), restarts (frame ids jumped back by more
-    than RESTART_GAP: a new capture)."""
+    with a newer capture time: a new capture process)."""
 
     MAX_PENDING = 256
-    RESTART_GAP = 1000
 
     def __init__(self, params: Params, control: ControlSettings | None = None, deadline_s: float = 0.05):
         self.params = params
@@ -173,32 +173,40 @@ class Gatherer:
         self.deadline_s = deadline_s
         self.pending: dict[int, _Pending] = {}
         self.done_upto = -1  # every frame id <= this is finished (reduced, dropped or superseded)
+        self.done_t_ns = 0  # the newest capture time among the finished frames
         self.counters = dict(frames=0, partials=0, complete=0, dropped=0, superseded=0, no_plan=0,
                              unexpected=0, late=0, bad=0, restarts=0)
 
-    def _entry(self, frame_id: int, now: float) -> _Pending | None:
+    def _entry(self, frame_id: int, t_capture_ns: int, now: float) -> _Pending | None:
         if frame_id <= self.done_upto:
-            self.counters["late"] += 1
-            return None
+            if t_capture_ns <= self.done_t_ns:
+                self.counters["late"] += 1
+                return None
+            # an id already finished, captured later than every finished frame: a new capture process
+            # started its ids again
+            self.pending.clear()
+            self.done_upto = frame_id - 1
+            self.done_t_ns = 0
+            self.counters["restarts"] += 1
         e = self.pending.get(frame_id)
         if e is None:
             if len(self.pending) >= self.MAX_PENDING:
                 oldest = min(self.pending)
-                del self.pending[oldest]
+                self._done(oldest, self.pending.pop(oldest))
                 self.counters["dropped"] += 1
-            e = self.pending[frame_id] = _Pending(now)
+            e = self.pending[frame_id] = _Pending(now, t_capture_ns)
         return e
+
+    def _done(self, fid: int, e: _Pending) -> None:
+        self.done_upto = max(self.done_upto, fid)
+        self.done_t_ns = max(self.done_t_ns, e.t_capture_ns)
 
     def add_frame(self, frame: Frame, now: float | None = None) -> list[Result]:
         now = time.monotonic() if now is None else now
         if not frame.plan:
             self.counters["no_plan"] += 1
             return self.expire(now)
-        if frame.frame < self.done_upto - self.RESTART_GAP:  # the capture restarted: its ids start again
-            self.pending.clear()
-            self.done_upto = frame.frame - 1
-            self.counters["restarts"] += 1
-        e = self._entry(frame.frame, now)
+        e = self._entry(frame.frame, frame.t_capture_ns, now)
         if e is None:
             return self.expire(now)
         if e.frame is not None:
@@ -214,7 +222,7 @@ class Gatherer:
 
     def add_partial(self, partial: Partial, now: float | None = None) -> list[Result]:
         now = time.monotonic() if now is None else now
-        e = self._entry(partial.frame, now)
+        e = self._entry(partial.frame, partial.t_capture_ns, now)
         if e is None:
             return self.expire(now)
         self.counters["partials"] += 1
@@ -237,13 +245,11 @@ class Gatherer:
             a = p.array()
             if a.shape != (rows, k1 - k0):
                 self.counters["bad"] += 1
-                del self.pending[fid]
                 self.counters["dropped"] += 1
                 self._finish(fid)
                 return out
             parts.append(a)
         scores = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
-        del self.pending[fid]
         self._finish(fid)
         prof, cmd = reduce(f, scores, self.params, self.controller)
         self.counters["complete"] += 1
@@ -251,20 +257,19 @@ class Gatherer:
         return out
 
     def _finish(self, fid: int) -> None:
-        """Frame fid is done: every older pending frame is superseded."""
+        """Frame fid (pending) is done: every older pending frame is superseded."""
+        self._done(fid, self.pending.pop(fid))
         for old in [k for k in self.pending if k < fid]:
-            del self.pending[old]
+            self._done(old, self.pending.pop(old))
             self.counters["superseded"] += 1
-        self.done_upto = max(self.done_upto, fid)
 
     def expire(self, now: float | None = None) -> list[Result]:
         """Drop the frames whose deadline has passed; returns [] (a uniform return for the callers)."""
         now = time.monotonic() if now is None else now
         limit = now - self.deadline_s
         for fid in [k for k, e in self.pending.items() if e.t_first <= limit]:
-            del self.pending[fid]
+            self._done(fid, self.pending.pop(fid))
             self.counters["dropped"] += 1
-            self.done_upto = max(self.done_upto, fid)
         return []
 
     def next_deadline(self) -> float | None:
