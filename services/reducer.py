@@ -5,7 +5,8 @@ each frame by the plan the frame carries, drops (and counts) a frame whose shard
 ([reducer] deadline_ms), and reduces a complete one with vergence.match.decide_scores and the controller.
 Publishes messages.Profile on vergence/<rig>/profile and, when the controller moves the slave,
 messages.Command on vergence/<rig>/command; never from an incomplete profile. Counters go out as JSON on
-vergence/<rig>/status/reducer/<id> every second and at exit.
+vergence/<rig>/status/reducer/<id> every second and at exit. The profile is only encoded and published while
+someone subscribes to it.
 """
 
 from __future__ import annotations
@@ -14,8 +15,8 @@ import argparse
 import dataclasses
 import json
 import logging
-import queue
 import sys
+import threading
 import time
 
 import zenoh
@@ -28,6 +29,7 @@ from . import session
 
 log = logging.getLogger("vergence.reducer")
 STATUS_S = 1.0
+EXPIRE_S = 0.005  # how often deadlines are checked (frames also expire as messages arrive)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -59,66 +61,72 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
     alive = session.alive_key(rig, "reducer")
     rid = alive.rsplit("/", 1)[1]
     health = pipeline.Health("reducer", rid, log)
-    inbox: queue.SimpleQueue = queue.SimpleQueue()
     prefix = f"vergence/{rig}/correlation/"
+    lock = threading.Lock()  # zenoh may run the two subscribers' callbacks on different threads
     with session.open_session(conf) as s:
         pub_profile = s.declare_publisher(f"vergence/{rig}/profile", express=True)
         pub_command = s.declare_publisher(f"vergence/{rig}/command", express=True)
         pub_status = s.declare_publisher(f"vergence/{rig}/status/reducer/{rid}")
-        s.declare_subscriber(f"vergence/{rig}/frame", lambda smp: inbox.put((0, smp.payload.to_bytes(), "")))
-        s.declare_subscriber(prefix + "*", lambda smp: inbox.put((1, smp.payload.to_bytes(),
-                                                                  str(smp.key_expr))))
+
+        def publish(results) -> None:
+            for r in results:
+                if r.command is not None:  # the command first: the actuator waits for it
+                    pub_command.put(r.command.to_bytes())
+                    health.count("commands")
+                if pub_profile.matching_status:  # a 25 KB message at 640 px: only encoded when wanted
+                    pub_profile.put(r.profile.to_bytes())
+                health.count("profiles")
+
+        def on_frame(sample) -> None:
+            try:
+                frame = Frame.from_bytes(sample.payload.to_bytes())
+            except MessageError as e:
+                with lock:
+                    health.reject("frame", e)
+                return
+            with lock:
+                try:
+                    publish(gatherer.add_frame(frame))
+                except (ValueError, TypeError) as e:  # a frame that validates but cannot be decided on
+                    health.reject("frame", e)
+
+        def on_partial(sample) -> None:
+            key = str(sample.key_expr)
+            try:
+                part = Partial.from_bytes(sample.payload.to_bytes())
+                if key[len(prefix):] != part.worker:
+                    raise MessageError(f"partial from worker {part.worker!r} on key {key}")
+            except MessageError as e:
+                with lock:
+                    health.reject("partial", e)
+                return
+            with lock:
+                try:
+                    publish(gatherer.add_partial(part))
+                except (ValueError, TypeError) as e:
+                    health.reject("partial", e)
+
+        # Messages are handled in zenoh's callback threads (no hand-over to another thread: one wake-up
+        # less per message); this thread only expires deadlines and publishes the status.
+        s.declare_subscriber(f"vergence/{rig}/frame", on_frame)
+        s.declare_subscriber(prefix + "*", on_partial)
         token = s.liveliness().declare_token(alive)
         log.info("reducer %s on vergence/%s/{frame,correlation/*}, deadline %.0f ms", rid, rig, deadline * 1e3)
 
         def status(**extra) -> bytes:
-            return json.dumps(health.status(gatherer=gatherer.counters, pending=len(gatherer.pending),
-                                            **extra)).encode()
+            with lock:
+                return json.dumps(health.status(gatherer=dict(gatherer.counters), pending=len(gatherer.pending),
+                                                **extra)).encode()
 
         next_status = time.monotonic() + STATUS_S
         try:
-            while not stop.is_set():
+            while not stop.wait(EXPIRE_S):
+                with lock:
+                    gatherer.expire()
                 now = time.monotonic()
                 if now >= next_status:
                     pub_status.put(status())
                     next_status = now + STATUS_S
-                nd = gatherer.next_deadline()
-                timeout = min(0.1, next_status - now, max(0.0, nd - now) + 1e-4 if nd is not None else 0.1)
-                try:
-                    kind, data, key = inbox.get(timeout=max(timeout, 1e-4))
-                except queue.Empty:
-                    gatherer.expire()
-                    continue
-                if kind == 0:
-                    try:
-                        frame = Frame.from_bytes(data)
-                    except MessageError as e:
-                        health.reject("frame", e)
-                        continue
-                    try:
-                        results = gatherer.add_frame(frame)
-                    except (ValueError, TypeError) as e:  # a frame that validates but cannot be decided on
-                        health.reject("frame", e)
-                        continue
-                else:
-                    try:
-                        part = Partial.from_bytes(data)
-                        if key[len(prefix):] != part.worker:
-                            raise MessageError(f"partial from worker {part.worker!r} on key {key}")
-                    except MessageError as e:
-                        health.reject("partial", e)
-                        continue
-                    try:
-                        results = gatherer.add_partial(part)
-                    except (ValueError, TypeError) as e:
-                        health.reject("partial", e)
-                        continue
-                for r in results:
-                    pub_profile.put(r.profile.to_bytes())
-                    health.count("profiles")
-                    if r.command is not None:
-                        pub_command.put(r.command.to_bytes())
-                        health.count("commands")
         finally:
             token.undeclare()
             pub_status.put(status(exiting=True))
