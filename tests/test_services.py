@@ -20,7 +20,7 @@ import zenoh
 from procs import Procs, free_port, wait_for
 from vergence import kernel, pipeline, retina
 from vergence.config import load
-from vergence.messages import Command, Frame, MessageError, Partial, Profile
+from vergence.messages import Command, Frame, MessageError, Partial, Preview, Profile
 
 RATE = 40  # frames per second in these tests: light on a shared 2-core machine
 
@@ -38,7 +38,9 @@ def pair(tmp_path):
 
 def config(tmp_path, text: str = "") -> str:
     p = tmp_path / "settings.toml"
-    p.write_text("[network]\nmax_window = 0\n[capture]\npreview_hz = 0\n" + text)
+    if "preview_hz" not in text:
+        text = "preview_hz = 0\n" + text
+    p.write_text("[network]\nmax_window = 0\n[capture]\n" + text)
     return str(p)
 
 
@@ -72,7 +74,7 @@ def expected(frame: Frame) -> np.ndarray:
 
 
 def test_profile_equals_correlate_with_1_2_3_workers(tmp_path, pair):
-    cfg = config(tmp_path)
+    cfg = config(tmp_path, "preview_hz = 4\npreview_width = 80\n")
     with Procs(tmp_path) as P:
         P.router()
         P.start("reducer", "reducer", "--config", cfg)
@@ -81,7 +83,12 @@ def test_profile_equals_correlate_with_1_2_3_workers(tmp_path, pair):
         P.wait_alive(s, "worker", 1)
         frames = P.collect(s, P.key("frame"))
         profiles = P.collect(s, P.key("profile"))
+        previews = P.collect(s, P.key("preview"))
         P.start("capture", "capture", "--source", pair, "--rate", str(RATE), "--config", cfg)
+        pv = Preview.from_bytes(previews.wait(1, 10)[0][1])
+        master, slave = pv.images()
+        assert (pv.width, pv.height, master.shape) == (80, 30, (30, 80)) and pv.scale == 0.25
+        assert abs(float(master.mean()) - float(cv2.imread(pair[6:].split(",")[0], 0).mean())) < 3
         for n in (1, 2, 3):
             if n > 1:
                 P.start(f"w{n}", "worker", "--name", f"w{n}", "--config", cfg)
