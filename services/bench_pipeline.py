@@ -6,7 +6,7 @@ further left, so every frame yields a command) at a fixed rate, and this process
 Reported per run: capture-to-command latency p50/p99/max (the command's arrival here minus the frame's
 t_capture_ns: one more hop than the actuator sees), throughput, frames dropped (published frames without a
 command), beside the in-process vergence.match time on the same images (overhead = p50 / match).
-Without --rate: 100 Hz, then 250, 500, 1000, 1500, 2000 Hz until a run drops frames or misses p99 <= 3 ms
+Without --rate: 100 Hz, then 250, 500, 1000, 1500, 2000 Hz until a run drops frames
 (the highest rate held without drops is the last clean one). --heavy adds the heavy setting (3840 x 1080,
 w = 31, vertical search +-16) at a few Hz, where sharding pays.
 """
@@ -42,6 +42,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--faithful", action="store_true", help="the paper's network (no extension)")
     p.add_argument("--peer", action="store_true", help="pipeline processes in peer mode: direct links between "
                                                        "them, the router only for discovery")
+    p.add_argument("--floor", action="store_true", help="also the messaging floor: CPU per 27 KB message of the "
+                                                        "router and of one Python subscriber, at 1 kHz")
     p.add_argument("--json", action="store_true", help="one JSON object per run")
 
 
@@ -168,7 +170,7 @@ def run_rate(cl: Cluster, s, source: str, rate: float, frames: int) -> dict:
 
 
 def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: Path, rates: list[float],
-                  emit, p99_limit: float = 3.0) -> list[dict]:
+                  emit, p99_limit: float = float("inf")) -> list[dict]:
     """Runs at each rate in turn (the first always; a later one only while the previous one had no drop and
     p99 <= p99_limit ms), for each worker count."""
     from vergence.match import Params
@@ -209,6 +211,55 @@ def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: 
     return rows
 
 
+_SUB = """
+import sys, time, zenoh
+from services import session
+s = zenoh.open(session.zenoh_config("client", [sys.argv[1]]))
+s.declare_subscriber("bench/floor", lambda smp: smp.payload.to_bytes())
+time.sleep(60)
+"""
+
+
+def _cpu_s(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as fh:
+        f = fh.read().rsplit(")", 1)[1].split()
+    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def messaging_floor(workdir: Path, n: int = 3000, size: int = 27_000) -> dict:
+    """CPU time per message of a router and of one Python subscriber (a callback that copies the payload),
+    for `size`-byte messages published at 1 kHz by this process: the cost every hop of the pipeline pays."""
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    procs = [subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen", endpoint],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)]
+    try:
+        time.sleep(0.5)
+        procs.append(subprocess.Popen([sys.executable, "-c", _SUB, endpoint], start_new_session=True))
+        s = _session(endpoint)
+        try:
+            pub = s.declare_publisher("bench/floor", express=True)
+            time.sleep(1.5)
+            before = [_cpu_s(p.pid) for p in procs]
+            payload = bytes(size)
+            t0 = time.monotonic()
+            for i in range(n):
+                pub.put(payload)
+                d = t0 + (i + 1) / 1000 - time.monotonic()
+                if d > 0:
+                    time.sleep(d)
+            time.sleep(0.3)
+            after = [_cpu_s(p.pid) for p in procs]
+        finally:
+            s.close()
+    finally:
+        for p in procs:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    return dict(setting="floor", size=size, messages=n, router_us=(after[0] - before[0]) / n * 1e6,
+                subscriber_us=(after[1] - before[1]) / n * 1e6)
+
+
 def run(args: argparse.Namespace) -> int:
     import logging
 
@@ -228,11 +279,16 @@ def run(args: argparse.Namespace) -> int:
         work = Path(d)
         rates = [args.rate] if args.rate else RATES
         try:
+            if args.floor:
+                f = messaging_floor(work)
+                print(json.dumps(f) if args.json else
+                      f"floor  {f['size']} B messages at 1 kHz: router {f['router_us']:.0f} us CPU per message, "
+                      f"a Python subscriber {f['subscriber_us']:.0f} us", flush=True)
             bench_setting("vga", 640, 480, {"window": 15, "max_window": 0}, args, work, rates, emit)
             if args.heavy:
                 hr = [args.rate] if args.rate else HEAVY_RATES
                 bench_setting("heavy", 3840, 1080, {"window": 31, "vsearch": 16, "max_window": 0}, args, work,
-                              hr, emit, p99_limit=float("inf"))
+                              hr, emit)
         except (RuntimeError, KeyboardInterrupt) as e:
             print(f"vergence bench pipeline: {e}", file=sys.stderr)
             for log in sorted(work.glob("*.log")):
