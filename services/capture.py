@@ -161,7 +161,11 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                     plan = pipeline.plan_shards(ids, wd - w + 1)
                 fid += 1
                 health.count("frames")
-                if plan:
+                if plan and not pub_frame.matching_status:
+                    # workers are alive but the router has not yet told this session about their
+                    # subscriptions (just after start): a frame now would go nowhere
+                    health.count("unrouted")
+                elif plan:
                     try:
                         frame = pipeline.make_frame(master, slave, rig=rig, frame=fid, pan_rad=p_now, focal_px=focal,
                                                     params=params, plan=plan, at=(x, y), window=w,

@@ -11,6 +11,8 @@ subscribe, call these, and publish.
 from __future__ import annotations
 
 import math
+import os
+import threading
 import time
 from dataclasses import dataclass, field, replace
 
@@ -320,21 +322,24 @@ class Health:
         self.counters: dict[str, int] = {}
         self.bad: dict[str, int] = {}
         self._logged: set[str] = set()
+        self._lock = threading.Lock()  # zenoh callbacks of several threads count too
 
     def count(self, name: str, n: int = 1) -> None:
-        self.counters[name] = self.counters.get(name, 0) + n
+        with self._lock:
+            self.counters[name] = self.counters.get(name, 0) + n
 
     def reject(self, kind: str, err: Exception | str) -> None:
         """A message of `kind` that failed to decode or validate: counted, logged the first time."""
-        self.bad[kind] = self.bad.get(kind, 0) + 1
-        if kind not in self._logged and self.log is not None:
+        with self._lock:
+            self.bad[kind] = self.bad.get(kind, 0) + 1
+            first = kind not in self._logged
             self._logged.add(kind)
+        if first and self.log is not None:
             self.log.warning("bad %s message skipped (further ones are only counted): %s", kind, err)
 
     def status(self, **extra) -> dict:
-        import os
-
-        d = {"role": self.role, "id": self.ident, "pid": os.getpid(), "t_ns": time.time_ns(),
-             "counters": dict(self.counters), "bad": dict(self.bad)}
+        with self._lock:
+            d = {"role": self.role, "id": self.ident, "pid": os.getpid(), "t_ns": time.time_ns(),
+                 "counters": dict(self.counters), "bad": dict(self.bad)}
         d.update(extra)
         return d
