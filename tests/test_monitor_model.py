@@ -1,0 +1,210 @@
+"""The monitor's model and renderings, fed with messages built here (no Zenoh)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from vergence import messages as m
+from vergence.monitor import Monitor, kind_of_key, profile_bars, render_png, render_text, png_bytes
+
+W, WIN = 640, 15
+K = W - WIN + 1
+KC = 313
+T0 = 1_700_000_000_000_000_000
+MS = 1_000_000
+
+
+def scores(k_star: int = 300, rows: int = 1, v_row: int = 0) -> np.ndarray:
+    k = np.arange(K, dtype=np.float64)
+    y = np.full((rows, K), 20000.0) + 1000.0 * np.cos(k / 17.0)
+    y[v_row] += 30000.0 * np.exp(-0.5 * ((k - k_star) / 3.0) ** 2)
+    return y
+
+
+def profile(frame: int, t_cap: int, k_star: int = 300, rows: int = 1, v_shift: int = 0,
+            confident: bool = True) -> m.Profile:
+    y = scores(k_star, rows, v_shift + (rows - 1) // 2)
+    d = k_star - KC
+    return m.Profile(rig="head", frame=frame, t_capture_ns=t_cap, t_reduced_ns=t_cap + 2 * MS, width=W,
+                     window=WIN, rows=rows, scores=y.astype("<f8").tobytes(), k=k_star, k_sub=float(k_star),
+                     v_shift=v_shift, k_centre=KC, direction=int(np.sign(d)), magnitude=abs(d),
+                     offset_px=float(d), confidence=0.5, confident=confident, texture=30.0, pan_rad=0.01,
+                     workers=["w-1", "w-2"])
+
+
+def frame(fid: int, t_cap: int, plan=None) -> m.Frame:
+    return m.Frame(rig="head", frame=fid, t_capture_ns=t_cap, pan_rad=0.0, width=W, height=480, x=320,
+                   y=240, window=WIN, vsearch=0, focal_px=500.0, fovea=bytes((WIN + 2) ** 2),
+                   band=bytes((WIN + 2) * (W + 2)),
+                   plan=plan if plan is not None else [["w-1", 0, 313], ["w-2", 313, K]])
+
+
+def command(fid: int, t_cap: int, latency_ms: float, target: float = 0.02) -> m.Command:
+    return m.Command(rig="head", frame=fid, t_capture_ns=t_cap, pan_rad=target, correction_rad=0.01,
+                     direction=-1, magnitude_px=13.0, confidence=0.5,
+                     t_sent_ns=t_cap + int(latency_ms * MS))
+
+
+def motor(t: int, pan: float) -> m.MotorState:
+    return m.MotorState(rig="head", t_ns=t, pan_rad=pan, goal_rad=0.02, min_rad=-0.5, max_rad=0.5,
+                        status="ok")
+
+
+def run_stream(mon: Monitor, seconds: float = 10.0, hz: float = 100.0, skip=(), latency=lambda i: 1.0):
+    """Frames at hz; each answered by a profile and a command 2 ms later unless its index is in skip."""
+    n = int(seconds * hz)
+    step = int(1e9 / hz)
+    for i in range(n):
+        t = T0 + i * step
+        mon.feed("vergence/head/frame", frame(i, t).to_bytes(), t)
+        if i not in skip:
+            mon.feed("vergence/head/profile", profile(i, t).to_bytes(), t + 2 * MS)
+            mon.feed("vergence/head/command", command(i, t, latency(i), 0.001 * i).to_bytes(), t + 2 * MS)
+        mon.feed("vergence/head/motor/state", motor(t, 0.001 * i).to_bytes(), t + 3 * MS)
+    return T0 + (n - 1) * step + 3 * MS
+
+
+@pytest.mark.parametrize("key,expected", [
+    ("vergence/head/frame", ("head", "frame", "frame")),
+    ("vergence/left/motor/state", ("left", "motor/state", "motor/state")),
+    ("vergence/head/correlation/h-12", ("head", "correlation", "correlation/h-12")),
+    ("vergence/head/alive/worker/h-12", ("head", "alive", "alive/worker/h-12")),
+    ("vergence/head/whatever", ("head", "", "whatever")),
+    ("other/head/frame", None),
+], ids=["frame", "motor", "correlation", "alive", "unknown", "foreign"])
+def test_kind_of_key(key, expected):
+    assert kind_of_key(key) == expected
+
+
+def test_rates_latency_and_drops():
+    mon = Monitor("head", window_s=5.0, drop_grace_s=0.5)
+    # latency of frame i: 1 ms for 98 % of frames, 9 ms for every 50th
+    now = run_stream(mon, 10.0, 100.0, skip={100, 101, 950}, latency=lambda i: 9.0 if i % 50 == 0 else 1.0)
+    # snapshots move forward in time (the model forgets what leaves its window): first at the last arrival
+    s = mon.snapshot(now)
+    assert s.frames == 1000 and s.profiles == 997 and s.commands == 997
+    assert s.frames_per_s == pytest.approx(100.0)
+    assert s.profiles_per_s == pytest.approx(99.8)   # frame 950 is in the window and has no profile
+    assert s.latency_n == 499
+    assert s.latency_p50_ms == pytest.approx(1.0)
+    assert s.latency_p99_ms == pytest.approx(9.0)
+    assert s.reduce_p50_ms == pytest.approx(2.0) and s.reduce_p99_ms == pytest.approx(2.0)
+    assert s.dropped == 2 and s.dropped_from == "frames"   # 950 is still within its grace
+    s = mon.snapshot(now + 600 * MS)  # frame 950's grace has passed
+    assert s.dropped == 3
+    # 0.6 s after the last arrivals: the last 5 s window holds frames 560..999
+    assert s.frames_per_s == pytest.approx(440 / 5.0)
+    assert s.pan_rad == pytest.approx(0.999) and s.goal_rad == 0.02 and s.target_rad == pytest.approx(0.999)
+    assert s.motor_status == "ok"
+    assert s.profile.frame == 999 and s.command.frame == 999
+    # history keeps the last 30 s: all 1000 states, oldest first, ages from ~10 s to 0
+    assert len(s.pan_history) == 1000
+    assert s.pan_history[0][0] == pytest.approx(10.59, abs=0.01)
+    assert s.pan_history[-1] == (pytest.approx(0.6), pytest.approx(0.999))
+
+
+def test_rate_while_filling_and_after_silence():
+    mon = Monitor("head", window_s=5.0)
+    now = run_stream(mon, 1.0, 50.0)
+    assert mon.snapshot(now).frames_per_s == pytest.approx(50.0, rel=1e-3)
+    assert mon.snapshot(now + 6_000 * MS).frames_per_s == 0.0
+
+
+def test_drops_from_profile_gaps_without_frames():
+    mon = Monitor("head")
+    for i in (1, 2, 5, 6, 10):
+        mon.add(profile(i, T0 + i * MS), T0 + i * MS)
+    s = mon.snapshot(T0 + 20 * MS)
+    assert s.dropped == 5 and s.dropped_from == "gaps"
+
+
+def test_malformed_counted_and_skipped():
+    mon = Monitor("head")
+    assert mon.feed("vergence/head/profile", b"\xc1garbage") is None
+    assert mon.feed("vergence/head/frame", m.Command(**command(1, T0, 1).__dict__).to_bytes()) is None
+    bad = profile(1, T0)
+    bad.scores = bad.scores[:-8]  # wrong size
+    assert mon.feed("vergence/head/profile", bad.to_bytes()) is None
+    assert mon.feed("vergence/other/profile", profile(1, T0).to_bytes()) is None  # other rig: ignored
+    assert mon.feed("vergence/head/profile", profile(2, T0).to_bytes()).frame == 2
+    s = mon.snapshot()
+    assert s.malformed == {"profile": 2, "frame": 1}
+    assert "bytes do not make" in s.last_error["profile"]
+    assert s.ignored == 1 and s.profiles == 1
+    text = render_text(s, color=False)
+    assert "malformed 3" in text and "malformed profile: 2" in text
+
+
+def test_workers_from_liveliness_and_plan():
+    mon = Monitor("head")
+    mon.liveliness("vergence/head/alive/worker/w-1", True)
+    mon.liveliness("vergence/head/alive/worker/w-2", True)
+    mon.liveliness("vergence/head/alive/worker/w-3", True)
+    mon.liveliness("vergence/head/alive/reducer/r-9", True)
+    mon.liveliness("vergence/other/alive/worker/x-1", True)
+    mon.add(frame(7, T0), T0)
+    s = mon.snapshot(T0)
+    assert s.workers == {"w-1": (0, 313), "w-2": (313, K), "w-3": None}
+    assert s.alive == {"reducer": ["r-9"], "worker": ["w-1", "w-2", "w-3"]}
+    mon.liveliness("vergence/head/alive/worker/w-2", False)
+    mon.add(frame(8, T0, plan=[["w-1", 0, 200], ["w-3", 200, K]]), T0)
+    s = mon.snapshot(T0)
+    assert s.workers == {"w-1": (0, 200), "w-3": (200, K)}
+    text = render_text(s, color=False)
+    assert "workers 2: w-1 k 0..199   w-3 k 200..625" in text
+    assert "reducer r-9" in text
+
+
+@pytest.mark.parametrize("k_star,rows,v_shift", [(300, 1, 0), (313, 1, 0), (40, 5, -1), (600, 5, 2)],
+                         ids=["left13", "centre", "vsearch-up", "vsearch-down"])
+def test_profile_bars_mark_winner_and_centre(k_star, rows, v_shift):
+    p = profile(1, T0, k_star, rows, v_shift)
+    lines, wc, cc = profile_bars(p, 90, rows=8)
+    assert len(lines) == 8 and all(len(ln) == 90 for ln in lines)
+    edges = np.linspace(0, K, 91).astype(int)
+    assert wc == np.searchsorted(edges, k_star, side="right") - 1
+    assert cc == np.searchsorted(edges, KC, side="right") - 1
+    assert lines[0][wc] == "█"                              # the winner's bar is full height
+    assert sum(ln.count("█") for ln in lines[:1]) <= 3       # and the only one that tall (a 3-px peak)
+    text = render_text(Monitor("head").snapshot(), color=False)  # empty model renders
+    assert "no profile yet" in text
+
+
+def test_render_text_values():
+    mon = Monitor("head")
+    now = run_stream(mon, 2.0, 100.0)
+    mon.liveliness("vergence/head/alive/worker/w-1", True)
+    s = mon.snapshot(now)
+    text = render_text(s, width=100, color=False)
+    assert "frames   100.0/s" in text
+    assert "capture→command p50 1.00 ms  p99 1.00 ms" in text
+    assert "k*=300" in text and "k_c=313" in text and "◀ left 13 px" in text
+    assert "confidence 0.500 moves" in text
+    assert "pan +11.402°" in text and "target +11.402°" in text  # 0.199 rad: the 200th state, command
+    mark = next(ln for ln in text.splitlines() if "▲" in ln and "┴" in ln and "winner" not in ln)
+    wc, cc = mark.index("▲") - 8, mark.index("┴") - 8
+    assert wc < cc  # winner left of centre
+    colored = render_text(s, width=100, color=True)
+    assert "\x1b[31m▲\x1b[0m" in colored
+
+
+def test_png_of_profile():
+    mon = Monitor("head")
+    now = run_stream(mon, 2.0, 50.0)
+    s = mon.snapshot(now)
+    img = render_png(s, 960, 720)
+    assert img.shape == (720, 960, 3) and img.dtype == np.uint8
+    assert img.std() > 10                                        # not blank
+    red = (img[:, :, 2] > 180) & (img[:, :, 1] < 60) & (img[:, :, 0] < 60)
+    # the winner's red line sits at k*=300 on the k axis (90 .. 930 px for k 0 .. 625)
+    cols = np.nonzero(red[60:440].sum(axis=0) > 200)[0]
+    assert list(cols) == [round(90 + 840 * 300 / 625)]
+    data = png_bytes(s, 640, 480)
+    back = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and back.shape == (480, 640, 3)
+    blank = render_png(Monitor("head").snapshot(), 320, 240)
+    assert blank.shape == (240, 320, 3)
