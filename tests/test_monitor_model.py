@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import cv2
@@ -208,3 +209,24 @@ def test_png_of_profile():
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and back.shape == (480, 640, 3)
     blank = render_png(Monitor("head").snapshot(), 320, 240)
     assert blank.shape == (240, 320, 3)
+
+
+def test_drops_from_reducer_status():
+    mon = Monitor("head")
+    run_stream(mon, 1.0, 100.0, skip={5})
+    g = {"frames": 1200, "partials": 2400, "complete": 1190, "dropped": 7, "superseded": 3, "late": 0}
+    st = {"role": "reducer", "id": "r-9", "pid": 9, "t_ns": T0, "counters": {"profiles": 1190},
+          "bad": {}, "gatherer": g, "pending": 1}
+    assert mon.feed("vergence/head/status/reducer/r-9", json.dumps(st).encode())["gatherer"] == g
+    assert mon.feed("vergence/head/status/reducer/r-8", b"{not json") is None
+    assert mon.feed("vergence/head/status/worker/w-1", b"[1, 2]") is None
+    s = mon.snapshot(T0 + 2_000 * MS)
+    assert (s.dropped, s.dropped_of, s.dropped_from) == (10, 1200, "reducer")
+    assert s.malformed == {"status": 2}
+    text = render_text(s, color=False)
+    assert "dropped 10 (0.83 % of 1200, reducer counters)" in text
+    assert "reducer/r-9: frames 1200  complete 1190  dropped 7  superseded 3  late 0  pending 1" in text
+    # the reducer's last status (exiting) removes it: drops fall back to the frames seen unanswered
+    mon.feed("vergence/head/status/reducer/r-9", json.dumps(dict(st, exiting=True)).encode())
+    s = mon.snapshot(T0 + 2_000 * MS)
+    assert (s.dropped, s.dropped_of, s.dropped_from) == (1, 100, "frames")

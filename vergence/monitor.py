@@ -15,6 +15,7 @@ Rates, drops and histories use the monitor's own arrival times.
 
 from __future__ import annotations
 
+import json
 import math
 import threading
 import time
@@ -35,14 +36,14 @@ _KEYS: dict[str, type[m.Message]] = {"frame": m.Frame, "profile": m.Profile, "co
 
 def kind_of_key(key: str) -> tuple[str, str, str] | None:
     """Split vergence/<rig>/<rest> into (rig, kind, rest). kind is frame, profile, command, motor/state,
-    preview, correlation, alive or '' (unknown); None when the key is not under vergence/."""
+    preview, correlation, alive, status or '' (unknown); None when the key is not under vergence/."""
     parts = key.split("/")
     if len(parts) < 3 or parts[0] != "vergence" or not parts[1]:
         return None
     rig, rest = parts[1], "/".join(parts[2:])
     if rest in _KEYS:
         return rig, rest, rest
-    if parts[2] in ("correlation", "alive") and len(parts) >= 4:
+    if parts[2] in ("correlation", "alive", "status") and len(parts) >= 4:
         return rig, parts[2], rest
     return rig, "", rest
 
@@ -98,7 +99,11 @@ class Snapshot:
     reduce_p50_ms: float = math.nan       # capture -> profile (reducer done)
     reduce_p99_ms: float = math.nan
     dropped: int = 0
-    dropped_from: str = "frames"          # how drops were counted: "frames" seen unanswered, or id "gaps"
+    # how drops were counted: "reducer" (its status counters: deadline + superseded, since it started),
+    # "frames" seen on the wire and never answered by a profile, or "gaps" in the profiles' frame ids
+    dropped_from: str = "frames"
+    dropped_of: int = 0                   # out of how many frames (same origin as dropped)
+    status: dict[str, dict] = field(default_factory=dict)      # "role/id" -> its latest status JSON
     workers: dict[str, tuple[int, int] | None] = field(default_factory=dict)
     alive: dict[str, list[str]] = field(default_factory=dict)   # role -> ids
     plan_frame: int = -1
@@ -147,6 +152,7 @@ class Monitor:
         self._plan_frame = -1
         self._partials: dict[str, tuple[int, int]] = {}
         self._motor: m.MotorState | None = None
+        self._status: dict[str, dict] = {}
         self._profile: m.Profile | None = None
         self._command: m.Command | None = None
         self._pan_hist: deque[tuple[int, float]] = deque()
@@ -157,9 +163,10 @@ class Monitor:
         self.listeners: list = []   # callables(kind, message), called under no lock after a good message
 
     # ---- input -------------------------------------------------------------------------------------
-    def feed(self, key: str, payload: bytes, t_ns: int | None = None) -> m.Message | None:
-        """One sample from the wire. Returns the decoded message, or None when the key is not watched
-        (ignored) or the payload is malformed (counted per kind in self.malformed, never raised)."""
+    def feed(self, key: str, payload: bytes, t_ns: int | None = None) -> m.Message | dict | None:
+        """One sample from the wire. Returns the decoded message (a dict for a status), or None when the
+        key is not watched (ignored) or the payload is malformed (counted per kind in self.malformed,
+        never raised)."""
         t_ns = self.clock() if t_ns is None else t_ns
         k = kind_of_key(str(key))
         if k is None or (self.rig is not None and k[0] != self.rig) or k[1] in ("", "alive"):
@@ -167,6 +174,8 @@ class Monitor:
                 self.ignored += 1
             return None
         rig, kind, rest = k
+        if kind == "status":
+            return self._on_status(rest, payload, t_ns)
         cls = m.Partial if kind == "correlation" else _KEYS[kind]
         try:
             msg = cls.from_bytes(payload)
@@ -196,6 +205,27 @@ class Monitor:
             self._trim(t_ns)
         for fn in self.listeners:
             fn(msg.KIND, msg)
+
+    def _on_status(self, rest: str, payload: bytes, t_ns: int) -> dict | None:
+        """vergence/<rig>/status/<role>/<id>: a process's JSON counters; the latest one per process is
+        kept (the reducer's give the dropped frames), an `"exiting": true` one removes the process."""
+        try:
+            d = json.loads(bytes(payload).decode("utf-8"))
+            if not isinstance(d, dict) or not isinstance(d.get("counters", {}), dict):
+                raise ValueError("not a JSON object with a counters object")
+        except (ValueError, UnicodeDecodeError) as e:
+            with self._lock:
+                self.malformed["status"] = self.malformed.get("status", 0) + 1
+                self.last_error["status"] = f"{rest}: {e}"
+            return None
+        name = rest[len("status/"):]
+        with self._lock:
+            if d.get("exiting"):
+                self._status.pop(name, None)
+            else:
+                self._status[name] = d
+            self._trim(t_ns)
+        return d
 
     def liveliness(self, key: str, present: bool) -> None:
         """A liveliness token vergence/<rig>/alive/<role>/<id> appeared (present) or went away."""
@@ -273,10 +303,18 @@ class Monitor:
             if self._red:
                 red = np.array([x for _, x in self._red], dtype=np.float64) / 1e6
                 s.reduce_p50_ms, s.reduce_p99_ms = (float(v) for v in np.percentile(red, [50, 99]))
-            if s.frames:
-                s.dropped, s.dropped_from = self._dropped, "frames"
+            gatherers = [d["gatherer"] for n, d in self._status.items()
+                         if n.startswith("reducer/") and isinstance(d.get("gatherer"), dict)]
+            if gatherers:
+                def total(name: str) -> int:
+                    return sum(int(g.get(name, 0)) for g in gatherers if isinstance(g.get(name, 0), int))
+                s.dropped, s.dropped_from = total("dropped") + total("superseded"), "reducer"
+                s.dropped_of = total("frames")
+            elif s.frames:
+                s.dropped, s.dropped_from, s.dropped_of = self._dropped, "frames", s.frames
             else:
-                s.dropped, s.dropped_from = self._gaps, "gaps"
+                s.dropped, s.dropped_from, s.dropped_of = self._gaps, "gaps", s.profiles + self._gaps
+            s.status = {n: dict(d) for n, d in sorted(self._status.items())}
             s.alive = {r: sorted(ids) for r, ids in sorted(self._alive.items()) if ids}
             live = set(self._alive.get("worker", set()))
             shards = dict(self._partials)
@@ -372,9 +410,9 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
     out.append(c(BOLD, title) + (c(RED, f"   malformed {bad}") if bad else "   malformed 0"))
     out.append(f"rate   frames {s.frames_per_s:7.1f}/s   profiles {s.profiles_per_s:7.1f}/s   "
                f"commands {s.commands_per_s:7.1f}/s")
-    pct = 100.0 * s.dropped / s.frames if s.frames else (100.0 * s.dropped / (s.profiles + s.dropped)
-                                                          if s.profiles + s.dropped else 0.0)
-    drop = f"dropped {s.dropped} ({pct:.2f} %{', id gaps' if s.dropped_from == 'gaps' else ''})"
+    pct = 100.0 * s.dropped / s.dropped_of if s.dropped_of else 0.0
+    how = {"reducer": f" of {s.dropped_of}, reducer counters", "gaps": ", id gaps"}.get(s.dropped_from, "")
+    drop = f"dropped {s.dropped} ({pct:.2f} %{how})"
     out.append(f"seen   frames {s.frames}   profiles {s.profiles}   commands {s.commands}   "
                + (c(YELLOW, drop) if s.dropped else drop))
     out.append(f"latency capture→command p50 {_ms(s.latency_p50_ms)}  p99 {_ms(s.latency_p99_ms)}  "
@@ -440,6 +478,12 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
         out.append(c(YELLOW, "workers 0: none alive"))
     others = [f"{role} {', '.join(ids)}" for role, ids in s.alive.items() if role != "worker"]
     out.append("alive  " + ("   ".join(others) if others else "(no other process seen)"))
+    for name, d in s.status.items():
+        if name.startswith("reducer/") and isinstance(d.get("gatherer"), dict):
+            g = d["gatherer"]
+            out.append(f"{name}: " + "  ".join(f"{k} {g[k]}" for k in ("frames", "complete", "dropped",
+                                                                       "superseded", "late", "unexpected")
+                                               if k in g) + f"  pending {d.get('pending', '?')}")
     for kind, n in sorted(s.malformed.items()):
         out.append(c(RED, f"malformed {kind}: {n} (last: {s.last_error.get(kind, '')[:width - 30]})"))
     return "\n".join(out)
