@@ -177,7 +177,7 @@ def scores_from_sad(s: np.ndarray, window: int, weight_sum: int | None = None) -
     """Layer-4 scores y = 255 * w * w - S / 3 (with support weights: normalised to the same scale)."""
     if weight_sum is None:
         return 255.0 * window * window - s / 3.0
-    return 255.0 * window * window - s * (window * window / (3.0 * weight_sum))
+    return 255.0 * window * window - s * (window * window / (3.0 * max(weight_sum, 1)))  # all-zero: S = 0
 
 
 def correlate(fovea: np.ndarray, band: np.ndarray, k0: int = 0, k1: int | None = None, *,

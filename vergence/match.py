@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
 
@@ -25,11 +25,11 @@ class Params:
     max_window: dynamic window; when not confident, grow w by 8 px per try up to this size (0: off)."""
 
     window: int = 15
-    vsearch: int = 2
+    vsearch: int = 6
     circular: bool = True
     subpixel: bool = True
     min_margin: float = 0.03
-    min_texture: float = 4.0
+    min_texture: float = 2.0
     lr_check: bool = True
     lr_tolerance: float = 0.75
     support: bool = True
@@ -74,6 +74,7 @@ class Match:
     y: int
     window: int
     decision: Decision
+    scores: np.ndarray | None = field(default=None, repr=False, compare=False)  # layer 4, as decided on
 
     @property
     def confident(self) -> bool:
@@ -106,26 +107,26 @@ def decide_scores(scores: np.ndarray, fovea: np.ndarray, x: int, params: Params,
 
 def lr_consistent(master_strip: np.ndarray, slave_band: np.ndarray, x: int, d: Decision,
                   params: Params) -> bool:
-    """Left-right consistency: the winning slave window, matched back along the same rows of the master,
-    lands within params.lr_tolerance px of where the forward match says it should. Only the w rows of the
-    master strip at the winning vertical shift are turned into features."""
+    """Left-right consistency: the winning slave window (rows shifted by v), matched back along the fovea's
+    own rows of the master, lands within params.lr_tolerance px of where the forward match says it should.
+    Only those w rows of the master strip are turned into features."""
     half = x - d.k_centre
     w = 2 * half + 1
-    r0 = d.v + (slave_band.shape[1] - w) // 2
-    sf = np.ascontiguousarray(slave_band[:, r0 : r0 + w, d.k : d.k + w])
-    mb = retina.planes(master_strip[r0 : r0 + w + 2])
+    r = (slave_band.shape[1] - w) // 2  # R
+    sf = np.ascontiguousarray(slave_band[:, r + d.v : r + d.v + w, d.k : d.k + w])
+    mb = retina.planes(master_strip[r : r + w + 2])
     back = kernel.correlate(sf, mb, circular=params.circular)
     bd = decide(back, w, k_centre=0, subpixel=params.subpixel)
     expected = x - (d.k_sub - d.k)
     return abs((bd.k_sub + half) - expected) <= params.lr_tolerance
 
 
-def _one(master, slave, x, y, w, p: Params) -> Decision:
+def _one(master, slave, x, y, w, p: Params) -> Match:
     fovea, band = retina.features(master, slave, (x, y), w, p.vsearch)
     weights = kernel.support_weights(fovea, p.support_gamma, p.support_radius) if p.support else None
     scores = kernel.correlate(fovea, band, circular=p.circular, weights=weights)
     mstrip = retina.band_strip(master, y, w, p.vsearch) if p.lr_check else None
-    return decide_scores(scores, fovea, x, p, mstrip, band)
+    return Match(x, y, w, decide_scores(scores, fovea, x, p, mstrip, band), scores)
 
 
 def match(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = None,
@@ -149,8 +150,8 @@ def match(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = No
             retina.check_point(master.shape, x, y, w, params.vsearch)
         except retina.BorderError:
             break
-        d = _one(master, slave, x, y, w, params)
-        first = first or Match(x, y, w, d)
-        if d.confident:
-            return Match(x, y, w, d)
+        m = _one(master, slave, x, y, w, params)
+        first = first or m
+        if m.confident:
+            return m
     return first
