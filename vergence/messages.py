@@ -160,10 +160,11 @@ class Frame(Message):
     plan: list[list[str | int]] = field(default_factory=list)
     circular: bool = True
     support: bool = False
-    # additive (services): the master's band strip, same shape as band, for the reducer's left-right check
-    # (empty when the check is off); the support weights' gamma
+    # the master's band strip, same shape as band, for the reducer's left-right check (empty when the check
+    # is off); the support weights' two scales (vergence.match.Params.support_gamma / support_radius)
     master_band: bytes = b""
-    support_gamma: float = 12.0
+    support_gamma: float = 8.0
+    support_radius: float = 7.0
 
     @property
     def k_count(self) -> int:
@@ -194,7 +195,9 @@ class Frame(Message):
         self.fovea_strip()
         self.band_strip()
         self.master_band_strip()
-        _finite("frame.support_gamma", self.support_gamma)
+        _finite("frame.support_gamma", self.support_gamma, self.support_radius)
+        if self.support_gamma <= 0 or self.support_radius <= 0:
+            raise MessageError("frame.support_gamma and frame.support_radius must be positive")
         covered = 0
         for entry in self.plan:
             if len(entry) != 3 or not isinstance(entry[0], str) or not all(

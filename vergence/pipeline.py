@@ -62,14 +62,15 @@ def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, p
     return Frame(rig=rig, frame=frame, t_capture_ns=t_capture_ns, pan_rad=float(pan_rad), width=wd, height=h,
                  x=x, y=y, window=w, vsearch=params.vsearch, focal_px=float(focal_px), fovea=fovea.tobytes(),
                  band=band.tobytes(), plan=plan, circular=params.circular, support=params.support,
-                 master_band=b"" if mband is None else mband.tobytes(), support_gamma=params.support_gamma)
+                 master_band=b"" if mband is None else mband.tobytes(), support_gamma=params.support_gamma,
+                 support_radius=params.support_radius)
 
 
 def frame_params(frame: Frame, params: Params) -> Params:
     """The network settings a frame was computed with: the frame's own window, vertical search, direction
     comparison and support weights over the reducer's decision settings."""
     return replace(params, window=frame.window, vsearch=frame.vsearch, circular=frame.circular,
-                   support=frame.support, support_gamma=frame.support_gamma)
+                   support=frame.support, support_gamma=frame.support_gamma, support_radius=frame.support_radius)
 
 
 def compute_partial(frame: Frame, worker: str, t_done: bool = True) -> Partial | None:
@@ -86,7 +87,7 @@ def compute_partial(frame: Frame, worker: str, t_done: bool = True) -> Partial |
     # planes column j is strip column j + 1: offsets k0..k1-1 read plane columns k0 .. k1 + w - 2
     sub = frame.band_strip()[:, k0 : k1 + w + 1]
     band = retina.planes(sub)
-    weights = kernel.support_weights(fovea, frame.support_gamma) if frame.support else None
+    weights = kernel.support_weights(fovea, frame.support_gamma, frame.support_radius) if frame.support else None
     scores = np.atleast_2d(kernel.correlate(fovea, band, circular=frame.circular, weights=weights))
     return Partial(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, worker=worker, k0=k0, k1=k1,
                    rows=scores.shape[0], scores=scores.astype("<f8", copy=False).tobytes(),
