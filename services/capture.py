@@ -29,17 +29,10 @@ from vergence.messages import MessageError, MotorState, Preview, Profile
 from vergence.sources import SourceError, open_source
 
 from . import session
+from .match import point_arg
 
 log = logging.getLogger("vergence.capture")
 STATUS_S = 1.0
-
-
-def _point(text: str) -> tuple[int, int]:
-    try:
-        x, y = (int(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--at wants X,Y in pixels, got {text!r}") from None
-    return x, y
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -50,7 +43,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate", type=float, default=None, metavar="HZ",
                    help="frames per second, 0 = as fast as possible (default: settings, 30)")
     p.add_argument("--frames", type=int, default=0, metavar="N", help="exit after publishing N frames (0: never)")
-    p.add_argument("--at", type=_point, default=None, metavar="X,Y", help="fovea centre (default: image centre)")
+    p.add_argument("--at", type=point_arg, default=None, metavar="X,Y", help="fovea centre (default: image centre)")
     p.add_argument("--focal", type=float, default=None, help="focal length in pixels (default: the source's)")
 
 

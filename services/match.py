@@ -13,7 +13,8 @@ from vergence import BorderError, Params, match
 from vergence.config import ConfigError, load
 
 
-def _point(text: str) -> tuple[int, int]:
+def point_arg(text: str) -> tuple[int, int]:
+    """argparse type for X,Y pixel positions (--at)."""
     try:
         x, y = (int(v) for v in text.split(","))
     except ValueError:
@@ -24,7 +25,7 @@ def _point(text: str) -> tuple[int, int]:
 def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("master", help="master (fixed camera) image file")
     p.add_argument("slave", help="slave (panning camera) image file")
-    p.add_argument("--at", type=_point, action="append", metavar="X,Y",
+    p.add_argument("--at", type=point_arg, action="append", metavar="X,Y",
                    help="fovea centre in the master image, repeatable (default: the image centre)")
     p.add_argument("--window", type=int, default=None, help="fovea side w in pixels, odd (default 15)")
     p.add_argument("--vsearch", type=int, default=None, help="rows R searched above and below (default 2)")

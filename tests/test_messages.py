@@ -140,3 +140,12 @@ def test_unreadable_or_bad_toml_says_which_file(tmp_path):
     bad.write_text("rig = \n")
     with pytest.raises(ConfigError, match="bad.toml: not valid TOML"):
         load(bad)
+
+
+@pytest.mark.parametrize("field", ["pan_rad", "goal_rad"])
+def test_motor_state_with_a_non_finite_pan_is_rejected(field):
+    """The capture renders the simulated slave at the reported pan: a NaN must never get that far."""
+    d = SAMPLES["motor_state"].to_dict()
+    d[field] = math.nan
+    with pytest.raises(M.MessageError, match="finite"):
+        M.MotorState.from_bytes(msgpack.packb(d, use_bin_type=True))

@@ -316,6 +316,9 @@ class MotorState(Message):
     malformed: int = 0  # command messages that failed to decode, skipped
     commands: int = 0  # command messages received (valid or not)
 
+    def validate(self) -> None:
+        _finite("motor_state.pan_rad", self.pan_rad, self.goal_rad, self.min_rad, self.max_rad)
+
 
 @dataclass
 class Preview(Message):
