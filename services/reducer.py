@@ -87,7 +87,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
             with lock:
                 try:
                     publish(gatherer.add_frame(frame))
-                except (ValueError, TypeError) as e:  # a frame that validates but cannot be decided on
+                except Exception as e:  # a frame that validates but cannot be decided on: never fatal
                     health.reject("frame", e)
 
         def on_partial(sample) -> None:
@@ -103,7 +103,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
             with lock:
                 try:
                     publish(gatherer.add_partial(part))
-                except (ValueError, TypeError) as e:
+                except Exception as e:  # never fatal
                     health.reject("partial", e)
 
         # Messages are handled in zenoh's callback threads (no hand-over to another thread: one wake-up

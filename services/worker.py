@@ -71,7 +71,7 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, name: str | None = No
                     continue
                 try:
                     part = pipeline.compute_partial(frame, wid)
-                except (ValueError, TypeError) as e:  # a frame that validates but cannot be computed
+                except Exception as e:  # a frame that validates but cannot be computed: never fatal
                     health.reject("frame", e)
                     continue
                 if part is None:
