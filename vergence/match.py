@@ -91,31 +91,29 @@ class Match:
 
 
 def decide_scores(scores: np.ndarray, fovea: np.ndarray, x: int, params: Params,
-                  master_band: np.ndarray | None = None, slave_band: np.ndarray | None = None) -> Decision:
+                  master_rows: np.ndarray | None = None, slave_band: np.ndarray | None = None) -> Decision:
     """Layer 4's scores -> a Decision for the fovea (planes (3, w, w)) centred on master column x.
 
     With params.lr_check, a confident decision must also pass the left-right check (lr_consistent), given
-    the master band as a gray strip with its margin ((w + 2R + 2, W + 2), retina.band_strip) and the slave
-    band's planes ((3, w + 2R, W)). This is the one decision step of both match() and the reducer."""
+    the master's rows of the fovea as a gray strip with its margin ((w + 2, W + 2), retina.band_strip with
+    no vertical search) and the slave band's planes ((3, w + 2R, W)). This is the one decision step of both
+    match() and the reducer."""
     w = fovea.shape[1]
     d = decide(scores, w, k_centre=x - w // 2, subpixel=params.subpixel, tex=texture(fovea),
                min_texture=params.min_texture, min_margin=params.min_margin)
-    if params.lr_check and d.confident and master_band is not None and slave_band is not None:
-        d = replace(d, confident=lr_consistent(master_band, slave_band, x, d, params))
+    if params.lr_check and d.confident and master_rows is not None and slave_band is not None:
+        d = replace(d, confident=lr_consistent(master_rows, slave_band, x, d, params))
     return d
 
 
-def lr_consistent(master_strip: np.ndarray, slave_band: np.ndarray, x: int, d: Decision,
-                  params: Params) -> bool:
+def lr_consistent(master_rows: np.ndarray, slave_band: np.ndarray, x: int, d: Decision, params: Params) -> bool:
     """Left-right consistency: the winning slave window (rows shifted by v), matched back along the fovea's
-    own rows of the master, lands within params.lr_tolerance px of where the forward match says it should.
-    Only those w rows of the master strip are turned into features."""
+    own rows of the master, lands within params.lr_tolerance px of where the forward match says it should."""
     half = x - d.k_centre
     w = 2 * half + 1
     r = (slave_band.shape[1] - w) // 2  # R
     sf = np.ascontiguousarray(slave_band[:, r + d.v : r + d.v + w, d.k : d.k + w])
-    mb = retina.planes(master_strip[r : r + w + 2])
-    back = kernel.correlate(sf, mb, circular=params.circular)
+    back = kernel.correlate(sf, retina.planes(master_rows), circular=params.circular)
     bd = decide(back, w, k_centre=0, subpixel=params.subpixel)
     expected = x - (d.k_sub - d.k)
     return abs((bd.k_sub + half) - expected) <= params.lr_tolerance
@@ -125,8 +123,8 @@ def _one(master, slave, x, y, w, p: Params) -> Match:
     fovea, band = retina.features(master, slave, (x, y), w, p.vsearch)
     weights = kernel.support_weights(fovea, p.support_gamma, p.support_radius) if p.support else None
     scores = kernel.correlate(fovea, band, circular=p.circular, weights=weights)
-    mstrip = retina.band_strip(master, y, w, p.vsearch) if p.lr_check else None
-    return Match(x, y, w, decide_scores(scores, fovea, x, p, mstrip, band), scores)
+    mrows = retina.band_strip(master, y, w) if p.lr_check else None
+    return Match(x, y, w, decide_scores(scores, fovea, x, p, mrows, band), scores)
 
 
 def match(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = None,

@@ -160,8 +160,8 @@ class Frame(Message):
     plan: list[list[str | int]] = field(default_factory=list)
     circular: bool = True
     support: bool = False
-    # the master's band strip, same shape as band, for the reducer's left-right check (empty when the check
-    # is off); the support weights' two scales (vergence.match.Params.support_gamma / support_radius)
+    # the master's rows of the fovea at full width, for the reducer's left-right check (empty when the
+    # check is off); the support weights' two scales (vergence.match.Params.support_gamma / support_radius)
     master_band: bytes = b""
     support_gamma: float = 8.0
     support_radius: float = 7.0
@@ -177,11 +177,11 @@ class Frame(Message):
         return _array("frame.band", self.band, np.uint8, (self.window + 2 * self.vsearch + 2, self.width + 2))
 
     def master_band_strip(self) -> np.ndarray | None:
-        """The master's band strip (same rows as band), or None when the frame does not carry it."""
+        """The master's rows of the fovea, full width ((w+2) x (W+2) with the Sobel margin), or None when the
+        frame does not carry them."""
         if not self.master_band:
             return None
-        return _array("frame.master_band", self.master_band, np.uint8,
-                      (self.window + 2 * self.vsearch + 2, self.width + 2))
+        return _array("frame.master_band", self.master_band, np.uint8, (self.window + 2, self.width + 2))
 
     def validate(self) -> None:
         if self.window < 1 or self.window % 2 == 0 or self.window > self.width:

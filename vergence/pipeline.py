@@ -58,7 +58,7 @@ def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, p
     retina.check_point(master.shape, x, y, w, params.vsearch)
     fovea = retina.fovea_strip(master, x, y, w)
     band = retina.band_strip(slave, y, w, params.vsearch)
-    mband = retina.band_strip(master, y, w, params.vsearch) if params.lr_check else None
+    mband = retina.band_strip(master, y, w) if params.lr_check else None
     return Frame(rig=rig, frame=frame, t_capture_ns=t_capture_ns, pan_rad=float(pan_rad), width=wd, height=h,
                  x=x, y=y, window=w, vsearch=params.vsearch, focal_px=float(focal_px), fovea=fovea.tobytes(),
                  band=band.tobytes(), plan=plan, circular=params.circular, support=params.support,
