@@ -501,7 +501,7 @@ def render_png(s: Snapshot, width: int = 960, height: int = 720) -> np.ndarray:
     red, blue, orange = (0, 0, 220), (200, 80, 0), (0, 140, 255)
     left, right = 90, width - 30
     top1, bot1 = 50, int(height * 0.62)
-    top2, bot2 = bot1 + 60, height - 45
+    top2, bot2 = bot1 + 75, height - 45
 
     def text(t: str, x: int, y: int, col=black, scale: float = 0.5) -> None:
         cv2.putText(img, t, (int(x), int(y)), font, scale, col, 1, cv2.LINE_AA)
