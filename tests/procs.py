@@ -83,7 +83,8 @@ class Proc:
                 from None
 
     def text(self) -> str:
-        self._fh.flush()
+        if not self._fh.closed:
+            self._fh.flush()
         try:
             return self.log.read_text(errors="replace")
         except OSError:
