@@ -438,6 +438,8 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
         else:
             ytop, ybot = f"{y.max():.0f}", f"{y.min():.0f}"
             for i, line in enumerate(lines):
+                if line[cc] == " ":  # the centre column stays visible where its bar is low
+                    line = line[:cc] + "┊" + line[cc + 1:]
                 label = ytop if i == 0 else ybot if i == len(lines) - 1 else ""
                 if color:
                     line = "".join(

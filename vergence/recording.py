@@ -137,7 +137,7 @@ class Reader:
                 item = self._u.unpack()
             except msgpack.OutOfData:
                 # Clean end, or a record cut short by a recorder that was killed mid-write.
-                self.truncated = self._u.tell() < self.size or offset < self.size
+                self.truncated = offset < self.size
                 return
             except Exception as e:
                 raise RecordingError(f"{self.path!r}: corrupt record at byte {offset} "
