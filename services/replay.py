@@ -1,0 +1,158 @@
+"""`vergence replay FILE [--speed X] [--only KIND ...]`: publish a recording again, at its own pace.
+
+Replays frames, previews, correlations and profiles, under the recorded rig or --rig. Never commands or
+motor states: a replay must not move a motor (the deploy/ access rules forbid it too), and the live
+actuator's state is the truth. Status messages and liveliness events are not replayed either.
+
+Frames are re-planned onto the workers alive now (their liveliness tokens), because the recorded plan names
+workers of the recorded run: live workers then compute them, and a live reducer reproduces the recorded
+profiles exactly (layer 4 does not depend on how k is split). Their capture time is moved to the replay's
+clock (same spacing), so a reducer that is already running takes them as new frames; frame ids and every
+other field are as recorded. To recompute only: `--only frame`, with workers and a reducer running.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import threading
+import time
+from dataclasses import replace
+
+import zenoh
+
+from vergence import pipeline
+from vergence.messages import Frame, MessageError
+from vergence.recording import Reader, RecordingError
+
+from . import session
+
+log = logging.getLogger("vergence.replay")
+KINDS = ("frame", "preview", "correlation", "profile")
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    session.add_options(p)
+    p.add_argument("file", metavar="FILE", help="a recording made by `vergence record`")
+    p.add_argument("--speed", type=float, default=1.0, metavar="X",
+                   help="1 = as recorded, 2 = twice as fast, 0 = as fast as possible (default 1)")
+    p.add_argument("--only", action="append", choices=KINDS, metavar="KIND",
+                   help=f"replay only these kinds, repeatable: {', '.join(KINDS)} (default: all four)")
+    p.add_argument("--wait-workers", type=float, default=5.0, metavar="S",
+                   help="how long to wait for live workers before replaying frames (default 5)")
+
+
+def kind_of(rest: str) -> str | None:
+    """The replayable kind of a key's part after vergence/<rig>/, or None."""
+    if rest in ("frame", "preview", "profile"):
+        return rest
+    if rest.startswith("correlation/"):
+        return "correlation"
+    return None
+
+
+class Workers:
+    """The live workers of the target rig, from their liveliness tokens."""
+
+    def __init__(self):
+        self.ids: set[str] = set()
+        self.lock = threading.Lock()
+
+    def on_sample(self, sample) -> None:
+        wid = str(sample.key_expr).rsplit("/", 1)[1]
+        with self.lock:
+            (self.ids.add if sample.kind == zenoh.SampleKind.PUT else self.ids.discard)(wid)
+
+    def snapshot(self) -> list[str]:
+        with self.lock:
+            return sorted(self.ids)
+
+
+def replan(payload: bytes, workers: list[str], t_shift_ns: int) -> bytes:
+    """A recorded frame with the plan of the live workers and its capture time moved by t_shift_ns."""
+    f = Frame.from_bytes(payload)
+    plan = pipeline.plan_shards(workers, f.k_count) if workers else f.plan
+    return replace(f, plan=plan, t_capture_ns=f.t_capture_ns + t_shift_ns).to_bytes()
+
+
+def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = None, speed: float = 1.0,
+         only: list[str] | None = None, wait_workers: float = 5.0) -> int:
+    kinds = set(only or KINDS)
+    try:
+        reader = Reader(path)
+    except RecordingError as e:
+        print(f"vergence replay: {e}", file=sys.stderr)
+        return 2
+    rig = rig or reader.header.get("rig") or "head"
+    sent = skipped = bad = 0
+    pubs_early: dict[str, zenoh.Publisher] = {}
+    with reader, session.open_session(conf) as s:
+        workers = Workers()
+        s.liveliness().declare_subscriber(f"vergence/{rig}/alive/worker/*", workers.on_sample, history=True)
+        token = s.liveliness().declare_token(session.alive_key(rig, "replay"))
+        if "frame" in kinds:
+            deadline = time.monotonic() + wait_workers
+            while not workers.snapshot() and time.monotonic() < deadline and not stop.wait(0.05):
+                pass
+            if not workers.snapshot():
+                log.warning("no live worker on vergence/%s/alive/worker/*: frames keep their recorded plan "
+                            "and nobody will compute them", rig)
+            else:
+                # a new session learns the subscribers' routes from the router a moment after it opens; a
+                # put before that reaches nobody (the capture waits likewise): wait, bounded, for them
+                pub = s.declare_publisher(f"vergence/{rig}/frame")
+                while not pub.matching_status.matching and time.monotonic() < deadline and not stop.wait(0.02):
+                    pass
+                stop.wait(0.1)  # the reducer's route is matched; let the workers' routes land too
+                pubs_early = {f"vergence/{rig}/frame": pub}
+        pubs: dict[str, zenoh.Publisher] = dict(pubs_early)
+        t0_rec = t0_now = None
+        shift = 0
+        try:
+            for rec in reader:
+                if stop.is_set():
+                    break
+                parts = rec.key.split("/", 2)
+                kind = kind_of(parts[2]) if len(parts) == 3 and parts[0] == "vergence" else None
+                if rec.event != "put" or kind not in kinds:
+                    skipped += 1
+                    continue
+                if t0_rec is None:
+                    t0_rec, t0_now = rec.t_ns, time.monotonic()
+                    shift = time.time_ns() - rec.t_ns
+                if speed > 0:
+                    delay = t0_now + (rec.t_ns - t0_rec) / 1e9 / speed - time.monotonic()
+                    if delay > 0 and stop.wait(delay):
+                        break
+                payload = rec.payload
+                if kind == "frame":
+                    try:
+                        payload = replan(payload, workers.snapshot(), shift)
+                    except MessageError as e:
+                        bad += 1
+                        log.warning("recorded frame skipped: %s", e)
+                        continue
+                key = f"vergence/{rig}/{parts[2]}"
+                pub = pubs.get(key)
+                if pub is None:
+                    pub = pubs[key] = s.declare_publisher(key)
+                pub.put(payload)
+                sent += 1
+        except RecordingError as e:
+            print(f"vergence replay: {e}", file=sys.stderr)
+            return 2
+        finally:
+            token.undeclare()
+        note = " (the last record was truncated)" if reader.truncated else ""
+        log.info("replayed %d messages to vergence/%s, skipped %d, bad %d%s", sent, rig, skipped, bad, note)
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
+    if not args.speed >= 0:
+        print("vergence replay: --speed must be >= 0", file=sys.stderr)
+        return 2
+    return main(session.config_from_args(args), session.Stop(), args.file, args.rig, args.speed, args.only,
+                args.wait_workers)
