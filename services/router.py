@@ -6,6 +6,8 @@ import argparse
 import logging
 import sys
 
+import zenoh
+
 from . import session
 
 log = logging.getLogger("vergence.router")
@@ -35,5 +37,13 @@ def router_config(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
     stop = session.Stop()
-    main(router_config(args), stop)
+    conf = router_config(args)
+    try:
+        main(conf, stop)
+    except zenoh.ZError as e:
+        where = conf.get_json("listen/endpoints")
+        hint = (" Another router (or `vergence up`) is probably running there: stop it, or pick another port "
+                "with --listen." if "in use" in str(e) else "")
+        print(f"vergence router: cannot start on {where}: {str(e).split(' at /')[0]}.{hint}", file=sys.stderr)
+        return 2
     return 0

@@ -14,6 +14,7 @@ import ctypes
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -74,6 +75,32 @@ def commands(args: argparse.Namespace, rig: str) -> list[tuple[str, list[str]]]:
     return out
 
 
+def _accepts(endpoint: str) -> bool | None:
+    """Whether something accepts TCP connections at a tcp/HOST:PORT endpoint (None: not a tcp endpoint)."""
+    proto, _, addr = endpoint.partition("/")
+    host, _, port = addr.rpartition(":")
+    host = host.strip("[]")
+    if proto != "tcp" or not port.isdigit():
+        return None
+    probe = {"0.0.0.0": "127.0.0.1", "": "127.0.0.1", "::": "::1"}.get(host, host)
+    with socket.socket(socket.AF_INET6 if ":" in probe else socket.AF_INET) as sock:
+        sock.settimeout(0.2)
+        return sock.connect_ex((probe, int(port))) == 0
+
+
+def _router_listening(p: subprocess.Popen, endpoint: str, timeout: float = 10.0) -> bool:
+    """Wait until the router accepts connections on its endpoint (other transports than tcp: until it has
+    run for a moment); False as soon as it exits."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and p.poll() is None:
+        ok = _accepts(endpoint)
+        if ok or ok is None:
+            time.sleep(0.0 if ok else 0.3)
+            return p.poll() is None
+        time.sleep(0.05)
+    return p.poll() is None
+
+
 def stop_all(children: list[tuple[str, subprocess.Popen]]) -> None:
     """SIGINT each child (latest started first), wait up to GRACE_S, then SIGKILL its group."""
     for name, p in reversed(children):
@@ -105,6 +132,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"vergence up: {e}", file=sys.stderr)
         return 2
     rig = args.rig or settings.rig
+    if _accepts(args.listen):
+        print(f"vergence up: {args.listen} is already in use (another `vergence up` or router?): stop it, or "
+              "give this one another port with --listen", file=sys.stderr)
+        return 2
     stop = session.Stop()
     children: list[tuple[str, subprocess.Popen]] = []
     code = 0
@@ -115,8 +146,9 @@ def run(args: argparse.Namespace) -> int:
             children.append((name, subprocess.Popen(argv, preexec_fn=_die_with_parent, start_new_session=True,
                                                     stdin=subprocess.DEVNULL)))
             log.info("started %s (pid %d): %s", name, children[-1][1].pid, " ".join(argv[3:]))
-            if name == "router":
-                time.sleep(0.3)  # let it listen before the clients connect (they retry anyway)
+            if name == "router" and not _router_listening(children[-1][1], args.listen):
+                log.error("the router did not start (exit %s): nothing else started", children[-1][1].poll())
+                return 1
         reported: set[str] = set()
         while not stop.wait(0.2):
             for name, p in children:
