@@ -243,5 +243,5 @@ class Rig:
         return self.focal_px * math.tan(slave_pan_rad - self.truth_pan_rad)
 
     def pan_off_truth(self, px: float) -> float:
-        """The slave pan that puts the fixated point px pixels left of the slave's centre (truth + px)."""
-        return math.atan((self.fixation[0] - self.disparity - self.src_size[0] // 2 + px) / self.focal_px)
+        """truth + atan(px / f): the slave pan that shows the fixated point px pixels left of its centre."""
+        return self.truth_pan_rad + math.atan(px / self.focal_px)

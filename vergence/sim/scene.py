@@ -25,15 +25,19 @@ class Scene:
     disparity: np.ndarray
 
 
-def texture(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
-    """Multi-scale noise (fine grain to blobs) as uint8: textured at every scale the network looks at."""
+def texture(rng: np.random.Generator, h: int, w: int, mean: float = 128.0, contrast: float = 48.0) -> np.ndarray:
+    """Multi-scale noise (fine grain to blobs) as uint8: textured at every scale the network looks at.
+
+    The coarse scales are drawn on a grid 1/4 as fine and upsampled (the same look, a fraction of the time)."""
     acc = np.zeros((h, w), np.float32)
-    for sigma, weight in ((0.8, 0.6), (2.0, 1.0), (5.0, 1.0), (12.0, 0.8)):
-        n = rng.standard_normal((h, w), dtype=np.float32)
+    for sigma, weight, step in ((0.8, 0.6, 1), (2.0, 1.0, 1), (1.25, 1.0, 4), (3.0, 0.8, 4)):
+        n = rng.standard_normal((-(-h // step), -(-w // step)), dtype=np.float32)
         n = cv2.GaussianBlur(n, (0, 0), sigma)
+        if step > 1:
+            n = cv2.resize(n, None, fx=step, fy=step, interpolation=cv2.INTER_CUBIC)[:h, :w]
         acc += weight * n / (n.std() + 1e-6)
     acc = (acc - acc.mean()) / (acc.std() + 1e-6)
-    return np.clip(128.0 + 48.0 * acc, 0, 255).astype(np.uint8)
+    return np.clip(mean + contrast * acc, 0, 255).astype(np.uint8)
 
 
 def generate(seed: int = 0, size: tuple[int, int] = (960, 720)) -> Scene:
@@ -67,7 +71,8 @@ def generate(seed: int = 0, size: tuple[int, int] = (960, 720)) -> Scene:
     right = np.zeros((h, w), np.uint8)
     disp = np.zeros((h, w), np.float32)
     for d, mask in layers:
-        tex = texture(rng, h, wide)
+        # Each surface its own brightness and contrast, so that the objects show.
+        tex = texture(rng, h, wide, float(rng.uniform(70, 185)), float(rng.uniform(28, 50)))
         ml = mask[:, :w]
         left[ml] = tex[:, :w][ml]
         disp[ml] = d

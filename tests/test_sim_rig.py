@@ -1,0 +1,123 @@
+"""The simulated rig: rendering geometry (sign conventions), the spec parser, the generated scene."""
+
+import math
+
+import numpy as np
+import pytest
+
+import vergence
+from vergence.sim import Rig, generate, homography
+
+
+def _dot_pair(x, y, d, size=(320, 240)):
+    """A black pair with a bright 3 x 3 dot at (x, y) of LEFT and (x - d, y) of RIGHT."""
+    w, h = size
+    left, right = np.zeros((h, w), np.uint8), np.zeros((h, w), np.uint8)
+    left[y - 1:y + 2, x - 1:x + 2] = 255
+    right[y - 1:y + 2, x - d - 1:x - d + 2] = 255
+    return left, right
+
+
+def _centroid(img):
+    ys, xs = np.nonzero(img > 40)
+    wts = img[ys, xs].astype(float)
+    return float((xs * wts).sum() / wts.sum()), float((ys * wts).sum() / wts.sum())
+
+
+def test_positive_pan_moves_content_left():
+    left, right = _dot_pair(160, 120, 0)
+    rig = Rig(left, right, focal=300.0)
+    x0, _ = _centroid(rig.render(0.0)[1])
+    x1, _ = _centroid(rig.render(math.radians(2.0))[1])
+    assert x0 == pytest.approx(160, abs=0.05)
+    assert x1 == pytest.approx(160 - 300 * math.tan(math.radians(2.0)), abs=0.1)
+
+
+def test_homography_is_k_rt_kinv():
+    f, pan = 400.0, 0.1
+    h = homography(f, (640, 480), (640, 480), pan, 0.0)
+    # The source column at angle `pan` right of the axis lands on the view centre.
+    p = h @ np.array([320 + f * math.tan(pan), 240.0, 1.0])
+    assert p[:2] / p[2] == pytest.approx([320.0, 240.0], abs=1e-9)
+
+
+@pytest.mark.parametrize("x,y,d", [(230, 60, 12), (90, 190, 5), (160, 120, 0)], ids=["up-right", "down-left",
+                                                                                     "centre"])
+def test_master_fixates_and_truth_pan_centres_slave(x, y, d):
+    left, right = _dot_pair(x, y, d)
+    rig = Rig(left, right, fixate=(x, y), disparity=float(d), focal=280.0)
+    master, slave = rig.render(rig.truth_pan_rad)
+    assert _centroid(master) == pytest.approx((160, 120), abs=0.1)
+    sx, sy = _centroid(slave)
+    assert sx == pytest.approx(160, abs=0.1)  # converged: on the centre column
+    assert abs(sy - 120) < 3  # the shared tilt keeps it near the centre row
+    assert rig.truth_pan_rad == pytest.approx(math.atan((x - d - 160) / 280.0))
+    assert rig.error_px(rig.truth_pan_rad) == 0.0
+    assert rig.error_px(rig.pan_off_truth(7.0)) == pytest.approx(7.0, abs=1e-9)
+    # ... and the point is then 7 px left of the slave centre.
+    assert _centroid(rig.render(rig.pan_off_truth(7.0))[1])[0] == pytest.approx(153, abs=0.15)
+
+
+def test_vertical_misalignment_moves_slave_content_down():
+    left, right = _dot_pair(160, 120, 0)
+    rig = Rig(left, right, focal=300.0, vmis_px=6.0)
+    _, sy = _centroid(rig.render(0.0)[1])
+    assert sy == pytest.approx(126.0, abs=0.1)
+
+
+def test_photometric_options_and_determinism():
+    a = Rig.from_spec("noise=3:gain=1.2:offset=-10:blur=1:seed=5")
+    b = Rig.from_spec("noise=3:gain=1.2:offset=-10:blur=1:seed=5")
+    ma, sa = a.render(0.01)
+    mb, sb = b.render(0.01)
+    assert np.array_equal(ma, mb) and np.array_equal(sa, sb)
+    clean = Rig.from_spec("seed=5")
+    mc, _ = clean.render(0.01)
+    assert 2.0 < np.abs(ma.astype(float) - mc).mean() < 4.0  # noise sigma 3
+
+
+def test_generated_scene_is_a_consistent_pair():
+    sc = generate(seed=1, size=(320, 240))
+    ys, xs = np.mgrid[0:240, 0:320]
+    d = sc.disparity.astype(int)
+    ok = xs - d >= 0
+    # Every visible left pixel is found in RIGHT at x - d unless a nearer surface hides it there.
+    same = sc.left[ok] == sc.right[ys[ok], (xs - d)[ok]]
+    assert same.mean() > 0.9
+    assert set(np.unique(sc.disparity)) >= {8.0, 24.0}
+    assert sc.disparity[120, 160] == 24.0
+
+
+def test_default_rig_matches_the_truth():
+    rig = Rig.from_spec("")
+    assert rig.size == (640, 480) and rig.focal_px == pytest.approx(512.0)
+    assert rig.start_pan_rad == 0.0
+    for px in (-30.0, 0.0, 20.0):
+        m = vergence.match(*rig.render(rig.pan_off_truth(px)))
+        assert m.confident
+        assert m.offset_px == pytest.approx(-px, abs=0.3)
+
+
+@pytest.mark.parametrize("spec,word", [
+    ("colour=red", "colour"), ("noise=abc", "noise"), ("fixate=1", "fixate"), ("focal=-3", "focal"),
+    ("left=/nonexistent.png:right=/nonexistent.png", "left"), ("left=/x.png", "right"),
+    ("noise", "noise"), ("fixate=5000,10", "fixate"), ("d=3", "d="), ("pan=nan", "pan"),
+], ids=lambda v: str(v)[:20])
+def test_bad_spec_names_the_key(spec, word):
+    with pytest.raises(ValueError, match=word):
+        Rig.from_spec(spec)
+
+
+def test_spec_reads_a_pair_and_disparity(tmp_path):
+    import cv2
+    sc = generate(seed=2, size=(320, 240))
+    cv2.imwrite(str(tmp_path / "l.png"), sc.left)
+    cv2.imwrite(str(tmp_path / "r.png"), sc.right)
+    cv2.imwrite(str(tmp_path / "d.png"), (sc.disparity * 4).astype(np.uint8))
+    rig = Rig.from_spec(f"left={tmp_path}/l.png:right={tmp_path}/r.png:disparity={tmp_path}/d.png:dscale=4"
+                        ":fixate=100,80:focal=250:pan=1.5")
+    assert rig.size == (320, 240) and rig.fixation == (100, 80)
+    assert rig.disparity == sc.disparity[80, 100]
+    assert rig.start_pan_rad == pytest.approx(math.radians(1.5))
+    nod = Rig.from_spec(f"left={tmp_path}/l.png:right={tmp_path}/r.png")
+    assert math.isnan(nod.truth_pan_rad)
