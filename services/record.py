@@ -66,8 +66,11 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, path: str, duration: 
         with session.open_session(conf) as s:
             subs = [s.declare_subscriber(key, on_sample),
                     s.liveliness().declare_subscriber(f"vergence/{rig}/alive/**", on_alive, history=True)]
+            # a token says the recorder listens (tests and tools wait for it before starting a capture)
+            token = s.liveliness().declare_token(session.alive_key(rig, "record"))
             log.info("recording %s into %s", key, path)
             stop.wait(duration)
+            token.undeclare()
             for sub in subs:
                 sub.undeclare()
     finally:
