@@ -22,12 +22,16 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--focal", metavar="F", help="focal length in pixels (default 0.8 x width)")
     p.add_argument("--size", metavar="WxH", help="size of the rendered views (default: the pair's; generated: 640x480)")
     p.add_argument("--start-pan", metavar="DEG", help="the slave's starting pan in degrees (default 0)")
+    p.add_argument("--start-off", metavar="PX", type=float,
+                   help="start the slave PX pixels past the converged pan instead (needs the ground truth)")
     p.add_argument("--noise", metavar="SIGMA", help="Gaussian sensor noise of both cameras")
     p.add_argument("--gain", help="slave = gain * I + offset (photometric difference)")
     p.add_argument("--offset")
     p.add_argument("--blur", metavar="SIGMA", help="defocus of the slave (Gaussian sigma, px)")
     p.add_argument("--vmis", metavar="PX", help="vertical misalignment of the slave, px (an extra tilt)")
     p.add_argument("--seed", help="seed of the generated scene and of the noise")
+    p.add_argument("--gimbal", choices=("helmholtz", "fick"), help="helmholtz: both cameras pan on one tilting "
+                   "platform (default, the paper's rig); fick: each camera tilts on its own pan joint")
     p.add_argument("--frames", type=int, default=20, help="frames to run after the starting one (default 20)")
     p.add_argument("--rate", type=float, default=30.0, help="frames per second of the virtual clock (default 30)")
     p.add_argument("--faithful", action="store_true", help="the paper's network: every extension off")
@@ -43,7 +47,15 @@ def run(args: argparse.Namespace) -> int:
         rig = Rig.from_options(left=args.left, right=args.right, disparity=args.disparity, dscale=args.dscale,
                                fixate=args.fixate, focal=args.focal, size=args.size, noise=args.noise,
                                gain=args.gain, offset=args.offset, blur=args.blur, vmis=args.vmis,
-                               pan=args.start_pan, seed=args.seed)
+                               pan=args.start_pan, seed=args.seed, gimbal=args.gimbal)
+        if args.frames < 0 or not args.rate > 0:
+            raise ValueError(f"--frames must be >= 0 and --rate > 0, got {args.frames} and {args.rate}")
+        if args.start_off is not None:
+            if args.start_pan is not None:
+                raise ValueError("give --start-pan or --start-off, not both")
+            if not math.isfinite(rig.truth_pan_rad):
+                raise ValueError("--start-off needs the ground truth: --disparity FILE (or the generated scene)")
+            rig.start_pan_rad = rig.pan_off_truth(args.start_off)
     except (ValueError, ConfigError) as e:
         print(f"vergence sim: {e}", file=sys.stderr)
         return 2
@@ -63,6 +75,11 @@ def run(args: argparse.Namespace) -> int:
         plot_run(steps, args.plot, math.degrees(rig.one_px_rad))
     if not args.json:
         n = frames_to_converge(steps)
-        print(f"converged pan {math.degrees(rig.truth_pan_rad):+.3f} deg; "
-              + ("within 1 px from frame %d on" % n if n is not None else "not within 1 px at the end"))
+        if not math.isfinite(rig.truth_pan_rad):
+            last = steps[-1] if steps else None
+            print("no ground truth (give --disparity FILE --dscale S); "
+                  + (f"last offset {last.offset_px:+.2f} px at pan {last.pan_deg:+.3f} deg" if last else "no frame"))
+        else:
+            print(f"converged pan {math.degrees(rig.truth_pan_rad):+.3f} deg; "
+                  + ("within 1 px from frame %d on" % n if n is not None else "not within 1 px at the end"))
     return 0

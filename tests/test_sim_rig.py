@@ -41,21 +41,37 @@ def test_homography_is_k_rt_kinv():
     assert p[:2] / p[2] == pytest.approx([320.0, 240.0], abs=1e-9)
 
 
-@pytest.mark.parametrize("x,y,d", [(230, 60, 12), (90, 190, 5), (160, 120, 0)], ids=["up-right", "down-left",
-                                                                                     "centre"])
+POINTS = pytest.mark.parametrize("x,y,d", [(230, 60, 12), (90, 190, 5), (160, 120, 0)],
+                                 ids=["up-right", "down-left", "centre"])
+
+
+@POINTS
 def test_master_fixates_and_truth_pan_centres_slave(x, y, d):
+    """Common tilt axis (default): the converged slave shows the point on its centre, same row as the master."""
     left, right = _dot_pair(x, y, d)
     rig = Rig(left, right, fixate=(x, y), disparity=float(d), focal=280.0)
     master, slave = rig.render(rig.truth_pan_rad)
     assert _centroid(master) == pytest.approx((160, 120), abs=0.1)
-    sx, sy = _centroid(slave)
-    assert sx == pytest.approx(160, abs=0.1)  # converged: on the centre column
-    assert abs(sy - 120) < 3  # the shared tilt keeps it near the centre row
-    assert rig.truth_pan_rad == pytest.approx(math.atan((x - d - 160) / 280.0))
+    assert _centroid(slave) == pytest.approx((160, 120), abs=0.1)  # no vertical disparity
+    assert rig.truth_pan_rad == pytest.approx(math.atan2(x - d - 160, math.hypot(280.0, y - 120)))
     assert rig.error_px(rig.truth_pan_rad) == 0.0
     assert rig.error_px(rig.pan_off_truth(7.0)) == pytest.approx(7.0, abs=1e-9)
     # ... and the point is then 7 px left of the slave centre.
     assert _centroid(rig.render(rig.pan_off_truth(7.0))[1])[0] == pytest.approx(153, abs=0.15)
+
+
+@POINTS
+def test_fick_gimbal_truth_is_the_plain_formula_with_vertical_disparity(x, y, d):
+    left, right = _dot_pair(x, y, d)
+    rig = Rig(left, right, fixate=(x, y), disparity=float(d), focal=280.0, gimbal="fick")
+    master, slave = rig.render(rig.truth_pan_rad)
+    assert _centroid(master) == pytest.approx((160, 120), abs=0.1)
+    sx, sy = _centroid(slave)
+    assert sx == pytest.approx(160, abs=0.1)
+    assert abs(sy - 120) < 3  # off the centre row when the pans differ and y != cy
+    assert rig.truth_pan_rad == pytest.approx(math.atan((x - d - 160) / 280.0))
+    if (x, y) == (230, 60):
+        assert sy - 120 == pytest.approx(-0.54, abs=0.05)  # analytic: f * y'' / z'' = -0.54 px
 
 
 def test_vertical_misalignment_moves_slave_content_down():
@@ -102,6 +118,7 @@ def test_default_rig_matches_the_truth():
     ("colour=red", "colour"), ("noise=abc", "noise"), ("fixate=1", "fixate"), ("focal=-3", "focal"),
     ("left=/nonexistent.png:right=/nonexistent.png", "left"), ("left=/x.png", "right"),
     ("noise", "noise"), ("fixate=5000,10", "fixate"), ("d=3", "d="), ("pan=nan", "pan"),
+    ("gimbal=euler", "gimbal"),
 ], ids=lambda v: str(v)[:20])
 def test_bad_spec_names_the_key(spec, word):
     with pytest.raises(ValueError, match=word):

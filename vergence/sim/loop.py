@@ -45,8 +45,13 @@ class Step:
     scores: np.ndarray
 
     def to_dict(self) -> dict:
-        return {"frame": self.frame, "pan_deg": self.pan_deg, "truth_pan_deg": self.truth_pan_deg,
-                "error_px": self.error_px, "offset_px": self.offset_px, "confident": self.confident,
+        """JSON-ready (NaN, an unknown truth, becomes None)."""
+
+        def known(v: float) -> float | None:
+            return v if math.isfinite(v) else None
+
+        return {"frame": self.frame, "pan_deg": self.pan_deg, "truth_pan_deg": known(self.truth_pan_deg),
+                "error_px": known(self.error_px), "offset_px": self.offset_px, "confident": self.confident,
                 "k": self.k, "v": self.v, "window": self.window, "confidence": self.confidence,
                 "target_deg": self.target_deg}
 

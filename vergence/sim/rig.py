@@ -3,12 +3,21 @@
 A camera whose rotation (camera to world) is R sees the pixel p of the unrotated image at K_v R^T K^-1 p,
 so its view is cv2.warpPerspective(image, K_v R^T K^-1). K = [[f,0,cx],[0,f,cy],[0,0,1]] with the
 principal point (cx, cy) = (W // 2, H // 2) of the source pair (the pixel the network's fovea is centred
-on), K_v the same for the rendered view. R = R_y(pan) R_x(tilt): a positive pan turns the camera toward
-increasing image x (the content moves left in the view), a positive tilt toward decreasing y (up).
+on), K_v the same for the rendered view. A positive pan (R_y) turns the camera toward increasing image x
+(the content moves left in the view), a positive tilt (R_x) toward decreasing y (up).
+
+Two gimbals:
+- "helmholtz" (default), R = R_x(tilt) R_y(pan): both cameras pan on one tilting platform, the rig of
+  ALGORITHM.md ("two cameras on a common tilt axis"). The tilt turns about the baseline, so the rows of the
+  rectified pair stay epipolar: the fixated point is on the same row in both views (no vertical disparity),
+  and the slave is converged at pan atan((X - d - cx) / sqrt(f^2 + (Y - cy)^2)).
+- "fick", R = R_y(pan) R_x(tilt) (each camera tilts on its own pan joint): converged at atan((X - d - cx) / f)
+  exactly, but when Y != cy the fixated point sits a few pixels off the slave's centre row (up to 2-5 px at
+  20-25 degrees of pan on Middlebury), which the paper's network (no vertical search) cannot absorb.
 
 The master's pan and tilt are set once so that its view centre shows the fixation pixel (X, Y) of LEFT.
-The slave shares the tilt and pans; it is converged when its pan is atan((X - d - cx) / f), d the
-disparity at (X, Y): the point is then on its view's centre column."""
+The slave shares the tilt and pans; it is converged when the fixated point (disparity d at (X, Y)) is on
+its view's centre column."""
 
 from __future__ import annotations
 
@@ -23,13 +32,18 @@ from .scene import generate
 __all__ = ["Rig", "rotation", "homography"]
 
 
-def rotation(pan_rad: float, tilt_rad: float) -> np.ndarray:
-    """R = R_y(pan) R_x(tilt), camera to world (x right, y down, z forward)."""
+GIMBALS = ("helmholtz", "fick")
+
+
+def rotation(pan_rad: float, tilt_rad: float, gimbal: str = "helmholtz") -> np.ndarray:
+    """Camera to world (x right, y down, z forward): R_x(tilt) R_y(pan) (helmholtz) or R_y(pan) R_x(tilt)."""
     cp, sp = math.cos(pan_rad), math.sin(pan_rad)
     ct, st = math.cos(tilt_rad), math.sin(tilt_rad)
     ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
     rx = np.array([[1.0, 0.0, 0.0], [0.0, ct, -st], [0.0, st, ct]])
-    return ry @ rx
+    if gimbal not in GIMBALS:
+        raise ValueError(f"gimbal={gimbal!r}: must be one of {', '.join(GIMBALS)}")
+    return rx @ ry if gimbal == "helmholtz" else ry @ rx
 
 
 def intrinsics(f: float, cx: float, cy: float) -> np.ndarray:
@@ -37,11 +51,11 @@ def intrinsics(f: float, cx: float, cy: float) -> np.ndarray:
 
 
 def homography(f: float, src_size: tuple[int, int], view_size: tuple[int, int], pan_rad: float,
-               tilt_rad: float) -> np.ndarray:
+               tilt_rad: float, gimbal: str = "helmholtz") -> np.ndarray:
     """K_v R^T K_s^-1: source pixel -> view pixel of a camera rotated by (pan, tilt)."""
     ks = intrinsics(f, src_size[0] // 2, src_size[1] // 2)
     kv = intrinsics(f, view_size[0] // 2, view_size[1] // 2)
-    return kv @ rotation(pan_rad, tilt_rad).T @ np.linalg.inv(ks)
+    return kv @ rotation(pan_rad, tilt_rad, gimbal).T @ np.linalg.inv(ks)
 
 
 def _read_gray(path: str, what: str) -> np.ndarray:
@@ -75,13 +89,14 @@ class Rig:
     pair's). noise: sigma of Gaussian sensor noise, both cameras, fresh every frame. gain, offset, blur:
     the slave's photometric difference (slave = gain * I + offset) and defocus (Gaussian sigma, px).
     vmis_px: vertical misalignment of the slave, an extra tilt that moves its content down by about vmis_px.
-    start_pan_deg: the slave's pan before the loop starts. seed: the noise generator's seed."""
+    start_pan_deg: the slave's pan before the loop starts. seed: the noise generator's seed. gimbal:
+    "helmholtz" (a common tilt axis, default) or "fick" (see the module's docstring)."""
 
     def __init__(self, left: np.ndarray, right: np.ndarray, *, disparity=None,
                  fixate: tuple[int, int] | None = None, focal: float | None = None,
                  size: tuple[int, int] | None = None, noise: float = 0.0, gain: float = 1.0,
                  offset: float = 0.0, blur: float = 0.0, vmis_px: float = 0.0, start_pan_deg: float = 0.0,
-                 seed: int = 0):
+                 seed: int = 0, gimbal: str = "helmholtz"):
         if left.ndim != 2 or right.ndim != 2 or left.dtype != np.uint8 or right.dtype != np.uint8:
             raise ValueError("left and right must be 2-D uint8 gray images")
         if left.shape != right.shape:
@@ -116,19 +131,28 @@ class Rig:
             self.disparity = float(self.disparity_map[self.fixation[1], self.fixation[0]])
         else:
             self.disparity = float(disparity) if disparity is not None else math.nan
+        if gimbal not in GIMBALS:
+            raise ValueError(f"gimbal={gimbal!r}: must be one of {', '.join(GIMBALS)}")
+        self.gimbal = gimbal
         f, (cxs, cys) = self.focal_px, (ws // 2, hs // 2)
-        self.master_pan_rad = math.atan((x - cxs) / f)
-        self.tilt_rad = math.atan(-(y - cys) * math.cos(self.master_pan_rad) / f)
+        if gimbal == "helmholtz":
+            # Tilt first (about the baseline) brings row Y to the horizon; the pans are then in that plane.
+            self.tilt_rad = -math.atan((y - cys) / f)
+            fy = math.hypot(f, y - cys)
+        else:
+            self.tilt_rad = math.atan(-(y - cys) * math.cos(math.atan((x - cxs) / f)) / f)
+            fy = f
+        self.master_pan_rad = math.atan((x - cxs) / fy)
         self.slave_tilt_rad = self.tilt_rad + math.atan(self.vmis_px / f)
         # The converged slave pan (NaN when the disparity is unknown).
-        self.truth_pan_rad: float = math.atan((x - self.disparity - cxs) / f)
+        self.truth_pan_rad: float = math.atan((x - self.disparity - cxs) / fy)
         self._rng = np.random.default_rng(seed)
         self._master = self._warp(left, self.master_pan_rad, self.tilt_rad)
 
     # -- construction from the capture source text ------------------------------------------------------
 
     KEYS = ("left", "right", "disparity", "dscale", "d", "fixate", "focal", "size", "noise", "gain",
-            "offset", "blur", "vmis", "pan", "seed")
+            "offset", "blur", "vmis", "pan", "seed", "gimbal")
 
     @classmethod
     def from_spec(cls, spec: str) -> "Rig":
@@ -137,7 +161,8 @@ class Rig:
         Items separated by ':' as key=value: left=PATH, right=PATH (a rectified pair), disparity=PATH
         (ground truth of LEFT, 0 = unknown) with dscale=S (stored value / S = pixels), or d=PX (the
         disparity at the fixation point); fixate=X,Y (default the centre), focal=F (px), size=WxH (views),
-        noise=SIGMA, gain=G, offset=O, blur=S, vmis=PX, pan=DEG (the slave's start pan), seed=N.
+        noise=SIGMA, gain=G, offset=O, blur=S, vmis=PX, pan=DEG (the slave's start pan), seed=N,
+        gimbal=helmholtz|fick.
         A bad key or value raises ValueError naming it."""
         items: dict[str, str] = {}
         for item in (spec or "").split(":"):
@@ -181,7 +206,7 @@ class Rig:
                     noise=num("noise", default=0.0), gain=num("gain", default=1.0),
                     offset=num("offset", default=0.0), blur=num("blur", default=0.0),
                     vmis_px=num("vmis", default=0.0), start_pan_deg=num("pan", default=0.0),
-                    seed=num("seed", int, 0))
+                    seed=num("seed", int, 0), gimbal=items.get("gimbal", "helmholtz"))
         if ("left" in items) != ("right" in items):
             raise ValueError("sim source: left= and right= go together (a rectified pair)")
         try:
@@ -208,7 +233,7 @@ class Rig:
     # -- rendering ----------------------------------------------------------------------------------------
 
     def _warp(self, img: np.ndarray, pan: float, tilt: float) -> np.ndarray:
-        h = homography(self.focal_px, self.src_size, self.size, pan, tilt)
+        h = homography(self.focal_px, self.src_size, self.size, pan, tilt, self.gimbal)
         return cv2.warpPerspective(img, h, self.size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                                    borderValue=0)
 
