@@ -14,13 +14,15 @@ from vergence.sim.loop import closed_loop, frames_to_converge
 
 
 def configure(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--left", help="LEFT image of a rectified pair (the master's scene); default: the generated one")
+    p.add_argument("--left", 
+                   help="LEFT image of a rectified pair (the master's scene); default: the generated one")
     p.add_argument("--right", help="RIGHT image (the slave's scene)")
     p.add_argument("--disparity", help="ground-truth disparity of LEFT (an image; value / --dscale = px)")
     p.add_argument("--dscale", help="scale of --disparity (Middlebury: 4, 8 or 16)")
     p.add_argument("--fixate", metavar="X,Y", help="fixation pixel of LEFT (default: its centre)")
     p.add_argument("--focal", metavar="F", help="focal length in pixels (default 0.8 x width)")
-    p.add_argument("--size", metavar="WxH", help="size of the rendered views (default: the pair's; generated: 640x480)")
+    p.add_argument("--size", metavar="WxH", 
+                   help="size of the rendered views (default: the pair's; generated: 640x480)")
     p.add_argument("--start-pan", metavar="DEG", help="the slave's starting pan in degrees (default 0)")
     p.add_argument("--start-off", metavar="PX", type=float,
                    help="start the slave PX pixels past the converged pan instead (needs the ground truth)")
@@ -30,10 +32,12 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--blur", metavar="SIGMA", help="defocus of the slave (Gaussian sigma, px)")
     p.add_argument("--vmis", metavar="PX", help="vertical misalignment of the slave, px (an extra tilt)")
     p.add_argument("--seed", help="seed of the generated scene and of the noise")
-    p.add_argument("--gimbal", choices=("helmholtz", "fick"), help="helmholtz: both cameras pan on one tilting "
+    p.add_argument("--gimbal", choices=("helmholtz", "fick"),
+                   help="helmholtz: both cameras pan on one tilting "
                    "platform (default, the paper's rig); fick: each camera tilts on its own pan joint")
     p.add_argument("--frames", type=int, default=20, help="frames to run after the starting one (default 20)")
-    p.add_argument("--rate", type=float, default=30.0, help="frames per second of the virtual clock (default 30)")
+    p.add_argument("--rate", type=float, default=30.0, 
+                   help="frames per second of the virtual clock (default 30)")
     p.add_argument("--faithful", action="store_true", help="the paper's network: every extension off")
     p.add_argument("--config", metavar="FILE", help="settings TOML: [network], [control], [actuator.motor]")
     p.add_argument("--json", action="store_true", help="one JSON line per frame, the starting state first")
@@ -54,7 +58,8 @@ def run(args: argparse.Namespace) -> int:
             if args.start_pan is not None:
                 raise ValueError("give --start-pan or --start-off, not both")
             if not math.isfinite(rig.truth_pan_rad):
-                raise ValueError("--start-off needs the ground truth: --disparity FILE (or the generated scene)")
+                raise ValueError("--start-off needs the ground truth: --disparity FILE "
+                                 "(or the generated scene)")
             rig.start_pan_rad = rig.pan_off_truth(args.start_off)
     except (ValueError, ConfigError) as e:
         print(f"vergence sim: {e}", file=sys.stderr)
@@ -78,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
         if not math.isfinite(rig.truth_pan_rad):
             last = steps[-1] if steps else None
             print("no ground truth (give --disparity FILE --dscale S); "
-                  + (f"last offset {last.offset_px:+.2f} px at pan {last.pan_deg:+.3f} deg" if last else "no frame"))
+                  + (f"last offset {last.offset_px:+.2f} px at pan {last.pan_deg:+.3f} deg" if last
+                     else "no frame"))
         else:
             print(f"converged pan {math.degrees(rig.truth_pan_rad):+.3f} deg; "
                   + ("within 1 px from frame %d on" % n if n is not None else "not within 1 px at the end"))

@@ -129,17 +129,19 @@ def test_faithful_converges_on_textured_points(scene):
 def _real_scene_runs(name, params):
     """20 visible fixation points (seed 1), starts 10-40 px off the truth (seed 2), 8 frames after the start.
 
-    Returns, per point, (frames to converge, whether the static match on the rectified pair itself is confident
-    and within 1 px of -d): the second separates the network's misses from anything the simulator adds."""
+    Returns, per point, (frames to converge, whether the static match on the rectified pair itself is
+    confident and within 1 px of -d): the second separates the network's misses from anything the simulator adds."""
     left, right, disp = load(name)
     rng = np.random.default_rng(2)
     out = []
     for x, y in points(name, n=20, seed=1, margin=60, mask=visible(name)):
         px = float(rng.uniform(10, 40)) * rng.choice([-1, 1])
         base = Rig(left, right, disparity=disp, fixate=(x, y))
-        rig = Rig(left, right, disparity=disp, fixate=(x, y), start_pan_deg=math.degrees(base.pan_off_truth(px)))
+        rig = Rig(left, right, disparity=disp, fixate=(x, y),
+                  start_pan_deg=math.degrees(base.pan_off_truth(px)))
         m = vergence.match(left, right, (x, y), params)
-        out.append((frames_to_converge(run(rig, params=params)), m.confident and abs(m.offset_px + disp[y, x]) <= 1))
+        right_static = m.confident and abs(m.offset_px + disp[y, x]) <= 1
+        out.append((frames_to_converge(run(rig, params=params)), right_static))
     return out
 
 
@@ -149,7 +151,8 @@ def _report(name, label, runs, capsys):
     missed = sum(1 for (n, raw), good in zip(runs, ok) if raw and not good)
     with capsys.disabled():
         dist = {k: frames.count(k) for k in sorted({n for n in frames if n is not None})}
-        print(f"\n{name} {label}: {sum(ok)}/20 converged; frames to converge: {dist}, never: {frames.count(None)}; "
+        print(f"\n{name} {label}: {sum(ok)}/20 converged; frames to converge: {dist}, "
+              f"never: {frames.count(None)}; "
               f"static match right at {sum(r for _, r in runs)}/20, loop missed {missed} of those")
     return sum(ok), missed
 
@@ -212,9 +215,10 @@ def test_cli_pair_without_truth_and_start_off(tmp_path, scene):
     rows = [json.loads(line) for line in r.stdout.splitlines()]  # strict JSON: no NaN
     assert r.returncode == 0 and len(rows) == 4
     assert rows[0]["truth_pan_deg"] is None and rows[0]["error_px"] is None
-    assert rows[-1]["pan_deg"] == pytest.approx(math.degrees(math.atan(-24 / 512)), abs=0.03)  # d = 24 at the centre
-    r = subprocess.run(cmd + ["--disparity", str(tmp_path / "d.png"), "--start-off", "-30"], capture_output=True,
-                       text=True, timeout=60)
+    # d = 24 at the centre
+    assert rows[-1]["pan_deg"] == pytest.approx(math.degrees(math.atan(-24 / 512)), abs=0.03)
+    r = subprocess.run(cmd + ["--disparity", str(tmp_path / "d.png"), "--start-off", "-30"],
+                       capture_output=True, text=True, timeout=60)
     rows = [json.loads(line) for line in r.stdout.splitlines()]
     assert rows[0]["error_px"] == pytest.approx(-30) and abs(rows[-1]["error_px"]) < 0.5
     r = subprocess.run(cmd + ["--start-off", "5"], capture_output=True, text=True, timeout=60)

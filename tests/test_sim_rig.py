@@ -47,7 +47,7 @@ POINTS = pytest.mark.parametrize("x,y,d", [(230, 60, 12), (90, 190, 5), (160, 12
 
 @POINTS
 def test_master_fixates_and_truth_pan_centres_slave(x, y, d):
-    """Common tilt axis (default): the converged slave shows the point on its centre, same row as the master."""
+    """Common tilt axis (default): the converged slave shows the point on its centre, on the master's row."""
     left, right = _dot_pair(x, y, d)
     rig = Rig(left, right, fixate=(x, y), disparity=float(d), focal=280.0)
     master, slave = rig.render(rig.truth_pan_rad)

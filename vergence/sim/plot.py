@@ -76,19 +76,22 @@ def draw_axes_plot(img: np.ndarray, box: tuple[int, int, int, int], series: list
     cv2.putText(img, ylabel, (x0 + 2, top - 8), FONT, 0.45, BLACK, 1, cv2.LINE_AA)
 
 
-def plot_run(steps: list[Step], path: str, one_px_deg: float, width: int = 900, height: int = 760) -> np.ndarray:
+def plot_run(steps: list[Step], path: str, one_px_deg: float, width: int = 900,
+             height: int = 760) -> np.ndarray:
     """Write the PNG (and return the image): pan trajectory on top, first and last profile below."""
     img = np.full((height, width, 3), 255, np.uint8)
     frames = np.array([s.frame for s in steps], float)
     pans = np.array([s.pan_deg for s in steps])
     truth = steps[0].truth_pan_deg
-    hl = [] if not math.isfinite(truth) else [(truth, GREEN), (truth + one_px_deg, GREY), (truth - one_px_deg, GREY)]
+    hl = [] if not math.isfinite(truth) else [(truth, GREEN), (truth + one_px_deg, GREY),
+                                              (truth - one_px_deg, GREY)]
     draw_axes_plot(img, (0, 0, width, height // 2), [(frames, pans, BLUE, "slave pan")],
                    "Slave pan (green: converged pan, grey: +-1 px)", "frame", "pan (deg)", hlines=hl)
     first, last = steps[0], steps[-1]
     k = np.arange(first.scores.size, dtype=float)
     series = [(k, first.scores, ORANGE, f"frame {first.frame}: k*={first.k}"),
-              (np.arange(last.scores.size, dtype=float), last.scores, BLUE, f"frame {last.frame}: k*={last.k}")]
+              (np.arange(last.scores.size, dtype=float), last.scores, BLUE,
+               f"frame {last.frame}: k*={last.k}")]
     kc = centre_offset(first.scores.size + first.window - 1, first.window)
     draw_axes_plot(img, (0, height // 2, width, height), series, "Layer 4: y(k), first and last frame",
                    "k (offset of the slave window)", "y(k)",

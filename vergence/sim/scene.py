@@ -25,10 +25,12 @@ class Scene:
     disparity: np.ndarray
 
 
-def texture(rng: np.random.Generator, h: int, w: int, mean: float = 128.0, contrast: float = 48.0) -> np.ndarray:
+def texture(rng: np.random.Generator, h: int, w: int, mean: float = 128.0,
+            contrast: float = 48.0) -> np.ndarray:
     """Multi-scale noise (fine grain to blobs) as uint8: textured at every scale the network looks at.
 
-    The coarse scales are drawn on a grid 1/4 as fine and upsampled (the same look, a fraction of the time)."""
+    The coarse scales are drawn on a grid 1/4 as fine and upsampled (the same look, a fraction of the
+    time)."""
     acc = np.zeros((h, w), np.float32)
     for sigma, weight, step in ((0.8, 0.6, 1), (2.0, 1.0, 1), (1.25, 1.0, 4), (3.0, 0.8, 4)):
         n = rng.standard_normal((-(-h // step), -(-w // step)), dtype=np.float32)
