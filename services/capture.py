@@ -154,7 +154,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                     plan = pipeline.plan_shards(ids, wd - w + 1)
                 fid += 1
                 health.count("frames")
-                if plan and not pub_frame.matching_status:
+                if plan and not pub_frame.matching_status.matching:
                     # workers are alive but the router has not yet told this session about their
                     # subscriptions (just after start): a frame now would go nowhere
                     health.count("unrouted")

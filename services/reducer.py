@@ -73,7 +73,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
                 if r.command is not None:  # the command first: the actuator waits for it
                     pub_command.put(r.command.to_bytes())
                     health.count("commands")
-                if pub_profile.matching_status:  # a 25 KB message at 640 px: only encoded when wanted
+                if pub_profile.matching_status.matching:  # a 25 KB message at 640 px: only encoded when wanted
                     pub_profile.put(r.profile.to_bytes())
                 health.count("profiles")
 
