@@ -147,6 +147,7 @@ class Rig:
         # The converged slave pan (NaN when the disparity is unknown).
         self.truth_pan_rad: float = math.atan((x - self.disparity - cxs) / fy)
         self._rng = np.random.default_rng(seed)
+        self._bank: np.ndarray | None = None
         self._master = self._warp(left, self.master_pan_rad, self.tilt_rad)
 
     # -- construction from the capture source text ------------------------------------------------------
@@ -237,11 +238,21 @@ class Rig:
         return cv2.warpPerspective(img, h, self.size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                                    borderValue=0)
 
+    _BANK, _PAD = 6, 64
+
     def _noisy(self, img: np.ndarray) -> np.ndarray:
+        """img + Gaussian noise of sigma `noise`, rounded. The noise is cut at a random place out of a few
+        pre-drawn fields (drawing 300 k normals per view took 3-4 ms; this takes well under 1 ms)."""
         if self.noise <= 0:
             return img
-        n = self._rng.standard_normal(img.shape, dtype=np.float32) * np.float32(self.noise)
-        return np.clip(img.astype(np.float32) + n, 0, 255).astype(np.uint8)
+        h, w = img.shape
+        if self._bank is None:
+            shape = (self._BANK, h + self._PAD, w + self._PAD)
+            self._bank = np.rint(self._rng.standard_normal(shape, dtype=np.float32)
+                                 * np.float32(self.noise)).astype(np.int16)
+        i, dy, dx = (int(v) for v in self._rng.integers(0, (self._BANK, self._PAD, self._PAD)))
+        n = self._bank[i, dy:dy + h, dx:dx + w]
+        return np.clip(img + n, 0, 255).astype(np.uint8)
 
     def render(self, slave_pan_rad: float) -> tuple[np.ndarray, np.ndarray]:
         """(master, slave) uint8 gray views, the slave panned to slave_pan_rad (radians)."""
