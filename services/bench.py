@@ -29,8 +29,7 @@ def _kernel(args) -> int:
 
     cases = [KernelCase(640, 15, 1), KernelCase(3840, 31, 33)] if args.quick else CASES
     if not args.json:
-        print(f"{'case':22s} {'correlate':>10s} {'threads':>10s} {'opencv':>10s} {'numpy':>10s}   "
-              f"{'/opencv':>8s} {'thr/ocv':>8s} {'/numpy':>8s}")
+        print(f"{'case':22s} {'correlate':>10s} {'opencv':>10s} {'numpy':>10s}   {'/opencv':>8s} {'/numpy':>8s}")
 
     def show(r):
         if args.json:
@@ -38,16 +37,15 @@ def _kernel(args) -> int:
             return
         npy = f"{r['numpy_ms']:10.3f}" if r["numpy_ms"] is not None else f"{'-':>10s}"
         rn = f"{r['ratio_vs_numpy']:8.3f}" if r["ratio_vs_numpy"] is not None else f"{'-':>8s}"
-        print(f"{r['case']:22s} {r['correlate_ms']:10.3f} {r['correlate_threads_ms']:10.3f} {r['opencv_ms']:10.3f} "
-              f"{npy}   {r['ratio_vs_opencv']:8.3f} {r['threads_ratio_vs_opencv']:8.3f} {rn}", flush=True)
+        print(f"{r['case']:22s} {r['correlate_ms']:10.3f} {r['opencv_ms']:10.3f} {npy}   "
+              f"{r['ratio_vs_opencv']:8.3f} {rn}", flush=True)
 
     bench_kernel(cases, repeats=args.repeats, progress=show)
     if not args.json:
         import cv2
-        import os
-        print(f"medians in ms per call, interleaved; 'threads' = correlate on {os.cpu_count()} threads, OpenCV on "
-              f"its default {cv2.getNumThreads()}; ratios are correlate / baseline (lower is better); numpy '-' "
-              "when one call takes over 2 s")
+        print(f"medians in ms per call, interleaved; correlate on one thread, OpenCV on its default "
+              f"{cv2.getNumThreads()}; ratios are correlate / baseline (lower is better); numpy '-' when one call "
+              "takes over 2 s")
     return 0
 
 

@@ -8,8 +8,6 @@ computes S for offsets k0..k1-1 only, so any split of 0..K-1 concatenates to the
 from __future__ import annotations
 
 import functools
-import os
-from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
@@ -19,10 +17,10 @@ __all__ = ["sad", "correlate", "scores_from_sad", "support_weights"]
 CIRCULAR_D = True  # default of the circular direction comparison (an extension; faithful turns it off)
 
 
-# The kernel is written for the vectoriser: the innermost loop runs over k on contiguous slices (so no
-# negative-index check survives), differences are taken on uint8 as max - min, four window columns are
-# summed per pass, and each window row accumulates in uint16 lanes, flushed to int64 before they could
-# overflow. On AVX2/AVX-512 this is about 15x faster than the same loop on int32.
+# The kernel is written for the vectoriser: the innermost loop runs over k with unsigned indices (so no
+# negative-index check survives and no array view is made per row: views cost reference counting), the
+# differences are taken on uint8 as max - min, four window columns are summed per pass, and each window
+# row accumulates in uint16 lanes, flushed to int64 before they could overflow.
 
 
 @numba.njit(inline="always")
@@ -37,75 +35,59 @@ def _cd(a, f):
 
 
 @numba.njit(cache=True, nogil=True)
-def _row_plain(row, fr, wr, k0, n, j0, j1, acc):
-    """acc[k] += sum over j0 <= j < j1 of wr[j] * |row[k0 + k + j] - fr[j]|, four columns per pass."""
-    j = j0
-    while j + 4 <= j1:
-        f0, f1, f2, f3 = fr[j], fr[j + 1], fr[j + 2], fr[j + 3]
-        w0, w1, w2, w3 = np.uint16(wr[j]), np.uint16(wr[j + 1]), np.uint16(wr[j + 2]), np.uint16(wr[j + 3])
-        s0 = row[k0 + j : k0 + j + n]
-        s1 = row[k0 + j + 1 : k0 + j + 1 + n]
-        s2 = row[k0 + j + 2 : k0 + j + 2 + n]
-        s3 = row[k0 + j + 3 : k0 + j + 3 + n]
-        if w0 == 1 and w1 == 1 and w2 == 1 and w3 == 1:
-            for k in range(n):
-                acc[k] += (_ad(s0[k], f0) + _ad(s1[k], f1)) + (_ad(s2[k], f2) + _ad(s3[k], f3))
-        else:
-            for k in range(n):
-                acc[k] += (w0 * _ad(s0[k], f0) + w1 * _ad(s1[k], f1)) + (w2 * _ad(s2[k], f2) + w3 * _ad(s3[k], f3))
-        j += 4
-    while j < j1:
-        f0, w0 = fr[j], np.uint16(wr[j])
-        s0 = row[k0 + j : k0 + j + n]
-        for k in range(n):
-            acc[k] += w0 * _ad(s0[k], f0)
-        j += 1
-
-
-@numba.njit(cache=True, nogil=True)
-def _row_circular(row, fr, wr, k0, n, j0, j1, acc):
-    """As _row_plain with the circular difference min(d, 256 - d) (the direction plane)."""
-    j = j0
-    while j + 4 <= j1:
-        f0, f1, f2, f3 = fr[j], fr[j + 1], fr[j + 2], fr[j + 3]
-        w0, w1, w2, w3 = np.uint16(wr[j]), np.uint16(wr[j + 1]), np.uint16(wr[j + 2]), np.uint16(wr[j + 3])
-        s0 = row[k0 + j : k0 + j + n]
-        s1 = row[k0 + j + 1 : k0 + j + 1 + n]
-        s2 = row[k0 + j + 2 : k0 + j + 2 + n]
-        s3 = row[k0 + j + 3 : k0 + j + 3 + n]
-        for k in range(n):
-            acc[k] += (w0 * _cd(s0[k], f0) + w1 * _cd(s1[k], f1)) + (w2 * _cd(s2[k], f2) + w3 * _cd(s3[k], f3))
-        j += 4
-    while j < j1:
-        f0, w0 = fr[j], np.uint16(wr[j])
-        s0 = row[k0 + j : k0 + j + n]
-        for k in range(n):
-            acc[k] += w0 * _cd(s0[k], f0)
-        j += 1
-
-
-@numba.njit(cache=True, nogil=True)
 def _sad(fovea, band, weights, k0, k1, circular, out):
     nplanes, w, _ = fovea.shape
     nv = band.shape[1] - w + 1
-    n = k1 - k0
+    n = np.uint64(k1 - k0)
+    one, two, three = np.uint64(1), np.uint64(2), np.uint64(3)
     wmax = 1
     for i in range(w):
         for j in range(w):
             wmax = max(wmax, np.int64(weights[i, j]))
-    chunk = max(1, 65535 // (255 * wmax))  # columns a uint16 lane can take before it must be flushed
-    acc = np.zeros(n, np.uint16)
+    chunk = max(1, 65535 // (255 * wmax))  # columns a uint16 lane takes before it must be flushed
+    acc = np.zeros(k1 - k0, np.uint16)
     for v in range(nv):
         o = out[v]
         for c in range(nplanes):
+            circ = circular and c == 2
             for i in range(w):
                 row = band[c, v + i]
+                fr = fovea[c, i]
+                wr = weights[i]
                 for j0 in range(0, w, chunk):
                     j1 = min(w, j0 + chunk)
-                    if circular and c == 2:
-                        _row_circular(row, fovea[c, i], weights[i], k0, n, j0, j1, acc)
-                    else:
-                        _row_plain(row, fovea[c, i], weights[i], k0, n, j0, j1, acc)
+                    j = j0
+                    while j + 4 <= j1:
+                        f0, f1, f2, f3 = fr[j], fr[j + 1], fr[j + 2], fr[j + 3]
+                        w0, w1 = np.uint16(wr[j]), np.uint16(wr[j + 1])
+                        w2, w3 = np.uint16(wr[j + 2]), np.uint16(wr[j + 3])
+                        b = np.uint64(k0 + j)
+                        if circ:
+                            for k in range(n):
+                                q = b + k
+                                acc[k] += (w0 * _cd(row[q], f0) + w1 * _cd(row[q + one], f1)) + \
+                                          (w2 * _cd(row[q + two], f2) + w3 * _cd(row[q + three], f3))
+                        elif w0 == 1 and w1 == 1 and w2 == 1 and w3 == 1:
+                            for k in range(n):
+                                q = b + k
+                                acc[k] += (_ad(row[q], f0) + _ad(row[q + one], f1)) + \
+                                          (_ad(row[q + two], f2) + _ad(row[q + three], f3))
+                        else:
+                            for k in range(n):
+                                q = b + k
+                                acc[k] += (w0 * _ad(row[q], f0) + w1 * _ad(row[q + one], f1)) + \
+                                          (w2 * _ad(row[q + two], f2) + w3 * _ad(row[q + three], f3))
+                        j += 4
+                    while j < j1:
+                        f0, w0 = fr[j], np.uint16(wr[j])
+                        b = np.uint64(k0 + j)
+                        if circ:
+                            for k in range(n):
+                                acc[k] += w0 * _cd(row[b + k], f0)
+                        else:
+                            for k in range(n):
+                                acc[k] += w0 * _ad(row[b + k], f0)
+                        j += 1
                     for k in range(n):
                         o[k] += acc[k]
                         acc[k] = 0
@@ -133,24 +115,12 @@ def _ones(w: int) -> np.ndarray:
     return ones
 
 
-_POOL: ThreadPoolExecutor | None = None
-
-
-def _pool() -> ThreadPoolExecutor:
-    global _POOL
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=os.cpu_count() or 1, thread_name_prefix="vergence-kernel")
-    return _POOL
-
-
 def sad(fovea: np.ndarray, band: np.ndarray, k0: int = 0, k1: int | None = None, *, circular: bool = True,
-        weights: np.ndarray | None = None, threads: int = 1) -> np.ndarray:
+        weights: np.ndarray | None = None) -> np.ndarray:
     """S(v, k): integer sums of absolute feature differences, a (2R + 1, k1 - k0) int64 array.
 
     circular compares the direction plane on the circle (min(|dD|, 256 - |dD|)); weights, a (w, w) array
-    of small non-negative integers, weighs each fovea pixel (adaptive support weights). threads > 1 splits
-    the offsets between threads of this process (the kernel releases the GIL); leave it at 1 in workers,
-    where processes already share the cores."""
+    of small non-negative integers, weighs each fovea pixel (adaptive support weights)."""
     k0, k1 = _check(fovea, band, k0, k1)
     w = fovea.shape[1]
     out = np.zeros((band.shape[1] - w + 1, k1 - k0), np.int64)
@@ -162,14 +132,7 @@ def sad(fovea: np.ndarray, band: np.ndarray, k0: int = 0, k1: int | None = None,
         weights = np.ascontiguousarray(weights, dtype=np.uint8)
         if weights.shape != (w, w):
             raise ValueError(f"weights must be ({w}, {w}), got {weights.shape}")
-    if threads <= 1 or k1 - k0 < 2 * threads:
-        _sad(fovea, band, weights, k0, k1, circular, out)
-        return out
-    cuts = np.linspace(k0, k1, threads + 1).astype(int)
-    jobs = [_pool().submit(_sad, fovea, band, weights, a, b, circular, out[:, a - k0 : b - k0])
-            for a, b in zip(cuts[:-1], cuts[1:])]
-    for job in jobs:
-        job.result()
+    _sad(fovea, band, weights, k0, k1, circular, out)
     return out
 
 
@@ -181,10 +144,10 @@ def scores_from_sad(s: np.ndarray, window: int, weight_sum: int | None = None) -
 
 
 def correlate(fovea: np.ndarray, band: np.ndarray, k0: int = 0, k1: int | None = None, *,
-              circular: bool = True, weights: np.ndarray | None = None, threads: int = 1) -> np.ndarray:
+              circular: bool = True, weights: np.ndarray | None = None) -> np.ndarray:
     """Layer-4 scores y(k) for offsets k0..k1-1: 1-D when the band is w rows tall, (2R + 1, k1 - k0) when
     it is taller (vertical search, row v is the vertical shift v - R)."""
-    s = sad(fovea, band, k0, k1, circular=circular, weights=weights, threads=threads)
+    s = sad(fovea, band, k0, k1, circular=circular, weights=weights)
     w = fovea.shape[1]
     y = scores_from_sad(s, w, None if weights is None else int(weights.astype(np.int64).sum()))
     return y[0] if y.shape[0] == 1 else y
