@@ -24,7 +24,7 @@ import cv2
 import zenoh
 
 from vergence import pipeline, retina
-from vergence.config import ConfigError, load
+from vergence.config import load
 from vergence.messages import MessageError, MotorState, Preview, Profile
 from vergence.sources import SourceError, open_source
 
@@ -199,11 +199,6 @@ def settings_from_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
-    try:
-        settings = settings_from_args(args)
-    except ConfigError as e:
-        print(f"vergence capture: {e}", file=sys.stderr)
-        return 2
+    settings = settings_from_args(args)
     stop = session.Stop()
     return main(settings, session.config_from_args(args), stop, frames=args.frames, at=args.at)

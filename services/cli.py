@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import sys
 
 # name: (module, one-line help)
@@ -42,8 +43,14 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if name is None and any(a in ("-h", "--help") for a in argv) else 2
     args = build_parser(name).parse_args(argv)
     mod = importlib.import_module(COMMANDS[name][0])
+    from vergence.config import ConfigError
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
     try:
         return int(mod.run(args) or 0)
+    except ConfigError as e:  # a settings file or value that is wrong: the message names the field
+        print(f"vergence {name}: {e}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         return 130
 

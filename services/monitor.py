@@ -25,7 +25,7 @@ import time
 
 import zenoh
 
-from vergence.config import ConfigError, load
+from vergence.config import load
 from vergence.monitor import Monitor, png_bytes, render_text
 
 from . import session
@@ -166,12 +166,8 @@ def _png(watch: Watch, model: Monitor, args: argparse.Namespace, stop: session.S
 
 
 def run(args: argparse.Namespace) -> int:
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
-    try:
-        settings = load(args.config)
-    except ConfigError as e:
-        print(f"vergence monitor: {e}", file=sys.stderr)
-        return 2
+    logging.getLogger().setLevel(logging.WARNING)
+    settings = load(args.config)
     if args.png:
         _size(args.size)
     stop = session.Stop()

@@ -20,7 +20,7 @@ import time
 
 import zenoh
 
-from vergence.config import ConfigError, load
+from vergence.config import load
 from vergence.recording import RecordingError, Writer
 
 from . import session
@@ -84,11 +84,6 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, path: str, duration: 
 
 
 def run(args: argparse.Namespace) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
-    try:
-        settings = load(args.config)
-    except ConfigError as e:
-        print(f"vergence record: {e}", file=sys.stderr)
-        return 2
+    settings = load(args.config)
     stop = session.Stop()
     return main(args.rig or settings.rig, session.config_from_args(args), stop, args.file, args.duration)

@@ -15,14 +15,13 @@ import argparse
 import dataclasses
 import json
 import logging
-import sys
 import threading
 import time
 
 import zenoh
 
 from vergence import pipeline
-from vergence.config import ConfigError, load
+from vergence.config import load
 from vergence.messages import Frame, MessageError, Partial
 
 from . import session
@@ -140,11 +139,6 @@ def settings_from_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
-    try:
-        settings = settings_from_args(args)
-    except ConfigError as e:
-        print(f"vergence reducer: {e}", file=sys.stderr)
-        return 2
+    settings = settings_from_args(args)
     stop = session.Stop()
     return main(settings, session.config_from_args(args), stop, args.deadline_ms)

@@ -150,7 +150,6 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
 
 
 def run(args: argparse.Namespace) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
     if not args.speed >= 0:
         print("vergence replay: --speed must be >= 0", file=sys.stderr)
         return 2

@@ -35,7 +35,6 @@ def router_config(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
     stop = session.Stop()
     conf = router_config(args)
     try:

@@ -19,7 +19,7 @@ import subprocess
 import sys
 import time
 
-from vergence.config import ConfigError, load
+from vergence.config import load
 
 from . import session
 
@@ -122,15 +122,10 @@ def stop_all(children: list[tuple[str, subprocess.Popen]]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
     if args.workers < 1:
         print("vergence up: --workers must be at least 1", file=sys.stderr)
         return 2
-    try:
-        settings = load(args.config)
-    except ConfigError as e:
-        print(f"vergence up: {e}", file=sys.stderr)
-        return 2
+    settings = load(args.config)
     rig = args.rig or settings.rig
     if _accepts(args.listen):
         print(f"vergence up: {args.listen} is already in use (another `vergence up` or router?): stop it, or "

@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
 import threading
 import time
 
@@ -20,7 +19,7 @@ import numpy as np
 import zenoh
 
 from vergence import pipeline
-from vergence.config import ConfigError, load
+from vergence.config import load
 from vergence.match import Params
 from vergence.messages import Frame, MessageError
 
@@ -100,11 +99,6 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, name: str | None = No
 
 
 def run(args: argparse.Namespace) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
-    try:
-        settings = load(args.config)
-    except ConfigError as e:
-        print(f"vergence worker: {e}", file=sys.stderr)
-        return 2
+    settings = load(args.config)
     stop = session.Stop()
     return main(args.rig or settings.rig, session.config_from_args(args), stop, args.name, settings.network)
