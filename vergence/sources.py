@@ -147,7 +147,12 @@ class CameraSource(Source):
         self.names = (left, right)
         for name in self.names:
             dev = int(name) if name.isdigit() else name
-            cap = cv2.VideoCapture(dev)
+            level = cv2.utils.logging.getLogLevel()
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)  # our error below says more
+            try:
+                cap = cv2.VideoCapture(dev)
+            finally:
+                cv2.utils.logging.setLogLevel(level)
             if not cap.isOpened():
                 self.close()
                 raise SourceError(
