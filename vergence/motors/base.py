@@ -8,12 +8,15 @@ the soft limits and the step limit, counting what it clamped or ignored. Nothing
 
 from __future__ import annotations
 
+import logging
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
-__all__ = ["MotorSettings", "Driver", "MotorError", "PortError", "Disconnected", "TransientError", "Safety",
-           "Verdict"]
+__all__ = ["MotorSettings", "Driver", "SerialDriver", "MotorError", "PortError", "Disconnected", "TransientError",
+           "Safety", "Verdict"]
+
+log = logging.getLogger("vergence.motors")
 
 
 @dataclass(frozen=True)
@@ -148,6 +151,31 @@ class Driver(ABC):
 
     def describe(self) -> str:
         return self.name
+
+
+class SerialDriver(Driver):
+    """A driver on a pyserial port (self.port, opened from self.url): closing releases the motor, best
+    effort since the port may be gone, then the port."""
+
+    port = None
+    url = ""
+
+    def _release(self) -> None:
+        """Let the motor go (torque off): the driver's own command."""
+
+    def close(self, torque_off: bool = True) -> None:
+        if self.port is None:
+            return
+        if torque_off:
+            try:
+                self._release()
+            except Exception as e:  # best effort: the port may be gone
+                log.warning("releasing the motor failed on %s: %s", self.url, e)
+        try:
+            self.port.close()
+        except Exception:
+            pass
+        self.port = None
 
 
 @dataclass

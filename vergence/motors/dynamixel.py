@@ -23,7 +23,7 @@ import time
 
 import serial
 
-from .base import IO_ERRORS, Disconnected, Driver, MotorSettings, PortError, TransientError, port_hint
+from .base import IO_ERRORS, Disconnected, MotorSettings, PortError, SerialDriver, TransientError, port_hint
 
 __all__ = ["crc16", "stuff", "unstuff", "instruction_packet", "status_packet", "parse_status", "StatusError",
            "PacketError", "XSERIES", "Inst", "ERRORS", "DynamixelDriver"]
@@ -229,7 +229,7 @@ def read_packet(port, deadline: float) -> bytes:
         buf += port.read(max(1, need - len(buf)))  # port.timeout is a fraction of the deadline
 
 
-class DynamixelDriver(Driver):
+class DynamixelDriver(SerialDriver):
     """One Dynamixel X-series motor in position mode (Protocol 2.0)."""
 
     name = "dynamixel"
@@ -335,19 +335,8 @@ class DynamixelDriver(Driver):
             self.close(torque_off=False)
             raise
 
-    def close(self, torque_off: bool = True) -> None:
-        if self.port is None:
-            return
-        if torque_off:
-            try:
-                self.write("torque_enable", 0)
-            except Exception as e:  # best effort: the port may be gone
-                log.warning("torque off failed on %s: %s", self.url, e)
-        try:
-            self.port.close()
-        except Exception:
-            pass
-        self.port = None
+    def _release(self) -> None:
+        self.write("torque_enable", 0)
 
     def write_goal(self, pan_rad: float) -> None:
         ticks = self.settings.to_ticks(pan_rad)

@@ -23,7 +23,7 @@ import time
 
 import serial
 
-from .base import IO_ERRORS, Disconnected, Driver, MotorSettings, PortError, TransientError, port_hint
+from .base import IO_ERRORS, Disconnected, MotorSettings, PortError, SerialDriver, TransientError, port_hint
 
 __all__ = ["LineDriver"]
 
@@ -36,7 +36,7 @@ class DeviceError(TransientError):
     """The device answered ERR."""
 
 
-class LineDriver(Driver):
+class LineDriver(SerialDriver):
     name = "line"
 
     def __init__(self, settings: MotorSettings, port: str):
@@ -133,19 +133,8 @@ class LineDriver(Driver):
             self.close(torque_off=False)
             raise
 
-    def close(self, torque_off: bool = True) -> None:
-        if self.port is None:
-            return
-        if torque_off:
-            try:
-                self.enable(False)
-            except Exception as e:
-                log.warning("release failed on %s: %s", self.url, e)
-        try:
-            self.port.close()
-        except Exception:
-            pass
-        self.port = None
+    def _release(self) -> None:
+        self.enable(False)
 
     def write_goal(self, pan_rad: float) -> None:
         pos = self.settings.to_ticks(pan_rad)
