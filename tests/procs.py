@@ -260,3 +260,18 @@ class Collector:
     def close(self) -> None:
         with contextlib.suppress(Exception):
             self.sub.undeclare()
+
+
+def textured_pair(tmp_path: Path, seed: int = 3, shift: int = 12) -> str:
+    """A `files:LEFT,RIGHT` source: a 320 x 120 textured pair whose slave sees the scene `shift` px further
+    left (every frame's decision: offset -shift)."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    base = cv2.GaussianBlur(rng.integers(0, 256, (120, 360), np.uint8), (5, 5), 1.5)
+    left, right = Path(tmp_path) / "l.png", Path(tmp_path) / "r.png"
+    cv2.imwrite(str(left), base[:, 20:340])
+    cv2.imwrite(str(right), base[:, 20 - shift : 340 - shift])
+    return f"files:{left},{right}"
+

@@ -5,22 +5,16 @@ from __future__ import annotations
 import re
 
 import cv2
-import numpy as np
 import pytest
 
-from procs import Procs, free_port
+from procs import Procs, free_port, textured_pair
 
 
 @pytest.fixture
 def pair(tmp_path):
-    """A 320 x 120 textured pair; the slave sees the scene 12 px further left."""
-    rng = np.random.default_rng(3)
-    base = cv2.GaussianBlur(rng.integers(0, 256, (120, 360), np.uint8), (5, 5), 1.5)
-    cv2.imwrite(str(tmp_path / "l.png"), base[:, 20:340])
-    cv2.imwrite(str(tmp_path / "r.png"), base[:, 8:328])
     cfg = tmp_path / "settings.toml"
     cfg.write_text("[network]\nmax_window = 0\n[capture]\npreview_hz = 0\n")
-    return f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}", str(cfg)
+    return textured_pair(tmp_path), str(cfg)
 
 
 def test_monitor_once_and_png_against_up(tmp_path, pair):

@@ -3,11 +3,9 @@ are the recorded ones, bit for bit (real processes, a real router, bounded waits
 
 from __future__ import annotations
 
-import cv2
-import numpy as np
 import pytest
 
-from procs import Procs, wait_for
+from procs import Procs, textured_pair, wait_for
 from vergence.messages import Frame, Profile
 from vergence.recording import read
 
@@ -16,13 +14,9 @@ FRAMES = 20
 
 @pytest.fixture
 def pair(tmp_path):
-    rng = np.random.default_rng(5)
-    base = cv2.GaussianBlur(rng.integers(0, 256, (120, 360), np.uint8), (5, 5), 1.5)
-    cv2.imwrite(str(tmp_path / "l.png"), base[:, 20:340])
-    cv2.imwrite(str(tmp_path / "r.png"), base[:, 8:328])
     cfg = tmp_path / "settings.toml"
     cfg.write_text("[network]\nmax_window = 0\n[capture]\npreview_hz = 0\n[reducer]\ndeadline_ms = 1000\n")
-    return f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}", str(cfg)
+    return textured_pair(tmp_path, seed=5), str(cfg)
 
 
 def test_record_then_replay_gives_the_same_profiles(tmp_path, pair):

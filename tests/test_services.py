@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from procs import Procs, free_port, wait_for
+from procs import Procs, free_port, textured_pair, wait_for
 from vergence import kernel, pipeline, retina
 from vergence.config import load
 from vergence.messages import Command, Frame, MessageError, Partial, Preview, Profile
@@ -27,13 +27,7 @@ RATE = 40  # frames per second in these tests: light on a shared 2-core machine
 
 @pytest.fixture
 def pair(tmp_path):
-    """A 320 x 120 textured pair; the slave sees the scene 12 px further left."""
-    rng = np.random.default_rng(3)
-    base = cv2.GaussianBlur(rng.integers(0, 256, (120, 360), np.uint8), (5, 5), 1.5)
-    left, right = base[:, 20:340], base[:, 8:328]
-    cv2.imwrite(str(tmp_path / "l.png"), left)
-    cv2.imwrite(str(tmp_path / "r.png"), right)
-    return f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}"
+    return textured_pair(tmp_path)
 
 
 def config(tmp_path, text: str = "") -> str:
