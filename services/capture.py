@@ -117,10 +117,10 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         pub_frame = s.declare_publisher(f"vergence/{rig}/frame", express=True)
         pub_preview = s.declare_publisher(f"vergence/{rig}/preview")
         pub_status = s.declare_publisher(f"vergence/{rig}/status/capture/{cid}")
-        s.declare_subscriber(f"vergence/{rig}/motor/state", on_motor)
+        subs = [s.declare_subscriber(f"vergence/{rig}/motor/state", on_motor),
+                s.liveliness().declare_subscriber(f"vergence/{rig}/alive/worker/*", members.on_sample, history=True)]
         if params.max_window:
-            s.declare_subscriber(f"vergence/{rig}/profile", on_profile)
-        s.liveliness().declare_subscriber(f"vergence/{rig}/alive/worker/*", members.on_sample, history=True)
+            subs.append(s.declare_subscriber(f"vergence/{rig}/profile", on_profile))
         token = s.liveliness().declare_token(alive)
         log.info("capture %s: %s (%d x %d, f=%.1f px) at %s Hz on vergence/%s/frame", cid, cs.source, wd, ht,
                  focal, cs.rate_hz or "max", rig)
@@ -182,6 +182,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                     next_status = now + STATUS_S
                     pub_status.put(json.dumps(health.status(window=windows.window, workers=len(plan))))
         finally:
+            for sub in subs:  # no callback may still run while the session closes
+                sub.undeclare()
             token.undeclare()
             pub_status.put(json.dumps(health.status(window=windows.window, workers=len(plan), exiting=True)))
             source.close()

@@ -107,8 +107,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
 
         # Messages are handled in zenoh's callback threads (no hand-over to another thread: one wake-up
         # less per message); this thread only expires deadlines and publishes the status.
-        s.declare_subscriber(f"vergence/{rig}/frame", on_frame)
-        s.declare_subscriber(prefix + "*", on_partial)
+        subs = [s.declare_subscriber(f"vergence/{rig}/frame", on_frame),
+                s.declare_subscriber(prefix + "*", on_partial)]
         token = s.liveliness().declare_token(alive)
         log.info("reducer %s on vergence/%s/{frame,correlation/*}, deadline %.0f ms", rid, rig, deadline * 1e3)
 
@@ -127,6 +127,9 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
                     pub_status.put(status())
                     next_status = now + STATUS_S
         finally:
+            # no callback may still run while the session closes (it can hang the exit otherwise)
+            for sub in subs:
+                sub.undeclare()
             token.undeclare()
             pub_status.put(status(exiting=True))
             log.info("reducer %s exits: %s gatherer %s bad %s", rid, health.counters, gatherer.counters, health.bad)

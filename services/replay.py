@@ -89,7 +89,8 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
     pubs_early: dict[str, zenoh.Publisher] = {}
     with reader, session.open_session(conf) as s:
         workers = Workers()
-        s.liveliness().declare_subscriber(f"vergence/{rig}/alive/worker/*", workers.on_sample, history=True)
+        members = s.liveliness().declare_subscriber(f"vergence/{rig}/alive/worker/*", workers.on_sample,
+                                                    history=True)
         token = s.liveliness().declare_token(session.alive_key(rig, "replay"))
         if "frame" in kinds:
             deadline = time.monotonic() + wait_workers
@@ -143,6 +144,7 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
             print(f"vergence replay: {e}", file=sys.stderr)
             return 2
         finally:
+            members.undeclare()  # no callback may still run while the session closes
             token.undeclare()
         note = " (the last record was truncated)" if reader.truncated else ""
         log.info("replayed %d messages to vergence/%s, skipped %d, bad %d%s", sent, rig, skipped, bad, note)
