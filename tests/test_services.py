@@ -288,3 +288,4 @@ def test_up_sigint_leaves_nothing_behind(tmp_path, pair):
         assert up.wait(20) == 0
         wait_for(lambda: not _pids_with(P.rig) and not _pids_with(endpoint), 5, "no process left", logs=P.logs)
         assert "router stopped (exit 0)" in up.text()
+        assert "did not stop" not in up.text()  # every child left on SIGINT by itself
