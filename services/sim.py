@@ -14,14 +14,14 @@ from vergence.sim.loop import closed_loop, frames_to_converge
 
 
 def configure(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--left", 
+    p.add_argument("--left",
                    help="LEFT image of a rectified pair (the master's scene); default: the generated one")
     p.add_argument("--right", help="RIGHT image (the slave's scene)")
     p.add_argument("--disparity", help="ground-truth disparity of LEFT (an image; value / --dscale = px)")
     p.add_argument("--dscale", help="scale of --disparity (Middlebury: 4, 8 or 16)")
     p.add_argument("--fixate", metavar="X,Y", help="fixation pixel of LEFT (default: its centre)")
     p.add_argument("--focal", metavar="F", help="focal length in pixels (default 0.8 x width)")
-    p.add_argument("--size", metavar="WxH", 
+    p.add_argument("--size", metavar="WxH",
                    help="size of the rendered views (default: the pair's; generated: 640x480)")
     p.add_argument("--start-pan", metavar="DEG", help="the slave's starting pan in degrees (default 0)")
     p.add_argument("--start-off", metavar="PX", type=float,
@@ -36,7 +36,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="helmholtz: both cameras pan on one tilting "
                    "platform (default, the paper's rig); fick: each camera tilts on its own pan joint")
     p.add_argument("--frames", type=int, default=20, help="frames to run after the starting one (default 20)")
-    p.add_argument("--rate", type=float, default=30.0, 
+    p.add_argument("--rate", type=float, default=30.0,
                    help="frames per second of the virtual clock (default 30)")
     p.add_argument("--faithful", action="store_true", help="the paper's network: every extension off")
     p.add_argument("--config", metavar="FILE", help="settings TOML: [network], [control], [actuator.motor]")

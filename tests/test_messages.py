@@ -99,8 +99,8 @@ def test_random_bytes_only_ever_raise_message_error(data, kind):
 
 @settings(max_examples=200, deadline=None)
 @given(kind=st.sampled_from(sorted(SAMPLES)), key=st.text(max_size=8),
-       value=st.one_of(st.none(), st.booleans(), st.integers(-2**63, 2**64 - 1), st.floats(), st.text(max_size=5), st.binary(max_size=5),
-                       st.lists(st.integers(-2**63, 2**63 - 1), max_size=3)))
+       value=st.one_of(st.none(), st.booleans(), st.integers(-2**63, 2**64 - 1), st.floats(), st.text(max_size=5),
+                       st.binary(max_size=5), st.lists(st.integers(-2**63, 2**63 - 1), max_size=3)))
 def test_any_field_value_only_ever_raises_message_error(kind, key, value):
     d = SAMPLES[kind].to_dict()
     d[key if key else next(iter(d))] = value
@@ -119,7 +119,8 @@ def test_settings_from_toml(tmp_path):
         load(p)
     p.write_text('rig = "left-head"\n[network]\nwindow = 21\n[control]\ngain = 0.5\n')
     s = load(p)
-    assert (s.rig, s.network.window, s.control.gain, s.network.vsearch) == ("left-head", 21, 0.5, Settings().network.vsearch)
+    assert (s.rig, s.network.window, s.control.gain) == ("left-head", 21, 0.5)
+    assert s.network.vsearch == Settings().network.vsearch
 
 
 @pytest.mark.parametrize("data,says", [

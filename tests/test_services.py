@@ -209,7 +209,8 @@ def test_garbage_on_every_key_kills_nothing(tmp_path, pair):
     cfg = config(tmp_path)
     with Procs(tmp_path) as P:
         P.router()
-        procs = [P.start("reducer", "reducer", "--config", cfg), P.start("w1", "worker", "--name", "w1", "--config", cfg),
+        procs = [P.start("reducer", "reducer", "--config", cfg),
+                 P.start("w1", "worker", "--name", "w1", "--config", cfg),
                  P.start("actuator", "actuator", "--driver", "sim", "--config", cfg)]
         s = P.session()
         P.wait_alive(s, "worker", 1)

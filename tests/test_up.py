@@ -18,5 +18,6 @@ def test_busy_port_is_refused_with_a_hint(tmp_path):
         router = subprocess.run([sys.executable, "-m", "services.cli", "router", "--listen", P.endpoint],
                                 capture_output=True, text=True, timeout=30)
         assert router.returncode == 2
-        assert router.stderr.startswith("vergence router: cannot start on") and "Address already in use" in router.stderr
+        assert router.stderr.startswith("vergence router: cannot start on")
+        assert "Address already in use" in router.stderr
         assert "Traceback" not in router.stderr
