@@ -163,6 +163,17 @@ class SerialDriver(Driver):
     def _release(self) -> None:
         """Let the motor go (torque off): the driver's own command."""
 
+    def _open_port(self) -> None:
+        """Open self.url at the motor's baud rate; PortError (naming the port and how to list ports)."""
+        import serial  # pyserial: only the serial drivers need it
+
+        try:
+            self.port = serial.serial_for_url(self.url, baudrate=self.settings.baud,
+                                              timeout=self.settings.timeout_s / 4,
+                                              write_timeout=max(0.5, self.settings.timeout_s))
+        except IO_ERRORS + (ValueError,) as e:
+            raise PortError(port_hint(self.url, e)) from e
+
     def close(self, torque_off: bool = True) -> None:
         if self.port is None:
             return

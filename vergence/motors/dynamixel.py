@@ -21,9 +21,8 @@ import logging
 import struct
 import time
 
-import serial
 
-from .base import IO_ERRORS, Disconnected, MotorSettings, PortError, SerialDriver, TransientError, port_hint
+from .base import IO_ERRORS, Disconnected, MotorSettings, SerialDriver, TransientError
 
 __all__ = ["crc16", "stuff", "unstuff", "instruction_packet", "status_packet", "parse_status", "StatusError",
            "PacketError", "XSERIES", "Inst", "ERRORS", "DynamixelDriver"]
@@ -248,14 +247,6 @@ class DynamixelDriver(SerialDriver):
         return f"dynamixel id {self.settings.id} on {self.url} at {self.settings.baud} baud"
 
     # -- transport ----------------------------------------------------------------------------------------
-    def _open_port(self) -> None:
-        try:
-            self.port = serial.serial_for_url(self.url, baudrate=self.settings.baud,
-                                              timeout=self.settings.timeout_s / 4,
-                                              write_timeout=max(0.5, self.settings.timeout_s))
-        except IO_ERRORS + (ValueError,) as e:
-            raise PortError(port_hint(self.url, e)) from e
-
     def _txrx(self, inst: int, params: bytes, what: str) -> bytes:
         """Send one instruction and return the parameters of its status packet; retried."""
         if self.port is None:

@@ -21,9 +21,8 @@ import logging
 import re
 import time
 
-import serial
 
-from .base import IO_ERRORS, Disconnected, MotorSettings, PortError, SerialDriver, TransientError, port_hint
+from .base import IO_ERRORS, Disconnected, MotorSettings, SerialDriver, TransientError
 
 __all__ = ["LineDriver"]
 
@@ -114,12 +113,7 @@ class LineDriver(SerialDriver):
 
     def open(self) -> float:
         self.close(torque_off=False)
-        try:
-            self.port = serial.serial_for_url(self.url, baudrate=self.settings.baud,
-                                              timeout=self.settings.timeout_s / 4,
-                                              write_timeout=max(0.5, self.settings.timeout_s))
-        except IO_ERRORS + (ValueError,) as e:
-            raise PortError(port_hint(self.url, e)) from e
+        self._open_port()
         try:
             try:
                 present = self.query()
