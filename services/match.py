@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 
-import cv2
 
 from vergence import BorderError, Params, match
 from vergence.config import ConfigError, load
+from vergence.sources import read_image
 
 
 def point_arg(text: str) -> tuple[int, int]:
@@ -34,27 +33,18 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="one JSON object per point")
 
 
-def read_gray(path: str):
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"cannot read image {path!r}: no such file")
-    img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise FileNotFoundError(f"cannot read image {path!r}: missing or not an image OpenCV can decode")
-    return img
-
-
 def run(args: argparse.Namespace) -> int:
     try:
         base = load(args.config).network
         if args.faithful:
             base = Params.paper(window=base.window)
         params = Params.build(**{**base.__dict__, "window": args.window, "vsearch": args.vsearch})
-        master, slave = read_gray(args.master), read_gray(args.slave)
+        master, slave = read_image(args.master), read_image(args.slave)
         if master.shape != slave.shape:
             raise ValueError(f"images differ in size: {args.master} is {master.shape[1]} x {master.shape[0]}, "
                              f"{args.slave} is {slave.shape[1]} x {slave.shape[0]}")
         results = [match(master, slave, at, params) for at in (args.at or [None])]
-    except (FileNotFoundError, ValueError, BorderError, ConfigError, TypeError) as e:
+    except (ValueError, BorderError, ConfigError, TypeError) as e:
         print(f"vergence match: {e}", file=sys.stderr)
         return 2
     for m in results:

@@ -19,7 +19,8 @@ import os
 import cv2
 import numpy as np
 
-__all__ = ["SourceError", "Source", "FilesSource", "VideoSource", "CameraSource", "SimSource", "open_source"]
+__all__ = ["SourceError", "read_image", "Source", "FilesSource", "VideoSource", "CameraSource", "SimSource",
+           "open_source"]
 
 
 class SourceError(ValueError):
@@ -30,6 +31,16 @@ def _gray(img: np.ndarray) -> np.ndarray:
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
     return np.ascontiguousarray(img)
+
+
+def read_image(path: str, flags: int = cv2.IMREAD_GRAYSCALE) -> np.ndarray:
+    """An image file (gray by default); SourceError that says whether it is missing or undecodable."""
+    if not os.path.isfile(path):
+        raise SourceError(f"cannot read image {path!r}: no such file")
+    img = cv2.imread(path, flags)
+    if img is None:
+        raise SourceError(f"cannot read image {path!r}: not an image OpenCV can decode")
+    return img
 
 
 def _pair(rest: str, kind: str) -> tuple[str, str]:
@@ -79,14 +90,10 @@ class FilesSource(Source):
 
     def __init__(self, left: str, right: str, master: str = "left"):
         super().__init__(master)
-        imgs = []
-        for path in (left, right):
-            if not os.path.isfile(path):
-                raise SourceError(f"files source: cannot read {path!r}: no such file")
-            img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
-            if img is None:
-                raise SourceError(f"files source: {path!r} is not an image OpenCV can decode")
-            imgs.append(np.ascontiguousarray(img))
+        try:
+            imgs = [np.ascontiguousarray(read_image(path)) for path in (left, right)]
+        except SourceError as e:
+            raise SourceError(f"files source: {e}") from None
         self.size = _check_pair(imgs[0], imgs[1], f"files:{left},{right}")
         self.pair = self._order(imgs[0], imgs[1])
 

@@ -22,11 +22,11 @@ its view's centre column."""
 from __future__ import annotations
 
 import math
-import os
 
 import cv2
 import numpy as np
 
+from ..sources import read_image
 from .scene import generate
 
 __all__ = ["Rig", "rotation", "homography"]
@@ -59,20 +59,17 @@ def homography(f: float, src_size: tuple[int, int], view_size: tuple[int, int], 
 
 
 def _read_gray(path: str, what: str) -> np.ndarray:
-    if not os.path.isfile(path):
-        raise ValueError(f"{what}={path}: no such file")
-    img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise ValueError(f"{what}={path}: not an image OpenCV can decode")
-    return img
+    try:
+        return read_image(path)
+    except ValueError as e:
+        raise ValueError(f"{what}: {e}") from None
 
 
 def _read_disparity(path: str, scale: float) -> np.ndarray:
-    if not os.path.isfile(path):
-        raise ValueError(f"disparity={path}: no such file")
-    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"disparity={path}: not an image OpenCV can decode")
+    try:
+        img = read_image(path, cv2.IMREAD_UNCHANGED)
+    except ValueError as e:
+        raise ValueError(f"disparity: {e}") from None
     if img.ndim == 3:
         img = img[..., 0]
     d = img.astype(np.float32) / float(scale)
