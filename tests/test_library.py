@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import vergence
-from vergence import kernel, retina
+from vergence import kernel, retina, simd
 from vergence.decide import centre_offset, decide
 
 
@@ -117,27 +117,50 @@ def test_border_errors_say_why(x, y, w, r, msg):
 # ---- layers 2-4 ---------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("circular", [False, True], ids=["linear-D", "circular-D"])
-@pytest.mark.parametrize("w,nv,width", [(15, 1, 64), (15, 5, 40), (3, 1, 3), (31, 3, 50), (47, 1, 60)])
+@pytest.mark.parametrize("w,nv,width", [(15, 1, 64), (15, 5, 40), (3, 1, 3), (31, 3, 50), (47, 1, 60), (63, 3, 70)])
 def test_kernel_equals_reference(w, nv, width, circular):
     rng = np.random.default_rng(w * 100 + nv)
     fovea = rng.integers(0, 256, (3, w, w), dtype=np.uint8)
     band = rng.integers(0, 256, (3, w + nv - 1, width), dtype=np.uint8)
     y = kernel.correlate(fovea, band, circular=circular)
-    assert np.array_equal(kernel.sad(fovea, band, circular=circular), ref_sad(fovea, band, circular))
+    ref = ref_sad(fovea, band, circular)
+    assert np.array_equal(kernel.sad(fovea, band, circular=circular), ref)
+    assert np.array_equal(kernel.portable_sad(fovea, band, circular=circular), ref)
     assert np.allclose(np.atleast_2d(y), ref_scores(fovea, band, circular), rtol=0, atol=1e-6)
     assert y.ndim == (1 if nv == 1 else 2)
 
 
-@pytest.mark.parametrize("wmax", [9, 256], ids=["support-weights", "any-uint8-no-overflow"])
+@pytest.mark.parametrize("wmax", [9, 65, 256], ids=["support-weights", "simd-limit", "any-uint8-no-overflow"])
 def test_weighted_kernel_equals_reference(wmax):
     rng = np.random.default_rng(7)
     fovea = rng.integers(0, 256, (3, 31, 31), dtype=np.uint8)
     band = rng.integers(0, 256, (3, 33, 70), dtype=np.uint8)
+    fovea[:, :4, :4], band[:, :4, :4] = 0, 255  # the largest differences meet the largest weights
     wt = rng.integers(0, wmax, (31, 31), dtype=np.uint8)
-    s = kernel.sad(fovea, band, weights=wt, circular=False)
+    wt[:4, :4] = wmax - 1
     ref = np.array([[np.sum(np.abs(fovea.astype(np.int64) - band[:, v : v + 31, k : k + 31]) * wt)
                      for k in range(40)] for v in range(3)])
-    assert np.array_equal(s, ref)
+    assert np.array_equal(kernel.sad(fovea, band, weights=wt, circular=False), ref)
+    assert np.array_equal(kernel.portable_sad(fovea, band, weights=wt, circular=False), ref)
+
+
+@pytest.mark.skipif(not simd.AVAILABLE, reason="this CPU has no AVX-512BW")
+@settings(max_examples=80, deadline=None)
+@given(w=st.integers(1, 32).map(lambda h: 2 * h - 1), r=st.integers(0, 4), extra=st.integers(0, 150),
+       k0=st.floats(0, 1), k1=st.floats(0, 1), seed=st.integers(0, 2**31 - 1), circ=st.booleans(),
+       weighted=st.booleans(), strided=st.booleans())
+def test_simd_kernel_equals_portable_kernel(w, r, extra, k0, k1, seed, circ, weighted, strided):
+    """The AVX-512 kernel against the portable one: windows 1..63 (all three lane widths), vertical search,
+    any k-range, support weights up to simd.MAX_WEIGHT, a band that is a view with strides."""
+    rng = np.random.default_rng(seed)
+    fovea = rng.integers(0, 256, (3, w, w), dtype=np.uint8)
+    band = rng.integers(0, 256, (3, w + 2 * r, w + extra + 5), dtype=np.uint8)
+    band = band[:, :, 5:] if strided else np.ascontiguousarray(band[:, :, 5:])
+    wt = rng.integers(0, simd.MAX_WEIGHT + 1, (w, w), dtype=np.uint8) if weighted else None
+    kk = extra + 1
+    a, b = sorted((int(k0 * kk), int(k1 * kk)))
+    got = simd.sad(fovea, band, a, b, circ, wt)
+    assert np.array_equal(got, kernel.portable_sad(fovea, band, a, b, circular=circ, weights=wt))
 
 
 def test_identical_window_scores_maximum():

@@ -12,7 +12,9 @@ import functools
 import numba
 import numpy as np
 
-__all__ = ["sad", "correlate", "scores_from_sad", "support_weights"]
+from . import simd
+
+__all__ = ["sad", "portable_sad", "correlate", "scores_from_sad", "support_weights"]
 
 CIRCULAR_D = True  # default of the circular direction comparison (an extension; faithful turns it off)
 
@@ -120,27 +122,42 @@ def sad(fovea: np.ndarray, band: np.ndarray, k0: int = 0, k1: int | None = None,
     """S(v, k): integer sums of absolute feature differences, a (2R + 1, k1 - k0) int64 array.
 
     circular compares the direction plane on the circle (min(|dD|, 256 - |dD|)); weights, a (w, w) array
-    of small non-negative integers, weighs each fovea pixel (adaptive support weights)."""
+    of small non-negative integers, weighs each fovea pixel (adaptive support weights). On a CPU with
+    AVX-512BW (simd.AVAILABLE) this runs the vergence.simd kernel, else the portable one: same integers."""
+    k0, k1 = _check(fovea, band, k0, k1)
+    w = fovea.shape[1]
+    if weights is not None:
+        weights = np.ascontiguousarray(weights, dtype=np.uint8)
+        if weights.shape != (w, w):
+            raise ValueError(f"weights must be ({w}, {w}), got {weights.shape}")
+    if simd.AVAILABLE and w <= simd.MAX_WINDOW and (weights is None or weights.max() <= simd.MAX_WEIGHT):
+        return simd.sad(fovea, band, k0, k1, circular, weights)
+    return portable_sad(fovea, band, k0, k1, circular=circular, weights=weights)
+
+
+def portable_sad(fovea: np.ndarray, band: np.ndarray, k0: int = 0, k1: int | None = None, *,
+                 circular: bool = True, weights: np.ndarray | None = None) -> np.ndarray:
+    """sad() on any CPU (the kernel above, vectorised by numba over k)."""
     k0, k1 = _check(fovea, band, k0, k1)
     w = fovea.shape[1]
     out = np.zeros((band.shape[1] - w + 1, k1 - k0), np.int64)
     fovea = np.ascontiguousarray(fovea)
     band = np.ascontiguousarray(band)
-    if weights is None:
-        weights = _ones(w)
-    else:
-        weights = np.ascontiguousarray(weights, dtype=np.uint8)
-        if weights.shape != (w, w):
-            raise ValueError(f"weights must be ({w}, {w}), got {weights.shape}")
+    weights = _ones(w) if weights is None else np.ascontiguousarray(weights, dtype=np.uint8)
     _sad(fovea, band, weights, k0, k1, circular, out)
     return out
 
 
 def scores_from_sad(s: np.ndarray, window: int, weight_sum: int | None = None) -> np.ndarray:
-    """Layer-4 scores y = 255 * w * w - S / 3 (with support weights: normalised to the same scale)."""
+    """Layer-4 scores y = 255 * w * w - S / 3 (with support weights: normalised to the same scale).
+
+    Computed as (S / -3) + 255 w w in place: the same doubles as the formula, without its temporaries."""
     if weight_sum is None:
-        return 255.0 * window * window - s / 3.0
-    return 255.0 * window * window - s * (window * window / (3.0 * max(weight_sum, 1)))  # all-zero: S = 0
+        y = np.divide(s, -3.0)
+    else:
+        y = np.multiply(s, -(window * window / (3.0 * max(weight_sum, 1))))  # all-zero weights: S = 0
+    y += 255.0 * window * window
+    return y
 
 
 def correlate(fovea: np.ndarray, band: np.ndarray, k0: int = 0, k1: int | None = None, *,
