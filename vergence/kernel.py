@@ -123,15 +123,16 @@ def sad(fovea: np.ndarray, band: np.ndarray, k0: int = 0, k1: int | None = None,
 
     circular compares the direction plane on the circle (min(|dD|, 256 - |dD|)); weights, a (w, w) array
     of small non-negative integers, weighs each fovea pixel (adaptive support weights). On a CPU with
-    AVX-512BW (simd.AVAILABLE) this runs the vergence.simd kernel, else the portable one: same integers."""
+    AVX-512BW (simd.AVAILABLE) the circular comparison runs the vergence.simd kernel, anything else the
+    portable one: the same integers."""
     k0, k1 = _check(fovea, band, k0, k1)
     w = fovea.shape[1]
     if weights is not None:
         weights = np.ascontiguousarray(weights, dtype=np.uint8)
         if weights.shape != (w, w):
             raise ValueError(f"weights must be ({w}, {w}), got {weights.shape}")
-    if simd.AVAILABLE and w <= simd.MAX_WINDOW and (weights is None or weights.max() <= simd.MAX_WEIGHT):
-        return simd.sad(fovea, band, k0, k1, circular, weights)
+    if simd.AVAILABLE and circular and w <= simd.MAX_WINDOW and (weights is None or weights.max() <= simd.MAX_WEIGHT):
+        return simd.sad(fovea, band, k0, k1, weights)
     return portable_sad(fovea, band, k0, k1, circular=circular, weights=weights)
 
 

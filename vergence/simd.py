@@ -4,7 +4,8 @@ Same integers as kernel._sad, computed another way round: the portable kernel ru
 window column at a time, the scores in uint16 lanes); this one loads, per window row, the 64 band bytes at
 offset k, which hold the windows of the offsets k, k + L, ... (L = 16, 32 or 64 lanes per window row, the
 fovea row repeated in each, the band bytes past w masked to zero), and sums each lane group with one psadbw.
-Two vertical shifts v, v + 1 go together so that every band row is loaded once for both. The direction
+Up to eight vertical shifts v .. v + 7 go together, so that a band row is loaded once for all of them (two
+shifts per pass took 2.5 ms at 3840/31/V33, four 1.8 ms, eight 1.4 ms: the loads were the limit). The direction
 plane is compared on the circle as |int8(b - f)| = |(b - (f ^ 0x80)) - 128|: one subtraction and one psadbw
 against 128. With support weights, the differences are multiplied by the weights (pmaddubsw, pmaddwd).
 
@@ -38,8 +39,10 @@ _W32 = ir.VectorType(_I16, 32)
 _D16 = ir.VectorType(_I32, 16)
 _Q8 = ir.VectorType(_I64, 8)
 
-# cfg bits: 1 circular, 2 weighted, 4 L = 32, 8 L = 64 (else 16), 16 two vertical shifts
-_CFGS = [c for c in range(32) if not (c & 4 and c & 8)]
+# cfg bits: 1 circular (always: the linear comparison is the paper's, left to the portable kernel), 2 weighted,
+# 4 L = 32, 8 L = 64 (else 16); 16, 32, 64: 2, 4, 8 vertical shifts (else 1). Each variant costs compile time.
+_CFGS = [c for c in range(128) if c & 1 and not (c & 4 and c & 8) and bin(c & 112).count("1") <= 1]
+_SHIFTS = {0: 1, 16: 2, 32: 4, 64: 8}
 
 
 def _const(n: int) -> ir.Constant:
@@ -51,10 +54,10 @@ def _declare(builder, name, ret, args):
 
 
 def _emit(cfg: int, builder, pb, ps, rs, pf, pw, w, po, os_):
-    """S(v, k + p L) for p < 64 / L (and S(v + 1, ...) os_ bytes further with two shifts) stored at po."""
+    """S(v + r, k + p L) for p < 64 / L and r < the cfg's number of shifts, stored at po + r os_ + 8 p L."""
     circular, weighted = bool(cfg & 1), bool(cfg & 2)
     lanes = 32 if cfg & 4 else 64 if cfg & 8 else 16
-    nv = 2 if cfg & 16 else 1
+    nv = _SHIFTS[cfg & 112]
     psad = _declare(builder, "llvm.x86.avx512.psad.bw.512", _Q8, [_B64, _B64])
     pmub = _declare(builder, "llvm.x86.avx512.pmaddubs.w.512", _W32, [_B64, _B64])
     pmwd = _declare(builder, "llvm.x86.avx512.pmaddw.d.512", _D16, [_W32, _W32])
@@ -89,23 +92,22 @@ def _emit(cfg: int, builder, pb, ps, rs, pf, pw, w, po, os_):
         return builder.call(pmwd, [builder.call(pmub, [d, wv]), ones])
 
     accs = [cgutils.alloca_once_value(builder, ir.Constant(_D16, None)) for _ in range(nv)]
-    carried = [cgutils.alloca_once_value(builder, band_row(_const(0), p)) for p in range(3)] if nv == 2 else None
-    with cgutils.for_range(builder, w) as loop:
-        i = loop.index
-        acc = [builder.load(a) for a in accs]
-        frow = builder.add(pf, builder.mul(i, _const(64)))
-        wv = load(builder.add(pw, builder.mul(i, _const(64)))) if weighted else None
-        for p in range(3):
-            circ = circular and p == 2
-            f = load(builder.add(frow, builder.mul(fplane, _const(p))))
-            b0 = builder.load(carried[p]) if nv == 2 else band_row(i, p)
-            acc[0] = builder.add(acc[0], term(b0, f, wv, circ))
-            if nv == 2:  # row v + i + 1 serves shift v + 1 now and shift v at the next i
-                b1 = band_row(builder.add(i, _const(1)), p)
-                acc[1] = builder.add(acc[1], term(b1, f, wv, circ))
-                builder.store(b1, carried[p])
-        for a, x in zip(accs, acc):
-            builder.store(x, a)
+    for p in range(3):  # a plane at a time: nv accumulators and nv - 1 carried band rows stay in registers
+        circ = circular and p == 2
+        # carried[j]: band row v + i + j (j < nv - 1), loaded at an earlier i: each row is loaded once
+        carried = [cgutils.alloca_once_value(builder, band_row(_const(j), p)) for j in range(nv - 1)]
+        with cgutils.for_range(builder, w) as loop:
+            i = loop.index
+            acc = [builder.load(a) for a in accs]
+            wv = load(builder.add(pw, builder.mul(i, _const(64)))) if weighted else None
+            f = load(builder.add(builder.add(pf, builder.mul(i, _const(64))), builder.mul(fplane, _const(p))))
+            rows = [builder.load(c) for c in carried] + [band_row(builder.add(i, _const(nv - 1)), p)]
+            for r in range(nv):
+                acc[r] = builder.add(acc[r], term(rows[r], f, wv, circ))
+            for j in range(nv - 1):
+                builder.store(rows[j + 1], carried[j])
+            for a, x in zip(accs, acc):
+                builder.store(x, a)
     q = lanes // 4  # 32-bit lanes per offset (psadbw's 64-bit sums have zero upper halves)
     red = _declare(builder, f"llvm.vector.reduce.add.v{q}i32", _I32, [ir.VectorType(_I32, q)])
     for r in range(nv):
@@ -143,19 +145,22 @@ def _drive(cfg, bpad, fpad, wpad, w, lanes, nv, k0, n, out):
     ps, rs = np.int64(bpad.strides[0]), np.int64(bpad.strides[1])
     pf, pw = np.int64(fpad.ctypes.data), np.int64(wpad.ctypes.data)
     os_ = np.int64(out.strides[0])
-    for v in range(0, nv, 2):
-        two = 16 if v + 1 < nv else 0
+    v = 0
+    while v < nv:  # eight vertical shifts at a time, then four, two, one
+        step = 8 if v + 8 <= nv else 4 if v + 4 <= nv else 2 if v + 2 <= nv else 1
+        c = cfg + (8 * step if step > 1 else 0)
         base = pb + v * rs + k0
         po = np.int64(out[v].ctypes.data)
         for kb in range(0, n, 64):  # block kb: the loads at kb + t cover kb + t + p * lanes
             for t in range(min(lanes, n - kb)):
                 k = kb + t
-                _block(cfg + two, base + k, ps, rs, pf, pw, w, po + 8 * k, os_)
+                _block(c, base + k, ps, rs, pf, pw, w, po + 8 * k, os_)
+        v += step
 
 
-def sad(fovea: np.ndarray, band: np.ndarray, k0: int, k1: int, circular: bool,
-        weights: np.ndarray | None) -> np.ndarray:
-    """kernel.sad's S(v, k), k0 <= k < k1, for w <= MAX_WINDOW and weights <= MAX_WEIGHT (checked there)."""
+def sad(fovea: np.ndarray, band: np.ndarray, k0: int, k1: int, weights: np.ndarray | None) -> np.ndarray:
+    """kernel.sad's S(v, k) with the circular direction comparison, k0 <= k < k1, for w <= MAX_WINDOW and
+    weights <= MAX_WEIGHT (kernel.sad checks the arguments)."""
     c, w, _ = fovea.shape
     lanes = 16 if w <= 16 else 32 if w <= 32 else 64
     rows, width = band.shape[1], band.shape[2]
@@ -169,10 +174,10 @@ def sad(fovea: np.ndarray, band: np.ndarray, k0: int, k1: int, circular: bool,
         fpad[:, :, p * lanes : p * lanes + w] = fovea
         if weights is not None:
             wpad[:, p * lanes : p * lanes + w] = weights
-    if circular and weights is None:
+    if weights is None:
         fpad[2] ^= 0x80
     nv, n = rows - w + 1, k1 - k0
     out = np.empty((nv, n + 64), np.int64)
-    cfg = int(circular) + 2 * (weights is not None) + {16: 0, 32: 4, 64: 8}[lanes]
+    cfg = 1 + 2 * (weights is not None) + {16: 0, 32: 4, 64: 8}[lanes]
     _drive(cfg, bpad, fpad, wpad, w, lanes, nv, k0, n, out)
     return out[:, :n]
