@@ -161,10 +161,10 @@ def _report(name, label, runs, capsys):
 @pytest.mark.parametrize("name", SCENES)
 def test_loop_converges_on_real_scenes(name, capsys):
     """Within 1 px in <= 5 frames and staying there at >= 18 of 20 points (the issue's bar). Measured (Params
-    defaults of this commit): cones 18, teddy 17, tsukuba 17, venus 18, in 2-3 frames. Every miss is a point
-    where the static network is itself wrong or abstains on the rectified pair, bar one depth-edge point of
-    tsukuba; so below 18 the test xfails with the numbers (the matcher's accuracy, not the loop's), and fails
-    outright if the loop loses points the network gets right or drops under 16."""
+    defaults of this commit): cones 18, teddy 18, tsukuba 17, venus 18, in 2-3 frames. Every miss is a point
+    where the static network is itself wrong or abstains on the rectified pair; so below 18 the test xfails
+    with the numbers (the matcher's accuracy, not the loop's), and fails outright if the loop loses points the
+    network gets right or drops under 16."""
     runs = _real_scene_runs(name, vergence.Params())
     ok, missed = _report(name, "default", runs, capsys)
     assert missed <= 1

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
@@ -9,7 +10,7 @@ import numpy as np
 from . import kernel, retina
 from .decide import Decision, decide, texture
 
-__all__ = ["Params", "Match", "match", "decide_scores", "lr_consistent", "FAITHFUL"]
+__all__ = ["Params", "Match", "match", "decide_scores", "lr_consistent", "halves_consistent", "FAITHFUL"]
 
 
 @dataclass(frozen=True)
@@ -22,6 +23,9 @@ class Params:
     lr_check: match the winning slave window back into the master band; abstain unless it lands within
     lr_tolerance px of the fovea. support: adaptive support weights (Yoon & Kweon) on the fovea, with
     support_gamma (intensity) and support_radius (distance, px) as their two scales.
+    halves_check: each half of the fovea (left, right, top, bottom; weighed by the support weights when they
+    are on) must find its own best match, searched within halves_range px of the winner, within 2 px of it
+    (halves_consistent): abstain at depth edges where one half of the window sees another surface.
     max_window: dynamic window; when not confident, grow w by 8 px per try up to this size (0: off)."""
 
     window: int = 15
@@ -29,19 +33,21 @@ class Params:
     circular: bool = True
     subpixel: bool = True
     min_margin: float = 0.03
-    min_texture: float = 4.0
+    min_texture: float = 2.0
     lr_check: bool = True
     lr_tolerance: float = 0.75
     support: bool = True
     support_gamma: float = 8.0
     support_radius: float = 7.0
+    halves_check: bool = True
+    halves_range: int = 12
     max_window: int = 47
 
     @classmethod
     def paper(cls, **overrides) -> "Params":
         """The paper's network: no extension (vertical search, circular D, sub-pixel, abstention...)."""
         base = dict(vsearch=0, circular=False, subpixel=False, min_margin=0.0, min_texture=0.0,
-                    lr_check=False, support=False, max_window=0)
+                    lr_check=False, support=False, halves_check=False, max_window=0)
         base.update(overrides)
         return cls(**base)
 
@@ -96,13 +102,16 @@ def decide_scores(scores: np.ndarray, fovea: np.ndarray, x: int, params: Params,
 
     With params.lr_check, a confident decision must also pass the left-right check (lr_consistent), given
     the master's rows of the fovea as a gray strip with its margin ((w + 2, W + 2), retina.band_strip with
-    no vertical search) and the slave band's planes ((3, w + 2R, W)). This is the one decision step of both
-    match() and the reducer."""
+    no vertical search) and the slave band's planes ((3, w + 2R, W)); with params.halves_check, it must also
+    pass halves_consistent, which reads the slave band's columns k - halves_range .. k + halves_range + w - 1
+    only. This is the one decision step of both match() and the reducer."""
     w = fovea.shape[1]
     d = decide(scores, w, k_centre=x - w // 2, subpixel=params.subpixel, tex=texture(fovea),
                min_texture=params.min_texture, min_margin=params.min_margin)
     if params.lr_check and d.confident and master_rows is not None and slave_band is not None:
         d = replace(d, confident=lr_consistent(master_rows, slave_band, x, d, params))
+    if params.halves_check and d.confident and slave_band is not None:
+        d = replace(d, confident=halves_consistent(fovea, slave_band, d, params))
     return d
 
 
@@ -117,6 +126,38 @@ def lr_consistent(master_rows: np.ndarray, slave_band: np.ndarray, x: int, d: De
     bd = decide(back, w, k_centre=0, subpixel=params.subpixel)
     expected = x - (d.k_sub - d.k)
     return abs((bd.k_sub + half) - expected) <= params.lr_tolerance
+
+
+HALVES_TOLERANCE = 2  # px: how far a half's own best offset may lie from the winner (1 abstains at too many points)
+
+
+@functools.lru_cache(maxsize=64)
+def _halves(w: int) -> tuple[np.ndarray, ...]:
+    left = np.zeros((w, w), np.uint8)
+    left[:, : w // 2 + 1] = 1  # the centre column belongs to both halves
+    masks = (left, left[:, ::-1], left.T, left.T[::-1])
+    return tuple(np.ascontiguousarray(m) for m in masks)
+
+
+def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, params: Params) -> bool:
+    """The halves check: the left, right, top and bottom halves of the fovea (the centre row or column in
+    each), weighed by the fovea's support weights when params.support, each matched alone along the winning
+    row v at offsets within params.halves_range of the winner k, must each find their best offset within
+    HALVES_TOLERANCE (2) px of k. At a depth edge the half on the other surface finds that surface's offset:
+    the fovea straddles two surfaces and the winner may be the wrong one's (foreground fattening), so abstain.
+    Exact integers
+    (kernel.sad with the halves as 0/1 or support weights); reads the band's columns k - R .. k + R + w - 1."""
+    w = fovea.shape[1]
+    r = (slave_band.shape[1] - w) // 2  # the vertical search R
+    kk = slave_band.shape[2] - w + 1
+    k0, k1 = max(0, d.k - params.halves_range), min(kk, d.k + params.halves_range + 1)
+    rows = slave_band[:, r + d.v : r + d.v + w, :]
+    wts = kernel.support_weights(fovea, params.support_gamma, params.support_radius) if params.support else None
+    for half in _halves(w):
+        s = kernel.sad(fovea, rows, k0, k1, circular=params.circular, weights=half if wts is None else half * wts)
+        if abs(k0 + int(np.argmin(s[0])) - d.k) > HALVES_TOLERANCE:
+            return False
+    return True
 
 
 def _one(master, slave, x, y, w, p: Params) -> Match:

@@ -97,21 +97,25 @@ def compute_partial(frame: Frame, worker: str, t_done: bool = True) -> Partial |
 def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
     """vergence.match.decide_scores on a frame's complete scores: the decision of vergence.match() itself.
 
-    The slave band's features (for the left-right check, with the master band's gray strip) are computed
-    only when the check can change the result, i.e. when the decision without it is confident;
+    The slave band's features (for the left-right check, with the master band's gray strip, and the halves
+    check) are computed only when the checks can change the result, i.e. when the decision without them is
+    confident;
     decide_scores is then called again with them."""
     p = frame_params(frame, params)
     fovea = retina.planes(frame.fovea_strip())
     y = scores[0] if scores.shape[0] == 1 else scores
     d = decide_scores(y, fovea, frame.x, p)
     mstrip = frame.master_band_strip()
-    if p.lr_check and d.confident and mstrip is not None:
-        # The check reads the slave band's features at the winning window's columns k..k+w-1 only: compute
-        # those (all rows), not the whole band. tests/test_pipeline.py holds this equal to match().
+    if ((p.lr_check and mstrip is not None) or p.halves_check) and d.confident:
+        # The checks read the slave band's features at the winning window's columns k..k+w-1 (left-right
+        # check) and k-R..k+R+w-1 (halves check, R = halves_range) only: compute those (all rows), not the
+        # whole band. tests/test_pipeline.py holds this equal to match().
         w = frame.window
         band = frame.band_strip()
         sband = np.zeros((3, band.shape[0] - 2, band.shape[1] - 2), np.uint8)
-        sband[:, :, d.k : d.k + w] = retina.planes(band[:, d.k : d.k + w + 2])
+        reach = p.halves_range if p.halves_check else 0
+        c0, c1 = max(0, d.k - reach), min(sband.shape[2], d.k + reach + w)
+        sband[:, :, c0:c1] = retina.planes(band[:, c0 : c1 + 2])
         d = decide_scores(y, fovea, frame.x, p, mstrip, sband)
     return d
 
