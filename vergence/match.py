@@ -145,8 +145,8 @@ def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, pa
     row v at offsets within params.halves_range of the winner k, must each find their best offset within
     HALVES_TOLERANCE (2) px of k. At a depth edge the half on the other surface finds that surface's offset:
     the fovea straddles two surfaces and the winner may be the wrong one's (foreground fattening), so abstain.
-    Exact integers
-    (kernel.sad with the halves as 0/1 or support weights); reads the band's columns k - R .. k + R + w - 1."""
+    Exact integers (kernel.sad with the halves as 0/1 or support weights); reads the band's columns
+    k - R .. k + R + w - 1 of the winning rows only."""
     w = fovea.shape[1]
     r = (slave_band.shape[1] - w) // 2  # the vertical search R
     kk = slave_band.shape[2] - w + 1

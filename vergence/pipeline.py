@@ -99,8 +99,7 @@ def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
 
     The slave band's features (for the left-right check, with the master band's gray strip, and the halves
     check) are computed only when the checks can change the result, i.e. when the decision without them is
-    confident;
-    decide_scores is then called again with them."""
+    confident; decide_scores is then called again with them."""
     p = frame_params(frame, params)
     fovea = retina.planes(frame.fovea_strip())
     y = scores[0] if scores.shape[0] == 1 else scores
