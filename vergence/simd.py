@@ -29,9 +29,9 @@ MAX_WINDOW = 64  # one window row must fit in the 64 bytes of a vector
 MAX_WEIGHT = 64  # pmaddubsw takes signed bytes and saturates at 2 * 255 * weight > 32767
 
 _FEATURES = binding.get_host_cpu_features()
+# numba compiles for the host CPU unless NUMBA_CPU_NAME names another (portable caches): then no AVX-512
 AVAILABLE = (all(_FEATURES.get(f, False) for f in ("avx512f", "avx512bw"))
-             and os.environ.get("NUMBA_CPU_NAME", "host") == "host"
-             and os.environ.get("VERGENCE_PORTABLE_KERNEL", "") in ("", "0"))
+             and os.environ.get("NUMBA_CPU_NAME", "host") == "host")
 
 _I1, _I8, _I16, _I32, _I64 = (ir.IntType(n) for n in (1, 8, 16, 32, 64))
 _B64 = ir.VectorType(_I8, 64)
