@@ -131,7 +131,9 @@ def sad(fovea: np.ndarray, band: np.ndarray, k0: int = 0, k1: int | None = None,
         weights = np.ascontiguousarray(weights, dtype=np.uint8)
         if weights.shape != (w, w):
             raise ValueError(f"weights must be ({w}, {w}), got {weights.shape}")
-    if simd.AVAILABLE and circular and w <= simd.MAX_WINDOW and (weights is None or weights.max() <= simd.MAX_WEIGHT):
+    big = (k1 - k0) * (band.shape[1] - w + 1) >= 1024  # below, setting up the padded copies costs more
+    if simd.AVAILABLE and circular and big and w <= simd.MAX_WINDOW and (
+            weights is None or weights.max() <= simd.MAX_WEIGHT):
         return simd.sad(fovea, band, k0, k1, weights)
     return portable_sad(fovea, band, k0, k1, circular=circular, weights=weights)
 
