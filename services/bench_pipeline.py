@@ -1,8 +1,10 @@
 """`vergence bench pipeline [--workers N ...] [--rate HZ] [--frames N] [--heavy] [--json]`.
 
 Measures the distributed pipeline as deployed: a router, N workers, the reducer and the capture run as real
-processes on this machine; the capture publishes a synthetic textured pair (the slave sees the scene 12 px
-further left, so every frame yields a command) at a fixed rate, and this process subscribes to the commands.
+processes on this machine, as `vergence up` runs them (peers linked directly; --client: clients of the
+router, every message through it, as from other nodes); the capture publishes a synthetic textured pair (the
+slave sees the scene 12 px further left, so every frame yields a command) at a fixed rate, and this process
+subscribes to the commands.
 Reported per run: capture-to-command latency p50/p99/max (the command's arrival here minus the frame's
 t_capture_ns: one more hop than the actuator sees), throughput, frames dropped (published frames without a
 command), beside the in-process vergence.match time on the same images (overhead = p50 / match).
@@ -40,8 +42,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=2.0, help="length of each run (default 2 s)")
     p.add_argument("--heavy", action="store_true", help="also the heavy setting: 3840 wide, w=31, +-16 rows")
     p.add_argument("--faithful", action="store_true", help="the paper's network (no extension)")
-    p.add_argument("--peer", action="store_true", help="pipeline processes in peer mode: direct links between "
-                                                       "them, the router only for discovery")
+    p.add_argument("--client", action="store_true", help="pipeline processes as clients of the router (every "
+                                                         "message through it, as from other nodes) instead of "
+                                                         "peers linked directly, as `vergence up` runs them")
     p.add_argument("--floor", action="store_true", help="also the messaging floor: CPU per 27 KB message of the "
                                                         "router and of one Python subscriber, at 1 kHz")
     p.add_argument("--json", action="store_true", help="one JSON object per run")
@@ -64,20 +67,20 @@ def _free_port() -> int:
 class Cluster:
     """A router, a reducer and N workers as child processes (own process groups), torn down on exit."""
 
-    def __init__(self, workdir: Path, rig: str, config: str, workers: int, peer: bool = False):
+    def __init__(self, workdir: Path, rig: str, config: str, workers: int, client: bool = False):
         self.dir, self.rig, self.config = workdir, rig, config
         self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
         self.procs: list[subprocess.Popen] = []
-        self.extra = ["--mode", "peer", "--listen", "tcp/127.0.0.1:0"] if peer else []
-        self.spawn("router", "router", "--listen", self.endpoint, client=False)
+        self.extra = [] if client else ["--mode", "peer", "--listen", "tcp/127.0.0.1:0"]  # as `vergence up`
+        self.spawn("router", "router", "--listen", self.endpoint, member=False)
         time.sleep(0.3)
         for i in range(workers):
             self.spawn(f"worker{i}", "worker", "--name", f"b{i}")
         self.spawn("reducer", "reducer")
 
-    def spawn(self, name: str, *args: str, client: bool = True) -> subprocess.Popen:
+    def spawn(self, name: str, *args: str, member: bool = True) -> subprocess.Popen:
         argv = [sys.executable, "-m", "services.cli", *args]
-        if client:
+        if member:
             argv += ["--connect", self.endpoint, "--rig", self.rig, "--config", self.config] + self.extra
         log = open(self.dir / f"{name}.log", "ab")
         p = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
@@ -186,7 +189,7 @@ def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: 
     base_ms = in_process_ms(master, slave, params, n=30 if width < 2000 else 3)
     rows = []
     for nw in args.workers:
-        cl = Cluster(workdir, f"bench{os.getpid()}{name}{nw}", str(cfg), nw, args.peer)
+        cl = Cluster(workdir, f"bench{os.getpid()}{name}{nw}", str(cfg), nw, args.client)
         try:
             s = _session(cl.endpoint)
             try:

@@ -1,10 +1,13 @@
 """`vergence up [--workers N] [--source SPEC] [--driver sim] [--listen ENDPOINT]`: the whole pipeline here.
 
 Starts, as child processes: a Zenoh router listening on ENDPOINT (default tcp/127.0.0.1:7447), the actuator,
-N workers, the reducer and the capture, all connected to that router. With no arguments it runs the simulated
-rig. SIGINT (Ctrl-C) or SIGTERM stops the children in order (capture first, router last), each with SIGINT and
-then SIGKILL after a grace time; children also get SIGTERM if `up` itself dies (Linux parent-death signal),
-so nothing is left behind. A child that exits on its own is reported; if the router exits, everything stops.
+N workers, the reducer and the capture. These are Zenoh peers: each connects to the router, learns the others
+from it and links to them directly on 127.0.0.1, so a frame crosses one link per stage and the router carries
+no data between them (it serves the clients: `vergence monitor`, workers on other nodes). With no arguments it
+runs the simulated rig. SIGINT (Ctrl-C) or SIGTERM stops the children in order (capture first, router last),
+each with SIGINT and then SIGKILL after a grace time; children also get SIGTERM if `up` itself dies (Linux
+parent-death signal), so nothing is left behind. A child that exits on its own is reported; if the router
+exits, everything stops.
 """
 
 from __future__ import annotations
@@ -54,7 +57,8 @@ def _die_with_parent() -> None:
 def commands(args: argparse.Namespace, rig: str) -> list[tuple[str, list[str]]]:
     """(name, argv) of every child, in start order: router, actuator, workers, reducer, capture."""
     base = [sys.executable, "-m", "services.cli"]
-    common = ["--connect", args.listen, "--rig", rig] + (["--config", args.config] if args.config else [])
+    common = ["--mode", "peer", "--connect", args.listen, "--listen", "tcp/127.0.0.1:0", "--rig", rig]
+    common += ["--config", args.config] if args.config else []
     out = [("router", base + ["router", "--listen", args.listen])]
     if not args.no_actuator:
         act = base + ["actuator"] + common
