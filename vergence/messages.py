@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import types
 import typing
-from dataclasses import MISSING, asdict, dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields
 from typing import ClassVar
 
 import msgpack
@@ -27,50 +27,79 @@ class MessageError(ValueError):
     """A message that cannot be decoded or fails validation."""
 
 
-def _check_type(name: str, value, tp) -> object:
+def _expected(name: str, what: str, value) -> MessageError:
+    return MessageError(f"field {name!r}: expected {what}, got {type(value).__name__}")
+
+
+def _checker(tp):
+    """A function (value, name) -> the value as the field's type, or MessageError: built once per field type,
+    so decoding a message does no typing introspection."""
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         args = typing.get_args(tp)
-        if value is None and type(None) in args:
-            return None
-        errors = []
-        for a in args:
-            if a is type(None):
-                continue
-            try:
-                return _check_type(name, value, a)
-            except MessageError as e:
-                errors.append(str(e))
-        raise MessageError(errors[0] if len(errors) == 1 else f"field {name!r}: unexpected {type(value).__name__}")
+        optional = type(None) in args
+        subs = [_checker(a) for a in args if a is not type(None)]
+
+        def check_union(value, name):
+            if value is None and optional:
+                return None
+            errors = []
+            for sub in subs:
+                try:
+                    return sub(value, name)
+                except MessageError as e:
+                    errors.append(str(e))
+            raise MessageError(errors[0] if len(errors) == 1 else f"field {name!r}: unexpected {type(value).__name__}")
+        return check_union
     if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise MessageError(f"field {name!r}: expected a number, got {type(value).__name__}")
-        return float(value)
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise MessageError(f"field {name!r}: expected an integer, got {type(value).__name__}")
-        return value
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise MessageError(f"field {name!r}: expected a boolean, got {type(value).__name__}")
-        return value
-    if tp is str:
-        if not isinstance(value, str):
-            raise MessageError(f"field {name!r}: expected a string, got {type(value).__name__}")
-        return value
+        def check_float(value, name):
+            if type(value) is float:
+                return value
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise _expected(name, "a number", value)
+            return float(value)
+        return check_float
+    if tp in (int, bool, str):
+        what = {int: "an integer", bool: "a boolean", str: "a string"}[tp]
+
+        def check_exact(value, name):
+            if type(value) is tp:
+                return value
+            if tp is not bool and isinstance(value, tp) and not isinstance(value, bool):
+                return value  # a subclass (an IntEnum, a str subclass)
+            raise _expected(name, what, value)
+        return check_exact
     if tp is bytes:
-        if not isinstance(value, (bytes, bytearray)):
-            raise MessageError(f"field {name!r}: expected bytes, got {type(value).__name__}")
-        return bytes(value)
+        def check_bytes(value, name):
+            if type(value) is bytes:
+                return value
+            if not isinstance(value, (bytes, bytearray)):
+                raise _expected(name, "bytes", value)
+            return bytes(value)
+        return check_bytes
     if origin is list:
         (inner,) = typing.get_args(tp)
-        if not isinstance(value, (list, tuple)):
-            raise MessageError(f"field {name!r}: expected a list, got {type(value).__name__}")
-        return [_check_type(f"{name}[{i}]", x, inner) for i, x in enumerate(value)]
+        sub = _checker(inner)
+
+        def check_list(value, name):
+            if not isinstance(value, (list, tuple)):
+                raise _expected(name, "a list", value)
+            return [sub(x, f"{name}[{i}]") for i, x in enumerate(value)]
+        return check_list
     raise TypeError(f"unsupported field type {tp!r}")  # a programming error, not bad input
 
 
-_HINTS: dict[type, dict] = {}
+_SPECS: dict[type, list] = {}
+
+
+def _spec(cls) -> list[tuple[str, str, object, bool]]:
+    """(field name, qualified name, checker, has a default) of every field of a message class, built once."""
+    spec = _SPECS.get(cls)
+    if spec is None:
+        hints = typing.get_type_hints(cls)  # ~140 us: once per class, not per message
+        spec = _SPECS[cls] = [(f.name, f"{cls.KIND}.{f.name}", _checker(hints[f.name]),
+                               f.default is not MISSING or f.default_factory is not MISSING) for f in fields(cls)]
+    return spec
 
 
 class Message:
@@ -79,7 +108,7 @@ class Message:
     KIND: ClassVar[str] = ""
 
     def to_dict(self) -> dict:
-        d = asdict(self)
+        d = {name: getattr(self, name) for name, _, _, _ in _spec(type(self))}
         d["v"] = SCHEMA
         return d
 
@@ -92,16 +121,12 @@ class Message:
             raise MessageError(f"{cls.KIND}: expected a map, got {type(d).__name__}")
         if d.get("v") != SCHEMA:
             raise MessageError(f"{cls.KIND}: schema version {d.get('v')!r}, this build speaks {SCHEMA}")
-        hints = _HINTS.get(cls)
-        if hints is None:  # get_type_hints costs ~140 us: once per class, not per message
-            hints = _HINTS[cls] = typing.get_type_hints(cls)
         kw = {}
-        for f in fields(cls):
-            if f.name not in d:
-                if f.default is not MISSING or f.default_factory is not MISSING:
-                    continue
-                raise MessageError(f"{cls.KIND}: missing field {f.name!r}")
-            kw[f.name] = _check_type(f"{cls.KIND}.{f.name}", d[f.name], hints[f.name])
+        for name, qual, check, has_default in _spec(cls):
+            if name in d:
+                kw[name] = check(d[name], qual)
+            elif not has_default:
+                raise MessageError(f"{cls.KIND}: missing field {name!r}")
         msg = cls(**kw)
         msg.validate()
         return msg
