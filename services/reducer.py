@@ -20,7 +20,7 @@ import time
 
 import zenoh
 
-from vergence import pipeline
+from vergence import kernel, pipeline
 from vergence.config import load
 from vergence.messages import Frame, MessageError, Partial
 
@@ -40,6 +40,7 @@ def configure(p: argparse.ArgumentParser) -> None:
 def warm_up(settings) -> None:
     """Decide once on a synthetic textured frame (left-right check included), so the first real frame
     does not pay for loading the compiled kernels."""
+    kernel.warm_up()
     import numpy as np
 
     rng = np.random.default_rng(0)

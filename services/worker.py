@@ -18,7 +18,7 @@ import time
 import numpy as np
 import zenoh
 
-from vergence import pipeline
+from vergence import kernel, pipeline
 from vergence.config import load
 from vergence.match import Params
 from vergence.messages import Frame, MessageError
@@ -36,6 +36,7 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def warm_up(params: Params) -> None:
     """Run the kernel once on a small synthetic frame, so the first real frame is not late."""
+    kernel.warm_up()
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, (64, 96), np.uint8)
     p = Params(window=15, vsearch=min(params.vsearch, 2), circular=params.circular, support=params.support)

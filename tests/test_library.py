@@ -277,3 +277,17 @@ def test_faithful_params_turn_every_extension_off():
             p.max_window) == (0, False, False, 0.0, 0.0, False, False, 0)
     with pytest.raises(TypeError, match="unknown parameter"):
         vergence.Params.build(windw=3)
+
+
+def test_warm_up_compiles_both_kernels():
+    """Services call kernel.warm_up() before announcing themselves: afterwards a frame compiles nothing."""
+    kernel.warm_up()
+    assert kernel._sad.signatures
+    if simd.AVAILABLE:
+        assert simd._drive.signatures
+        n = len(simd._drive.signatures)
+        rng = np.random.default_rng(3)
+        fovea = rng.integers(0, 256, (3, 15, 15), dtype=np.uint8)
+        band = rng.integers(0, 256, (3, 27, 640), dtype=np.uint8)
+        kernel.sad(fovea, band, weights=kernel.support_weights(fovea))  # a frame's size: the simd kernel
+        assert len(simd._drive.signatures) == n

@@ -14,7 +14,7 @@ import numpy as np
 
 from . import simd
 
-__all__ = ["sad", "portable_sad", "correlate", "scores_from_sad", "support_weights"]
+__all__ = ["sad", "portable_sad", "correlate", "scores_from_sad", "support_weights", "warm_up"]
 
 CIRCULAR_D = True  # default of the circular direction comparison (an extension; faithful turns it off)
 
@@ -193,3 +193,13 @@ def support_weights(fovea: np.ndarray, gamma: float = 8.0, radius: float = 7.0, 
     i = fovea[0].astype(np.int16)
     like = _likeness(float(gamma))[np.abs(i - i[w // 2, w // 2])]
     return np.rint(like * _nearness(w, float(radius)) * levels).astype(np.uint8)
+
+
+def warm_up() -> None:
+    """Compile, or load from numba's cache, both kernels (sad() picks one by size): a service calls this
+    before it announces itself, so that no frame pays for it."""
+    fovea = np.zeros((3, 3, 3), np.uint8)
+    band = np.zeros((3, 3, 8), np.uint8)
+    portable_sad(fovea, band)
+    if simd.AVAILABLE:
+        simd.sad(fovea, band, 0, 6, None)
