@@ -10,7 +10,8 @@ import numpy as np
 from . import kernel, retina
 from .decide import Decision, decide, texture
 
-__all__ = ["Params", "Match", "match", "decide_scores", "lr_consistent", "halves_consistent", "FAITHFUL"]
+__all__ = ["Params", "Match", "match", "decide_scores", "apply_checks", "lr_consistent", "halves_consistent",
+           "FAITHFUL"]
 
 
 @dataclass(frozen=True)
@@ -108,6 +109,13 @@ def decide_scores(scores: np.ndarray, fovea: np.ndarray, x: int, params: Params,
     w = fovea.shape[1]
     d = decide(scores, w, k_centre=x - w // 2, subpixel=params.subpixel, tex=texture(fovea),
                min_texture=params.min_texture, min_margin=params.min_margin)
+    return apply_checks(d, fovea, x, params, master_rows, slave_band)
+
+
+def apply_checks(d: Decision, fovea: np.ndarray, x: int, params: Params, master_rows: np.ndarray | None = None,
+                 slave_band: np.ndarray | None = None) -> Decision:
+    """decide_scores' second half: the left-right and halves checks on a decision (only a confident one can
+    change), for a caller that gets the bands only once it knows the decision (the reducer)."""
     if params.lr_check and d.confident and master_rows is not None and slave_band is not None:
         d = replace(d, confident=lr_consistent(master_rows, slave_band, x, d, params))
     if params.halves_check and d.confident and slave_band is not None:

@@ -21,7 +21,7 @@ import numpy as np
 from . import kernel, retina
 from .control import ControlSettings, Controller
 from .decide import Decision
-from .match import Params, decide_scores
+from .match import Params, apply_checks, decide_scores
 from .messages import Command, Frame, Partial, Profile
 
 __all__ = ["plan_shards", "make_frame", "frame_params", "compute_partial", "reduce", "Gatherer", "Result",
@@ -99,7 +99,7 @@ def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
 
     The slave band's features (for the left-right check, with the master band's gray strip, and the halves
     check) are computed only when the checks can change the result, i.e. when the decision without them is
-    confident; decide_scores is then called again with them."""
+    confident; apply_checks then runs the checks on that decision."""
     p = frame_params(frame, params)
     fovea = retina.planes(frame.fovea_strip())
     y = scores[0] if scores.shape[0] == 1 else scores
@@ -115,7 +115,7 @@ def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
         reach = p.halves_range if p.halves_check else 0
         c0, c1 = max(0, d.k - reach), min(sband.shape[2], d.k + reach + w)
         sband[:, :, c0:c1] = retina.planes(band[:, c0 : c1 + 2])
-        d = decide_scores(y, fovea, frame.x, p, mstrip, sband)
+        d = apply_checks(d, fovea, frame.x, p, mstrip, sband)
     return d
 
 
