@@ -1,0 +1,73 @@
+"""The benchmark commands run and report consistent figures (their speed targets live in the README, not here:
+this machine is shared and noisy)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from services.bench_pipeline import summary
+
+CLI = [sys.executable, "-m", "services.cli", "bench"]
+
+
+def _rows(*args: str, timeout: float) -> list[dict]:
+    r = subprocess.run(CLI + list(args), capture_output=True, text=True, timeout=timeout)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
+
+
+def test_bench_kernel_reports_both_baselines_and_their_ratios():
+    rows = _rows("kernel", "--quick", "--json", "--repeats", "2", timeout=300)
+    assert [r["case"] for r in rows] == ["W=640 w=15 V=1", "W=3840 w=31 V=33"]
+    for r in rows:
+        assert r["correlate_ms"] > 0 and r["opencv_ms"] > 0 and r["numpy_ms"] > 0
+        assert r["ratio_vs_opencv"] == pytest.approx(r["correlate_ms"] / r["opencv_ms"])
+        assert r["ratio_vs_numpy"] == pytest.approx(r["correlate_ms"] / r["numpy_ms"])
+
+
+def test_bench_match_reports_its_parts():
+    (r,) = _rows("match", "--json", "--repeats", "20", timeout=300)
+    assert set(r) >= {"match_ms", "match_faithful_ms", "features_ms", "kernel_ms"}
+    assert all(v > 0 for v in r.values())
+
+
+def _ours(rig_part: str) -> list[str]:
+    """Command lines of live processes whose arguments contain rig_part."""
+    out = []
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit() and int(p.name) != os.getpid():
+            try:
+                cmd = (p / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            except OSError:
+                continue
+            if rig_part in cmd:
+                out.append(cmd)
+    return out
+
+
+def test_bench_pipeline_runs_real_processes_and_leaves_none_behind():
+    r = subprocess.Popen(CLI + ["pipeline", "--workers", "1", "--rate", "40", "--seconds", "1.5", "--json"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    out, err = r.communicate(timeout=180)
+    assert r.returncode == 0, err[-2000:]
+    (row,) = [json.loads(line) for line in out.splitlines()]
+    assert row["setting"] == "vga" and row["workers"] == 1 and row["rate_hz"] == 40 and row["frames"] == 60
+    assert row["commands"] + row["drops"] == 60 and row["commands"] >= 50
+    assert 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
+    assert row["overhead"] == pytest.approx(row["p50_ms"] / row["match_ms"])
+    assert _ours(f"bench{r.pid}") == []  # its router, worker, reducer and capture (rig bench<pid>...) are gone
+
+
+def test_summary_names_the_highest_rate_without_drops():
+    rows = [dict(setting="vga", workers=2, rate_hz=100.0, drops=0, p50_ms=3.1, p99_ms=5.0),
+            dict(setting="vga", workers=2, rate_hz=250.0, drops=0, p50_ms=2.7, p99_ms=4.5),
+            dict(setting="vga", workers=2, rate_hz=500.0, drops=19, p50_ms=2.8, p99_ms=30.0),
+            dict(setting="heavy", workers=1, rate_hz=10.0, drops=3, p50_ms=9.0, p99_ms=20.0)]
+    assert summary(rows) == ["vga    2 worker(s): held 250 Hz without drops (p50 2.70 ms, p99 4.50 ms)",
+                             "heavy  1 worker(s): every rate tried dropped frames"]
