@@ -263,8 +263,8 @@ class Collector:
 
 
 def textured_pair(tmp_path: Path, seed: int = 3, shift: int = 12) -> str:
-    """A `files:LEFT,RIGHT` source: a 320 x 120 textured pair whose slave sees the scene `shift` px further
-    left (every frame's decision: offset -shift)."""
+    """A `files:LEFT,RIGHT` source: a 320 x 120 textured pair whose slave image shows the scene `shift` px
+    further right (every frame's decision: offset_px = +shift)."""
     import cv2
     import numpy as np
 

@@ -290,3 +290,31 @@ def test_up_sigint_leaves_nothing_behind(tmp_path, pair):
         wait_for(lambda: not _pids_with(P.rig) and not _pids_with(endpoint), 5, "no process left", logs=P.logs)
         assert "router stopped (exit 0)" in up.text()
         assert "did not stop" not in up.text()  # every child left on SIGINT by itself
+
+
+def test_a_client_worker_joins_the_peers_of_up(tmp_path, pair):
+    """`vergence up` runs its children as Zenoh peers linked directly; a worker started elsewhere as a client
+    of its router (as on another node) joins the plan, and the frames it shares complete: the router carries
+    its traffic to and from the peers."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with Procs(tmp_path) as P:
+        P.endpoint = endpoint
+        P.start("up", "up", "--listen", endpoint, "--source", pair, "--workers", "1", "--rate", "20",
+                "--config", config(tmp_path), connect=False)
+        s = P.session()
+        P.wait_alive(s, "worker", 1, timeout=60)
+        profiles = P.collect(s, P.key("profile"))
+        P.start("remote", "worker", "--name", "remote")  # a client of the router: the default mode
+
+        def shared():
+            for _, b, _ in profiles.snapshot():
+                prof = Profile.from_bytes(b)
+                if len(prof.workers) == 2 and any(w.startswith("remote-") for w in prof.workers):
+                    return prof
+            return None
+
+        prof = wait_for(shared, 40, "a profile computed by the peer worker and the client one", logs=P.logs)
+        assert prof.offset_px == pytest.approx(12, abs=0.5) and prof.confident  # the pair: slave = master + 12 px
+        cmds = P.collect(s, P.key("command"))
+        got = [Command.from_bytes(b) for _, b, _ in cmds.wait(5, 20)]
+        assert all(c.frame > prof.frame for c in got)
