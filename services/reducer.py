@@ -28,7 +28,7 @@ from . import session
 
 log = logging.getLogger("vergence.reducer")
 STATUS_S = 1.0
-EXPIRE_S = 0.005  # how often deadlines are checked (frames also expire as messages arrive)
+EXPIRE_S = 0.05  # the longest sleep between deadline checks (frames also expire as messages arrive)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -119,11 +119,15 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
                                                 **extra)).encode()
 
         next_status = time.monotonic() + STATUS_S
+        sleep = EXPIRE_S
         try:
-            while not stop.wait(EXPIRE_S):
+            while not stop.wait(sleep):
                 with lock:
                     gatherer.expire()
+                    due = gatherer.next_deadline()
                 now = time.monotonic()
+                # wake at the next deadline (every 5 ms before: 200 wake-ups a second for nothing)
+                sleep = EXPIRE_S if due is None else min(EXPIRE_S, max(0.001, due - now))
                 if now >= next_status:
                     pub_status.put(status())
                     next_status = now + STATUS_S
