@@ -40,9 +40,9 @@ def configure(p: argparse.ArgumentParser) -> None:
 def warm_up(settings) -> None:
     """Decide once on a synthetic textured frame (left-right check included), so the first real frame
     does not pay for loading the compiled kernels."""
-    kernel.warm_up()
     import numpy as np
 
+    kernel.warm_up()
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, (64, 128), np.uint8)
     p = dataclasses.replace(settings.network, window=15, vsearch=min(settings.network.vsearch, 2))

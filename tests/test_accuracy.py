@@ -53,7 +53,7 @@ def accuracy(name: str, params: vergence.Params):
 
 
 # Measured (default Params), confident / within 1 px of those: cones 87% / 100%, teddy 93% / 97.8%,
-# tsukuba 85% / 97.6%, venus 92% / 100% (before the halves check and min_texture 2: 94/97.9, 92/96.7, 92/94.6,
+# tsukuba 85% / 97.6%, venus 93% / 100% (before the halves check and min_texture 2: 94/97.9, 92/96.7, 92/94.6,
 # 89/100). Held-out draws (seed 1, seed 2) are short of 97% on teddy and tsukuba (see README 'Accuracy'):
 # the remaining errors are at the depth-edge pixels themselves, where every part of the window agrees.
 
