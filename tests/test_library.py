@@ -291,3 +291,23 @@ def test_warm_up_compiles_both_kernels():
         band = rng.integers(0, 256, (3, 27, 640), dtype=np.uint8)
         kernel.sad(fovea, band, weights=kernel.support_weights(fovea))  # a frame's size: the simd kernel
         assert len(simd._drive.signatures) == n
+
+
+@settings(max_examples=60, deadline=None)
+@given(h=st.integers(1, 24), extra=st.integers(0, 60), k0=st.floats(0, 1), k1=st.floats(0, 1),
+       seed=st.integers(0, 2**31 - 1), circ=st.booleans(), weighted=st.booleans())
+def test_half_sads_equal_sad_with_the_half_masks(h, extra, k0, k1, seed, circ, weighted):
+    """kernel.half_sads (the halves check's one pass) against kernel.sad with each half's 0/1 mask as weights:
+    left and right keep the centre column, top and bottom the centre row."""
+    w = 2 * h - 1
+    rng = np.random.default_rng(seed)
+    fovea = rng.integers(0, 256, (3, w, w), dtype=np.uint8)
+    rows = rng.integers(0, 256, (3, w, w + extra), dtype=np.uint8)
+    wt = rng.integers(0, 9, (w, w), dtype=np.uint8) if weighted else np.ones((w, w), np.uint8)
+    left = np.zeros((w, w), np.uint8)
+    left[:, : w // 2 + 1] = 1
+    masks = [left, left[:, ::-1], left.T, left.T[::-1]]
+    a, b = sorted((int(k0 * (extra + 1)), int(k1 * (extra + 1))))
+    got = kernel.half_sads(fovea, rows, a, b, circular=circ, weights=wt if weighted else None)
+    want = np.stack([kernel.sad(fovea, rows, a, b, circular=circ, weights=m * wt)[0] for m in masks])
+    assert np.array_equal(got, want.reshape(4, b - a))

@@ -14,7 +14,7 @@ import numpy as np
 
 from . import simd
 
-__all__ = ["sad", "portable_sad", "correlate", "scores_from_sad", "support_weights", "warm_up"]
+__all__ = ["sad", "portable_sad", "half_sads", "correlate", "scores_from_sad", "support_weights", "warm_up"]
 
 CIRCULAR_D = True  # default of the circular direction comparison (an extension; faithful turns it off)
 
@@ -93,6 +93,54 @@ def _sad(fovea, band, weights, k0, k1, circular, out):
                     for k in range(n):
                         o[k] += acc[k]
                         acc[k] = 0
+
+
+@numba.njit(cache=True, nogil=True)
+def _half_sads(fovea, rows, weights, k0, k1, circular, out):
+    nplanes, w, _ = fovea.shape
+    c = w // 2
+    n = k1 - k0
+    for p in range(nplanes):
+        circ = circular and p == 2
+        for i in range(w):
+            vert = 2 if i < c else 3 if i > c else -1  # top, bottom, or both (the centre row)
+            for j in range(w):
+                wt = np.int64(weights[i, j])
+                if wt == 0:
+                    continue
+                horiz = 0 if j < c else 1 if j > c else -1  # left, right, or both (the centre column)
+                f = np.int64(fovea[p, i, j])
+                row = rows[p, i]
+                for k in range(n):
+                    e = abs(np.int64(row[k0 + k + j]) - f)
+                    if circ:
+                        e = min(e, 256 - e)
+                    e *= wt
+                    if horiz < 0:
+                        out[0, k] += e
+                        out[1, k] += e
+                    else:
+                        out[horiz, k] += e
+                    if vert < 0:
+                        out[2, k] += e
+                        out[3, k] += e
+                    else:
+                        out[vert, k] += e
+
+
+def half_sads(fovea: np.ndarray, rows: np.ndarray, k0: int, k1: int, *, circular: bool = True,
+              weights: np.ndarray | None = None) -> np.ndarray:
+    """S of the left, right, top and bottom halves of the fovea (each with the centre column or row) at offsets
+    k0..k1-1 along rows ((3, w, W): no vertical search), in one pass: a (4, k1 - k0) int64 array, row h equal
+    to sad() with the half's 0/1 mask (times weights) as the weights."""
+    k0, k1 = _check(fovea, rows, k0, k1)
+    if rows.shape[1] != fovea.shape[1]:
+        raise ValueError(f"rows must be as tall as the fovea ({fovea.shape[1]}), got {rows.shape[1]}")
+    w = fovea.shape[1]
+    weights = _ones(w) if weights is None else np.ascontiguousarray(weights, dtype=np.uint8)
+    out = np.zeros((4, k1 - k0), np.int64)
+    _half_sads(np.ascontiguousarray(fovea), np.ascontiguousarray(rows), weights, k0, k1, circular, out)
+    return out
 
 
 def _check(fovea: np.ndarray, band: np.ndarray, k0: int, k1: int | None) -> tuple[int, int]:
@@ -201,5 +249,6 @@ def warm_up() -> None:
     fovea = np.zeros((3, 3, 3), np.uint8)
     band = np.zeros((3, 3, 8), np.uint8)
     portable_sad(fovea, band)
+    half_sads(fovea, band, 0, 6)
     if simd.AVAILABLE:
         simd.sad(fovea, band, 0, 6, None)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
@@ -139,21 +138,13 @@ def lr_consistent(master_rows: np.ndarray, slave_band: np.ndarray, x: int, d: De
 HALVES_TOLERANCE = 2  # px: how far a half's own best offset may lie from the winner (1 abstains at too many points)
 
 
-@functools.lru_cache(maxsize=64)
-def _halves(w: int) -> tuple[np.ndarray, ...]:
-    left = np.zeros((w, w), np.uint8)
-    left[:, : w // 2 + 1] = 1  # the centre column belongs to both halves
-    masks = (left, left[:, ::-1], left.T, left.T[::-1])
-    return tuple(np.ascontiguousarray(m) for m in masks)
-
-
 def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, params: Params) -> bool:
     """The halves check: the left, right, top and bottom halves of the fovea (the centre row or column in
     each), weighed by the fovea's support weights when params.support, each matched alone along the winning
     row v at offsets within params.halves_range of the winner k, must each find their best offset within
     HALVES_TOLERANCE (2) px of k. At a depth edge the half on the other surface finds that surface's offset:
     the fovea straddles two surfaces and the winner may be the wrong one's (foreground fattening), so abstain.
-    Exact integers (kernel.sad with the halves as 0/1 or support weights); reads the band's columns
+    Exact integers (kernel.half_sads, the four halves in one pass); reads the band's columns
     k - R .. k + R + w - 1 of the winning rows only."""
     w = fovea.shape[1]
     r = (slave_band.shape[1] - w) // 2  # the vertical search R
@@ -161,11 +152,8 @@ def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, pa
     k0, k1 = max(0, d.k - params.halves_range), min(kk, d.k + params.halves_range + 1)
     rows = slave_band[:, r + d.v : r + d.v + w, :]
     wts = kernel.support_weights(fovea, params.support_gamma, params.support_radius) if params.support else None
-    for half in _halves(w):
-        s = kernel.sad(fovea, rows, k0, k1, circular=params.circular, weights=half if wts is None else half * wts)
-        if abs(k0 + int(np.argmin(s[0])) - d.k) > HALVES_TOLERANCE:
-            return False
-    return True
+    s = kernel.half_sads(fovea, rows, k0, k1, circular=params.circular, weights=wts)
+    return bool(np.all(np.abs(k0 + np.argmin(s, axis=1) - d.k) <= HALVES_TOLERANCE))
 
 
 def _one(master, slave, x, y, w, p: Params) -> Match:
