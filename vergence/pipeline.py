@@ -24,8 +24,8 @@ from .decide import Decision
 from .match import Params, apply_checks, decide_scores
 from .messages import Command, Frame, Partial, Profile
 
-__all__ = ["plan_shards", "make_frame", "frame_params", "compute_partial", "reduce", "Gatherer", "Result",
-           "WindowControl", "Health"]
+__all__ = ["plan_shards", "make_frame", "frame_params", "compute_partial", "reduce", "make_profile", "Gatherer",
+           "Result", "WindowControl", "Health"]
 
 
 def plan_shards(workers, k_count: int) -> list[list]:
@@ -119,35 +119,58 @@ def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
     return d
 
 
-def reduce(frame: Frame, scores: np.ndarray, params: Params, controller: Controller,
-           t_reduced_ns: int | None = None) -> tuple[Profile, Command | None]:
-    """A complete profile -> (Profile, Command or None when the controller says not to move)."""
-    d = decide_frame(frame, scores, params)
-    now = time.time_ns() if t_reduced_ns is None else t_reduced_ns
-    workers = [str(e[0]) for e in frame.plan]
-    prof = Profile(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, t_reduced_ns=now,
+def make_profile(frame: Frame, scores: np.ndarray, d: Decision, t_reduced_ns: int) -> Profile:
+    """The Profile message of a reduced frame: the whole layer-4 vector with the decision."""
+    return Profile(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, t_reduced_ns=t_reduced_ns,
                    width=frame.width, window=frame.window, rows=scores.shape[0],
                    scores=np.ascontiguousarray(scores, "<f8").tobytes(), k=d.k, k_sub=d.k_sub, v_shift=d.v,
                    k_centre=d.k_centre, direction=d.direction, magnitude=d.magnitude, offset_px=d.offset_px,
                    confidence=d.confidence, confident=d.confident,
-                   texture=d.texture if math.isfinite(d.texture) else 0.0, pan_rad=frame.pan_rad, workers=workers)
+                   texture=d.texture if math.isfinite(d.texture) else 0.0, pan_rad=frame.pan_rad,
+                   workers=[str(e[0]) for e in frame.plan])
+
+
+def _command(frame: Frame, d: Decision, controller: Controller) -> Command | None:
     target = controller.target(frame.pan_rad, d.offset_px, frame.focal_px, d.confident,
                                centre_px=frame.x - frame.width // 2)
     if target is None:
-        return prof, None
-    cmd = Command(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, pan_rad=target,
-                  correction_rad=target - frame.pan_rad, direction=d.direction, magnitude_px=abs(d.offset_px),
-                  confidence=d.confidence, t_sent_ns=time.time_ns())
-    return prof, cmd
+        return None
+    return Command(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, pan_rad=target,
+                   correction_rad=target - frame.pan_rad, direction=d.direction, magnitude_px=abs(d.offset_px),
+                   confidence=d.confidence, t_sent_ns=time.time_ns())
+
+
+def reduce(frame: Frame, scores: np.ndarray, params: Params, controller: Controller,
+           t_reduced_ns: int | None = None) -> tuple[Profile, Command | None]:
+    """A complete profile -> (Profile, Command or None when the controller says not to move)."""
+    r = Result.of(frame, scores, params, controller, t_reduced_ns)
+    return r.profile, r.command
 
 
 @dataclass
 class Result:
-    """A complete frame, reduced: its profile and its command (None: do not move)."""
+    """A complete frame, reduced: its decision, its command (None: do not move) and, built when first asked
+    for (a 65 KB message at 640 px with vertical search: only when someone subscribes to it), its profile."""
 
     frame: Frame
-    profile: Profile
+    decision: Decision
     command: Command | None
+    scores: np.ndarray = field(repr=False)
+    t_reduced_ns: int = 0
+    _profile: Profile | None = field(default=None, repr=False)
+
+    @classmethod
+    def of(cls, frame: Frame, scores: np.ndarray, params: Params, controller: Controller,
+           t_reduced_ns: int | None = None) -> "Result":
+        d = decide_frame(frame, scores, params)
+        now = time.time_ns() if t_reduced_ns is None else t_reduced_ns
+        return cls(frame, d, _command(frame, d, controller), scores, now)
+
+    @property
+    def profile(self) -> Profile:
+        if self._profile is None:
+            self._profile = make_profile(self.frame, self.scores, self.decision, self.t_reduced_ns)
+        return self._profile
 
 
 @dataclass
@@ -257,9 +280,8 @@ class Gatherer:
             parts.append(a)
         scores = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
         self._finish(fid)
-        prof, cmd = reduce(f, scores, self.params, self.controller)
         self.counters["complete"] += 1
-        out.append(Result(f, prof, cmd))
+        out.append(Result.of(f, scores, self.params, self.controller))
         return out
 
     def _finish(self, fid: int) -> None:
