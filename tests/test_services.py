@@ -133,7 +133,7 @@ def test_kill_and_add_workers_commands_continue_never_incomplete(tmp_path, pair)
         # never a command from an incomplete profile: every command's frame had every shard of its plan.
         # (This test's own subscriber may miss a message under load: check the commands whose frame it saw.)
         checked = 0
-        for fid, (t_cmd, c) in cmd.items():
+        for fid, (_, c) in cmd.items():
             if fid not in fr or fid not in prof:
                 continue
             f = fr[fid][1]
@@ -141,8 +141,11 @@ def test_kill_and_add_workers_commands_continue_never_incomplete(tmp_path, pair)
             if any(wid not in got.get(fid, {}) for wid, _, _ in f.plan):
                 continue  # a partial this test did not see (counted by `checked` below)
             for wid, k0, k1 in f.plan:
-                t_p, p = got[fid][wid]
-                assert (p.k0, p.k1) == (k0, k1) and t_p <= t_cmd + 2_000_000
+                _, p = got[fid][wid]
+                # every shard was computed before the command went out (both stamps from this host's clock;
+                # arrival times at this test's subscriber were not strict enough: a busy test process
+                # stamped a partial 3.5 ms after the command)
+                assert (p.k0, p.k1) == (k0, k1) and 0 < p.t_done_ns <= c.t_sent_ns
             checked += 1
         assert checked >= 0.9 * len(cmd) > 0
         # commands continue after the loss, with a bounded number of frames lost around it
