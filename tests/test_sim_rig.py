@@ -2,6 +2,7 @@
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -90,6 +91,18 @@ def test_photometric_options_and_determinism():
     clean = Rig.from_spec("seed=5")
     mc, _ = clean.render(0.01)
     assert 2.0 < np.abs(ma.astype(float) - mc).mean() < 4.0  # noise sigma 3
+
+
+def test_the_two_cameras_noise_is_independent():
+    """Sensor noise is drawn for each camera apart: the slave's noise field is never the master's shifted
+    (they once shared pre-drawn fields, and the network matched the noise pattern of a flat wall)."""
+    flat = np.full((240, 320), 128, np.uint8)
+    rig = Rig(flat, flat, noise=4.0, seed=1)
+    for _ in range(12):
+        master, slave = (v.astype(np.float32) for v in rig.render(0.0))
+        probe = master[88:152, 128:192]  # 64 x 64 from the middle, searched over every shift
+        best = cv2.matchTemplate(slave, probe, cv2.TM_CCOEFF_NORMED).max()
+        assert best < 0.3
 
 
 def test_generated_scene_is_a_consistent_pair():

@@ -144,7 +144,7 @@ class Rig:
         # The converged slave pan (NaN when the disparity is unknown).
         self.truth_pan_rad: float = math.atan((x - self.disparity - cxs) / fy)
         self._rng = np.random.default_rng(seed)
-        self._bank: np.ndarray | None = None
+        self._banks: list[np.ndarray] = []  # per camera: [master, slave]
         self._master = self._warp(left, self.master_pan_rad, self.tilt_rad)
 
     # -- construction from the capture source text ------------------------------------------------------
@@ -237,18 +237,20 @@ class Rig:
 
     _BANK, _PAD = 6, 64
 
-    def _noisy(self, img: np.ndarray) -> np.ndarray:
+    def _noisy(self, img: np.ndarray, camera: int) -> np.ndarray:
         """img + Gaussian noise of sigma `noise`, rounded. The noise is cut at a random place out of a few
-        pre-drawn fields (drawing 300 k normals per view took 3-4 ms; this takes well under 1 ms)."""
+        fields pre-drawn for this camera (drawing 300 k normals per view took 3-4 ms; this takes well under
+        1 ms). Each camera has its own fields: with shared ones, the slave's noise was often the master's
+        shifted by a few pixels, a pattern the network matched perfectly on a flat wall and turned to."""
         if self.noise <= 0:
             return img
         h, w = img.shape
-        if self._bank is None:
+        while len(self._banks) <= camera:
             shape = (self._BANK, h + self._PAD, w + self._PAD)
-            self._bank = np.rint(self._rng.standard_normal(shape, dtype=np.float32)
-                                 * np.float32(self.noise)).astype(np.int16)
+            self._banks.append(np.rint(self._rng.standard_normal(shape, dtype=np.float32)
+                                       * np.float32(self.noise)).astype(np.int16))
         i, dy, dx = (int(v) for v in self._rng.integers(0, (self._BANK, self._PAD, self._PAD)))
-        n = self._bank[i, dy:dy + h, dx:dx + w]
+        n = self._banks[camera][i, dy:dy + h, dx:dx + w]
         return np.clip(img + n, 0, 255).astype(np.uint8)
 
     def render(self, slave_pan_rad: float) -> tuple[np.ndarray, np.ndarray]:
@@ -261,7 +263,7 @@ class Rig:
         if self.gain != 1.0 or self.offset != 0.0:
             lin = slave.astype(np.float32) * np.float32(self.gain) + np.float32(self.offset)
             slave = np.clip(lin, 0, 255).astype(np.uint8)
-        return self._noisy(self._master), self._noisy(slave)
+        return self._noisy(self._master, 0), self._noisy(slave, 1)
 
     # -- ground truth -------------------------------------------------------------------------------------
 
