@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -273,10 +274,36 @@ def test_vertical_misalignment_is_found_by_vertical_search():
 
 def test_faithful_params_turn_every_extension_off():
     p = vergence.FAITHFUL
-    assert (p.vsearch, p.circular, p.subpixel, p.min_margin, p.min_texture, p.lr_check, p.support,
-            p.max_window) == (0, False, False, 0.0, 0.0, False, False, 0)
+    assert (p.vsearch, p.circular, p.subpixel, p.min_margin, p.min_texture, p.min_correlation, p.lr_check,
+            p.support, p.halves_check, p.max_window) == (0, False, False, 0.0, 0.0, 0.0, False, False, False, 0)
     with pytest.raises(TypeError, match="unknown parameter"):
         vergence.Params.build(windw=3)
+
+
+def test_correlation_check_tells_a_match_from_two_fields_of_noise():
+    """correlation(): 1 for the same content (whatever the gain and offset between the cameras), 0 for a flat
+    window, and below the default min_correlation (0.3) for independent noise, even at the best offset."""
+    from vergence.match import correlation
+
+    rng = np.random.default_rng(4)
+    fovea = retina.planes(rng.integers(0, 256, (17, 17)).astype(np.uint8))
+    band = np.zeros((3, 15, 40), np.uint8)
+    band[:, :, 10:25] = fovea
+    win = replace(decide(np.arange(26.0), 15), k=10, v=0)  # the check reads the winner's k and v only
+    assert correlation(fovea, band, win) == pytest.approx(1.0)
+    band[0, :, 10:25] = np.clip(fovea[0] * 0.5 + 40, 0, 255).astype(np.uint8)
+    assert correlation(fovea, band, win) == pytest.approx(1.0, abs=0.01)
+    band[0, :, 10:25] = 90
+    assert correlation(fovea, band, win) == 0.0
+    # a flat wall with sigma-3 sensor noise in each camera: the network's own best offset does not pass
+    p = vergence.Params(max_window=0)
+    for seed in range(10):
+        master, slave = (np.clip(128 + np.random.default_rng(2 * seed + i).normal(0, 3, (240, 320)), 0, 255)
+                         .astype(np.uint8) for i in (0, 1))
+        m = vergence.match(master, slave, params=replace(p, min_correlation=0.0, lr_check=False, halves_check=False))
+        fov, bnd = retina.features(master, slave, None, 15, p.vsearch)
+        assert correlation(fov, bnd, m.decision) < 0.3
+        assert not vergence.match(master, slave, params=p).confident
 
 
 def test_warm_up_compiles_both_kernels():

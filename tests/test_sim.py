@@ -87,14 +87,21 @@ def test_loop_converges_from_both_sides(scene):
 
 @pytest.mark.parametrize("fill", [0, 128], ids=["black", "flat-grey"])
 def test_textureless_fixation_never_moves_the_slave(scene, fill):
-    left = scene.left.copy()
-    cy, cx = left.shape[0] // 2, left.shape[1] // 2  # the default fixation: the pair's centre
+    """A flat patch at the fixation point, in the master only or in both views (a wall in front of both
+    cameras), with no noise or with independent sensor noise (sigma 2 and 4) in each camera: no decision is
+    confident and the slave never moves, over 10 frames of 4 noise draws each (before the correlation check,
+    noise alone moved the slave in most such runs)."""
+    cy, cx = scene.left.shape[0] // 2, scene.left.shape[1] // 2  # the default fixation: the pair's centre
+    left, right = scene.left.copy(), scene.right.copy()
     left[cy - 40 : cy + 40, cx - 40 : cx + 40] = fill
-    for noise in (0.0, 2.0):
-        rig = Rig(left, scene.right, size=(480, 360), start_pan_deg=1.0, noise=noise, seed=3)
-        steps = run(rig, frames=10)
-        assert all(not s.confident and s.target_deg is None for s in steps)
-        assert {s.pan_deg for s in steps} == {1.0}
+    right[cy - 40 : cy + 40, cx - 60 : cx + 40] = fill  # where a wall at d <= 20 would be
+    for slave_image in (scene.right, right):
+        for noise in (0.0, 2.0, 4.0):
+            for seed in range(4 if noise else 1):
+                rig = Rig(left, slave_image, size=(480, 360), start_pan_deg=1.0, noise=noise, seed=seed)
+                steps = run(rig, frames=10)
+                assert all(not s.confident and s.target_deg is None for s in steps), (noise, seed)
+                assert {s.pan_deg for s in steps} == {1.0}
 
 
 def test_vertical_misalignment_of_6_px(scene, capsys):
@@ -161,7 +168,7 @@ def _report(name, label, runs, capsys):
 @pytest.mark.parametrize("name", SCENES)
 def test_loop_converges_on_real_scenes(name, capsys):
     """Within 1 px in <= 5 frames and staying there at >= 18 of 20 points (the issue's bar). Measured (Params
-    defaults of this commit): cones 18, teddy 18, tsukuba 17, venus 18, in 2-3 frames. Every miss is a point
+    defaults of this commit): cones 18, teddy 18, tsukuba 17, venus 19, in 2-3 frames. Every miss is a point
     where the static network is itself wrong or abstains on the rectified pair; so below 18 the test xfails
     with the numbers (the matcher's accuracy, not the loop's), and fails outright if the loop loses points the
     network gets right or drops under 16."""

@@ -9,8 +9,8 @@ import numpy as np
 from . import kernel, retina
 from .decide import Decision, decide, texture
 
-__all__ = ["Params", "Match", "match", "decide_scores", "apply_checks", "lr_consistent", "halves_consistent",
-           "FAITHFUL"]
+__all__ = ["Params", "Match", "match", "decide_scores", "apply_checks", "correlation", "lr_consistent",
+           "halves_consistent", "FAITHFUL"]
 
 
 @dataclass(frozen=True)
@@ -20,6 +20,9 @@ class Params:
     window: w, the fovea side in pixels (odd). vsearch: R, rows searched above and below (vertical search).
     circular: compare the direction D on the circle. subpixel: parabola through the winner's neighbours.
     min_margin, min_texture: abstain below this peak-to-rival margin or this mean fovea gradient.
+    min_correlation: abstain unless the winning slave window's intensities correlate with the fovea's (Pearson
+    r, see correlation()) by at least this: the independent sensor noise of two cameras looking at a flat
+    wall correlates by less than 0.25 even at the best of all offsets, a real match by 0.6 to 1.
     lr_check: match the winning slave window back into the master band; abstain unless it lands within
     lr_tolerance px of the fovea. support: adaptive support weights (Yoon & Kweon) on the fovea, with
     support_gamma (intensity) and support_radius (distance, px) as their two scales.
@@ -33,7 +36,8 @@ class Params:
     circular: bool = True
     subpixel: bool = True
     min_margin: float = 0.03
-    min_texture: float = 2.0
+    min_texture: float = 1.5
+    min_correlation: float = 0.3
     lr_check: bool = True
     lr_tolerance: float = 0.75
     support: bool = True
@@ -47,7 +51,7 @@ class Params:
     def paper(cls, **overrides) -> "Params":
         """The paper's network: no extension (vertical search, circular D, sub-pixel, abstention...)."""
         base = dict(vsearch=0, circular=False, subpixel=False, min_margin=0.0, min_texture=0.0,
-                    lr_check=False, support=False, halves_check=False, max_window=0)
+                    min_correlation=0.0, lr_check=False, support=False, halves_check=False, max_window=0)
         base.update(overrides)
         return cls(**base)
 
@@ -100,7 +104,8 @@ def decide_scores(scores: np.ndarray, fovea: np.ndarray, x: int, params: Params,
                   master_rows: np.ndarray | None = None, slave_band: np.ndarray | None = None) -> Decision:
     """Layer 4's scores -> a Decision for the fovea (planes (3, w, w)) centred on master column x.
 
-    With params.lr_check, a confident decision must also pass the left-right check (lr_consistent), given
+    With params.min_correlation, a confident decision's slave window must correlate with the fovea
+    (correlation); with params.lr_check, it must also pass the left-right check (lr_consistent), given
     the master's rows of the fovea as a gray strip with its margin ((w + 2, W + 2), retina.band_strip with
     no vertical search) and the slave band's planes ((3, w + 2R, W)); with params.halves_check, it must also
     pass halves_consistent, which reads the slave band's columns k - halves_range .. k + halves_range + w - 1
@@ -113,13 +118,29 @@ def decide_scores(scores: np.ndarray, fovea: np.ndarray, x: int, params: Params,
 
 def apply_checks(d: Decision, fovea: np.ndarray, x: int, params: Params, master_rows: np.ndarray | None = None,
                  slave_band: np.ndarray | None = None) -> Decision:
-    """decide_scores' second half: the left-right and halves checks on a decision (only a confident one can
-    change), for a caller that gets the bands only once it knows the decision (the reducer)."""
+    """decide_scores' second half: the correlation, left-right and halves checks on a decision (only a
+    confident one can change), for a caller that gets the bands only once it knows the decision (the reducer)."""
+    if params.min_correlation > 0 and d.confident and slave_band is not None:
+        d = replace(d, confident=correlation(fovea, slave_band, d) >= params.min_correlation)
     if params.lr_check and d.confident and master_rows is not None and slave_band is not None:
         d = replace(d, confident=lr_consistent(master_rows, slave_band, x, d, params))
     if params.halves_check and d.confident and slave_band is not None:
         d = replace(d, confident=halves_consistent(fovea, slave_band, d, params))
     return d
+
+
+def correlation(fovea: np.ndarray, slave_band: np.ndarray, d: Decision) -> float:
+    """Pearson correlation of the fovea's intensities with those of the winning slave window (rows shifted
+    by v, columns k..k+w-1 of the band): near 1 for a real match, near 0 for two fields of independent
+    noise; 0 when either is flat."""
+    w = fovea.shape[1]
+    r = (slave_band.shape[1] - w) // 2
+    f = fovea[0].astype(np.float64)
+    s = slave_band[0, r + d.v : r + d.v + w, d.k : d.k + w].astype(np.float64)
+    f -= f.mean()
+    s -= s.mean()
+    den = float(np.sqrt((f * f).sum() * (s * s).sum()))
+    return float((f * s).sum()) / den if den > 0 else 0.0
 
 
 def lr_consistent(master_rows: np.ndarray, slave_band: np.ndarray, x: int, d: Decision, params: Params) -> bool:
