@@ -230,6 +230,20 @@ def test_vertical_search_reports_the_row_shift():
     assert (d.k, d.v) == (20, 2)
 
 
+def test_vshift_cost_prefers_the_unshifted_row_unless_a_shifted_one_is_clearly_better():
+    """Each row of shift costs vshift_cost * w * w of y: +2 rows at w 15 and cost 0.5 cost 225."""
+    y = np.full((5, 50), 1000.0)
+    y[2, 30] = 5000.0  # v = 0
+    y[4, 20] = 5200.0  # v = +2, better by 200 < 225
+    d = decide(y, 15, vshift_cost=0.5)
+    assert (d.k, d.v, d.score) == (30, 0, 5000.0)
+    y[4, 20] = 5300.0  # better by 300 > 225: the shifted row wins, its own y is the score
+    d = decide(y, 15, vshift_cost=0.5)
+    assert (d.k, d.v, d.score) == (20, 2, 5300.0)
+    assert d.confidence == pytest.approx((5300 - 225 - 5000) / (255 * 225 - 5000))
+    assert decide(y, 15).v == 2 and decide(y[2:3], 15, vshift_cost=0.5).k == 30
+
+
 def test_margin_is_zero_for_a_tie_and_one_without_rival():
     y = np.zeros(60)
     y[10] = y[40] = 100.0

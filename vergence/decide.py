@@ -54,7 +54,7 @@ def _parabola(ym: float, y0: float, yp: float) -> float:
 
 def decide(scores: np.ndarray, window: int, *, k_centre: int | None = None, subpixel: bool = True,
            tex: float | None = None, min_texture: float = 4.0, min_margin: float = 0.04,
-           rival_radius: int | None = None, back_ok: bool | None = None) -> Decision:
+           rival_radius: int | None = None, back_ok: bool | None = None, vshift_cost: float = 0.0) -> Decision:
     """Winner-takes-all over layer 4 and the two output neurons.
 
     scores: y(k) (1-D) or y(v, k) with vertical search (row v is the shift v - R). The band is
@@ -62,11 +62,17 @@ def decide(scores: np.ndarray, window: int, *, k_centre: int | None = None, subp
     winner and the best rival more than rival_radius (default w // 2) offsets away, as a fraction of the
     rival's dissimilarity (255 * w * w - y); confident needs that margin >= min_margin, the fovea's texture
     (when given) >= min_texture, and the left-right check (when given) to agree. min_margin=0 and
-    min_texture=0 with no check give the paper's behaviour: always confident."""
+    min_texture=0 with no check give the paper's behaviour: always confident. vshift_cost: with vertical
+    search, each row of shift |v| costs this much per pixel (the 0..255 scale of layer 3) in the
+    winner-takes-all and the margin, so that a shifted row wins only where it is clearly better; the
+    decision's score stays the row's own y."""
     y2 = np.atleast_2d(np.asarray(scores, dtype=np.float64))
     nv, kk = y2.shape
     if kk < 1:
         raise ValueError("no offsets to decide between")
+    raw = y2
+    if vshift_cost and nv > 1:
+        y2 = y2 - (vshift_cost * window * window) * np.abs(np.arange(nv) - (nv - 1) // 2)[:, None]
     flat = int(np.argmax(y2))
     vi, k = divmod(flat, kk)
     row = y2[vi]
@@ -95,5 +101,5 @@ def decide(scores: np.ndarray, window: int, *, k_centre: int | None = None, subp
         confident = False
     d = k - k_centre
     return Decision(k=k, k_sub=k_sub, v=vi - (nv - 1) // 2, k_centre=k_centre, direction=int(np.sign(d)),
-                    magnitude=abs(d), offset_px=k_sub - k_centre, score=best, confidence=margin,
+                    magnitude=abs(d), offset_px=k_sub - k_centre, score=float(raw[vi, k]), confidence=margin,
                     texture=float(tex) if tex is not None else float("nan"), confident=bool(confident))

@@ -18,6 +18,8 @@ class Params:
     """Settings of the network. The defaults turn every extension on; Params.paper() is the paper's own.
 
     window: w, the fovea side in pixels (odd). vsearch: R, rows searched above and below (vertical search).
+    vshift_cost: what each row of vertical shift costs a candidate, per pixel on layer 3's 0..255 scale
+    (decide): under sensor noise the best row of a weakly textured fovea is otherwise often a random one.
     circular: compare the direction D on the circle. subpixel: parabola through the winner's neighbours.
     min_margin, min_texture: abstain below this peak-to-rival margin or this mean fovea gradient.
     min_correlation: abstain unless the winning slave window's intensities correlate with the fovea's (Pearson
@@ -33,6 +35,7 @@ class Params:
 
     window: int = 15
     vsearch: int = 6
+    vshift_cost: float = 0.5
     circular: bool = True
     subpixel: bool = True
     min_margin: float = 0.03
@@ -50,7 +53,7 @@ class Params:
     @classmethod
     def paper(cls, **overrides) -> "Params":
         """The paper's network: no extension (vertical search, circular D, sub-pixel, abstention...)."""
-        base = dict(vsearch=0, circular=False, subpixel=False, min_margin=0.0, min_texture=0.0,
+        base = dict(vsearch=0, vshift_cost=0.0, circular=False, subpixel=False, min_margin=0.0, min_texture=0.0,
                     min_correlation=0.0, lr_check=False, support=False, halves_check=False, max_window=0)
         base.update(overrides)
         return cls(**base)
@@ -112,7 +115,7 @@ def decide_scores(scores: np.ndarray, fovea: np.ndarray, x: int, params: Params,
     only. This is the one decision step of both match() and the reducer."""
     w = fovea.shape[1]
     d = decide(scores, w, k_centre=x - w // 2, subpixel=params.subpixel, tex=texture(fovea),
-               min_texture=params.min_texture, min_margin=params.min_margin)
+               min_texture=params.min_texture, min_margin=params.min_margin, vshift_cost=params.vshift_cost)
     return apply_checks(d, fovea, x, params, master_rows, slave_band)
 
 
