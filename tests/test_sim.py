@@ -182,6 +182,27 @@ def test_loop_converges_on_real_scenes(name, capsys):
 
 
 @needs_data
+@pytest.mark.parametrize("name,floor", [("cones", 0.88), ("teddy", 0.91), ("tsukuba", 0.84), ("venus", 0.91)])
+def test_loop_convergence_rate_over_300_points(name, floor, capsys):
+    """The same loop at 300 points per scene (seeds 3-5, 100 each; starts 10-40 px off): 20 points are too few
+    to see a change of a few percent. Measured: cones 90.7, teddy 93.7, tsukuba 86.3, venus 93.7 % (the floors
+    sit 2-3 points below)."""
+    left, right, disp = load(name)
+    ok = 0
+    for seed in (3, 4, 5):
+        rng = np.random.default_rng(seed + 1000)
+        for x, y in points(name, n=100, seed=seed, margin=60, mask=visible(name)):
+            px = float(rng.uniform(10, 40)) * rng.choice([-1, 1])
+            base = Rig(left, right, disparity=disp, fixate=(x, y))
+            rig = Rig(left, right, disparity=disp, fixate=(x, y), start_pan_deg=math.degrees(base.pan_off_truth(px)))
+            n = frames_to_converge(run(rig))
+            ok += n is not None and n <= 5
+    with capsys.disabled():
+        print(f"\n{name}: converged at {ok / 3:.1f} % of 300 points")
+    assert ok / 300 >= floor
+
+
+@needs_data
 @pytest.mark.parametrize("name", SCENES)
 def test_faithful_converges_on_real_scenes_where_the_paper_network_is_right(name, capsys):
     """The paper's network in the loop: wherever it is right on the rectified pair (17-18 of 20 points here),
