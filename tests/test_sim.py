@@ -133,6 +133,15 @@ def test_faithful_converges_on_textured_points(scene):
         assert n is not None and n <= 5, (x, y)
 
 
+def _started_off(name, x, y, rng):
+    """A rig on a Middlebury scene fixating (x, y), its slave started 10-40 px (drawn from rng, either side)
+    off the converged pan."""
+    left, right, disp = load(name)
+    px = float(rng.uniform(10, 40)) * rng.choice([-1, 1])
+    base = Rig(left, right, disparity=disp, fixate=(x, y))
+    return Rig(left, right, disparity=disp, fixate=(x, y), start_pan_deg=math.degrees(base.pan_off_truth(px)))
+
+
 def _real_scene_runs(name, params):
     """20 visible fixation points (seed 1), starts 10-40 px off the truth (seed 2), 8 frames after the start.
 
@@ -142,10 +151,7 @@ def _real_scene_runs(name, params):
     rng = np.random.default_rng(2)
     out = []
     for x, y in points(name, n=20, seed=1, margin=60, mask=visible(name)):
-        px = float(rng.uniform(10, 40)) * rng.choice([-1, 1])
-        base = Rig(left, right, disparity=disp, fixate=(x, y))
-        rig = Rig(left, right, disparity=disp, fixate=(x, y),
-                  start_pan_deg=math.degrees(base.pan_off_truth(px)))
+        rig = _started_off(name, x, y, rng)
         m = vergence.match(left, right, (x, y), params)
         right_static = m.confident and abs(m.offset_px + disp[y, x]) <= 1
         out.append((frames_to_converge(run(rig, params=params)), right_static))
@@ -192,10 +198,7 @@ def test_loop_convergence_rate_over_300_points(name, floor, capsys):
     for seed in (3, 4, 5):
         rng = np.random.default_rng(seed + 1000)
         for x, y in points(name, n=100, seed=seed, margin=60, mask=visible(name)):
-            px = float(rng.uniform(10, 40)) * rng.choice([-1, 1])
-            base = Rig(left, right, disparity=disp, fixate=(x, y))
-            rig = Rig(left, right, disparity=disp, fixate=(x, y), start_pan_deg=math.degrees(base.pan_off_truth(px)))
-            n = frames_to_converge(run(rig))
+            n = frames_to_converge(run(_started_off(name, x, y, rng)))
             ok += n is not None and n <= 5
     with capsys.disabled():
         print(f"\n{name}: converged at {ok / 3:.1f} % of 300 points")
