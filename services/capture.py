@@ -6,7 +6,7 @@ capture time (the latest messages.MotorState on vergence/<rig>/motor/state; the 
 any), and the shard plan made from the workers' liveliness tokens vergence/<rig>/alive/worker/* at that
 moment. With no worker alive, frames are counted (no_workers) and not published. A downscaled
 messages.Preview goes on vergence/<rig>/preview at [capture] preview_hz. With [network] max_window > 0 the
-window grows by 8 px while the profiles (vergence/<rig>/profile) are not confident (the dynamic window).
+window grows by 8 px while the decisions (vergence/<rig>/decision) are not confident (the dynamic window).
 Counters go out as JSON on vergence/<rig>/status/capture/<id> every second and at exit.
 """
 
@@ -25,7 +25,7 @@ import zenoh
 
 from vergence import pipeline, retina
 from vergence.config import load
-from vergence.messages import MessageError, MotorState, Preview, Profile
+from vergence.messages import MessageError, MotorState, Preview, Verdict
 from vergence.sources import SourceError, open_source
 
 from . import session
@@ -101,13 +101,13 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         except MessageError as e:
             health.reject("motor_state", e)
 
-    def on_profile(sample):
+    def on_decision(sample):
         try:
-            prof = Profile.from_bytes(sample.payload.to_bytes())
+            v = Verdict.from_bytes(sample.payload.to_bytes())
         except MessageError as e:
-            health.reject("profile", e)
+            health.reject("decision", e)
             return
-        windows.update(prof.window, prof.confident)
+        windows.update(v.window, v.confident)
 
     period = 1.0 / cs.rate_hz if cs.rate_hz > 0 else 0.0
     preview_period = 1.0 / cs.preview_hz if cs.preview_hz > 0 else 0.0
@@ -120,7 +120,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         subs = [s.declare_subscriber(f"vergence/{rig}/motor/state", on_motor),
                 s.liveliness().declare_subscriber(f"vergence/{rig}/alive/worker/*", members.on_sample, history=True)]
         if params.max_window:
-            subs.append(s.declare_subscriber(f"vergence/{rig}/profile", on_profile))
+            subs.append(s.declare_subscriber(f"vergence/{rig}/decision", on_decision))
         token = s.liveliness().declare_token(alive)
         log.info("capture %s: %s (%d x %d, f=%.1f px) at %s Hz on vergence/%s/frame", cid, cs.source, wd, ht,
                  focal, cs.rate_hz or "max", rig)

@@ -64,6 +64,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
     prefix = f"vergence/{rig}/correlation/"
     lock = threading.Lock()  # zenoh may run the two subscribers' callbacks on different threads
     with session.open_session(conf) as s:
+        pub_decision = s.declare_publisher(f"vergence/{rig}/decision", express=True)
         pub_profile = s.declare_publisher(f"vergence/{rig}/profile", express=True)
         pub_command = s.declare_publisher(f"vergence/{rig}/command", express=True)
         pub_status = s.declare_publisher(f"vergence/{rig}/status/reducer/{rid}")
@@ -73,7 +74,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
                 if r.command is not None:  # the command first: the actuator waits for it
                     pub_command.put(r.command.to_bytes())
                     health.count("commands")
-                if pub_profile.matching_status.matching:  # a 25 KB message at 640 px: only encoded when wanted
+                pub_decision.put(r.verdict.to_bytes())
+                if pub_profile.matching_status.matching:  # up to 65 KB at 640 px: only encoded when wanted
                     pub_profile.put(r.profile.to_bytes())
                 health.count("profiles")
 

@@ -1,6 +1,6 @@
 """`vergence replay FILE [--speed X] [--only KIND ...]`: publish a recording again, at its own pace.
 
-Replays frames, previews, correlations and profiles, under the recorded rig or --rig. Never commands or
+Replays frames, previews, correlations, decisions and profiles, under the recorded rig or --rig. Never commands or
 motor states: a replay must not move a motor (the deploy/ access rules forbid it too), and the live
 actuator's state is the truth. Status messages and liveliness events are not replayed either.
 
@@ -29,7 +29,7 @@ from vergence.recording import Reader, RecordingError
 from . import session
 
 log = logging.getLogger("vergence.replay")
-KINDS = ("frame", "preview", "correlation", "profile")
+KINDS = ("frame", "preview", "correlation", "decision", "profile")
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -38,14 +38,14 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed", type=float, default=1.0, metavar="X",
                    help="1 = as recorded, 2 = twice as fast, 0 = as fast as possible (default 1)")
     p.add_argument("--only", action="append", choices=KINDS, metavar="KIND",
-                   help=f"replay only these kinds, repeatable: {', '.join(KINDS)} (default: all four)")
+                   help=f"replay only these kinds, repeatable: {', '.join(KINDS)} (default: all)")
     p.add_argument("--wait-workers", type=float, default=5.0, metavar="S",
                    help="how long to wait for live workers before replaying frames (default 5)")
 
 
 def kind_of(rest: str) -> str | None:
     """The replayable kind of a key's part after vergence/<rig>/, or None."""
-    if rest in ("frame", "preview", "profile"):
+    if rest in ("frame", "preview", "decision", "profile"):
         return rest
     if rest.startswith("correlation/"):
         return "correlation"

@@ -25,7 +25,7 @@ from deploy_helpers import (
 )
 from procs import VERGENCE, Procs, wait_for
 
-from vergence.messages import Command, MotorState
+from vergence.messages import Command, MotorState, Verdict
 
 
 @pytest.fixture(scope="module")
@@ -202,16 +202,19 @@ def test_forged_command_never_reaches_the_real_actuator(tmp_path, secrets):
 
 def test_services_run_under_the_acl(tmp_path, secrets):
     """capture, worker, reducer and actuator, each with its own identity over mutual TLS: the pipeline runs,
-    commands reach the actuator and its state comes back."""
+    commands reach the actuator and its state comes back. The fixation's centre 17 px are flat, so the
+    capture's dynamic window must read the reducer's decisions (vergence/r/decision) to reach 23 px, where
+    the network is confident: no command comes unless the rules let those decisions through."""
     import cv2
     import numpy as np
 
     rng = np.random.default_rng(3)
     base = cv2.GaussianBlur(rng.integers(0, 256, (120, 360), np.uint8), (5, 5), 1.5)
+    base[60 - 8 : 60 + 9, 180 - 8 : 180 + 9] = 128
     cv2.imwrite(str(tmp_path / "l.png"), base[:, 20:340])
     cv2.imwrite(str(tmp_path / "r.png"), base[:, 8:328])
     settings = tmp_path / "settings.toml"
-    settings.write_text("[network]\nmax_window = 0\n[capture]\npreview_hz = 2\n")
+    settings.write_text("[network]\nmax_window = 31\n[capture]\npreview_hz = 2\n")
     conf, endpoint = router_config("tls", secrets, tmp_path / "router.json5")
     with Procs(tmp_path) as P:
         router = start_router(P, conf, endpoint)
@@ -229,10 +232,13 @@ def test_services_run_under_the_acl(tmp_path, secrets):
             wait_for(lambda: list(watch.liveliness().get("vergence/r/alive/worker/*", timeout=1.0)), 15,
                      "the worker's token", interval=0.2, logs=P.logs)
             cmds = P.collect(watch, "vergence/r/command")
+            decisions = P.collect(watch, "vergence/r/decision")
             states = P.collect(watch, "vergence/r/motor/state")
             status = P.collect(watch, "vergence/r/status/**")
             start("capture", "--source", f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}", "--rate", "20")
             cmds.wait(3, 20)
+            verdicts = [Verdict.from_bytes(b) for _, b, _ in decisions.snapshot()]
+            assert any(v.window == 23 and v.confident for v in verdicts)
             wait_for(lambda: any(MotorState.from_bytes(b).commands > 0 for _, b, _ in states.snapshot()), 10,
                      "a motor state that counts commands", logs=P.logs)
             def roles():

@@ -25,6 +25,9 @@ SAMPLES = {
     "frame": frame(),
     "partial": M.Partial(rig="head", frame=7, t_capture_ns=1, worker="a-1", k0=0, k1=4, rows=2,
                          scores=np.arange(8, dtype="<f8").tobytes()),
+    "decision": M.Verdict(rig="head", frame=7, t_capture_ns=1, t_reduced_ns=2, window=5, k=3, k_sub=3.2, v_shift=0,
+                          k_centre=3, direction=0, magnitude=0, offset_px=0.2, confidence=0.5, confident=True,
+                          texture=9.0, pan_rad=0.0),
     "profile": M.Profile(rig="head", frame=7, t_capture_ns=1, t_reduced_ns=2, width=10, window=5, rows=1,
                          scores=np.zeros(6).tobytes(), k=3, k_sub=3.2, v_shift=0, k_centre=3, direction=0,
                          magnitude=0, offset_px=0.2, confidence=0.5, confident=True, texture=9.0, pan_rad=0.0),
@@ -67,6 +70,15 @@ def test_frame_validation_names_the_field(change, says):
     d.update(change)
     with pytest.raises(M.MessageError, match=says):
         M.Frame.from_bytes(msgpack.packb(d, use_bin_type=True))
+
+
+@pytest.mark.parametrize("change,says", [(dict(offset_px=math.nan), "decision.offset_px"),
+                                         (dict(pan_rad=math.inf), "decision.pan_rad"), (dict(window=0), "window")])
+def test_decision_validation_names_the_field(change, says):
+    d = SAMPLES["decision"].to_dict()
+    d.update(change)
+    with pytest.raises(M.MessageError, match=says):
+        M.Verdict.from_bytes(msgpack.packb(d, use_bin_type=True))
 
 
 @pytest.mark.parametrize("kind", list(SAMPLES))

@@ -20,7 +20,7 @@ import zenoh
 from procs import Procs, free_port, textured_pair, wait_for
 from vergence import kernel, pipeline, retina
 from vergence.config import load
-from vergence.messages import Command, Frame, MessageError, Partial, Preview, Profile
+from vergence.messages import Command, Frame, MessageError, Partial, Preview, Profile, Verdict
 
 RATE = 40  # frames per second in these tests: light on a shared 2-core machine
 
@@ -77,6 +77,7 @@ def test_profile_equals_correlate_with_1_2_3_workers(tmp_path, pair):
         P.wait_alive(s, "worker", 1)
         frames = P.collect(s, P.key("frame"))
         profiles = P.collect(s, P.key("profile"))
+        decisions = P.collect(s, P.key("decision"))
         previews = P.collect(s, P.key("preview"))
         P.start("capture", "capture", "--source", pair, "--rate", str(RATE), "--config", cfg)
         pv = Preview.from_bytes(previews.wait(1, 10)[0][1])
@@ -100,6 +101,12 @@ def test_profile_equals_correlate_with_1_2_3_workers(tmp_path, pair):
                 d = pipeline.decide_frame(f, prof.array(), params)
                 assert (prof.k, prof.k_sub, prof.confident) == (d.k, d.k_sub, d.confident)
                 assert prof.k - prof.k_centre == 12 and prof.confident
+            # the small decision message says what the profile says, field for field
+            for prof in seen:
+                _, v = wait_for(lambda: by_frame(decisions.snapshot(), Verdict).get(prof.frame), 5,
+                                "the decision of a profiled frame", logs=P.logs)
+                assert v.to_dict() == {k: val for k, val in prof.to_dict().items() if k in v.to_dict()}
+                assert len(v.to_bytes()) < 400
 
 
 def test_kill_and_add_workers_commands_continue_never_incomplete(tmp_path, pair):
@@ -208,6 +215,36 @@ def _garbage(rng: random.Random, frame: Frame, part: Partial) -> list[bytes]:
     return out
 
 
+def test_the_dynamic_window_grows_on_the_decisions_alone(tmp_path):
+    """A pair whose centre 17 x 17 px are flat: the 15 px fovea abstains, 23 px is confident (+12 px). With
+    [network] max_window = 31 and nobody subscribed to the profile, the capture reads the small decision
+    messages, publishes its frames at 23 px, and the slave is commanded from them."""
+    rng = np.random.default_rng(3)
+    base = cv2.GaussianBlur(rng.integers(0, 256, (120, 360), np.uint8), (5, 5), 1.5)
+    base[60 - 8 : 60 + 9, 180 - 8 : 180 + 9] = 128
+    cv2.imwrite(str(tmp_path / "l.png"), base[:, 20:340])
+    cv2.imwrite(str(tmp_path / "r.png"), base[:, 8:328])
+    cfg = tmp_path / "dyn.toml"
+    cfg.write_text("[network]\nmax_window = 31\n[capture]\npreview_hz = 0\n")
+    with Procs(tmp_path) as P:
+        P.router()
+        P.start("reducer", "reducer", "--config", str(cfg))
+        P.start("w1", "worker", "--name", "w1", "--config", str(cfg))
+        s = P.session()
+        P.wait_alive(s, "worker", 1)
+        frames, decisions = P.collect(s, P.key("frame")), P.collect(s, P.key("decision"))
+        commands = P.collect(s, P.key("command"))
+        P.start("capture", "capture", "--source", f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}",
+                "--rate", str(RATE), "--config", str(cfg))
+        commands.wait(3, 20)
+        windows = [Frame.from_bytes(b).window for _, b, _ in frames.snapshot()]
+        assert windows[0] == 15 and set(windows) == {15, 23}
+        verdicts = [Verdict.from_bytes(b) for _, b, _ in decisions.snapshot()]
+        assert {v.window for v in verdicts if v.confident} == {23}
+        assert not any(v.confident for v in verdicts if v.window == 15)
+        assert all(abs(Command.from_bytes(b).magnitude_px - 12) < 0.1 for _, b, _ in commands.snapshot())
+
+
 def test_garbage_on_every_key_kills_nothing(tmp_path, pair):
     cfg = config(tmp_path)
     with Procs(tmp_path) as P:
@@ -218,7 +255,7 @@ def test_garbage_on_every_key_kills_nothing(tmp_path, pair):
         s = P.session()
         P.wait_alive(s, "worker", 1)
         cfg_dyn = str(tmp_path / "dyn.toml")
-        with open(cfg_dyn, "w") as fh:  # the capture with the dynamic window also listens to profiles
+        with open(cfg_dyn, "w") as fh:  # the capture with the dynamic window also listens to decisions
             fh.write("[network]\nmax_window = 31\n[capture]\npreview_hz = 0\n")
         frames, commands = P.collect(s, P.key("frame")), P.collect(s, P.key("command"))
         procs.append(P.start("capture", "capture", "--source", pair, "--rate", str(RATE), "--config", cfg_dyn))
@@ -228,7 +265,8 @@ def test_garbage_on_every_key_kills_nothing(tmp_path, pair):
         part = Partial.from_bytes(parts.snapshot()[-1][1])
         rng = random.Random(7)
         junk = _garbage(rng, frame, part)
-        keys = ["frame", "correlation/" + part.worker, "correlation/intruder", "motor/state", "profile", "command"]
+        keys = ["frame", "correlation/" + part.worker, "correlation/intruder", "motor/state", "decision", "profile",
+                "command"]
         for _ in range(3):
             for k in keys:
                 for b in junk:
@@ -258,7 +296,7 @@ def test_garbage_on_every_key_kills_nothing(tmp_path, pair):
         (c,) = st["capture"].values()
         assert w["bad"]["frame"] >= 3  # its RingChannel(1) keeps only the newest of a burst
         assert r["bad"]["frame"] >= 3 * 10 and r["bad"]["partial"] >= 3 * 2 * 10
-        assert c["bad"]["motor_state"] >= 3 * len(junk) and c["bad"]["profile"] >= 3 * len(junk)
+        assert c["bad"]["motor_state"] >= 3 * len(junk) and c["bad"]["decision"] >= 3 * len(junk)
         # no garbage frame was ever turned into a command
         assert all(c.magnitude_px < 14 and c.rig == P.rig for c in valid())
 

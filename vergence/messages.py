@@ -16,8 +16,8 @@ from typing import ClassVar
 import msgpack
 import numpy as np
 
-__all__ = ["SCHEMA", "MessageError", "Frame", "Partial", "Profile", "Command", "MotorState", "Preview",
-           "KINDS", "decode"]
+__all__ = ["SCHEMA", "MessageError", "Frame", "Partial", "Verdict", "Profile", "Command", "MotorState",
+           "Preview", "KINDS", "decode"]
 
 SCHEMA = 1
 MAX_MESSAGE = 64 * 1024 * 1024
@@ -268,6 +268,37 @@ class Partial(Message):
 
 
 @dataclass
+class Verdict(Message):
+    """vergence/<rig>/decision: the reducer's decision on every frame, the Profile's fields without the scores
+    (under 250 bytes, where a profile is 65 KB at 640 px with vertical search), for whoever needs only the
+    decision (the capture's dynamic window, a user's own logic). window: the fovea side it was decided with."""
+
+    KIND: ClassVar[str] = "decision"
+    rig: str
+    frame: int
+    t_capture_ns: int
+    t_reduced_ns: int
+    window: int
+    k: int
+    k_sub: float
+    v_shift: int
+    k_centre: int
+    direction: int
+    magnitude: int
+    offset_px: float
+    confidence: float
+    confident: bool
+    texture: float
+    pan_rad: float
+
+    def validate(self) -> None:
+        if self.window < 1:
+            raise MessageError(f"decision: bad window {self.window}")
+        for name in ("offset_px", "k_sub", "confidence", "pan_rad"):
+            _finite(f"decision.{name}", getattr(self, name))
+
+
+@dataclass
 class Profile(Message):
     """vergence/<rig>/profile: the full layer-4 scores of a frame (rows x K float64), winner, confidence."""
 
@@ -369,7 +400,8 @@ class Preview(Message):
         self.images()
 
 
-KINDS: dict[str, type[Message]] = {c.KIND: c for c in (Frame, Partial, Profile, Command, MotorState, Preview)}
+KINDS: dict[str, type[Message]] = {c.KIND: c for c in (Frame, Partial, Verdict, Profile, Command, MotorState,
+                                                         Preview)}
 
 
 def decode(cls: type[Message], data: bytes) -> Message:

@@ -22,10 +22,10 @@ from . import kernel, retina
 from .control import ControlSettings, Controller
 from .decide import Decision
 from .match import Params, apply_checks, decide_scores
-from .messages import Command, Frame, Partial, Profile
+from .messages import Command, Frame, Partial, Profile, Verdict
 
-__all__ = ["plan_shards", "make_frame", "frame_params", "compute_partial", "reduce", "make_profile", "Gatherer",
-           "Result", "WindowControl", "Health"]
+__all__ = ["plan_shards", "make_frame", "frame_params", "compute_partial", "reduce", "make_profile", "make_verdict",
+           "Gatherer", "Result", "WindowControl", "Health"]
 
 
 def plan_shards(workers, k_count: int) -> list[list]:
@@ -130,6 +130,15 @@ def make_profile(frame: Frame, scores: np.ndarray, d: Decision, t_reduced_ns: in
                    workers=[str(e[0]) for e in frame.plan])
 
 
+def make_verdict(frame: Frame, d: Decision, t_reduced_ns: int) -> Verdict:
+    """The Verdict message of a reduced frame: its decision, without the scores."""
+    return Verdict(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, t_reduced_ns=t_reduced_ns,
+                   window=frame.window, k=d.k, k_sub=d.k_sub, v_shift=d.v, k_centre=d.k_centre,
+                   direction=d.direction, magnitude=d.magnitude, offset_px=d.offset_px, confidence=d.confidence,
+                   confident=d.confident, texture=d.texture if math.isfinite(d.texture) else 0.0,
+                   pan_rad=frame.pan_rad)
+
+
 def _command(frame: Frame, d: Decision, controller: Controller) -> Command | None:
     target = controller.target(frame.pan_rad, d.offset_px, frame.focal_px, d.confident,
                                centre_px=frame.x - frame.width // 2)
@@ -149,8 +158,9 @@ def reduce(frame: Frame, scores: np.ndarray, params: Params, controller: Control
 
 @dataclass
 class Result:
-    """A complete frame, reduced: its decision, its command (None: do not move) and, built when first asked
-    for (a 65 KB message at 640 px with vertical search: only when someone subscribes to it), its profile."""
+    """A complete frame, reduced: its decision (and its Verdict message), its command (None: do not move)
+    and, built when first asked for (a 65 KB message at 640 px with vertical search: only when someone
+    subscribes to it), its profile."""
 
     frame: Frame
     decision: Decision
@@ -165,6 +175,10 @@ class Result:
         d = decide_frame(frame, scores, params)
         now = time.time_ns() if t_reduced_ns is None else t_reduced_ns
         return cls(frame, d, _command(frame, d, controller), scores, now)
+
+    @property
+    def verdict(self) -> Verdict:
+        return make_verdict(self.frame, self.decision, self.t_reduced_ns)
 
     @property
     def profile(self) -> Profile:
@@ -309,9 +323,9 @@ class Gatherer:
 
 
 class WindowControl:
-    """The dynamic window of the service, driven by the profiles coming back to the capture.
+    """The dynamic window of the service, driven by the decisions (Verdicts) coming back to the capture.
 
-    Only a profile computed with the current window counts (frames in flight with an older one are
+    Only a decision made with the current window counts (frames in flight with an older one are
     ignored). Not confident: grow w by 8 px up to params.max_window. Confident `patience` times in a row:
     shrink by 8 px toward params.window, so a scene that needs the larger window does not flip every frame.
     params.max_window = 0 keeps params.window."""
