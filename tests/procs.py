@@ -262,14 +262,17 @@ class Collector:
             self.sub.undeclare()
 
 
-def textured_pair(tmp_path: Path, seed: int = 3, shift: int = 12) -> str:
+def textured_pair(tmp_path: Path, seed: int = 3, shift: int = 12, flat: int = 0) -> str:
     """A `files:LEFT,RIGHT` source: a 320 x 120 textured pair whose slave image shows the scene `shift` px
-    further right (every frame's decision: offset_px = +shift)."""
+    further right (every frame's decision: offset_px = +shift). flat: the side of a flat grey square on the
+    master's centre (and where the slave sees it): with 17, the 15 px fovea abstains and 23 px decides."""
     import cv2
     import numpy as np
 
     rng = np.random.default_rng(seed)
     base = cv2.GaussianBlur(rng.integers(0, 256, (120, 360), np.uint8), (5, 5), 1.5)
+    if flat:
+        base[60 - flat // 2 : 60 + flat - flat // 2, 180 - flat // 2 : 180 + flat - flat // 2] = 128
     left, right = Path(tmp_path) / "l.png", Path(tmp_path) / "r.png"
     cv2.imwrite(str(left), base[:, 20:340])
     cv2.imwrite(str(right), base[:, 20 - shift : 340 - shift])

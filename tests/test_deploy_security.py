@@ -23,7 +23,7 @@ from deploy_helpers import (
     router_config,
     start_router,
 )
-from procs import VERGENCE, Procs, wait_for
+from procs import VERGENCE, Procs, textured_pair, wait_for
 
 from vergence.messages import Command, MotorState, Verdict
 
@@ -205,14 +205,7 @@ def test_services_run_under_the_acl(tmp_path, secrets):
     commands reach the actuator and its state comes back. The fixation's centre 17 px are flat, so the
     capture's dynamic window must read the reducer's decisions (vergence/r/decision) to reach 23 px, where
     the network is confident: no command comes unless the rules let those decisions through."""
-    import cv2
-    import numpy as np
-
-    rng = np.random.default_rng(3)
-    base = cv2.GaussianBlur(rng.integers(0, 256, (120, 360), np.uint8), (5, 5), 1.5)
-    base[60 - 8 : 60 + 9, 180 - 8 : 180 + 9] = 128
-    cv2.imwrite(str(tmp_path / "l.png"), base[:, 20:340])
-    cv2.imwrite(str(tmp_path / "r.png"), base[:, 8:328])
+    source = textured_pair(tmp_path, flat=17)
     settings = tmp_path / "settings.toml"
     settings.write_text("[network]\nmax_window = 31\n[capture]\npreview_hz = 2\n")
     conf, endpoint = router_config("tls", secrets, tmp_path / "router.json5")
@@ -235,7 +228,7 @@ def test_services_run_under_the_acl(tmp_path, secrets):
             decisions = P.collect(watch, "vergence/r/decision")
             states = P.collect(watch, "vergence/r/motor/state")
             status = P.collect(watch, "vergence/r/status/**")
-            start("capture", "--source", f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}", "--rate", "20")
+            start("capture", "--source", source, "--rate", "20")
             cmds.wait(3, 20)
             verdicts = [Verdict.from_bytes(b) for _, b, _ in decisions.snapshot()]
             assert any(v.window == 23 and v.confident for v in verdicts)

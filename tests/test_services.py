@@ -219,11 +219,7 @@ def test_the_dynamic_window_grows_on_the_decisions_alone(tmp_path):
     """A pair whose centre 17 x 17 px are flat: the 15 px fovea abstains, 23 px is confident (+12 px). With
     [network] max_window = 31 and nobody subscribed to the profile, the capture reads the small decision
     messages, publishes its frames at 23 px, and the slave is commanded from them."""
-    rng = np.random.default_rng(3)
-    base = cv2.GaussianBlur(rng.integers(0, 256, (120, 360), np.uint8), (5, 5), 1.5)
-    base[60 - 8 : 60 + 9, 180 - 8 : 180 + 9] = 128
-    cv2.imwrite(str(tmp_path / "l.png"), base[:, 20:340])
-    cv2.imwrite(str(tmp_path / "r.png"), base[:, 8:328])
+    source = textured_pair(tmp_path, flat=17)
     cfg = tmp_path / "dyn.toml"
     cfg.write_text("[network]\nmax_window = 31\n[capture]\npreview_hz = 0\n")
     with Procs(tmp_path) as P:
@@ -234,8 +230,7 @@ def test_the_dynamic_window_grows_on_the_decisions_alone(tmp_path):
         P.wait_alive(s, "worker", 1)
         frames, decisions = P.collect(s, P.key("frame")), P.collect(s, P.key("decision"))
         commands = P.collect(s, P.key("command"))
-        P.start("capture", "capture", "--source", f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}",
-                "--rate", str(RATE), "--config", str(cfg))
+        P.start("capture", "capture", "--source", source, "--rate", str(RATE), "--config", str(cfg))
         commands.wait(3, 20)
         windows = [Frame.from_bytes(b).window for _, b, _ in frames.snapshot()]
         assert windows[0] == 15 and set(windows) == {15, 23}

@@ -269,9 +269,9 @@ class Partial(Message):
 
 @dataclass
 class Verdict(Message):
-    """vergence/<rig>/decision: the reducer's decision on every frame, the Profile's fields without the scores
-    (under 250 bytes, where a profile is 65 KB at 640 px with vertical search), for whoever needs only the
-    decision (the capture's dynamic window, a user's own logic). window: the fovea side it was decided with."""
+    """vergence/<rig>/decision: the reducer's decision on every frame, a Profile without its scores (under 250
+    bytes, where a profile is 65 KB at 640 px with vertical search), for whoever needs only the decision (the
+    capture's dynamic window, a user's own logic). window: the fovea side it was decided with."""
 
     KIND: ClassVar[str] = "decision"
     rig: str
@@ -293,35 +293,20 @@ class Verdict(Message):
 
     def validate(self) -> None:
         if self.window < 1:
-            raise MessageError(f"decision: bad window {self.window}")
+            raise MessageError(f"{self.KIND}: bad window {self.window}")
         for name in ("offset_px", "k_sub", "confidence", "pan_rad"):
-            _finite(f"decision.{name}", getattr(self, name))
+            _finite(f"{self.KIND}.{name}", getattr(self, name))
 
 
 @dataclass
-class Profile(Message):
-    """vergence/<rig>/profile: the full layer-4 scores of a frame (rows x K float64), winner, confidence."""
+class Profile(Verdict):
+    """vergence/<rig>/profile: the decision (Verdict's fields) with the full layer-4 scores of the frame
+    (rows x K float64), its width and the plan's workers."""
 
     KIND: ClassVar[str] = "profile"
-    rig: str
-    frame: int
-    t_capture_ns: int
-    t_reduced_ns: int
     width: int
-    window: int
     rows: int
     scores: bytes
-    k: int
-    k_sub: float
-    v_shift: int
-    k_centre: int
-    direction: int
-    magnitude: int
-    offset_px: float
-    confidence: float
-    confident: bool
-    texture: float
-    pan_rad: float
     workers: list[str] = field(default_factory=list)
 
     def array(self) -> np.ndarray:
@@ -330,6 +315,7 @@ class Profile(Message):
     def validate(self) -> None:
         if self.window < 1 or self.window > self.width or self.rows < 1:
             raise MessageError(f"profile: bad shape width={self.width} window={self.window} rows={self.rows}")
+        super().validate()
         self.array()
 
 

@@ -119,17 +119,6 @@ def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
     return d
 
 
-def make_profile(frame: Frame, scores: np.ndarray, d: Decision, t_reduced_ns: int) -> Profile:
-    """The Profile message of a reduced frame: the whole layer-4 vector with the decision."""
-    return Profile(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, t_reduced_ns=t_reduced_ns,
-                   width=frame.width, window=frame.window, rows=scores.shape[0],
-                   scores=np.ascontiguousarray(scores, "<f8").tobytes(), k=d.k, k_sub=d.k_sub, v_shift=d.v,
-                   k_centre=d.k_centre, direction=d.direction, magnitude=d.magnitude, offset_px=d.offset_px,
-                   confidence=d.confidence, confident=d.confident,
-                   texture=d.texture if math.isfinite(d.texture) else 0.0, pan_rad=frame.pan_rad,
-                   workers=[str(e[0]) for e in frame.plan])
-
-
 def make_verdict(frame: Frame, d: Decision, t_reduced_ns: int) -> Verdict:
     """The Verdict message of a reduced frame: its decision, without the scores."""
     return Verdict(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, t_reduced_ns=t_reduced_ns,
@@ -137,6 +126,13 @@ def make_verdict(frame: Frame, d: Decision, t_reduced_ns: int) -> Verdict:
                    direction=d.direction, magnitude=d.magnitude, offset_px=d.offset_px, confidence=d.confidence,
                    confident=d.confident, texture=d.texture if math.isfinite(d.texture) else 0.0,
                    pan_rad=frame.pan_rad)
+
+
+def make_profile(frame: Frame, scores: np.ndarray, d: Decision, t_reduced_ns: int) -> Profile:
+    """The Profile message of a reduced frame: its Verdict with the whole layer-4 vector."""
+    return Profile(**vars(make_verdict(frame, d, t_reduced_ns)), width=frame.width,
+                   rows=scores.shape[0], scores=np.ascontiguousarray(scores, "<f8").tobytes(),
+                   workers=[str(e[0]) for e in frame.plan])
 
 
 def _command(frame: Frame, d: Decision, controller: Controller) -> Command | None:
