@@ -6,7 +6,8 @@ each frame by the plan the frame carries, drops (and counts) a frame whose shard
 Publishes messages.Profile on vergence/<rig>/profile and, when the controller moves the slave,
 messages.Command on vergence/<rig>/command; never from an incomplete profile. Counters go out as JSON on
 vergence/<rig>/status/reducer/<id> every second and at exit. The profile is only encoded and published while
-someone subscribes to it.
+someone subscribes to it. Every SUMMARY_S seconds with frames, one log line says what the loop is doing
+(summary()).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import math
 import threading
 import time
 
@@ -28,6 +30,7 @@ from . import session
 
 log = logging.getLogger("vergence.reducer")
 STATUS_S = 1.0
+SUMMARY_S = 5.0
 EXPIRE_S = 0.05  # the longest sleep between deadline checks (frames also expire as messages arrive)
 
 
@@ -53,6 +56,14 @@ def warm_up(settings) -> None:
     g.add_partial(pipeline.compute_partial(f, "w"))
 
 
+def summary(seconds: float, frames: int, lost: int, commands: int, last: pipeline.Result) -> str:
+    """The reducer's periodic log line: what came through in the last `seconds`, and the latest decision."""
+    d, f = last.decision, last.frame
+    return (f"last {seconds:.0f} s: frames {frames} decided, {lost} dropped, commands {commands}; frame {f.frame}: "
+            f"offset {d.offset_px:+.2f} px, {'confident' if d.confident else 'abstains'} (margin {d.confidence:.2f}, "
+            f"w {f.window}), slave pan at capture {math.degrees(f.pan_rad):+.3f} deg")
+
+
 def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | None = None) -> int:
     rig = settings.rig
     warm_up(settings)
@@ -69,7 +80,11 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
         pub_command = s.declare_publisher(f"vergence/{rig}/command", express=True)
         pub_status = s.declare_publisher(f"vergence/{rig}/status/reducer/{rid}")
 
+        last: list[pipeline.Result] = []
+
         def publish(results) -> None:
+            if results:
+                last[:] = results[-1:]
             for r in results:
                 if r.command is not None:  # the command first: the actuator waits for it
                     pub_command.put(r.command.to_bytes())
@@ -121,6 +136,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
                                                 **extra)).encode()
 
         next_status = time.monotonic() + STATUS_S
+        next_summary, seen = time.monotonic() + SUMMARY_S, (0, 0, 0)
         sleep = EXPIRE_S
         try:
             while not stop.wait(sleep):
@@ -133,6 +149,13 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
                 if now >= next_status:
                     pub_status.put(status())
                     next_status = now + STATUS_S
+                if now >= next_summary:
+                    with lock:
+                        c = gatherer.counters
+                        counts = (c["complete"], c["dropped"] + c["superseded"], health.counters.get("commands", 0))
+                        if counts[0] > seen[0]:
+                            log.info("%s", summary(SUMMARY_S, *(a - b for a, b in zip(counts, seen)), last[0]))
+                    seen, next_summary = counts, now + SUMMARY_S
         finally:
             # no callback may still run while the session closes (it can hang the exit otherwise)
             for sub in subs:

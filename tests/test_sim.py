@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 
@@ -266,8 +267,8 @@ def test_up_with_the_simulated_rig_converges(tmp_path):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with Procs(tmp_path) as P:
         P.endpoint = endpoint
-        P.start("up", "up", "--listen", endpoint, "--source", "sim", "--workers", "2", "--rate", "30",
-                connect=False)
+        up = P.start("up", "up", "--listen", endpoint, "--source", "sim", "--workers", "2", "--rate", "30",
+                     connect=False)
         s = P.session()
         states = P.collect(s, P.key("motor/state"))
 
@@ -280,3 +281,15 @@ def test_up_with_the_simulated_rig_converges(tmp_path):
         n = len(pans())
         wait_for(lambda: len(pans()) >= n + 25, 10, "more states", logs=P.logs)  # half a second at 50 Hz
         assert all(abs(p - truth) <= tol for p in pans()[n:])
+        # `vergence up` says so in its log: the reducer's line every 5 s, once converged, reads a residual
+        # offset within 1 px and the slave pan within 1 px of the truth
+        line = re.compile(r"reducer.*: frames (\d+) decided, (\d+) dropped, commands (\d+); frame \d+: offset "
+                          r"([-+\d.]+) px, confident .* slave pan at capture ([-+\d.]+) deg")
+
+        def converged_line():
+            for m in line.finditer(up.text()):
+                if abs(float(m[4])) <= 1 and abs(math.radians(float(m[5])) - truth) <= tol and int(m[1]) > 0:
+                    return m
+            return None
+
+        wait_for(converged_line, 12, "the reducer's log line after convergence", logs=P.logs)
