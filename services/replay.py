@@ -1,8 +1,8 @@
 """`vergence replay FILE [--speed X] [--only KIND ...]`: publish a recording again, at its own pace.
 
-Replays frames, previews, correlations, decisions and profiles, under the recorded rig or --rig. Never commands or
-motor states: a replay must not move a motor (the deploy/ access rules forbid it too), and the live
-actuator's state is the truth. Status messages and liveliness events are not replayed either.
+Replays frames, previews, correlations, decisions and profiles, under the recorded rig or --rig. Never
+commands or motor states: a replay must not move a motor (the deploy/ access rules forbid it too), and the
+live actuator's state is the truth. Status messages and liveliness events are not replayed either.
 
 Frames are re-planned onto the workers alive now (their liveliness tokens), because the recorded plan names
 workers of the recorded run: live workers then compute them, and a live reducer reproduces the recorded

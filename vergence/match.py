@@ -169,7 +169,7 @@ def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, pa
     HALVES_TOLERANCE (2) px of k. At a depth edge the half on the other surface finds that surface's offset:
     the fovea straddles two surfaces and the winner may be the wrong one's (foreground fattening), so abstain.
     Exact integers (kernel.half_sads, the four halves in one pass); reads the band's columns
-    k - R .. k + R + w - 1 of the winning rows only."""
+    k - halves_range .. k + halves_range + w - 1 of the winning rows only."""
     w = fovea.shape[1]
     r = (slave_band.shape[1] - w) // 2  # the vertical search R
     kk = slave_band.shape[2] - w + 1
