@@ -82,7 +82,7 @@ class LimitSettings:
     max_frame_ops: int = 100_000_000
     miss_s: float = 0.25
     miss_frames: int = 3
-    probation_s: float = 1.0
+    probation_s: float = 4.0
 
     def __post_init__(self):
         for name in ("max_skew_s", "reanchor_s", "miss_s", "probation_s"):
