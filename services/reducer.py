@@ -4,8 +4,8 @@ Subscribes to vergence/<rig>/frame and vergence/<rig>/correlation/*; vergence.pi
 each frame by the plan the frame carries, drops (and counts) a frame whose shards miss the deadline
 ([reducer] deadline_ms), and reduces a complete one with vergence.match.decide_scores and the controller.
 Messages that are not plausible ([limits]: capture time, frame id, frame size) are counted and change
-nothing. The callbacks only hand messages to bounded mailboxes; one thread takes everything that arrived,
-newest frame first, so an overloaded reducer serves the newest frame instead of queueing.
+nothing. Messages arrive in zenoh RingChannels (bounded, the oldest go); one thread takes everything that
+arrived, newest frame first, so an overloaded reducer serves the newest frame instead of queueing.
 Every REPORT_S it publishes the membership evidence on vergence/<rig>/workers (JSON: per worker, seconds
 since its latest partial and the frames it missed in a row), from which the capture drops silent workers
 from the plan.
@@ -40,6 +40,8 @@ STATUS_S = 1.0
 SUMMARY_S = 5.0
 EXPIRE_S = 0.05  # the longest sleep between deadline checks (frames also expire as messages arrive)
 REPORT_S = 0.1  # the membership evidence (vergence/<rig>/workers) goes out this often
+FRAME_RING, PARTIAL_RING = 8, 64  # the newest messages kept while the reducer is busy (zenoh RingChannel)
+WAKE = "_wake"  # the key segment of the local sample that wakes the partials' forwarder at exit
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -181,12 +183,25 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
                     except Exception as e:  # a message that validates but cannot be decided on: never fatal
                         health.reject(m.KIND, e)
 
-        # zenoh's callbacks only hand the payload over (bounded); this thread decodes, gathers, decides and
+        # zenoh's receiving threads only push into rings (Rust, no Python, no GIL: they never wait for this
+        # process, so no queue builds up in the network; the oldest go when a ring is full); one forwarder
+        # thread per ring hands the payloads to the inbox; this thread decodes, gathers, decides and
         # publishes, expires deadlines, and publishes the status and the membership evidence
-        subs = [s.declare_subscriber(f"vergence/{rig}/frame",
-                                     lambda smp: inbox.put("frame", ("", smp.payload.to_bytes()))),
-                s.declare_subscriber(prefix + "*",
-                                     lambda smp: inbox.put("partial", (str(smp.key_expr), smp.payload.to_bytes())))]
+        subs = {"frame": s.declare_subscriber(f"vergence/{rig}/frame", zenoh.handlers.RingChannel(FRAME_RING)),
+                "partial": s.declare_subscriber(prefix + "*", zenoh.handlers.RingChannel(PARTIAL_RING))}
+        wake = {"frame": f"vergence/{rig}/frame", "partial": prefix + WAKE}
+
+        def forward(kind: str) -> None:
+            sub = subs[kind]
+            while True:
+                smp = sub.recv()
+                if stop.is_set():
+                    return
+                inbox.put(kind, (str(smp.key_expr), smp.payload.to_bytes()))
+
+        forwarders = [threading.Thread(target=forward, args=(k,), name=f"reducer-{k}", daemon=True) for k in subs]
+        for th in forwarders:
+            th.start()
         token = s.liveliness().declare_token(alive)
         log.info("reducer %s on vergence/%s/{frame,correlation/*}, deadline %.0f ms", rid, rig, deadline * 1e3)
 
@@ -229,8 +244,12 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
                             log.info("%s", summary(SUMMARY_S, *(a - b for a, b in zip(counts, seen)), last[0]))
                     seen, next_summary = counts, now + SUMMARY_S
         finally:
-            # no callback may still run while the session closes (it can hang the exit otherwise)
-            for sub in subs:
+            stop.set()
+            for kind, key in wake.items():  # wake the forwarders: a local, empty sample on their own subscription
+                s.put(key, b"", allowed_destination=zenoh.Locality.SESSION_LOCAL)
+            for th in forwarders:
+                th.join(5.0)
+            for sub in subs.values():
                 sub.undeclare()
             token.undeclare()
             pub_status.put(status(exiting=True))

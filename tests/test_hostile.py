@@ -423,6 +423,8 @@ def test_a_fake_worker_token_leaves_the_plan(rig):
         cap = wait_for(lambda: "zz-fake-1" in latest_status(c, "capture").get("excluded", []) and
                        latest_status(c, "capture"), 5, "the capture to exclude the fake", logs=P.logs)
         assert cap["roster"]["excluded"] >= 1 and cap["workers"] == 2
+        # the rate it publishes and the rate the reducer completes, over the last second (after recovery)
+        assert cap["published_hz"] >= 0.8 * RATE and cap["decided_hz"] >= 0.8 * cap["published_hz"], cap
     finally:
         token.undeclare()
 

@@ -189,7 +189,9 @@ def test_sigstop_worker_frames_dropped_not_queued(tmp_path, pair):
         commands.wait(n_cmd + 10, 10)  # the pipeline recovers
         after = status(P, s, "reducer")
         dropped = next(iter(after.values()))["gatherer"]["dropped"] - dropped0
-        assert 0.3 * RATE <= dropped <= 2 * RATE, dropped
+        # dropped, not queued: about 0.3-0.4 s of frames, until the reducer's evidence takes the silent worker
+        # out of the plan (pipeline.Roster), or the 0.6 s of the stop
+        assert 0.2 * RATE <= dropped <= 2 * RATE, dropped
         # not queued: after SIGCONT the stopped worker computes at most the stale frame its ring holds, plus
         # the frames that were in flight while the signal landed (under load, up to two)
         fr = by_frame(frames.snapshot(), Frame)
