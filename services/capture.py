@@ -201,7 +201,9 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                     # the rate the pipeline holds: frames published vs frames the reducer completed
                     sent, done = published - published_at_status, decided[0] - decided[1]
                     published_at_status, decided[1] = published, decided[0]
-                    held = done / STATUS_S if 0 <= done <= sent else None
+                    # (the reducer's count lags by up to its report period: never more than was published;
+                    # a negative difference is a new reducer)
+                    held = min(done, sent) / STATUS_S if done >= 0 else None
                     if held is not None and sent >= 20 and done < 0.5 * sent and not slow_logged:
                         slow_logged = True
                         log.warning("the pipeline completes %.0f of the %.0f frames/s published: lower the rate "

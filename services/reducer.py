@@ -40,7 +40,9 @@ STATUS_S = 1.0
 SUMMARY_S = 5.0
 EXPIRE_S = 0.05  # the longest sleep between deadline checks (frames also expire as messages arrive)
 REPORT_S = 0.1  # the membership evidence (vergence/<rig>/workers) goes out this often
-FRAME_RING, PARTIAL_RING = 8, 64  # the newest messages kept while the reducer is busy (zenoh RingChannel)
+# zenoh RingChannels: the newest messages kept while the forwarders wait for the interpreter (what they drop
+# is not counted, so they are larger than the inbox, whose sheds are)
+FRAME_RING, PARTIAL_RING = 32, 128
 WAKE = "_wake"  # the key segment of the local sample that wakes the partials' forwarder at exit
 
 
@@ -75,20 +77,20 @@ def summary(seconds: float, frames: int, lost: int, commands: int, last: pipelin
 
 
 class Inbox:
-    """Bounded mailboxes between zenoh's callbacks and the reducer's thread: the callbacks only append the
-    payload (the oldest goes when a box is full, counted in `shed`), so no queue builds up in zenoh or the
-    network when the reducer cannot keep up; the thread takes everything at once (drain)."""
+    """Bounded mailboxes between the forwarders and the reducer's thread: the oldest goes when a box is full
+    (counted in `shed`, per kind), so nothing queues when the reducer cannot keep up; the thread takes
+    everything at once (drain)."""
 
     def __init__(self, frames: int = 8, partials: int = 64):
         self.cond = threading.Condition()
         self.boxes = {"frame": collections.deque(maxlen=frames), "partial": collections.deque(maxlen=partials)}
-        self.shed = 0
+        self.shed = {"frame": 0, "partial": 0}
 
     def put(self, kind: str, item) -> None:
         with self.cond:
             box = self.boxes[kind]
             if len(box) == box.maxlen:
-                self.shed += 1
+                self.shed[kind] += 1
             box.append(item)
             self.cond.notify()
 
@@ -208,7 +210,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
         def status(**extra) -> bytes:
             with lock:
                 return json.dumps(health.status(gatherer=dict(gatherer.counters), pending=len(gatherer.pending),
-                                                shed=inbox.shed, **extra)).encode()
+                                                shed=dict(inbox.shed), **extra)).encode()
 
         def workers_report() -> bytes:
             with lock:

@@ -262,7 +262,7 @@ def test_reducer_serves_the_newest_frame_first():
         box.put("frame", i)
         box.put("partial", i)
     assert box.drain(0.0) == [("frame", 3), ("frame", 4), ("partial", 2), ("partial", 3), ("partial", 4)]
-    assert box.shed == 5 and box.drain(0.0) == []
+    assert box.shed == {"frame": 3, "partial": 2} and box.drain(0.0) == []
 
 
 # -- the attacks, against real processes ---------------------------------------------------------------------
