@@ -43,6 +43,7 @@ REPORT_S = 0.1  # the membership evidence (vergence/<rig>/workers) goes out this
 # zenoh RingChannels: the newest messages kept while the forwarders wait for the interpreter (what they drop
 # is not counted, so they are larger than the inbox, whose sheds are)
 FRAME_RING, PARTIAL_RING = 32, 128
+KEEP_FRAMES = 2  # the newest valid frames of one batch that are decoded and gathered
 WAKE = "_wake"  # the key segment of the local sample that wakes the partials' forwarder at exit
 
 
@@ -93,6 +94,10 @@ class Inbox:
                 self.shed[kind] += 1
             box.append(item)
             self.cond.notify()
+
+    def count_shed(self, kind: str, n: int) -> None:
+        with self.cond:
+            self.shed[kind] += n
 
     def drain(self, timeout: float) -> list[tuple[str, object]]:
         with self.cond:
@@ -174,7 +179,18 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
                 return None
 
         def handle(batch) -> None:
-            msgs = [m for m in (decode(k, x) for k, x in batch) if m is not None]
+            # frames newest (last arrived) first, and only until KEEP_FRAMES valid ones: the older ones of a
+            # backlog would be superseded anyway, so they are let go (shed) without the cost of decoding them
+            frames = [x for k, x in batch if k == "frame"]
+            msgs = []
+            for i, item in enumerate(reversed(frames)):
+                if len(msgs) >= KEEP_FRAMES:
+                    inbox.count_shed("frame", len(frames) - i)
+                    break
+                m = decode("frame", item)
+                if m is not None:
+                    msgs.append(m)
+            msgs += [m for m in (decode(k, x) for k, x in batch if k == "partial") if m is not None]
             with lock:
                 for m in newest_first(msgs):
                     try:
