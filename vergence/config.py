@@ -79,7 +79,7 @@ class LimitSettings:
     frame_window: int = 1000
     reanchor_s: float = 1.0
     max_frame_bytes: int = 4 * 1024 * 1024
-    max_frame_ops: int = 100_000_000
+    max_frame_ops: int = 200_000_000
     miss_s: float = 0.25
     miss_frames: int = 3
     probation_s: float = 4.0
