@@ -70,6 +70,18 @@ def gatherer(wall: Wall, **limits) -> pipeline.Gatherer:
     return pipeline.Gatherer(P, ControlSettings(), 0.05, LimitSettings(**limits), wall_ns=wall)
 
 
+def test_limit_settings_are_checked():
+    from vergence.config import ConfigError, from_dict, load
+
+    assert from_dict({"limits": {"max_skew_s": 0.5}}).limits.max_skew_s == 0.5
+    with pytest.raises(ConfigError, match="limits.*max_skew_s"):
+        from_dict({"limits": {"max_skew_s": -1.0}})
+    with pytest.raises(ConfigError, match="limits.miss"):
+        from_dict({"limits": {"miss": 3}})
+    from pathlib import Path
+    assert load(Path(__file__).parent.parent / "deploy" / "vergence.toml").limits.probation_s == 4.0
+
+
 # -- the gatherer --------------------------------------------------------------------------------------------
 
 def test_one_forged_partial_does_not_stop_the_gatherer():
