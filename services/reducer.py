@@ -108,10 +108,6 @@ class Inbox:
                 box.clear()
             return out
 
-    def wake(self) -> None:
-        with self.cond:
-            self.cond.notify()
-
 
 def newest_first(msgs: list) -> list:
     """Decoded messages (Frame or Partial) in the order the gatherer should see them: the newest frame id
