@@ -26,8 +26,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("slave", help="slave (panning camera) image file")
     p.add_argument("--at", type=point_arg, action="append", metavar="X,Y",
                    help="fovea centre in the master image, repeatable (default: the image centre)")
-    p.add_argument("--window", type=int, default=None, help="fovea side w in pixels, odd (default 15)")
-    p.add_argument("--vsearch", type=int, default=None, help="rows R searched above and below (default 2)")
+    p.add_argument("--window", type=int, default=None, help="fovea side w in pixels, odd "
+                   "(default: the settings' [network] window, 15)")
+    p.add_argument("--vsearch", type=int, default=None, help="rows R searched above and below "
+                   "(default: the settings' [network] vsearch, 6; 0 with --faithful)")
     p.add_argument("--faithful", action="store_true", help="the paper's network: every extension off")
     p.add_argument("--config", metavar="FILE", help="settings TOML; its [network] table sets the parameters")
     p.add_argument("--json", action="store_true", help="one JSON object per point")
@@ -38,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
         base = load(args.config).network
         if args.faithful:
             base = Params.paper(window=base.window)
-        params = Params.build(**{**base.__dict__, "window": args.window, "vsearch": args.vsearch})
+        params = base.override(window=args.window, vsearch=args.vsearch)
         master, slave = read_image(args.master), read_image(args.slave)
         if master.shape != slave.shape:
             raise ValueError(f"images differ in size: {args.master} is {master.shape[1]} x {master.shape[0]}, "
