@@ -150,3 +150,18 @@ def decision_fields(frame, decision, scores: np.ndarray, baseline_m: float, gimb
                         gimbal=gimbal, master=master)
     return dict(x=frame.x, y=frame.y, converged=dep.converged, depth_m=dep.depth_m,
                 depth_sigma_m=dep.depth_sigma_m)
+
+
+def pair_depth(m, baseline_m: float, focal_px: float, master: str = "left") -> dict:
+    """The depth of a vergence.match.Match on a rectified pair (vergence match --baseline --focal): the
+    disparity d = -offset_px (a left master; +offset_px for a right one), Z = b f / d and dZ = Z^2 / (b f)
+    sigma_d, with the decision's sub-pixel sigma_d (disparity_sigma). None for the depth of a point that is
+    not confident or has no positive disparity."""
+    d = m.decision
+    disp = -d.offset_px if master == "left" else d.offset_px
+    y2 = np.atleast_2d(m.scores) if m.scores is not None else None
+    sd = disparity_sigma(y2[d.v + (y2.shape[0] - 1) // 2], d.k, m.window) if y2 is not None else math.nan
+    z = depth_from_disparity(disp, baseline_m, focal_px) if d.confident else math.nan
+    ok = math.isfinite(z)
+    return dict(disparity_px=disp, disparity_sigma_px=sd, depth_m=z if ok else None,
+                depth_sigma_m=depth_sigma(z, baseline_m, focal_px, sd) if ok else None)

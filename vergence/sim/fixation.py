@@ -42,7 +42,7 @@ def truth_at(rig: Rig, x: float, y: float) -> tuple[float, float]:
         return _project(homography(rig.focal_px, rig.src_size, rig.size, pan, rig.slave_tilt_rad, rig.gimbal),
                         xr, yl)[0]
 
-    lo, hi = -1.2, 1.2
+    lo, hi = -0.8, 0.8  # the head's pan range (45 deg) and more; much wider, the point can fall behind the camera
     if not column(lo) >= x >= column(hi):
         return math.nan, d
     for _ in range(60):
