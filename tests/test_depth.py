@@ -136,7 +136,8 @@ B, F = 0.16, 3740.0  # a chosen rig (Middlebury 2003's own is about this)
 def test_match_depth_on_middlebury_within_two_sigma():
     """`vergence match --baseline B --focal F --json` on 120 points of each pair (draw seed 11; the sigma was
     fitted on draw 7): depth_m = b f / disparity, and b f / ground truth within 2 stated sigma at >= 90 % of
-    the confident points (per pair at least 88 %)."""
+    the confident points (per pair at least 88 %). A confident point with no positive disparity (a wrong
+    match) has no depth and counts as a miss."""
     scenes = json.loads((ROOT / "scenes.json").read_text())
     inside_all = []
     for name in SCENES:
@@ -155,6 +156,10 @@ def test_match_depth_on_middlebury_within_two_sigma():
         inside = []
         for o in conf:
             assert o["disparity_px"] == pytest.approx(-o["offset_px"])
+            if o["disparity_px"] <= 0:  # a wrong match behind infinity: no depth, and a miss
+                assert o["depth_m"] is None
+                inside.append(False)
+                continue
             assert o["depth_m"] == pytest.approx(B * F / o["disparity_px"])
             assert o["depth_sigma_m"] == pytest.approx(o["depth_m"] ** 2 / (B * F) * o["disparity_sigma_px"])
             inside.append(abs(o["depth_m"] - B * F / gt[o["y"], o["x"]]) <= 2 * o["depth_sigma_m"])
