@@ -4,6 +4,7 @@ rig, the first decision at the new point within 0.2 s, the loop re-converged the
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -15,7 +16,7 @@ import pytest
 
 from procs import VERGENCE, Procs, free_port, wait_for
 from services.capture import Fovea
-from vergence import pipeline
+from vergence import monitor, pipeline
 from vergence.match import Params
 from vergence.messages import SCHEMA, Fixate, MotorState, Verdict
 from vergence.sim import Rig
@@ -146,3 +147,28 @@ def test_fixate_without_a_capture_says_so(tmp_path):
         r = subprocess.run([VERGENCE, "fixate", "100,100", "--connect", P.endpoint, "--rig", P.rig, "--wait", "0"],
                            capture_output=True, text=True, timeout=60)
         assert r.returncode == 0 and f"sent on vergence/{P.rig}/fixate" in r.stdout
+
+
+def test_monitor_shows_the_fovea_and_the_depth():
+    """`vergence monitor`'s model: the fovea of the latest frame, the decision's converged depth; a profile of
+    an older fovea says so."""
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (120, 200), np.uint8)
+    p = Params(max_window=0)
+    f = pipeline.make_frame(img, img, rig="head", frame=3, pan_rad=0.0, focal_px=100.0, params=p,
+                            plan=[["w", 0, 186]], at=(80, 60))
+    r = pipeline.Result.of(f, pipeline.compute_partial(f, "w").array(), p, pipeline.Controller())
+    mon = monitor.Monitor("head")
+    mon.feed("vergence/head/frame", f.to_bytes())
+    mon.feed("vergence/head/profile", dataclasses.replace(r.profile, x=80, y=60, converged=True, depth_m=1.234,
+                                                          depth_sigma_m=0.012).to_bytes())
+    s = mon.snapshot()
+    assert s.fovea == (80, 60)
+    assert "fovea (80, 60)   converged, depth 1.234 m ± 0.012" in monitor.render_text(s, color=False)
+    f.x, f.frame = 90, 4  # the fovea moved; the latest profile is still the old point's
+    mon.feed("vergence/head/frame", f.to_bytes())
+    text = monitor.render_text(mon.snapshot(), color=False)
+    assert "fovea (90, 60) (the profile's: (80, 60))" in text
+    mon.feed("vergence/head/profile", dataclasses.replace(r.profile, frame=4, x=90, y=60).to_bytes())
+    assert "fovea (90, 60)   not converged, no depth" in monitor.render_text(mon.snapshot(), color=False)
+    assert monitor.render_png(mon.snapshot()).shape == (720, 960, 3)
