@@ -172,3 +172,38 @@ def test_monitor_shows_the_fovea_and_the_depth():
     mon.feed("vergence/head/profile", dataclasses.replace(r.profile, frame=4, x=90, y=60).to_bytes())
     assert "fovea (90, 60)   not converged, no depth" in monitor.render_text(mon.snapshot(), color=False)
     assert monitor.render_png(mon.snapshot()).shape == (720, 960, 3)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("variant", ["tcp", "tls"])
+def test_only_the_fixate_role_may_fixate(tmp_path, variant):
+    """Under the deployed ACL (deploy/router-*.json5, secrets from make-certs.sh): a put on
+    vergence/<rig>/fixate gets through from the `fixate` role only, and that role puts nothing else."""
+    from deploy_helpers import client_session, make_secrets, router_config, start_router
+
+    secrets = make_secrets(tmp_path / "secrets")
+    conf, endpoint = router_config(variant, secrets, tmp_path / "router.json5")
+    got: list[tuple[str, bytes]] = []
+    with Procs(tmp_path) as P:
+        start_router(P, conf, endpoint)
+        watch = client_session(secrets, "monitor", variant, endpoint)
+        try:
+            sub = watch.declare_subscriber("vergence/**", lambda s: got.append((str(s.key_expr),
+                                                                               s.payload.to_bytes())))
+            for role in ("capture", "worker", "reducer", "actuator", "monitor", "replay", "fixate"):
+                s = client_session(secrets, role, variant, endpoint)
+                try:
+                    time.sleep(0.2)  # the router has told this client about the subscriber
+                    for key in ("vergence/r/fixate", "vergence/*/fixate", "vergence/r/command", "vergence/r/frame"):
+                        s.put(key, role.encode())
+                    time.sleep(0.2)
+                finally:
+                    s.close()
+            wait_for(lambda: ("vergence/r/fixate", b"fixate") in got, 5, "the fixate role's request")
+            time.sleep(0.3)
+            sub.undeclare()
+        finally:
+            watch.close()
+    assert sorted(k for k in got if k[0].endswith("/fixate")) == [("vergence/*/fixate", b"fixate"),
+                                                                  ("vergence/r/fixate", b"fixate")]
+    assert not any(who == b"fixate" and not key.endswith("/fixate") for key, who in got)
