@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import msgpack
@@ -62,6 +63,9 @@ def test_a_decision_of_an_older_reducer_still_decodes(kind):
     assert math.isnan(v.depth_m) and math.isnan(v.depth_sigma_m)
     d["depth_m"] = math.nan
     assert math.isnan(M.KINDS[kind].from_bytes(msgpack.packb(d, use_bin_type=True)).depth_m)
+    # a NaN depth survives a round trip equal (every NaN decodes to the one math.nan)
+    msg = dataclasses.replace(SAMPLES[kind], depth_m=float("nan"), depth_sigma_m=math.nan, converged=False)
+    assert M.KINDS[kind].from_bytes(msg.to_bytes()) == dataclasses.replace(msg, depth_m=math.nan)
 
 
 @pytest.mark.parametrize("change,says", [

@@ -54,7 +54,10 @@ def _checker(tp):
     if tp is float:
         def check_float(value, name):
             if type(value) is float:
-                return value
+                # every NaN decodes to the one math.nan, so that messages with NaN fields (a decision's depth
+                # while not converged) compare equal after a round trip, as dataclass and dict equality
+                # compare identical objects as equal
+                return value if value == value else math.nan
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise _expected(name, "a number", value)
             return float(value)
