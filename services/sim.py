@@ -92,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"vergence sim: {e}", file=sys.stderr)
         return 2
     steps = []
+    # the fovea, and its truth: (converged slave pan, disparity), NaN where unknown
     at, truth = (rig.size[0] // 2, rig.size[1] // 2), (rig.truth_pan_rad, rig.disparity)
     segments = []  # (first frame, (x, y)) of each fixation
     for s in closed_loop(rig, args.frames, params, settings.control, settings.actuator.motor, args.rate,
@@ -100,8 +101,6 @@ def run(args: argparse.Namespace) -> int:
             if s.frame in fixations:
                 at, truth = fixations[s.frame], truth_at(rig, *fixations[s.frame])
             segments.append((s.frame, at))
-            if not math.isfinite(truth[0]):
-                truth = (math.nan, truth[1])
         pan = math.radians(s.pan_deg)
         s = dataclasses.replace(s, truth_pan_deg=math.degrees(truth[0]),
                                 error_px=rig.focal_px * math.tan(pan - truth[0]))
