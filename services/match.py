@@ -32,14 +32,28 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--faithful", action="store_true", help="the paper's network: every extension off")
     p.add_argument("--config", metavar="FILE", help="settings TOML; its [network] table sets the parameters")
     p.add_argument("--json", action="store_true", help="one JSON object per point")
-    p.add_argument("--baseline", type=float, default=None, metavar="B",
+    p.add_argument("--baseline", type=positive, default=None, metavar="B",
                    help="baseline in metres: with --focal, print each point's depth Z = b f / disparity")
-    p.add_argument("--focal", type=float, default=None, metavar="F", help="focal length in pixels (with --baseline)")
+    p.add_argument("--focal", type=positive, default=None, metavar="F", help="focal length in pixels (with --baseline)")
     p.add_argument("--master-is", dest="master_side", choices=("left", "right"), default="left",
                    help="which camera MASTER is, for the disparity's sign (default left: disparity = -offset)")
 
 
+def positive(text: str) -> float:
+    """argparse type for --baseline and --focal: a finite number > 0."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"want a positive number, got {text!r}")
+    return v
+
+
 def run(args: argparse.Namespace) -> int:
+    if (args.baseline is None) != (args.focal is None):
+        print("vergence match: --baseline and --focal go together (metres, pixels)", file=sys.stderr)
+        return 2
     try:
         base = load(args.config).network
         if args.faithful:
@@ -50,9 +64,6 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"images differ in size: {args.master} is {master.shape[1]} x {master.shape[0]}, "
                              f"{args.slave} is {slave.shape[1]} x {slave.shape[0]}")
         results = [match(master, slave, at, params) for at in (args.at or [None])]
-        if (args.baseline is None) != (args.focal is None) or not all(
-                v is None or (math.isfinite(v) and v > 0) for v in (args.baseline, args.focal)):
-            raise ValueError("--baseline and --focal go together, both positive (metres, pixels)")
     except (ValueError, BorderError, ConfigError, TypeError) as e:
         print(f"vergence match: {e}", file=sys.stderr)
         return 2

@@ -168,13 +168,16 @@ def test_match_depth_on_middlebury_within_two_sigma():
     assert np.mean(inside_all) >= 0.90, np.mean(inside_all)
 
 
+@pytest.mark.slow
 def test_match_depth_options_are_checked(tmp_path):
     img = cv2.GaussianBlur(np.random.default_rng(0).integers(0, 256, (60, 100), np.uint8), (5, 5), 1.2)
     cv2.imwrite(str(tmp_path / "a.png"), img[:, 10:90])
     cv2.imwrite(str(tmp_path / "b.png"), img[:, 16:96])  # the slave sees it 6 px further right: disparity 6
-    for args in (["--baseline", "0.1"], ["--baseline", "0", "--focal", "500"], ["--focal", "nan", "--baseline", "1"]):
+    for args, says in ((["--baseline", "0.1"], "--baseline and --focal go together"),
+                       (["--baseline", "0", "--focal", "500"], "--baseline: want a positive number, got '0'"),
+                       (["--focal", "nan", "--baseline", "1"], "--focal: want a positive number, got 'nan'")):
         r = vergence("match", str(tmp_path / "a.png"), str(tmp_path / "a.png"), *args)
-        assert r.returncode == 2 and "--baseline and --focal go together" in r.stderr
+        assert r.returncode == 2 and says in r.stderr, r.stderr
     r = vergence("match", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--baseline", "0.1", "--focal", "500")
     z, sz = (float(v) for v in re.search(r", depth ([\d.]+) \+- ([\d.]+) m", r.stdout).groups())
     assert abs(z - 0.1 * 500 / 6) <= sz < 0.3  # Z = b f / d = 8.33 m, and dZ = Z^2 / (b f) sigma_d
