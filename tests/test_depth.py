@@ -120,6 +120,9 @@ def test_rig_table_of_the_settings(tmp_path):
     p.write_text('rig = "head"\n[network]\nwindow = 21\n')  # an older file: the documented defaults
     s = load_settings(p)
     assert (s.rig, s.geometry.baseline_m, s.geometry.focal_px, s.geometry.master) == ("head", 0.06, 0.0, "")
+    p.write_text('rig = "head"\n[rig]\nbaseline_m = 0.1\n')
+    with pytest.raises(ConfigError, match=r"write name = \"...\" in \[rig\]"):
+        load_settings(p)
     for bad, says in [({"rig": {"baseline_m": 0}}, "baseline_m"), ({"rig": {"gimbal": "x"}}, "gimbal"),
                       ({"rig": {"colour": 1}}, r"rig\.colour: unknown"), ({"rig": {"name": 3}}, r"rig\.name")]:
         with pytest.raises(ConfigError, match=says):

@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 import tomllib
 import types
 import typing
@@ -186,7 +187,10 @@ def load(path: str | Path | None = None, cls=Settings):
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{p}: not valid TOML: {e}") from None
+        hint = ""
+        if re.search(r"^\s*rig\s*=", text, re.M) and re.search(r"^\s*\[rig\]", text, re.M):
+            hint = ' (rig = "..." and a [rig] table cannot both be there: write name = "..." in [rig])'
+        raise ConfigError(f"{p}: not valid TOML: {e}{hint}") from None
     try:
         return _build("", data, cls)
     except ConfigError as e:
