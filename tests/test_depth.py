@@ -73,6 +73,9 @@ def test_the_residual_gives_the_exact_depth_off_the_converged_pan(scene, gimbal,
                               offset_px=xs - x, v_shift=round(ys - y), confident=True, sigma_d_px=0.2, baseline_m=0.06,
                               master_pan_rad=rig.master_pan_rad, tilt_rad=rig.tilt_rad, gimbal=gimbal)
     truth = 0.06 * rig.focal_px / d
+    exact = depth.depth_from_pans(rig.master_pan_rad, pan, 0.06, rig.focal_px, tilt_rad=rig.tilt_rad,
+                                  master_px=(x - 320, y - 240), slave_px=(xs - 320, ys - 240), gimbal=gimbal)
+    assert exact == pytest.approx(truth, rel=1e-9)  # the formula itself, with the slave's exact pixel
     assert dep.converged and abs(xs - x) == pytest.approx(abs(off_px), abs=0.15)
     assert dep.depth_m == pytest.approx(truth, rel=2e-3)  # the row rounded to the decision's integer v_shift
     # without the residual (the pan alone) the depth would be off by about off_px / d
