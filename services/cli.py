@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "worker": ("services.worker", "compute layer 4 for a shard of each frame"),
     "reducer": ("services.reducer", "gather shards, decide, publish profile and command"),
     "actuator": ("services.actuator", "drive the slave pan motor"),
+    "fixate": ("services.fixate", "move the running capture's fovea to a master pixel"),
     "monitor": ("services.monitor", "live view of the correlation topics"),
     "record": ("services.record", "record every vergence/<rig>/** message to a file"),
     "replay": ("services.replay", "publish a recording again"),
