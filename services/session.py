@@ -2,8 +2,9 @@
 
 Every process takes the options of zenoh-python's examples (--mode, --connect, --listen, --zenoh-config),
 plus --rig (the key prefix) and --config (our TOML settings). Clients connect to the router at
-tcp/127.0.0.1:7447 unless told otherwise; multicast scouting is off (explicit endpoints only) and the lease
-is short (1 s) so that a frozen process is noticed.
+tcp/127.0.0.1:7447 unless told otherwise; multicast scouting is off (explicit endpoints only), the lease
+is short (1 s) so that a frozen process is noticed, and shared memory is off (it grew every subscriber's
+memory by each publisher's pool: see zenoh_config).
 """
 
 from __future__ import annotations
@@ -44,18 +45,33 @@ def zenoh_config(mode: str = "client", connect: list[str] | None = None, listen:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if os.environ.get("VERGENCE_ZENOH_SHM") != "1" and not (config_file and _sets_shared_memory(config_file)):
+        # no shared memory: with it (zenoh's default since 1.x), every subscriber kept the 16 MB pool of each
+        # publisher it ever heard from mapped, so the workers and the reducer grew ~19 MB per capture restart
+        # (tests/test_supervise.py); frames are small enough that tcp on 127.0.0.1 costs little (README).
+        # VERGENCE_ZENOH_SHM=1 leaves zenoh's default (to measure it), as does a config file that sets it.
+        conf.insert_json5("transport/shared_memory/enabled", "false")
     if not config_file:
         conf.insert_json5("scouting/multicast/enabled", "false")
         conf.insert_json5("transport/link/tx/lease", str(LEASE_MS))
         conf.insert_json5("transport/link/tx/keep_alive", "4")
-        if mode == "client":
-            # keep trying to reach the router: at start and after it restarts
+        if mode in ("client", "peer"):
+            # keep trying to reach the router: at start and after it restarts (the peers of `vergence up` too)
             conf.insert_json5("connect/timeout_ms", "-1")
             # retry every 0.1-0.5 s (zenoh's default backs off to seconds): back within 0.5 s of a router
-            # restart however long it was down (tests/test_deploy_restart.py)
+            # restart however long it was down (tests/test_deploy_restart.py, tests/test_supervise.py)
             conf.insert_json5("connect/retry",
                               '{"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}')
     return conf
+
+
+def _sets_shared_memory(config_file: str) -> bool:
+    """Whether a zenoh config file says anything about shared memory (then it decides)."""
+    try:
+        with open(config_file, encoding="utf-8") as fh:
+            return "shared_memory" in fh.read()
+    except OSError:
+        return False
 
 
 def config_from_args(args: argparse.Namespace) -> zenoh.Config:

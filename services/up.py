@@ -28,6 +28,10 @@ from . import session
 
 log = logging.getLogger("vergence.up")
 GRACE_S = 5.0
+POLL_S = 0.05  # how often dead children are looked for
+BACKOFF_S = (0.2, 5.0)  # the wait before a restart: first, then doubled up to the second ...
+STABLE_S = 10.0  # ... and back to the first once the child has run this long
+STATUS_S = 60.0  # a line with the restart counts this often
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -105,9 +109,32 @@ def _router_listening(p: subprocess.Popen, endpoint: str, timeout: float = 10.0)
     return p.poll() is None
 
 
-def stop_all(children: list[tuple[str, subprocess.Popen]]) -> None:
+class Child:
+    """One supervised child: its command, the running process, its restarts and its back-off."""
+
+    def __init__(self, name: str, argv: list[str]):
+        self.name, self.argv = name, argv
+        self.p: subprocess.Popen | None = None
+        self.started = 0.0  # time.monotonic() of the latest start
+        self.restarts = 0
+        self.backoff = BACKOFF_S[0]
+        self.due: float | None = None  # when a dead child is started again
+
+    def start(self) -> None:
+        self.p = subprocess.Popen(self.argv, preexec_fn=_die_with_parent, start_new_session=True,
+                                  stdin=subprocess.DEVNULL)
+        self.started, self.due = time.monotonic(), None
+
+    def exited(self) -> int | None:
+        return None if self.p is None else self.p.poll()
+
+
+def stop_all(children: list[Child]) -> None:
     """SIGINT each child (latest started first), wait up to GRACE_S, then SIGKILL its group."""
-    for name, p in reversed(children):
+    for c in reversed(children):
+        p = c.p
+        if p is None:
+            continue
         if p.poll() is None:
             try:
                 os.killpg(p.pid, signal.SIGINT)
@@ -116,13 +143,49 @@ def stop_all(children: list[tuple[str, subprocess.Popen]]) -> None:
             try:
                 p.wait(GRACE_S)
             except subprocess.TimeoutExpired:
-                log.warning("%s (pid %d) did not stop in %.0f s: killed", name, p.pid, GRACE_S)
+                log.warning("%s (pid %d) did not stop in %.0f s: killed", c.name, p.pid, GRACE_S)
         try:
             os.killpg(p.pid, signal.SIGKILL)
         except (ProcessLookupError, PermissionError):
             pass
         p.wait()
-        log.info("%s stopped (exit %s)", name, p.returncode)
+        log.info("%s stopped (exit %s)", c.name, p.returncode)
+
+
+def restarts_line(children: list[Child]) -> str:
+    """"restarts: reducer 1, router 2" (or "no restarts")."""
+    done = [f"{c.name} {c.restarts}" for c in children if c.restarts]
+    return "restarts: " + ", ".join(done) if done else "no restarts"
+
+
+def supervise(children: list[Child], stop: session.Stop, poll_s: float = POLL_S) -> int:
+    """Restart every child that exits, until stop is set; the exit code of `up` (2: a child refused its
+    settings at its first start, which no restart can fix)."""
+    last_status = time.monotonic()
+    while not stop.wait(poll_s):
+        now = time.monotonic()
+        for c in children:
+            code = c.exited()
+            if code is not None and c.due is None:
+                ran = now - c.started
+                if code == 2 and c.restarts == 0 and ran < STABLE_S:
+                    log.error("%s (pid %d) refused its options or settings (exit 2): stopping", c.name, c.p.pid)
+                    return 2
+                if ran >= STABLE_S:
+                    c.backoff = BACKOFF_S[0]
+                wait, c.backoff = c.backoff, min(c.backoff * 2, BACKOFF_S[1])
+                c.due = now + wait
+                log.warning("%s (pid %d) exited with %s after %.1f s: restarting in %.1f s", c.name, c.p.pid, code,
+                            ran, wait)
+            if c.due is not None and now >= c.due and not stop.is_set():
+                c.start()
+                c.restarts += 1
+                log.info("restarted %s (pid %d), restart %d; %s", c.name, c.p.pid, c.restarts,
+                         restarts_line(children))
+        if now - last_status >= STATUS_S:
+            last_status = now
+            log.info("%d children running; %s", sum(c.exited() is None for c in children), restarts_line(children))
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -136,27 +199,21 @@ def run(args: argparse.Namespace) -> int:
               "give this one another port with --listen", file=sys.stderr)
         return 2
     stop = session.Stop()
-    children: list[tuple[str, subprocess.Popen]] = []
+    children: list[Child] = []
     code = 0
     try:
         for name, argv in commands(args, rig):
             if stop.is_set():
                 break
-            children.append((name, subprocess.Popen(argv, preexec_fn=_die_with_parent, start_new_session=True,
-                                                    stdin=subprocess.DEVNULL)))
-            log.info("started %s (pid %d): %s", name, children[-1][1].pid, " ".join(argv[3:]))
-            if name == "router" and not _router_listening(children[-1][1], args.listen):
-                log.error("the router did not start (exit %s): nothing else started", children[-1][1].poll())
+            children.append(Child(name, argv))
+            children[-1].start()
+            log.info("started %s (pid %d): %s", name, children[-1].p.pid, " ".join(argv[3:]))
+            if name == "router" and not _router_listening(children[-1].p, args.listen):
+                log.error("the router did not start (exit %s): nothing else started", children[-1].p.poll())
                 return 1
-        reported: set[str] = set()
-        while not stop.wait(0.2):
-            for name, p in children:
-                if p.poll() is not None and name not in reported:
-                    reported.add(name)
-                    log.warning("%s (pid %d) exited with %s", name, p.pid, p.returncode)
-                    if name == "router":
-                        code = 1
-                        stop.set()
+        code = supervise(children, stop)
     finally:
         stop_all(children)
+        if children:
+            log.info("stopped; %s", restarts_line(children))
     return code
