@@ -20,6 +20,7 @@ import zenoh
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 LEASE_MS = 1000
+STANDBY_ENV = "VERGENCE_STANDBY"  # see open_session and services/up.py
 
 
 def add_options(p: argparse.ArgumentParser, mode: str = "client") -> None:
@@ -84,10 +85,31 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
     A service has imported numpy, numba, OpenCV and zenoh and warmed its kernels by now: hundreds of
     thousands of objects that live as long as the process. Left to the collector, its full passes over them
     took half the reducer's CPU at 250 frames/s and stalled a message for tens of ms at a time; frozen, a
-    collection only walks what the message loop allocates."""
+    collection only walks what the message loop allocates.
+
+    A standby of `vergence up` (STANDBY_ENV set) waits here first, everything before its session done, until
+    up starts it in place of a dead child (or leaves, if up closes the pipe)."""
+    _standby()
     gc.collect()
     gc.freeze()
     return zenoh.open(conf)
+
+
+def _standby() -> None:
+    """In a standby (STANDBY_ENV = "READY_FD,GO_FD", set by `vergence up`): write a byte to READY_FD (imports
+    and warm-up done), then block until a byte arrives on GO_FD; end of file (up stopped or died): exit 0."""
+    spec = os.environ.pop(STANDBY_ENV, None)
+    if not spec:
+        return
+    ready, go = (int(fd) for fd in spec.split(","))
+    try:
+        os.write(ready, b"r")
+        os.close(ready)
+    except OSError:  # up is gone
+        raise SystemExit(0) from None
+    with os.fdopen(go, "rb", buffering=0) as fh:
+        if not fh.read(1):
+            raise SystemExit(0)
 
 
 def alive_key(rig: str, role: str, name: str | None = None) -> str:
