@@ -68,6 +68,13 @@ def start_up(P: Procs, tmp_path, *extra: str):
     return up, s, decisions
 
 
+def pause_around(decisions, t_kill: int) -> float:
+    """The longest pause between two decisions, from the last one before t_kill to the 10th after."""
+    times = [t for t, *_ in decisions.snapshot()]
+    seq = [t for t in times if t <= t_kill][-1:] + [t for t in times if t > t_kill][:10]
+    return max((b - a) / 1e9 for a, b in itertools.pairwise(seq))
+
+
 def kill_and_time(P: Procs, up, decisions, kind: str) -> float:
     """SIGKILL a child of a kind (the first by command line), wait until up has started another and 10
     decisions arrived after the kill; the longest pause between two decisions, from the last one before the
@@ -81,11 +88,10 @@ def kill_and_time(P: Procs, up, decisions, kind: str) -> float:
     wait_for(lambda: sum(t > t_kill for t, *_ in decisions.snapshot()) >= 10, 60,
              f"10 decisions after the SIGKILL of {kind}", logs=P.logs)
     times = [t for t, *_ in decisions.snapshot()]
-    before, after = [t for t in times if t <= t_kill][-3:], [t for t in times if t > t_kill][:10]
+    around = [t for t in times if t <= t_kill][-3:] + [t for t in times if t > t_kill][:10]
     at = time.strftime("%H:%M:%S", time.localtime(t_kill / 1e9)) + f".{t_kill // 1000000 % 1000:03d}"
-    print(f"{kind} SIGKILLed at {at}; decisions at (s):",
-          " ".join(f"{(t - t_kill) / 1e9:+.3f}" for t in before + after))
-    return max((b - a) / 1e9 for a, b in itertools.pairwise(before[-1:] + after))
+    print(f"{kind} SIGKILLed at {at}; decisions at (s):", " ".join(f"{(t - t_kill) / 1e9:+.3f}" for t in around))
+    return pause_around(decisions, t_kill)
 
 
 @pytest.mark.slow
@@ -95,12 +101,25 @@ def test_a_sigkilled_child_is_restarted_and_decisions_resume_within_3_s(tmp_path
         for kind in ("reducer", "capture"):
             wait_for(lambda k=kind: re.search(rf"standby of {k} \(pid \d+\) ready", up.text()), 60,
                      f"a standby {kind} ready", interval=0.1, logs=P.logs)
+        # a peer of the children too, linked to them directly (as they are to one another): what it gets does
+        # not go through the router
+        from services import session
+
+        peer = session.open_session(session.zenoh_config("peer", [P.endpoint], ["tcp/127.0.0.1:0"]))
+        P._sessions.append(peer)
+        direct = P.collect(peer, P.key("decision"))
+        direct.wait(10, 30)
         pauses = {}
         for kind in ("worker", "capture", "reducer", "actuator", "router"):
+            t_kill = time.time_ns()
             pauses[kind] = kill_and_time(P, up, decisions, kind)
             P.wait_alive(s, "worker", 2, timeout=30)  # the new worker joined (or both stayed) before the next kill
-        print("pauses in the decisions after a SIGKILL (s):", {k: round(v, 3) for k, v in pauses.items()})
+        wait_for(lambda: sum(t > t_kill for t, *_ in direct.snapshot()) >= 10, 30, "10 decisions at the peer")
+        direct_pause = pause_around(direct, t_kill)
+        print("pauses in the decisions after a SIGKILL (s):", {k: round(v, 3) for k, v in pauses.items()},
+              f"; at a peer, when the router was killed: {direct_pause:.3f}")
         assert all(v <= RESUME_S for v in pauses.values()), pauses
+        assert direct_pause < 0.5  # the peers' links do not need the router
         log = up.text()
         for kind in ("worker1", "actuator", "router"):
             assert f"restarted {kind} (pid" in log
