@@ -4,10 +4,17 @@ Starts, as child processes: a Zenoh router listening on ENDPOINT (default tcp/12
 N workers, the reducer and the capture. These are Zenoh peers: each connects to the router, learns the others
 from it and links to them directly on 127.0.0.1, so a frame crosses one link per stage and the router carries
 no data between them (it serves the clients: `vergence monitor`, workers on other nodes). With no arguments it
-runs the simulated rig. SIGINT (Ctrl-C) or SIGTERM stops the children in order (capture first, router last),
-each with SIGINT and then SIGKILL after a grace time; children also get SIGTERM if `up` itself dies (Linux
-parent-death signal), so nothing is left behind. A child that exits on its own is reported; if the router
-exits, everything stops.
+runs the simulated rig.
+
+Supervised: a child that exits (the router too) is started again after a back-off (0.2 s, doubled at each
+quick death up to 5 s, back to 0.2 s once it has run 10 s), with one log line per restart and the counts;
+the reducer and the capture, slow to start, each have a standby (a second process that has imported and
+warmed up and waits in session.open_session) that takes over the moment its child dies. A child that exits
+with 2 at its first start (bad options or settings) stops everything instead.
+
+SIGINT (Ctrl-C) or SIGTERM ends the supervision and stops the standbys, then the children in order (capture
+first, router last), each with SIGINT and then SIGKILL after a grace time; children also get SIGTERM if `up`
+itself dies (Linux parent-death signal), so nothing is left behind.
 """
 
 from __future__ import annotations
