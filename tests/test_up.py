@@ -120,3 +120,32 @@ def test_no_restart_during_shutdown_and_exit_2_at_first_start_stops_up(caplog):
         assert _supervise_until([bad, other], session.Stop(install=False), lambda: False, 20) == 2
     assert bad.restarts == 0 and other.p.returncode is not None  # all stopped
     assert any("bad (pid" in r.getMessage() and "refused its options" in r.getMessage() for r in caplog.records)
+
+
+def test_a_standby_takes_over_at_once_and_leaves_when_up_stops(monkeypatch, caplog):
+    from services import session, up
+
+    monkeypatch.setattr(up, "STANDBY_DELAY_S", 0.2)
+    # a child that, as every service, waits in session.open_session's standby hook before its work
+    c = _child("svc", "from services import session; session._standby(); import time; time.sleep(60)")
+    c.standby_due = 0.0
+    c.start()
+    stop = session.Stop(install=False)
+    first = c.p
+    killed = []
+
+    def cond():
+        if c.standby is not None and c.standby.ready and not killed:
+            killed.append(c.standby.p.pid)
+            first.kill()
+        return killed and c.p.pid == killed[0] and c.standby is not None and c.standby.ready
+
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until([c], stop, cond, 30) == 0
+    lines = [r.getMessage() for r in caplog.records]
+    assert any(f"svc (pid {first.pid}) exited with -9" in m and f"its standby (pid {killed[0]}, ready) takes over, "
+               "restart 1; restarts: svc 1" in m for m in lines), lines
+    assert c.restarts == 1 and not any(m.startswith("restarted svc") for m in lines)  # no fresh start
+    assert sum(m.startswith("started a standby of svc") for m in lines) == 2  # and another standby after it
+    assert not any("did not stop" in m for m in lines)  # the waiting standby left when its pipe closed
+    assert c.p.returncode is not None
