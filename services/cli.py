@@ -44,16 +44,21 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if name is None and any(a in ("-h", "--help") for a in argv) else 2
     args = build_parser(name).parse_args(argv)
     mod = importlib.import_module(COMMANDS[name][0])
-    from vergence.config import ConfigError
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
     try:
         return int(mod.run(args) or 0)
-    except ConfigError as e:  # a settings file or value that is wrong: the message names the field
-        print(f"vergence {name}: {e}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         return 130
+    except Exception as e:
+        # a settings file or value that is wrong: the message names the field. Looked up only if the command
+        # loaded the settings: importing vergence costs ~1 s (numba), which `vergence router` does without
+        # (a router restarted by `vergence up` is back that much sooner)
+        config = sys.modules.get("vergence.config")
+        if config is not None and isinstance(e, config.ConfigError):
+            print(f"vergence {name}: {e}", file=sys.stderr)
+            return 2
+        raise
 
 
 if __name__ == "__main__":
