@@ -10,6 +10,9 @@ time is off our clock by more than [limits] max_skew_s is counted and ignored. W
 are counted (no_workers) and not published. A downscaled
 messages.Preview goes on vergence/<rig>/preview at [capture] preview_hz. With [network] max_window > 0 the
 window grows by 8 px while the decisions (vergence/<rig>/decision) are not confident (the dynamic window).
+A messages.Fixate on vergence/<rig>/fixate moves the fovea to its (x, y) from the next frame on; a request
+that is not a valid Fixate, or where the fovea would not fit the image, is rejected (counted under bad.fixate
+and in the fixate_rejected counter, its reason logged) and nothing moves.
 Counters go out as JSON on vergence/<rig>/status/capture/<id> every second and at exit, with the rate
 published and the rate the reducer completed (published_hz, decided_hz; a warning when the pipeline
 holds less than half).
@@ -22,6 +25,7 @@ import dataclasses
 import json
 import logging
 import sys
+import threading
 import time
 
 import cv2
@@ -29,7 +33,7 @@ import zenoh
 
 from vergence import pipeline, retina
 from vergence.config import load
-from vergence.messages import MessageError, MotorState, Preview, Verdict
+from vergence.messages import Fixate, MessageError, MotorState, Preview, Verdict
 from vergence.sources import SourceError, open_source
 
 from . import session
@@ -62,16 +66,64 @@ def motor_state_implausible(st: MotorState, motor, now_ns: int, max_skew_s: floa
     return None
 
 
+class Fovea:
+    """Where the fovea is, and the fixate requests that move it (zenoh callback thread -> capture loop)."""
+
+    LOG_EVERY_S = 1.0
+
+    def __init__(self, x: int, y: int, shape: tuple[int, int], params, health: pipeline.Health):
+        self.lock = threading.Lock()
+        self.x, self.y = x, y
+        self.shape, self.params, self.health = shape, params, health
+        self._last_log = -1e9
+
+    def at(self) -> tuple[int, int]:
+        with self.lock:
+            return self.x, self.y
+
+    def _reject(self, why: str) -> None:
+        self.health.reject("fixate", why)
+        self.health.count("fixate_rejected")
+        now = time.monotonic()
+        if now - self._last_log >= self.LOG_EVERY_S:  # every reason, at most once a second
+            self._last_log = now
+            log.warning("fixate request rejected, the fovea stays at (%d, %d): %s", self.x, self.y, why)
+
+    def on_fixate(self, payload: bytes) -> tuple[int, int] | None:
+        """A fixate request's bytes -> the new fovea centre, or None (rejected, counted, logged)."""
+        try:
+            req = Fixate.from_bytes(payload)
+        except MessageError as e:
+            self._reject(str(e))
+            return None
+        x, y = int(round(req.x)), int(round(req.y))
+        try:
+            retina.check_point(self.shape, x, y, self.params.window, self.params.vsearch)
+        except retina.BorderError as e:
+            self._reject(f"({req.x:g}, {req.y:g}): {e}")
+            return None
+        with self.lock:
+            self.x, self.y = x, y
+        self.health.count("fixations")
+        log.info("fixate: fovea to (%d, %d)%s", x, y, f" for {req.source}" if req.source else "")
+        return x, y
+
+
 def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
          at: tuple[int, int] | None = None) -> int:
-    rig, cs, params = settings.rig, settings.capture, settings.network
+    rig, cs, params, geo = settings.rig, settings.capture, settings.network, settings.geometry
     try:
-        source = open_source(cs.source, cs.master)
+        source = open_source(cs.source, geo.master or cs.master)
     except SourceError as e:
         print(f"vergence capture: {e}", file=sys.stderr)
         return 2
     wd, ht = source.size
-    focal = cs.focal_px or source.focal_px or 0.8 * wd
+    focal = geo.focal_px or cs.focal_px or source.focal_px or 0.8 * wd
+    # the master's pan and the common tilt (the simulated rig aims its master; a real master is fixed: 0, 0)
+    master_pan, tilt = getattr(source, "master_pan_rad", 0.0), getattr(source, "tilt_rad", 0.0)
+    if getattr(source, "gimbal", geo.gimbal) != geo.gimbal:
+        log.warning("the source's gimbal is %s, [rig] gimbal %s: the reducer's depth assumes the latter",
+                    source.gimbal, geo.gimbal)
     x, y = at if at is not None else (wd // 2, ht // 2)
     try:
         retina.check_point((ht, wd), x, y, params.window, params.vsearch)
@@ -85,6 +137,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
     windows = pipeline.WindowControl(params)
     lim = settings.limits
     members = pipeline.Roster(lim.miss_s, lim.probation_s, lim.miss_frames)
+    fovea = Fovea(x, y, (ht, wd), params, health)
     pan = [source.start_pan_rad]
     decided = [0, 0]  # the reducer's complete frames: latest report, and at the last status
 
@@ -138,6 +191,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                 s.liveliness().declare_subscriber(f"vergence/{rig}/alive/worker/*", on_token, history=True)]
         if params.max_window:
             subs.append(s.declare_subscriber(f"vergence/{rig}/decision", on_decision))
+        subs.append(s.declare_subscriber(f"vergence/{rig}/fixate", lambda sm: fovea.on_fixate(sm.payload.to_bytes())))
         token = s.liveliness().declare_token(alive)
         log.info("capture %s: %s (%d x %d, f=%.1f px) at %s Hz on vergence/%s/frame", cid, cs.source, wd, ht,
                  focal, cs.rate_hz or "max", rig)
@@ -180,8 +234,9 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                 elif plan:
                     try:
                         frame = pipeline.make_frame(master, slave, rig=rig, frame=fid, pan_rad=p_now, focal_px=focal,
-                                                    params=params, plan=plan, at=(x, y), window=w,
+                                                    params=params, plan=plan, at=fovea.at(), window=w,
                                                     t_capture_ns=t_ns)
+                        frame.master_pan_rad, frame.tilt_rad = master_pan, tilt
                     except retina.BorderError:  # a grown window that no longer fits: back to the base one
                         windows.window = params.window
                         continue
@@ -211,7 +266,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                     next_status = now + STATUS_S
                     pub_status.put(json.dumps(health.status(
                         window=windows.window, workers=len(plan), excluded=members.excluded(),
-                        published_hz=sent / STATUS_S, decided_hz=held, roster=dict(members.counters))))
+                        published_hz=sent / STATUS_S, decided_hz=held, roster=dict(members.counters),
+                        fovea=list(fovea.at()))))
         finally:
             for sub in subs:  # no callback may still run while the session closes
                 sub.undeclare()

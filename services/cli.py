@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "worker": ("services.worker", "compute layer 4 for a shard of each frame"),
     "reducer": ("services.reducer", "gather shards, decide, publish profile and command"),
     "actuator": ("services.actuator", "drive the slave pan motor"),
+    "fixate": ("services.fixate", "move the running capture's fovea to a master pixel"),
     "monitor": ("services.monitor", "live view of the correlation topics"),
     "record": ("services.record", "record every vergence/<rig>/** message to a file"),
     "replay": ("services.replay", "publish a recording again"),
@@ -43,16 +44,21 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if name is None and any(a in ("-h", "--help") for a in argv) else 2
     args = build_parser(name).parse_args(argv)
     mod = importlib.import_module(COMMANDS[name][0])
-    from vergence.config import ConfigError
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
     try:
         return int(mod.run(args) or 0)
-    except ConfigError as e:  # a settings file or value that is wrong: the message names the field
-        print(f"vergence {name}: {e}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         return 130
+    except Exception as e:
+        # a settings file or value that is wrong: the message names the field. Looked up only if the command
+        # loaded the settings: importing vergence costs ~1 s (numba), which `vergence router` does without
+        # (a router restarted by `vergence up` is back that much sooner)
+        config = sys.modules.get("vergence.config")
+        if config is not None and isinstance(e, config.ConfigError):
+            print(f"vergence {name}: {e}", file=sys.stderr)
+            return 2
+        raise
 
 
 if __name__ == "__main__":

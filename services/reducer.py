@@ -12,8 +12,9 @@ from the plan.
 Publishes messages.Profile on vergence/<rig>/profile and, when the controller moves the slave,
 messages.Command on vergence/<rig>/command; never from an incomplete profile. Counters go out as JSON on
 vergence/<rig>/status/reducer/<id> every second and at exit. The profile is only encoded and published while
-someone subscribes to it. Every SUMMARY_S seconds with frames, one log line says what the loop is doing
-(summary()).
+someone subscribes to it. Each decision carries the fovea centre (x, y) it was made for and the fixated
+point's depth (vergence.depth, with the [rig] table's baseline, gimbal and master). Every SUMMARY_S seconds
+with frames, one log line says what the loop is doing (summary()).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import time
 
 import zenoh
 
-from vergence import kernel, pipeline
+from vergence import depth, kernel, pipeline
 from vergence.config import load
 from vergence.messages import Frame, MessageError, Partial
 
@@ -136,6 +137,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
         pub_workers = s.declare_publisher(f"vergence/{rig}/workers", express=True)
 
         last: list[pipeline.Result] = []
+        geo = settings.geometry
 
         def publish(results) -> None:
             if results:
@@ -144,9 +146,11 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
                 if r.command is not None:  # the command first: the actuator waits for it
                     pub_command.put(r.command.to_bytes())
                     health.count("commands")
-                pub_decision.put(r.verdict.to_bytes())
+                where = depth.decision_fields(r.frame, r.decision, r.scores, geo.baseline_m, geo.gimbal,
+                                              geo.master or settings.capture.master)
+                pub_decision.put(dataclasses.replace(r.verdict, **where).to_bytes())
                 if pub_profile.matching_status.matching:  # up to 65 KB at 640 px: only encoded when wanted
-                    pub_profile.put(r.profile.to_bytes())
+                    pub_profile.put(dataclasses.replace(r.profile, **where).to_bytes())
                 health.count("profiles")
 
         def decode(kind: str, item):

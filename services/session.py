@@ -2,8 +2,9 @@
 
 Every process takes the options of zenoh-python's examples (--mode, --connect, --listen, --zenoh-config),
 plus --rig (the key prefix) and --config (our TOML settings). Clients connect to the router at
-tcp/127.0.0.1:7447 unless told otherwise; multicast scouting is off (explicit endpoints only) and the lease
-is short (1 s) so that a frozen process is noticed.
+tcp/127.0.0.1:7447 unless told otherwise; multicast scouting is off (explicit endpoints only), the lease
+is short (1 s) so that a frozen process is noticed, and shared memory is off (it grew every subscriber's
+memory by each publisher's pool: see zenoh_config).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import zenoh
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 LEASE_MS = 1000
+STANDBY_ENV = "VERGENCE_STANDBY"  # see open_session and services/up.py
 
 
 def add_options(p: argparse.ArgumentParser, mode: str = "client") -> None:
@@ -44,18 +46,33 @@ def zenoh_config(mode: str = "client", connect: list[str] | None = None, listen:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if os.environ.get("VERGENCE_ZENOH_SHM") != "1" and not (config_file and _sets_shared_memory(config_file)):
+        # no shared memory: with it (zenoh's default since 1.x), every subscriber kept the 16 MB pool of each
+        # publisher it ever heard from mapped, so the workers and the reducer grew ~19 MB per capture restart
+        # (tests/test_supervise.py); frames are small enough that tcp on 127.0.0.1 costs little (README).
+        # VERGENCE_ZENOH_SHM=1 leaves zenoh's default (to measure it), as does a config file that sets it.
+        conf.insert_json5("transport/shared_memory/enabled", "false")
     if not config_file:
         conf.insert_json5("scouting/multicast/enabled", "false")
         conf.insert_json5("transport/link/tx/lease", str(LEASE_MS))
         conf.insert_json5("transport/link/tx/keep_alive", "4")
-        if mode == "client":
-            # keep trying to reach the router: at start and after it restarts
+        if mode in ("client", "peer"):
+            # keep trying to reach the router: at start and after it restarts (the peers of `vergence up` too)
             conf.insert_json5("connect/timeout_ms", "-1")
             # retry every 0.1-0.5 s (zenoh's default backs off to seconds): back within 0.5 s of a router
-            # restart however long it was down (tests/test_deploy_restart.py)
+            # restart however long it was down (tests/test_deploy_restart.py, tests/test_supervise.py)
             conf.insert_json5("connect/retry",
                               '{"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}')
     return conf
+
+
+def _sets_shared_memory(config_file: str) -> bool:
+    """Whether a zenoh config file says anything about shared memory (then it decides)."""
+    try:
+        with open(config_file, encoding="utf-8") as fh:
+            return "shared_memory" in fh.read()
+    except OSError:
+        return False
 
 
 def config_from_args(args: argparse.Namespace) -> zenoh.Config:
@@ -68,10 +85,31 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
     A service has imported numpy, numba, OpenCV and zenoh and warmed its kernels by now: hundreds of
     thousands of objects that live as long as the process. Left to the collector, its full passes over them
     took half the reducer's CPU at 250 frames/s and stalled a message for tens of ms at a time; frozen, a
-    collection only walks what the message loop allocates."""
+    collection only walks what the message loop allocates.
+
+    A standby of `vergence up` (STANDBY_ENV set) waits here first, everything before its session done, until
+    up starts it in place of a dead child (or leaves, if up closes the pipe)."""
+    _standby()
     gc.collect()
     gc.freeze()
     return zenoh.open(conf)
+
+
+def _standby() -> None:
+    """In a standby (STANDBY_ENV = "READY_FD,GO_FD", set by `vergence up`): write a byte to READY_FD (imports
+    and warm-up done), then block until a byte arrives on GO_FD; end of file (up stopped or died): exit 0."""
+    spec = os.environ.pop(STANDBY_ENV, None)
+    if not spec:
+        return
+    ready, go = (int(fd) for fd in spec.split(","))
+    try:
+        os.write(ready, b"r")
+        os.close(ready)
+    except OSError:  # up is gone
+        raise SystemExit(0) from None
+    with os.fdopen(go, "rb", buffering=0) as fh:
+        if not fh.read(1):
+            raise SystemExit(0)
 
 
 def alive_key(rig: str, role: str, name: str | None = None) -> str:

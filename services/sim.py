@@ -3,14 +3,29 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
 
-from vergence import Params
+from vergence import Params, depth
 from vergence.config import ConfigError, load
 from vergence.sim import Rig
+from vergence.sim.fixation import truth_at
 from vergence.sim.loop import closed_loop, frames_to_converge
+
+
+def fixate_at_arg(text: str) -> tuple[int, tuple[int, int]]:
+    """argparse type for --fixate-at FRAME:X,Y."""
+    try:
+        f, _, xy = text.partition(":")
+        x, y = (int(v) for v in xy.split(","))
+        frame = int(f)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--fixate-at wants FRAME:X,Y (integers), got {text!r}") from None
+    if frame < 0:
+        raise argparse.ArgumentTypeError(f"--fixate-at: frame {frame} is negative")
+    return frame, (x, y)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -35,6 +50,11 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gimbal", choices=("helmholtz", "fick"),
                    help="helmholtz: both cameras pan on one tilting "
                    "platform (default, the paper's rig); fick: each camera tilts on its own pan joint")
+    p.add_argument("--baseline", type=float, default=None, metavar="M",
+                   help="baseline of the rig in metres, for depth_m (default: settings [rig] baseline_m, 0.06)")
+    p.add_argument("--fixate-at", type=fixate_at_arg, action="append", default=[], metavar="FRAME:X,Y",
+                   help="from frame FRAME on, the fovea at (X, Y) of the master view (repeatable); the "
+                   "re-convergence after each is reported")
     p.add_argument("--frames", type=int, default=20, help="frames to run after the starting one (default 20)")
     p.add_argument("--rate", type=float, default=30.0,
                    help="frames per second of the virtual clock (default 30)")
@@ -61,31 +81,65 @@ def run(args: argparse.Namespace) -> int:
                 raise ValueError("--start-off needs the ground truth: --disparity FILE "
                                  "(or the generated scene)")
             rig.start_pan_rad = rig.pan_off_truth(args.start_off)
+        baseline = args.baseline if args.baseline is not None else settings.geometry.baseline_m
+        if not (math.isfinite(baseline) and baseline > 0):
+            raise ValueError(f"--baseline {baseline}: must be a positive number of metres")
+        fixations = dict(args.fixate_at)
+        for f, (x, y) in fixations.items():
+            if not (0 <= x < rig.size[0] and 0 <= y < rig.size[1]):
+                raise ValueError(f"--fixate-at {f}:{x},{y}: outside the {rig.size[0]} x {rig.size[1]} view")
     except (ValueError, ConfigError) as e:
         print(f"vergence sim: {e}", file=sys.stderr)
         return 2
     steps = []
-    for s in closed_loop(rig, args.frames, params, settings.control, settings.actuator.motor, args.rate):
+    # the fovea, and its truth: (converged slave pan, disparity), NaN where unknown
+    at, truth = (rig.size[0] // 2, rig.size[1] // 2), (rig.truth_pan_rad, rig.disparity)
+    segments = []  # (first frame, (x, y)) of each fixation
+    for s in closed_loop(rig, args.frames, params, settings.control, settings.actuator.motor, args.rate,
+                         fixations=fixations):
+        if s.frame in fixations or s.frame == 0:
+            if s.frame in fixations:
+                at, truth = fixations[s.frame], truth_at(rig, *fixations[s.frame])
+            segments.append((s.frame, at))
+        pan = math.radians(s.pan_deg)
+        s = dataclasses.replace(s, truth_pan_deg=math.degrees(truth[0]),
+                                error_px=rig.focal_px * math.tan(pan - truth[0]))
         steps.append(s)
+        dep = depth.fixated_depth(x=at[0], y=at[1], width=rig.size[0], height=rig.size[1], focal_px=rig.focal_px,
+                                  slave_pan_rad=pan, offset_px=s.offset_px, v_shift=s.v, confident=s.confident,
+                                  sigma_d_px=depth.disparity_sigma(s.scores, s.k, s.window), baseline_m=baseline,
+                                  master_pan_rad=rig.master_pan_rad, tilt_rad=rig.tilt_rad, gimbal=rig.gimbal)
+        truth_z = depth.depth_from_disparity(truth[1], baseline, rig.focal_px)
         if args.json:
-            print(json.dumps(s.to_dict()), flush=True)
+            row = s.to_dict()
+            row.update(x=at[0], y=at[1], converged=dep.converged,
+                       depth_m=dep.depth_m if math.isfinite(dep.depth_m) else None,
+                       depth_sigma_m=dep.depth_sigma_m if math.isfinite(dep.depth_sigma_m) else None,
+                       truth_depth_m=truth_z if math.isfinite(truth_z) else None)
+            print(json.dumps(row), flush=True)
         else:
             tgt = "-" if s.target_deg is None else f"{s.target_deg:+8.3f}"
-            print(f"frame {s.frame:3d}  pan {s.pan_deg:+8.3f} deg  error {s.error_px:+8.2f} px  "
+            z = f"{dep.depth_m:.4f} +- {dep.depth_sigma_m:.4f} m" if math.isfinite(dep.depth_m) else "-"
+            print(f"frame {s.frame:3d}  ({at[0]}, {at[1]})  pan {s.pan_deg:+8.3f} deg  error {s.error_px:+8.2f} px  "
                   f"offset {s.offset_px:+8.2f} px  {'confident' if s.confident else 'abstains '}  "
-                  f"w={s.window}  target {tgt}", flush=True)
+                  f"w={s.window}  target {tgt}  depth {z}", flush=True)
     if args.plot:
         from vergence.sim.plot import plot_run
 
         plot_run(steps, args.plot, math.degrees(rig.one_px_rad))
     if not args.json:
-        n = frames_to_converge(steps)
-        if not math.isfinite(rig.truth_pan_rad):
-            last = steps[-1] if steps else None
-            print("no ground truth (give --disparity FILE --dscale S); "
-                  + (f"last offset {last.offset_px:+.2f} px at pan {last.pan_deg:+.3f} deg" if last
-                     else "no frame"))
-        else:
-            print(f"converged pan {math.degrees(rig.truth_pan_rad):+.3f} deg; "
-                  + ("within 1 px from frame %d on" % n if n is not None else "not within 1 px at the end"))
+        for i, (first, (x, y)) in enumerate(segments):
+            end = segments[i + 1][0] if i + 1 < len(segments) else len(steps)
+            seg = steps[first:end]
+            n = frames_to_converge(seg)
+            where = "" if len(segments) == 1 else f"fixation ({x}, {y}) from frame {first}: "
+            if not seg or not math.isfinite(seg[0].truth_pan_deg):
+                last = seg[-1] if seg else None
+                print(where + "no ground truth (give --disparity FILE --dscale S); "
+                      + (f"last offset {last.offset_px:+.2f} px at pan {last.pan_deg:+.3f} deg" if last
+                         else "no frame"))
+            else:
+                print(where + f"converged pan {seg[0].truth_pan_deg:+.3f} deg; "
+                      + ("within 1 px from frame %d on (%d frames after the fixation)" % (n, n - first)
+                         if n is not None else "not within 1 px at the end"))
     return 0

@@ -4,10 +4,17 @@ Starts, as child processes: a Zenoh router listening on ENDPOINT (default tcp/12
 N workers, the reducer and the capture. These are Zenoh peers: each connects to the router, learns the others
 from it and links to them directly on 127.0.0.1, so a frame crosses one link per stage and the router carries
 no data between them (it serves the clients: `vergence monitor`, workers on other nodes). With no arguments it
-runs the simulated rig. SIGINT (Ctrl-C) or SIGTERM stops the children in order (capture first, router last),
-each with SIGINT and then SIGKILL after a grace time; children also get SIGTERM if `up` itself dies (Linux
-parent-death signal), so nothing is left behind. A child that exits on its own is reported; if the router
-exits, everything stops.
+runs the simulated rig.
+
+Supervised: a child that exits (the router too) is started again after a back-off (0.2 s, doubled at each
+quick death up to 5 s, back to 0.2 s once it has run 10 s), with one log line per restart and the counts;
+the reducer and the capture, slow to start, each have a standby (a second process that has imported and
+warmed up and waits in session.open_session) that takes over the moment its child dies. A child that exits
+with 2 at its first start (bad options or settings) stops everything instead.
+
+SIGINT (Ctrl-C) or SIGTERM ends the supervision and stops the standbys, then the children in order (capture
+first, router last), each with SIGINT and then SIGKILL after a grace time; children also get SIGTERM if `up`
+itself dies (Linux parent-death signal), so nothing is left behind.
 """
 
 from __future__ import annotations
@@ -28,6 +35,11 @@ from . import session
 
 log = logging.getLogger("vergence.up")
 GRACE_S = 5.0
+POLL_S = 0.05  # how often dead children are looked for
+BACKOFF_S = (0.2, 5.0)  # the wait before a restart: first, then doubled up to the second ...
+STABLE_S = 10.0  # ... and back to the first once the child has run this long
+STATUS_S = 60.0  # a line with the restart counts this often
+STANDBY_DELAY_S = 5.0  # a standby is started this long after its child (not to slow the child's own start)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -43,6 +55,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                                                                 "elsewhere)")
     p.add_argument("--rig", default=None, help="rig name, the key prefix vergence/<rig>/ (default: head)")
     p.add_argument("--config", metavar="FILE", help="vergence settings (TOML), passed to every child")
+    p.add_argument("--no-standby", action="store_true",
+                   help="no standby reducer and capture (each a second process, ready to take over at once if "
+                        "the first dies; the capture has none with cameras, which one process holds)")
 
 
 def _die_with_parent() -> None:
@@ -105,24 +120,175 @@ def _router_listening(p: subprocess.Popen, endpoint: str, timeout: float = 10.0)
     return p.poll() is None
 
 
-def stop_all(children: list[tuple[str, subprocess.Popen]]) -> None:
-    """SIGINT each child (latest started first), wait up to GRACE_S, then SIGKILL its group."""
-    for name, p in reversed(children):
-        if p.poll() is None:
-            try:
-                os.killpg(p.pid, signal.SIGINT)
-            except ProcessLookupError:
-                pass
-            try:
-                p.wait(GRACE_S)
-            except subprocess.TimeoutExpired:
-                log.warning("%s (pid %d) did not stop in %.0f s: killed", name, p.pid, GRACE_S)
+class Standby:
+    """A second copy of a child, started ahead: it has imported and warmed up, and waits in
+    session.open_session for a byte on its pipe (then it is the child) or its end (then it leaves)."""
+
+    def __init__(self, argv: list[str]):
+        ready_r, ready_w = os.pipe()
+        go_r, go_w = os.pipe()
+        env = dict(os.environ, **{session.STANDBY_ENV: f"{ready_w},{go_r}"})
+        self.p = subprocess.Popen(argv, preexec_fn=_die_with_parent, start_new_session=True,
+                                  stdin=subprocess.DEVNULL, pass_fds=(ready_w, go_r), env=env)
+        os.close(ready_w)
+        os.close(go_r)
+        os.set_blocking(ready_r, False)
+        self._ready_r, self._go_w = ready_r, go_w
+        self.ready = False
+
+    def poll_ready(self) -> bool:
+        """True the first time the standby says it is ready."""
+        if self.ready or self._ready_r < 0:
+            return False
         try:
-            os.killpg(p.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
+            got = os.read(self._ready_r, 1)
+        except BlockingIOError:
+            return False
+        os.close(self._ready_r)
+        self._ready_r = -1
+        self.ready = bool(got)
+        return self.ready
+
+    def go(self) -> subprocess.Popen:
+        """Let it open its session: from now on it is the child."""
+        try:
+            os.write(self._go_w, b"g")
+        except OSError:
             pass
-        p.wait()
-        log.info("%s stopped (exit %s)", name, p.returncode)
+        self.close()
+        return self.p
+
+    def close(self) -> None:
+        """Close up's ends of the pipes (a standby still waiting leaves)."""
+        for fd in (self._ready_r, self._go_w):
+            if fd >= 0:
+                os.close(fd)
+        self._ready_r = self._go_w = -1
+
+
+class Child:
+    """One supervised child: its command, the running process, its restarts, its back-off and, for the
+    children on the decisions' path that are slow to start (reducer, capture), a standby."""
+
+    def __init__(self, name: str, argv: list[str], standby: bool = False):
+        self.name, self.argv = name, argv
+        self.p: subprocess.Popen | None = None
+        self.started = 0.0  # time.monotonic() of the latest start
+        self.restarts = 0
+        self.backoff = BACKOFF_S[0]
+        self.due: float | None = None  # when a dead child is started again
+        self.standby: Standby | None = None
+        self.standby_due: float | None = None  # when a standby is started (None: this child has none)
+        if standby:
+            self.standby_due = 0.0
+
+    def start(self) -> None:
+        self.p = subprocess.Popen(self.argv, preexec_fn=_die_with_parent, start_new_session=True,
+                                  stdin=subprocess.DEVNULL)
+        self.started, self.due = time.monotonic(), None
+        if self.standby_due is not None:
+            self.standby_due = max(self.standby_due, self.started + STANDBY_DELAY_S)
+
+    def exited(self) -> int | None:
+        return None if self.p is None else self.p.poll()
+
+
+def _stop(name: str, p: subprocess.Popen) -> None:
+    if p.poll() is None:
+        try:
+            os.killpg(p.pid, signal.SIGINT)
+        except ProcessLookupError:
+            pass
+        try:
+            p.wait(GRACE_S)
+        except subprocess.TimeoutExpired:
+            log.warning("%s (pid %d) did not stop in %.0f s: killed", name, p.pid, GRACE_S)
+    try:
+        os.killpg(p.pid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
+    p.wait()
+
+
+def stop_all(children: list[Child]) -> None:
+    """The standbys first (their pipes closed: they leave), then SIGINT each child (latest started first),
+    wait up to GRACE_S, then SIGKILL its group."""
+    for c in children:
+        if c.standby is not None:
+            c.standby.close()
+    for c in children:
+        if c.standby is not None:
+            _stop(f"the standby of {c.name}", c.standby.p)
+            c.standby = None
+    for c in reversed(children):
+        if c.p is not None:
+            _stop(c.name, c.p)
+            log.info("%s stopped (exit %s)", c.name, c.p.returncode)
+
+
+def restarts_line(children: list[Child]) -> str:
+    """"restarts: reducer 1, router 2" (or "no restarts")."""
+    done = [f"{c.name} {c.restarts}" for c in children if c.restarts]
+    return "restarts: " + ", ".join(done) if done else "no restarts"
+
+
+def _tend_standby(c: Child, now: float) -> None:
+    """Start c's standby when due, note when it is ready, replace it if it died."""
+    sb = c.standby
+    if sb is not None:
+        if sb.poll_ready():
+            log.info("standby of %s (pid %d) ready", c.name, sb.p.pid)
+        elif sb.p.poll() is not None:
+            log.warning("standby of %s (pid %d) exited with %s: another in %.0f s", c.name, sb.p.pid,
+                        sb.p.returncode, BACKOFF_S[1])
+            sb.close()
+            c.standby, c.standby_due = None, now + BACKOFF_S[1]
+    elif c.standby_due is not None and now >= c.standby_due and c.exited() is None:
+        c.standby = Standby(c.argv)
+        log.info("started a standby of %s (pid %d)", c.name, c.standby.p.pid)
+
+
+def supervise(children: list[Child], stop: session.Stop, poll_s: float = POLL_S) -> int:
+    """Restart every child that exits (in an instant with its standby if it has one ready or starting,
+    else after its back-off), until stop is set; the exit code of `up` (2: a child refused its settings at
+    its first start, which no restart can fix)."""
+    last_status = time.monotonic()
+    while not stop.wait(poll_s):
+        now = time.monotonic()
+        for c in children:
+            code = c.exited()
+            if code is not None and c.due is None:
+                ran = now - c.started
+                if code == 2 and c.restarts == 0 and ran < STABLE_S:
+                    log.error("%s (pid %d) refused its options or settings (exit 2): stopping", c.name, c.p.pid)
+                    return 2
+                if ran >= STABLE_S:
+                    c.backoff = BACKOFF_S[0]
+                wait, c.backoff = c.backoff, min(c.backoff * 2, BACKOFF_S[1])
+                if c.standby is not None and c.standby.p.poll() is None:
+                    ready = "ready" if c.standby.ready else "still starting"
+                    dead = c.p.pid
+                    c.p, c.started, c.standby = c.standby.go(), now, None
+                    c.standby_due = now + max(wait, STANDBY_DELAY_S)
+                    c.restarts += 1
+                    log.warning("%s (pid %d) exited with %s after %.1f s: its standby (pid %d, %s) takes over, "
+                                "restart %d; %s", c.name, dead, code, ran, c.p.pid, ready, c.restarts,
+                                restarts_line(children))
+                    continue
+                c.due = now + wait
+                log.warning("%s (pid %d) exited with %s after %.1f s: restarting in %.1f s", c.name, c.p.pid, code,
+                            ran, wait)
+            if c.due is not None and now >= c.due and not stop.is_set():
+                c.start()
+                c.restarts += 1
+                log.info("restarted %s (pid %d), restart %d; %s", c.name, c.p.pid, c.restarts,
+                         restarts_line(children))
+            if not stop.is_set():
+                _tend_standby(c, now)
+        if now - last_status >= STATUS_S:
+            last_status = now
+            log.info("%d children running; %s", sum(c.exited() is None for c in children), restarts_line(children))
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -136,27 +302,23 @@ def run(args: argparse.Namespace) -> int:
               "give this one another port with --listen", file=sys.stderr)
         return 2
     stop = session.Stop()
-    children: list[tuple[str, subprocess.Popen]] = []
+    children: list[Child] = []
     code = 0
     try:
+        source = args.source or settings.capture.source
+        standby = set() if args.no_standby else {"reducer"} | (set() if source.startswith("camera") else {"capture"})
         for name, argv in commands(args, rig):
             if stop.is_set():
                 break
-            children.append((name, subprocess.Popen(argv, preexec_fn=_die_with_parent, start_new_session=True,
-                                                    stdin=subprocess.DEVNULL)))
-            log.info("started %s (pid %d): %s", name, children[-1][1].pid, " ".join(argv[3:]))
-            if name == "router" and not _router_listening(children[-1][1], args.listen):
-                log.error("the router did not start (exit %s): nothing else started", children[-1][1].poll())
+            children.append(Child(name, argv, standby=name in standby))
+            children[-1].start()
+            log.info("started %s (pid %d): %s", name, children[-1].p.pid, " ".join(argv[3:]))
+            if name == "router" and not _router_listening(children[-1].p, args.listen):
+                log.error("the router did not start (exit %s): nothing else started", children[-1].p.poll())
                 return 1
-        reported: set[str] = set()
-        while not stop.wait(0.2):
-            for name, p in children:
-                if p.poll() is not None and name not in reported:
-                    reported.add(name)
-                    log.warning("%s (pid %d) exited with %s", name, p.pid, p.returncode)
-                    if name == "router":
-                        code = 1
-                        stop.set()
+        code = supervise(children, stop)
     finally:
         stop_all(children)
+        if children:
+            log.info("stopped; %s", restarts_line(children))
     return code

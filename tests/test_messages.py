@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import msgpack
@@ -27,16 +28,18 @@ SAMPLES = {
                          scores=np.arange(8, dtype="<f8").tobytes()),
     "decision": M.Verdict(rig="head", frame=7, t_capture_ns=1, t_reduced_ns=2, window=5, k=3, k_sub=3.2, v_shift=0,
                           k_centre=3, direction=0, magnitude=0, offset_px=0.2, confidence=0.5, confident=True,
-                          texture=9.0, pan_rad=0.0),
+                          texture=9.0, pan_rad=0.0, x=320, y=240, converged=True, depth_m=1.25, depth_sigma_m=0.01),
     "profile": M.Profile(rig="head", frame=7, t_capture_ns=1, t_reduced_ns=2, width=10, window=5, rows=1,
                          scores=np.zeros(6).tobytes(), k=3, k_sub=3.2, v_shift=0, k_centre=3, direction=0,
-                         magnitude=0, offset_px=0.2, confidence=0.5, confident=True, texture=9.0, pan_rad=0.0),
+                         magnitude=0, offset_px=0.2, confidence=0.5, confident=True, texture=9.0, pan_rad=0.0,
+                         x=5, y=4, converged=False, depth_m=2.0, depth_sigma_m=0.5),
     "command": M.Command(rig="head", frame=7, t_capture_ns=1, pan_rad=0.2, correction_rad=0.01, direction=1,
                          magnitude_px=3.0, confidence=0.4),
     "motor_state": M.MotorState(rig="head", t_ns=5, pan_rad=0.1, goal_rad=0.2, min_rad=-0.7, max_rad=0.7,
                                 status="ok"),
     "preview": M.Preview(rig="head", frame=1, t_capture_ns=1, width=4, height=2, scale=0.1, master=bytes(8),
                          slave=bytes(8)),
+    "fixate": M.Fixate(x=100.0, y=80.5, t_ns=9, source="test"),
 }
 
 
@@ -46,6 +49,37 @@ def test_round_trip(kind):
     data = msg.to_bytes()
     assert msgpack.unpackb(data)["v"] == M.SCHEMA
     assert M.KINDS[kind].from_bytes(data) == msg
+
+
+@pytest.mark.parametrize("kind", ["decision", "profile"])
+def test_a_decision_of_an_older_reducer_still_decodes(kind):
+    """Without the fovea and depth fields (an older reducer, an older recording): x = y = -1, not converged,
+    NaN depth; a newer one's NaN depth travels as NaN."""
+    d = SAMPLES[kind].to_dict()
+    for name in ("x", "y", "converged", "depth_m", "depth_sigma_m"):
+        del d[name]
+    v = M.KINDS[kind].from_bytes(msgpack.packb(d, use_bin_type=True))
+    assert (v.x, v.y, v.converged) == (-1, -1, False)
+    assert math.isnan(v.depth_m) and math.isnan(v.depth_sigma_m)
+    d["depth_m"] = math.nan
+    assert math.isnan(M.KINDS[kind].from_bytes(msgpack.packb(d, use_bin_type=True)).depth_m)
+    # a NaN depth survives a round trip equal (every NaN decodes to the one math.nan)
+    msg = dataclasses.replace(SAMPLES[kind], depth_m=float("nan"), depth_sigma_m=math.nan, converged=False)
+    assert M.KINDS[kind].from_bytes(msg.to_bytes()) == dataclasses.replace(msg, depth_m=math.nan)
+
+
+@pytest.mark.parametrize("change,says", [
+    (dict(x=math.nan), "fixate.x: not a finite"),
+    (dict(y=math.inf), "fixate.x: not a finite"),
+    (dict(x="12"), "expected a number"),
+    (dict(t_ns=1.5), "expected an integer"),
+    (dict(source="s" * 201), "longer than 200"),
+])
+def test_fixate_validation_names_the_field(change, says):
+    d = SAMPLES["fixate"].to_dict()
+    d.update(change)
+    with pytest.raises(M.MessageError, match=says):
+        M.Fixate.from_bytes(msgpack.packb(d, use_bin_type=True))
 
 
 def test_arrays_travel_as_binary():

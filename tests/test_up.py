@@ -1,9 +1,15 @@
-"""`vergence up` and `vergence router` on a port that is already taken: a clear error, nothing started."""
+"""`vergence up` and `vergence router` on a port that is already taken: a clear error, nothing started; and
+up's supervision of its children (back-off, counts, shutdown) on small real processes. The SIGKILL of each
+child of a real `vergence up` is in tests/test_supervise.py."""
 
 from __future__ import annotations
 
+import itertools
+import logging
 import subprocess
 import sys
+import threading
+import time
 
 from procs import Procs
 
@@ -21,3 +27,125 @@ def test_busy_port_is_refused_with_a_hint(tmp_path):
         assert router.stderr.startswith("vergence router: cannot start on")
         assert "Address already in use" in router.stderr
         assert "Traceback" not in router.stderr
+
+
+def _child(name: str, code: str):
+    from services import up
+
+    return up.Child(name, [sys.executable, "-c", code])
+
+
+def _supervise_until(children, stop, cond, timeout: float) -> int:
+    """Run up.supervise in this thread until cond() holds (checked from a timer thread) or timeout."""
+    from services import up
+
+    def watch():
+        end = time.monotonic() + timeout
+        while not cond() and time.monotonic() < end and not stop.is_set():
+            time.sleep(0.02)
+        stop.set()
+
+    threading.Thread(target=watch, daemon=True).start()
+    try:
+        return up.supervise(children, stop, poll_s=0.01)
+    finally:
+        up.stop_all(children)
+
+
+def test_a_dead_child_is_restarted_with_a_doubling_back_off(caplog):
+    from services import session
+
+    starts = []
+    c = _child("flaky", "import sys; sys.exit(1)")
+    c.start()
+    orig = c.start
+
+    def start():
+        orig()
+        starts.append(time.monotonic())
+
+    c.start = start
+    stop = session.Stop(install=False)
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until([c], stop, lambda: len(starts) >= 4, 20) == 0
+    assert c.restarts == len(starts) >= 4
+    gaps = [b - a for a, b in itertools.pairwise(starts)]
+    for gap, backoff in zip(gaps, (0.4, 0.8, 1.6)):  # each wait after its predecessor's exit, doubled
+        assert backoff <= gap < backoff + 1.0, gaps  # + the child's own run (a python start)
+    lines = [r.getMessage() for r in caplog.records]
+    assert sum("flaky (pid" in m and "exited with 1" in m for m in lines) >= 4
+    assert [m.rsplit("restarting in ", 1)[1] for m in lines if "restarting in" in m][:4] == \
+        ["0.2 s", "0.4 s", "0.8 s", "1.6 s"]
+    assert [m.split("restart ", 1)[1].split(";")[0] for m in lines if m.startswith("restarted flaky")] == \
+        [str(i) for i in range(1, c.restarts + 1)]  # one line per restart, counted
+
+
+def test_the_back_off_caps_and_resets_after_a_stable_run(monkeypatch, caplog):
+    from services import session, up
+
+    monkeypatch.setattr(up, "BACKOFF_S", (0.1, 0.4))  # scaled down from (0.2, 5.0)
+    quick = _child("quick", "import sys; sys.exit(1)")
+    quick.start()
+    stop = session.Stop(install=False)
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        _supervise_until([quick], stop, lambda: quick.restarts >= 5, 20)
+    waits = [r.getMessage().rsplit("restarting in ", 1)[1] for r in caplog.records if "restarting in" in r.getMessage()]
+    assert waits[:5] == ["0.1 s", "0.2 s", "0.4 s", "0.4 s", "0.4 s"]  # doubled, then capped
+
+    monkeypatch.setattr(up, "STABLE_S", 0.3)  # a child that ran 0.3 s has been stable
+    caplog.clear()
+    steady = _child("steady", "import sys, time; time.sleep(0.4); sys.exit(1)")
+    steady.start()
+    steady.backoff = 0.4  # as after several quick deaths
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        _supervise_until([steady], session.Stop(install=False), lambda: steady.restarts >= 2, 20)
+    waits = [r.getMessage().rsplit("restarting in ", 1)[1] for r in caplog.records if "restarting in" in r.getMessage()]
+    assert waits[:2] == ["0.1 s", "0.1 s"]  # every exit after a stable run: the first back-off again
+
+
+def test_no_restart_during_shutdown_and_exit_2_at_first_start_stops_up(caplog):
+    from services import session
+
+    runner = _child("runner", "import time; time.sleep(60)")
+    runner.start()
+    stop = session.Stop(install=False)
+    stop.set()  # SIGINT already received: supervise returns, stop_all stops the child, nothing restarted
+    assert _supervise_until([runner], stop, lambda: True, 5) == 0
+    assert runner.restarts == 0 and runner.p.returncode is not None
+    bad = _child("bad", "import sys; sys.exit(2)")
+    other = _child("other", "import time; time.sleep(60)")
+    bad.start()
+    other.start()
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until([bad, other], session.Stop(install=False), lambda: False, 20) == 2
+    assert bad.restarts == 0 and other.p.returncode is not None  # all stopped
+    assert any("bad (pid" in r.getMessage() and "refused its options" in r.getMessage() for r in caplog.records)
+
+
+def test_a_standby_takes_over_at_once_and_leaves_when_up_stops(monkeypatch, caplog):
+    from services import session, up
+
+    monkeypatch.setattr(up, "STANDBY_DELAY_S", 0.2)
+    # a child that, as every service, waits in session.open_session's standby hook before its work
+    c = _child("svc", "from services import session; session._standby(); import time; time.sleep(60)")
+    c.standby_due = 0.0
+    c.start()
+    stop = session.Stop(install=False)
+    first = c.p
+    killed = []
+
+    def cond():
+        if c.standby is not None and c.standby.ready and not killed:
+            killed.append(c.standby.p.pid)
+            first.kill()
+        return killed and c.p.pid == killed[0] and c.standby is not None and c.standby.ready
+
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until([c], stop, cond, 30) == 0
+    lines = [r.getMessage() for r in caplog.records]
+    assert any(f"svc (pid {first.pid}) exited with -9" in m and f"its standby (pid {killed[0]}, ready) takes over, "
+               "restart 1; restarts: svc 1" in m for m in lines), lines
+    assert c.restarts == 1 and not any(m.startswith("restarted svc") for m in lines)  # no fresh start
+    assert sum(m.startswith("started a standby of svc") for m in lines) == 2  # and another standby after it
+    assert not any("did not stop" in m for m in lines)  # the waiting standby left when its pipe closed
+    assert c.p.returncode is not None

@@ -1,6 +1,7 @@
 """Typed settings for every process, loaded from one TOML file; errors name the offending field.
 
-    rig = "head"
+    rig = "head"          # the rig's name (the key prefix vergence/<rig>/), or name = "head" in [rig]
+    [rig]       # the rig's geometry: baseline_m, focal_px, master, gimbal (vergence.depth)
     [network]   # vergence.match.Params: window, vsearch, circular, subpixel, min_margin, ...
     [capture]   # source, rate_hz, preview_hz, focal_px, master
     [reducer]   # deadline_ms
@@ -12,6 +13,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 import tomllib
 import types
 import typing
@@ -22,12 +24,39 @@ from .control import ControlSettings
 from .match import Params
 from .motors.base import MotorSettings
 
-__all__ = ["ConfigError", "CaptureSettings", "ReducerSettings", "ActuatorSettings", "LimitSettings", "Settings",
-           "load", "from_dict"]
+__all__ = ["ConfigError", "RigSettings", "CaptureSettings", "ReducerSettings", "ActuatorSettings", "LimitSettings",
+           "Settings", "load", "from_dict"]
 
 
 class ConfigError(ValueError):
     """A settings file or value that is wrong; the message names the field."""
+
+
+@dataclass(frozen=True)
+class RigSettings:
+    """The `[rig]` table, the head's geometry (vergence.depth): baseline_m, the distance between the two
+    cameras' optical centres in metres; focal_px, the focal length in pixels of the views the capture reads
+    (0: [capture] focal_px, else the source's own, else 0.8 x width); master, which camera is the fixed one,
+    left or right ("": [capture] master, left); gimbal, helmholtz (both cameras pan on one tilting
+    platform) or fick (each camera tilts on its own pan joint). The rig's name is the top-level `rig = "head"`
+    (or `name` in this table)."""
+
+    baseline_m: float = 0.06
+    focal_px: float = 0.0
+    master: str = ""
+    gimbal: str = "helmholtz"
+
+    def __post_init__(self):
+        import math
+
+        if not (math.isfinite(self.baseline_m) and self.baseline_m > 0):
+            raise ValueError(f"baseline_m={self.baseline_m}: must be a positive number of metres")
+        if not (math.isfinite(self.focal_px) and self.focal_px >= 0):
+            raise ValueError(f"focal_px={self.focal_px}: must be a number of pixels >= 0 (0: the capture's)")
+        if self.master not in ("", "left", "right"):
+            raise ValueError(f"master={self.master!r}: must be left or right")
+        if self.gimbal not in ("helmholtz", "fick"):
+            raise ValueError(f"gimbal={self.gimbal!r}: must be helmholtz or fick")
 
 
 @dataclass(frozen=True)
@@ -97,6 +126,7 @@ class LimitSettings:
 @dataclass(frozen=True)
 class Settings:
     rig: str = "head"
+    geometry: RigSettings = field(default_factory=RigSettings)  # the TOML's [rig] table
     network: Params = field(default_factory=Params)
     capture: CaptureSettings = field(default_factory=CaptureSettings)
     reducer: ReducerSettings = field(default_factory=ReducerSettings)
@@ -136,11 +166,30 @@ def _coerce(path: str, value, tp):
     raise ConfigError(f"{path}: expected {getattr(tp, '__name__', tp)}, got {value!r}")
 
 
+def _rig_table(data: dict) -> dict:
+    """The TOML's [rig] table (with its optional name) as Settings' rig (the name) and geometry."""
+    table = data.get("rig")
+    if not isinstance(table, dict):
+        return data
+    if "geometry" in data:
+        raise ConfigError("geometry: unknown setting; the rig's geometry is the [rig] table")
+    table = dict(table)
+    data = dict(data)
+    name = table.pop("name", "head")
+    if not isinstance(name, str):
+        raise ConfigError(f"rig.name: expected str, got {name!r}")
+    data["rig"] = name
+    data["geometry"] = _build("rig", table, RigSettings)
+    return data
+
+
 def _build(path: str, data, cls):
     if dataclasses.is_dataclass(data) and isinstance(data, cls):
         return data
     if not isinstance(data, dict):
         raise ConfigError(f"{path or 'settings'}: expected a table, got {data!r}")
+    if cls is Settings:
+        data = _rig_table(data)
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - names)
@@ -172,7 +221,10 @@ def load(path: str | Path | None = None, cls=Settings):
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{p}: not valid TOML: {e}") from None
+        hint = ""
+        if re.search(r"^\s*rig\s*=", text, re.M) and re.search(r"^\s*\[rig\]", text, re.M):
+            hint = ' (rig = "..." and a [rig] table cannot both be there: write name = "..." in [rig])'
+        raise ConfigError(f"{p}: not valid TOML: {e}{hint}") from None
     try:
         return _build("", data, cls)
     except ConfigError as e:

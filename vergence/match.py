@@ -60,13 +60,18 @@ class Params:
 
     @classmethod
     def build(cls, faithful: bool = False, **overrides) -> "Params":
-        """Params from keyword overrides (None values ignored), unknown names rejected by name."""
-        names = {f.name for f in fields(cls)}
-        bad = sorted(set(overrides) - names)
+        """Params from keyword overrides over the defaults (the paper's when faithful); see override()."""
+        return (cls.paper() if faithful else cls()).override(**overrides)
+
+    def override(self, **changes) -> "Params":
+        """These Params with the named fields changed; None means "keep mine" (an option not given), an
+        unknown name is rejected by name. Every merge of settings (file, command line, faithful) goes through
+        here, so an option left out never brings a class default back over the base."""
+        names = {f.name for f in fields(self)}
+        bad = sorted(set(changes) - names)
         if bad:
             raise TypeError(f"unknown parameter(s) {', '.join(bad)}; known: {', '.join(sorted(names))}")
-        overrides = {k: v for k, v in overrides.items() if v is not None}
-        return cls.paper(**overrides) if faithful else cls(**overrides)
+        return replace(self, **{k: v for k, v in changes.items() if v is not None})
 
     def windows(self) -> list[int]:
         """The window sizes tried in turn (the dynamic window)."""
@@ -197,7 +202,7 @@ def match(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = No
     if params is None:
         params = Params.build(**overrides)
     elif overrides:
-        params = replace(params, **overrides)
+        params = params.override(**overrides)
     if master.shape[:2] != slave.shape[:2]:
         raise ValueError(f"master and slave differ in size: {master.shape[1]} x {master.shape[0]} and "
                          f"{slave.shape[1]} x {slave.shape[0]}")

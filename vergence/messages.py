@@ -17,7 +17,7 @@ import msgpack
 import numpy as np
 
 __all__ = ["SCHEMA", "MessageError", "Frame", "Partial", "Verdict", "Profile", "Command", "MotorState",
-           "Preview", "KINDS", "decode"]
+           "Preview", "Fixate", "KINDS", "decode"]
 
 SCHEMA = 1
 MAX_MESSAGE = 64 * 1024 * 1024
@@ -54,7 +54,10 @@ def _checker(tp):
     if tp is float:
         def check_float(value, name):
             if type(value) is float:
-                return value
+                # every NaN decodes to the one math.nan, so that messages with NaN fields (a decision's depth
+                # while not converged) compare equal after a round trip, as dataclass and dict equality
+                # compare identical objects as equal
+                return value if value == value else math.nan
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise _expected(name, "a number", value)
             return float(value)
@@ -190,6 +193,9 @@ class Frame(Message):
     master_band: bytes = b""
     support_gamma: float = 8.0
     support_radius: float = 7.0
+    # the master's pan and the common tilt at capture (a fixed master: 0, 0), for the depth of the fixated point
+    master_pan_rad: float = 0.0
+    tilt_rad: float = 0.0
 
     @property
     def k_count(self) -> int:
@@ -215,6 +221,7 @@ class Frame(Message):
             raise MessageError(f"frame.vsearch {self.vsearch} does not fit height {self.height}")
         _finite("frame.pan_rad", self.pan_rad)
         _finite("frame.focal_px", self.focal_px)
+        _finite("frame.master_pan_rad", self.master_pan_rad, self.tilt_rad)
         if self.focal_px <= 0:
             raise MessageError("frame.focal_px must be positive")
         self.fovea_strip()
@@ -271,7 +278,12 @@ class Partial(Message):
 class Verdict(Message):
     """vergence/<rig>/decision: the reducer's decision on every frame, a Profile without its scores (under 250
     bytes, where a profile is 65 KB at 640 px with vertical search), for whoever needs only the decision (the
-    capture's dynamic window, a user's own logic). window: the fovea side it was decided with."""
+    capture's dynamic window, a user's own logic). window: the fovea side it was decided with.
+
+    x, y: the fovea centre in master pixels the decision was made for (-1: unknown, an older reducer), so a
+    client sees when its vergence/<rig>/fixate request took effect. converged: confident and within 1 px
+    (vergence.depth.CONVERGED_PX) of the fovea. depth_m, depth_sigma_m: the fixated point's distance along the
+    head's forward axis and its one sigma (vergence.depth), NaN unless converged (or without rig geometry)."""
 
     KIND: ClassVar[str] = "decision"
     rig: str
@@ -290,6 +302,11 @@ class Verdict(Message):
     confident: bool
     texture: float
     pan_rad: float
+    x: int = field(default=-1, kw_only=True)
+    y: int = field(default=-1, kw_only=True)
+    converged: bool = field(default=False, kw_only=True)
+    depth_m: float = field(default=math.nan, kw_only=True)
+    depth_sigma_m: float = field(default=math.nan, kw_only=True)
 
     def validate(self) -> None:
         if self.window < 1:
@@ -386,8 +403,26 @@ class Preview(Message):
         self.images()
 
 
+@dataclass
+class Fixate(Message):
+    """vergence/<rig>/fixate: move the fovea of the running capture to master pixel (x, y) from the next frame
+    on (`vergence fixate X,Y`). x, y are rounded to the nearest pixel; a point where the fovea does not fit
+    the image is rejected by the capture (counted and logged, nothing moves). source: who asks (free text)."""
+
+    KIND: ClassVar[str] = "fixate"
+    x: float
+    y: float
+    t_ns: int
+    source: str = ""
+
+    def validate(self) -> None:
+        _finite("fixate.x", self.x, self.y)
+        if len(self.source) > 200:
+            raise MessageError("fixate.source: longer than 200 characters")
+
+
 KINDS: dict[str, type[Message]] = {c.KIND: c for c in (Frame, Partial, Verdict, Profile, Command, MotorState,
-                                                         Preview)}
+                                                         Preview, Fixate)}
 
 
 def decode(cls: type[Message], data: bytes) -> Message:

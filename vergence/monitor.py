@@ -121,6 +121,7 @@ class Snapshot:
     malformed: dict[str, int] = field(default_factory=dict)
     last_error: dict[str, str] = field(default_factory=dict)
     ignored: int = 0
+    fovea: tuple[int, int] | None = None  # the fovea centre (master px) of the latest frame seen
 
 
 class Monitor:
@@ -150,6 +151,7 @@ class Monitor:
         self._alive: dict[str, set[str]] = {}
         self._plan: dict[str, tuple[int, int]] = {}
         self._plan_frame = -1
+        self._fovea: tuple[int, int] | None = None
         self._partials: dict[str, tuple[int, int]] = {}
         self._motor: m.MotorState | None = None
         self._status: dict[str, dict] = {}
@@ -246,6 +248,7 @@ class Monitor:
 
     def _on_frame(self, f: m.Frame, t: int) -> None:
         self._rates["frame"].add(t)
+        self._fovea = (f.x, f.y)
         if f.frame in self._answered:
             self._answered.remove(f.frame)
         elif len(self._pending) < 100_000:
@@ -322,6 +325,7 @@ class Monitor:
             s.workers = {w: shards.get(w) for w in sorted(live | set(self._plan))
                          if w in live or not self._alive.get("worker")}
             s.plan_frame = self._plan_frame
+            s.fovea = self._fovea
             if self._motor is not None:
                 mo = self._motor
                 s.pan_rad, s.goal_rad, s.min_rad, s.max_rad = mo.pan_rad, mo.goal_rad, mo.min_rad, mo.max_rad
@@ -395,6 +399,20 @@ def sparkline(values: list[float], columns: int, lo: float | None = None, hi: fl
     return "".join(_SPARK[int(round(x * 7))] for x in np.clip(f, 0, 1))
 
 
+def fixation_line(s: Snapshot, pm: str = "±") -> str:
+    """Where the fovea is (the latest frame's, else the latest decision's) and the fixated point's depth."""
+    p = s.profile
+    at = s.fovea or ((p.x, p.y) if p is not None and p.x >= 0 else None)
+    where = f"fovea ({at[0]}, {at[1]})" if at else "fovea ?"
+    if p is not None and p.x >= 0 and at != (p.x, p.y):
+        where += f" (the profile's: ({p.x}, {p.y}))"
+    if p is None or not p.converged:
+        return f"{where}   not converged, no depth"
+    if not math.isfinite(p.depth_m):
+        return f"{where}   converged, no depth"
+    return f"{where}   converged, depth {p.depth_m:.3f} m {pm} {p.depth_sigma_m:.3f}"
+
+
 def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool = True) -> str:
     """The monitor's screen as text lines (ANSI colours when color). The profile bars mark the winner
     (red, ▲) and the centre neuron (cyan, ┴); everything else is a labelled figure."""
@@ -430,6 +448,7 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
                    f"rows {p.rows}, v {p.v_shift:+d}, workers {len(p.workers)})")
         out.append(f"decision k*={p.k} (sub-px {p.k_sub:.2f})  k_c={p.k_centre}  offset {p.offset_px:+.2f} px  "
                    f"{side} {p.magnitude} px   confidence {p.confidence:.3f} {conf}   texture {p.texture:.1f}")
+        out.append(fixation_line(s))
         try:
             y = _winning_row(p)
             lines, wc, cc = profile_bars(p, width - 8, bar_rows)
@@ -544,6 +563,7 @@ def render_png(s: Snapshot, width: int = 960, height: int = 720) -> np.ndarray:
         text(f"layer 4, frame {p.frame}: winner k*={p.k} ({p.k_sub:.2f}), centre k_c={p.k_centre}, "
              f"{side} {p.magnitude} px, confidence {p.confidence:.3f}"
              f"{'' if p.confident else ' (abstains)'}", left, top1 - 15, black, 0.5)
+        text(fixation_line(s, "+-"), left, top1 - 35, black, 0.5)
         text(f"k*={p.k}", min(xw + 4, right - 60), top1 + 18, red)
         text(f"k_c={p.k_centre}", min(xc + 4, right - 70), top1 + 38, blue)
         text("k (offset in the slave band)", (left + right) // 2 - 110, bot1 + 40)

@@ -208,6 +208,9 @@ class SimSource(Source):
         self.size = tuple(self.rig.size)
         self.focal_px = float(self.rig.focal_px)
         self.start_pan_rad = float(self.rig.start_pan_rad)
+        # the master's aim and the gimbal, for the depth of the fixated point (services/capture.py)
+        self.master_pan_rad, self.tilt_rad = float(self.rig.master_pan_rad), float(self.rig.tilt_rad)
+        self.gimbal = self.rig.gimbal
 
     def read(self, pan_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         return self.rig.render(pan_rad)

@@ -57,24 +57,30 @@ class Step:
 
 
 def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: ControlSettings | None = None,
-                motor: MotorSettings | None = None, rate_hz: float = 30.0) -> Iterator[Step]:
+                motor: MotorSettings | None = None, rate_hz: float = 30.0,
+                fixations: dict[int, tuple[int, int]] | None = None) -> Iterator[Step]:
     """Yield frames + 1 Steps: the starting state (frame 0), then the state at each following capture.
 
     motor: the simulated motor's settings (its start pan is the rig's; default: MotorSettings(), a 20 ms
-    first-order response); control: the controller's (gain, dead band, step and pan limits)."""
+    first-order response); control: the controller's (gain, dead band, step and pan limits). fixations:
+    {frame: (x, y)}, the fovea at (x, y) of the master view from that frame on (default: the view centre);
+    a Step's truth and error stay the centre's (vergence.sim.fixation.truth_at gives the fovea's)."""
     params = params or Params()
     controller = Controller(control)
     ms = replace(motor or MotorSettings(), start_deg=math.degrees(rig.start_pan_rad))
     clock = [0.0]
     drive = SimMotor(ms, clock=lambda: clock[0])
     safety = Safety(ms, drive.open())
+    at = None
     for i in range(frames + 1):
         clock[0] = i / rate_hz
+        at = (fixations or {}).get(i, at)
         pan = drive.read_position()
         master, slave = rig.render(pan)
-        m = match(master, slave, None, params)
+        m = match(master, slave, at, params)
         d = m.decision
-        target = controller.target(pan, d.offset_px, rig.focal_px, d.confident)
+        target = controller.target(pan, d.offset_px, rig.focal_px, d.confident,
+                                   centre_px=0.0 if at is None else at[0] - master.shape[1] // 2)
         if target is not None:
             verdict = safety.command(target)
             target = verdict.goal

@@ -1,0 +1,83 @@
+"""`vergence fixate X,Y [--rig R] [--wait S]`: ask the running capture to move its fovea to master pixel (X, Y).
+
+Puts one messages.Fixate on vergence/<rig>/fixate. With --wait S (default 2), waits up to S seconds for the
+first decision (vergence/<rig>/decision) made for the new point and prints it (x, y, offset, converged,
+depth); exit 1 when none came (no capture running, or the request was rejected: its log and its status
+counters say why). --wait 0 only sends."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import threading
+import time
+
+from vergence.config import load
+from vergence.messages import Fixate, MessageError, Verdict
+
+from . import session
+
+
+def point(text: str) -> tuple[float, float]:
+    """argparse type for X,Y in master pixels."""
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"want X,Y in master pixels, got {text!r}") from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise argparse.ArgumentTypeError(f"X,Y must be finite numbers, got {text!r}")
+    return x, y
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    session.add_options(p)
+    p.add_argument("point", type=point, metavar="X,Y", help="the new fovea centre in master pixels")
+    p.add_argument("--source", default="vergence fixate", help="who asks (free text, logged by the capture)")
+    p.add_argument("--wait", type=float, default=2.0, metavar="S",
+                   help="wait up to S seconds for the first decision at the new point (0: only send)")
+
+
+def describe(v: Verdict) -> str:
+    depth = (f"depth {v.depth_m:.4f} m +- {v.depth_sigma_m:.4f}" if math.isfinite(v.depth_m) else "no depth")
+    return (f"frame {v.frame} at ({v.x}, {v.y}): offset {v.offset_px:+.2f} px, "
+            f"{'converged' if v.converged else 'confident' if v.confident else 'abstains'}, {depth}")
+
+
+def main(rig: str, conf, x: float, y: float, source: str, wait: float) -> int:
+    target = (int(round(x)), int(round(y)))
+    got: list[Verdict] = []
+    seen = threading.Event()
+
+    def on_decision(sample):
+        try:
+            v = Verdict.from_bytes(sample.payload.to_bytes())
+        except MessageError:
+            return
+        if (v.x, v.y) == target and not seen.is_set():
+            got.append(v)
+            seen.set()
+
+    with session.open_session(conf) as s:
+        sub = s.declare_subscriber(f"vergence/{rig}/decision", on_decision) if wait > 0 else None
+        try:
+            t0 = time.monotonic()
+            s.put(f"vergence/{rig}/fixate", Fixate(x=x, y=y, t_ns=time.time_ns(), source=source).to_bytes())
+            if sub is None:
+                print(f"fixate ({x:g}, {y:g}) sent on vergence/{rig}/fixate")
+                return 0
+            if not seen.wait(wait):
+                print(f"vergence fixate: no decision at ({target[0]}, {target[1]}) within {wait:g} s (is a "
+                      "capture running on this rig? a point where the fovea does not fit is rejected: see "
+                      "its log)", file=sys.stderr)
+                return 1
+            print(f"{describe(got[0])}  ({(time.monotonic() - t0) * 1e3:.0f} ms after the request)")
+            return 0
+        finally:
+            if sub is not None:
+                sub.undeclare()
+
+
+def run(args: argparse.Namespace) -> int:
+    rig = args.rig or load(args.config).rig
+    return main(rig, session.config_from_args(args), *args.point, args.source, args.wait)
