@@ -47,10 +47,15 @@ def configure(p: argparse.ArgumentParser) -> None:
                                                          "peers linked directly, as `vergence up` runs them")
     p.add_argument("--floor", action="store_true", help="also the messaging floor: CPU per 27 KB message of the "
                                                         "router and of one Python subscriber, at 1 kHz")
+    p.add_argument("--actuator", action="store_true", help="also run the sim actuator (commands close the loop "
+                                                           "through motor/state, as in `vergence up`)")
     p.add_argument("--json", action="store_true", help="one JSON object per run")
 
 
-def synthetic_pair(width: int, height: int, shift: int = 12, seed: int = 5) -> tuple[np.ndarray, np.ndarray]:
+SHIFT = 12  # px: the synthetic pair's offset, which every command must carry
+
+
+def synthetic_pair(width: int, height: int, shift: int = SHIFT, seed: int = 5) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     base = cv2.GaussianBlur(rng.integers(0, 256, (height, width + 2 * shift), np.uint8), (5, 5), 1.5)
     return (np.ascontiguousarray(base[:, shift : shift + width]), np.ascontiguousarray(base[:, :width]))
@@ -67,13 +72,16 @@ def _free_port() -> int:
 class Cluster:
     """A router, a reducer and N workers as child processes (own process groups), torn down on exit."""
 
-    def __init__(self, workdir: Path, rig: str, config: str, workers: int, client: bool = False):
+    def __init__(self, workdir: Path, rig: str, config: str, workers: int, client: bool = False,
+                 actuator: bool = False):
         self.dir, self.rig, self.config = workdir, rig, config
         self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
         self.procs: list[subprocess.Popen] = []
         self.extra = [] if client else ["--mode", "peer", "--listen", "tcp/127.0.0.1:0"]  # as `vergence up`
         self.spawn("router", "router", "--listen", self.endpoint, member=False)
         time.sleep(0.3)
+        if actuator:
+            self.spawn("actuator", "actuator", "--driver", "sim")
         for i in range(workers):
             self.spawn(f"worker{i}", "worker", "--name", f"b{i}")
         self.spawn("reducer", "reducer")
@@ -136,7 +144,7 @@ def in_process_ms(master, slave, params, n: int = 30) -> float:
 def run_rate(cl: Cluster, s, source: str, rate: float, frames: int) -> dict:
     """One capture run at `rate`: WARM_FRAMES frames to start the capture (not counted), then `frames`
     frames; the latency of the commands that came back for those."""
-    from vergence.messages import Command
+    from vergence.messages import Command, MotorState
 
     warm = min(WARM_FRAMES, max(2, frames // 5))
     got: list[tuple[int, bytes]] = []
@@ -147,7 +155,10 @@ def run_rate(cl: Cluster, s, source: str, rate: float, frames: int) -> dict:
         with lock:
             got.append((t, sample.payload.to_bytes()))
 
+    states: list[bytes] = []
     sub = s.declare_subscriber(f"vergence/{cl.rig}/command", on_cmd)
+    sub_state = s.declare_subscriber(f"vergence/{cl.rig}/motor/state",
+                                     lambda smp: states.append(smp.payload.to_bytes()))
     try:
         cap = cl.spawn("capture", "capture", "--source", source, "--rate", str(rate), "--frames",
                        str(frames + warm))
@@ -159,14 +170,28 @@ def run_rate(cl: Cluster, s, source: str, rate: float, frames: int) -> dict:
         time.sleep(0.3)
     finally:
         sub.undeclare()
+        sub_state.undeclare()
+    # at the actuator: the first motor state naming a frame is the one published right after its command went
+    # to the motor (its t_ns minus the frame's capture time: capture -> command executed, no extra hop)
+    executed: dict[int, int] = {}
+    for b in states:
+        st = MotorState.from_bytes(b)
+        if warm < st.frame <= frames + warm and st.t_capture_ns > 0:
+            executed[st.frame] = min(executed.get(st.frame, st.t_ns), st.t_ns) - st.t_capture_ns
+    act = np.array(sorted(executed.values())) / 1e6 if executed else np.array([np.nan])
     cmds = [(t, c) for t, c in ((t, Command.from_bytes(b)) for t, b in got) if warm < c.frame <= frames + warm]
     lat = np.array([(t - c.t_capture_ns) / 1e6 for t, c in cmds]) if cmds else np.array([np.nan])
     red = np.array([(c.t_sent_ns - c.t_capture_ns) / 1e6 for _, c in cmds]) if cmds else np.array([np.nan])
     caps = sorted(c.t_capture_ns for _, c in cmds)
     span = (caps[-1] - caps[0]) / 1e9 if len(caps) > 1 else float("nan")
     have = {c.frame for _, c in cmds}
+    # a wrong command: one whose offset is not the pair's (SHIFT px), or older than one sent before it
+    ids = [c.frame for _, c in sorted(cmds, key=lambda tc: tc[1].t_sent_ns)]
+    wrong = sum(abs(c.magnitude_px - SHIFT) > 1.0 for _, c in cmds) + sum(b <= a for a, b in zip(ids, ids[1:]))
     lost = [i for i in range(warm + 1, warm + frames + 1) if i not in have]
-    return dict(rate_hz=rate, frames=frames, commands=len(have), drops=len(lost), lost_first=lost[:12],
+    return dict(rate_hz=rate, frames=frames, commands=len(have), drops=len(lost), lost_first=lost[:12], wrong=wrong,
+                behind_p99=float(np.percentile(red, 99)) * rate / 1e3, executed=len(executed),
+                actuator_p50_ms=float(np.percentile(act, 50)), actuator_p99_ms=float(np.percentile(act, 99)),
                 p50_ms=float(np.percentile(lat, 50)), p99_ms=float(np.percentile(lat, 99)),
                 max_ms=float(lat.max()), reducer_p99_ms=float(np.percentile(red, 99)),
                 throughput_hz=(len(caps) - 1) / span if span == span and span > 0 else float("nan"))
@@ -189,7 +214,7 @@ def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: 
     base_ms = in_process_ms(master, slave, params, n=30 if width < 2000 else 3)
     rows = []
     for nw in args.workers:
-        cl = Cluster(workdir, f"bench{os.getpid()}{name}{nw}", str(cfg), nw, args.client)
+        cl = Cluster(workdir, f"bench{os.getpid()}{name}{nw}", str(cfg), nw, args.client, args.actuator)
         try:
             s = _session(cl.endpoint)
             try:
@@ -288,8 +313,11 @@ def run(args: argparse.Namespace) -> int:
         else:
             print(f"{r['setting']:6s} {r['width']:5d}px w={r['window']:<2d} R={r['vsearch']:<2d} "
                   f"{r['workers']} worker(s) {r['rate_hz']:6.0f} Hz: {r['commands']:5d}/{r['frames']:<5d} cmds "
-                  f"drops {r['drops']:4d}  p50 {r['p50_ms']:6.2f} ms  p99 {r['p99_ms']:6.2f} ms  "
-                  f"max {r['max_ms']:6.1f} ms  thr {r['throughput_hz']:7.1f} Hz  match {r['match_ms']:6.2f} ms  "
+                  f"drops {r['drops']:4d} wrong {r['wrong']} behind {r['behind_p99']:4.1f}  "
+                  f"p50 {r['p50_ms']:6.2f} ms  p99 {r['p99_ms']:6.2f} ms  "
+                  f"max {r['max_ms']:6.1f} ms  actuator p50 {r['actuator_p50_ms']:5.2f} "
+                  f"p99 {r['actuator_p99_ms']:5.2f} ms  "
+                  f"thr {r['throughput_hz']:7.1f} Hz  match {r['match_ms']:6.2f} ms  "
                   f"overhead x{r['overhead']:.2f}", flush=True)
 
     with tempfile.TemporaryDirectory(prefix="vergence-bench-") as d:

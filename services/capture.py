@@ -4,13 +4,18 @@ Publishes on vergence/<rig>/frame a messages.Frame per image pair: only what lay
 and the slave band with their Sobel margins, the master band for the left-right check), the slave pan at
 capture time (the latest messages.MotorState on vergence/<rig>/motor/state; the source's start pan before
 any), and the shard plan made from the workers' liveliness tokens vergence/<rig>/alive/worker/* at that
-moment. With no worker alive, frames are counted (no_workers) and not published. A downscaled
+moment, minus the workers the reducer's evidence (vergence/<rig>/workers) shows silent (pipeline.Roster:
+a token is an invitation, not a guarantee). A motor/state whose pan is outside the motor's limits or whose
+time is off our clock by more than [limits] max_skew_s is counted and ignored. With no worker alive, frames
+are counted (no_workers) and not published. A downscaled
 messages.Preview goes on vergence/<rig>/preview at [capture] preview_hz. With [network] max_window > 0 the
 window grows by 8 px while the decisions (vergence/<rig>/decision) are not confident (the dynamic window).
 A messages.Fixate on vergence/<rig>/fixate moves the fovea to its (x, y) from the next frame on; a request
 that is not a valid Fixate, or where the fovea would not fit the image, is rejected (counted under bad.fixate
 and in the fixate_rejected counter, its reason logged) and nothing moves.
-Counters go out as JSON on vergence/<rig>/status/capture/<id> every second and at exit.
+Counters go out as JSON on vergence/<rig>/status/capture/<id> every second and at exit, with the rate
+published and the rate the reducer completed (published_hz, decided_hz; a warning when the pipeline
+holds less than half).
 """
 
 from __future__ import annotations
@@ -50,27 +55,15 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--focal", type=float, default=None, help="focal length in pixels (default: the source's)")
 
 
-class Membership:
-    """The live workers, from liveliness tokens (history included); the plan is recomputed on change."""
-
-    def __init__(self):
-        self.lock = threading.Lock()
-        self.workers: set[str] = set()
-        self.changes = 0
-
-    def on_sample(self, sample) -> None:
-        wid = str(sample.key_expr).rsplit("/", 1)[1]
-        with self.lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self.workers.add(wid)
-            else:
-                self.workers.discard(wid)
-            self.changes += 1
-        log.info("workers: %s", sorted(self.workers))
-
-    def snapshot(self) -> tuple[int, list[str]]:
-        with self.lock:
-            return self.changes, sorted(self.workers)
+def motor_state_implausible(st: MotorState, motor, now_ns: int, max_skew_s: float) -> str | None:
+    """Why a motor/state is not believed (it moves the pan every frame carries, hence the commands): a pan
+    outside the motor's soft limits of our settings, or a time further than max_skew_s from our clock."""
+    lo, hi = motor.min_rad, motor.max_rad
+    if not lo - 1e-3 <= st.pan_rad <= hi + 1e-3:
+        return f"pan {st.pan_rad:.4g} rad outside the motor limits [{lo:.4g}, {hi:.4g}]"
+    if abs(st.t_ns - now_ns) > max_skew_s * 1e9:
+        return f"state from {(st.t_ns - now_ns) / 1e9:+.3g} s off our clock"
+    return None
 
 
 class Fovea:
@@ -142,16 +135,40 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
     cid = alive.rsplit("/", 1)[1]
     health = pipeline.Health("capture", cid, log)
     windows = pipeline.WindowControl(params)
-    members = Membership()
+    lim = settings.limits
+    members = pipeline.Roster(lim.miss_s, lim.probation_s, lim.miss_frames)
     fovea = Fovea(x, y, (ht, wd), params, health)
     pan = [source.start_pan_rad]
+    decided = [0, 0]  # the reducer's complete frames: latest report, and at the last status
 
     def on_motor(sample):
         try:
-            pan[0] = MotorState.from_bytes(sample.payload.to_bytes()).pan_rad
+            st = MotorState.from_bytes(sample.payload.to_bytes())
+            why = motor_state_implausible(st, settings.actuator.motor, time.time_ns(), lim.max_skew_s)
+            if why is not None:
+                raise MessageError(why)
+            pan[0] = st.pan_rad
             health.count("motor_states")
         except MessageError as e:
             health.reject("motor_state", e)
+
+    def on_token(sample):
+        wid = str(sample.key_expr).rsplit("/", 1)[1]
+        members.token(wid, sample.kind == zenoh.SampleKind.PUT)
+        log.info("workers: %s", sorted(members.tokens))
+
+    def on_report(sample):
+        try:
+            rep = json.loads(sample.payload.to_bytes())
+            if not isinstance(rep, dict) or not isinstance(rep.get("workers"), dict):
+                raise ValueError("not a report")
+        except ValueError as e:
+            health.reject("workers", e)
+            return
+        for wid in members.on_report(rep):
+            log.warning("worker %s left the plan: its shards stopped arriving at the reducer", wid)
+        if isinstance(rep.get("complete"), int):
+            decided[0] = rep["complete"]
 
     def on_decision(sample):
         try:
@@ -170,7 +187,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         pub_preview = s.declare_publisher(f"vergence/{rig}/preview")
         pub_status = s.declare_publisher(f"vergence/{rig}/status/capture/{cid}")
         subs = [s.declare_subscriber(f"vergence/{rig}/motor/state", on_motor),
-                s.liveliness().declare_subscriber(f"vergence/{rig}/alive/worker/*", members.on_sample, history=True)]
+                s.declare_subscriber(f"vergence/{rig}/workers", on_report),
+                s.liveliness().declare_subscriber(f"vergence/{rig}/alive/worker/*", on_token, history=True)]
         if params.max_window:
             subs.append(s.declare_subscriber(f"vergence/{rig}/decision", on_decision))
         subs.append(s.declare_subscriber(f"vergence/{rig}/fixate", lambda sm: fovea.on_fixate(sm.payload.to_bytes())))
@@ -183,6 +201,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         next_t = time.monotonic()
         next_preview = next_t
         next_status = next_t + STATUS_S
+        published_at_status = 0
+        slow_logged = False
         try:
             while not stop.is_set() and (frames <= 0 or published < frames):
                 if period:
@@ -233,9 +253,21 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                     pub_preview.put(Preview(rig=rig, frame=fid, t_capture_ns=t_ns, width=pw, height=ph, scale=pw / wd,
                                             master=m.tobytes(), slave=sl.tobytes(), pan_rad=p_now).to_bytes())
                 if now >= next_status:
+                    # the rate the pipeline holds: frames published vs frames the reducer completed
+                    sent, done = published - published_at_status, decided[0] - decided[1]
+                    published_at_status, decided[1] = published, decided[0]
+                    # (the reducer's count lags by up to its report period: never more than was published;
+                    # a negative difference is a new reducer)
+                    held = min(done, sent) / STATUS_S if done >= 0 else None
+                    if held is not None and sent >= 20 and done < 0.5 * sent and not slow_logged:
+                        slow_logged = True
+                        log.warning("the pipeline completes %.0f of the %.0f frames/s published: lower the rate "
+                                    "(--rate) or add workers", held, sent / STATUS_S)
                     next_status = now + STATUS_S
-                    pub_status.put(json.dumps(health.status(window=windows.window, workers=len(plan),
-                                                            fovea=list(fovea.at()))))
+                    pub_status.put(json.dumps(health.status(
+                        window=windows.window, workers=len(plan), excluded=members.excluded(),
+                        published_hz=sent / STATUS_S, decided_hz=held, roster=dict(members.counters),
+                        fovea=list(fovea.at()))))
         finally:
             for sub in subs:  # no callback may still run while the session closes
                 sub.undeclare()

@@ -3,6 +3,12 @@
 Subscribes to vergence/<rig>/frame and vergence/<rig>/correlation/*; vergence.pipeline.Gatherer assembles
 each frame by the plan the frame carries, drops (and counts) a frame whose shards miss the deadline
 ([reducer] deadline_ms), and reduces a complete one with vergence.match.decide_scores and the controller.
+Messages that are not plausible ([limits]: capture time, frame id, frame size) are counted and change
+nothing. Messages arrive in zenoh RingChannels (bounded, the oldest go); one thread takes everything that
+arrived, newest frame first, so an overloaded reducer serves the newest frame instead of queueing.
+Every REPORT_S it publishes the membership evidence on vergence/<rig>/workers (JSON: per worker, seconds
+since its latest partial and the frames it missed in a row), from which the capture drops silent workers
+from the plan.
 Publishes messages.Profile on vergence/<rig>/profile and, when the controller moves the slave,
 messages.Command on vergence/<rig>/command; never from an incomplete profile. Counters go out as JSON on
 vergence/<rig>/status/reducer/<id> every second and at exit. The profile is only encoded and published while
@@ -14,6 +20,7 @@ with frames, one log line says what the loop is doing (summary()).
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
 import json
 import logging
@@ -33,6 +40,12 @@ log = logging.getLogger("vergence.reducer")
 STATUS_S = 1.0
 SUMMARY_S = 5.0
 EXPIRE_S = 0.05  # the longest sleep between deadline checks (frames also expire as messages arrive)
+REPORT_S = 0.1  # the membership evidence (vergence/<rig>/workers) goes out this often
+# zenoh RingChannels: the newest messages kept while the forwarders wait for the interpreter (what they drop
+# is not counted, so they are larger than the inbox, whose sheds are)
+FRAME_RING, PARTIAL_RING = 32, 128
+KEEP_FRAMES = 2  # the newest valid frames of one batch that are decoded and gathered
+WAKE = "_wake"  # the key segment of the local sample that wakes the partials' forwarder at exit
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -65,21 +78,63 @@ def summary(seconds: float, frames: int, lost: int, commands: int, last: pipelin
             f"w {f.window}), slave pan at capture {math.degrees(f.pan_rad):+.3f} deg")
 
 
+class Inbox:
+    """Bounded mailboxes between the forwarders and the reducer's thread: the oldest goes when a box is full
+    (counted in `shed`, per kind), so nothing queues when the reducer cannot keep up; the thread takes
+    everything at once (drain)."""
+
+    def __init__(self, frames: int = 8, partials: int = 64):
+        self.cond = threading.Condition()
+        self.boxes = {"frame": collections.deque(maxlen=frames), "partial": collections.deque(maxlen=partials)}
+        self.shed = {"frame": 0, "partial": 0}
+
+    def put(self, kind: str, item) -> None:
+        with self.cond:
+            box = self.boxes[kind]
+            if len(box) == box.maxlen:
+                self.shed[kind] += 1
+            box.append(item)
+            self.cond.notify()
+
+    def count_shed(self, kind: str, n: int) -> None:
+        with self.cond:
+            self.shed[kind] += n
+
+    def drain(self, timeout: float) -> list[tuple[str, object]]:
+        with self.cond:
+            if not any(self.boxes.values()):
+                self.cond.wait(timeout)
+            out = [(k, x) for k, box in self.boxes.items() for x in box]
+            for box in self.boxes.values():
+                box.clear()
+            return out
+
+
+def newest_first(msgs: list) -> list:
+    """Decoded messages (Frame or Partial) in the order the gatherer should see them: the newest frame id
+    first, its Frame before its partials. Then the newest frame that is complete is reduced and every older
+    message of the batch is late (cheap): under overload the reducer serves the newest frame."""
+    return sorted(msgs, key=lambda m: (-m.frame, not isinstance(m, Frame)))
+
+
 def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | None = None) -> int:
     rig = settings.rig
     warm_up(settings)
     deadline = (deadline_ms if deadline_ms is not None else settings.reducer.deadline_ms) / 1000.0
-    gatherer = pipeline.Gatherer(settings.network, settings.control, deadline)
+    limits = settings.limits
+    gatherer = pipeline.Gatherer(settings.network, settings.control, deadline, limits)
     alive = session.alive_key(rig, "reducer")
     rid = alive.rsplit("/", 1)[1]
     health = pipeline.Health("reducer", rid, log)
     prefix = f"vergence/{rig}/correlation/"
-    lock = threading.Lock()  # zenoh may run the two subscribers' callbacks on different threads
+    lock = threading.Lock()  # the gatherer: the loop thread and the status
+    inbox = Inbox()
     with session.open_session(conf) as s:
         pub_decision = s.declare_publisher(f"vergence/{rig}/decision", express=True)
         pub_profile = s.declare_publisher(f"vergence/{rig}/profile", express=True)
         pub_command = s.declare_publisher(f"vergence/{rig}/command", express=True)
         pub_status = s.declare_publisher(f"vergence/{rig}/status/reducer/{rid}")
+        pub_workers = s.declare_publisher(f"vergence/{rig}/workers", express=True)
 
         last: list[pipeline.Result] = []
         geo = settings.geometry
@@ -98,58 +153,104 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
                     pub_profile.put(dataclasses.replace(r.profile, **where).to_bytes())
                 health.count("profiles")
 
-        def on_frame(sample) -> None:
-            try:
-                frame = Frame.from_bytes(sample.payload.to_bytes())
-            except MessageError as e:
-                with lock:
-                    health.reject("frame", e)
-                return
-            with lock:
+        def decode(kind: str, item):
+            """A Frame or Partial from (key, bytes), or None (counted by reason)."""
+            key, data = item
+            if kind == "frame":
+                why = pipeline.frame_too_large(None, len(data), limits)
                 try:
-                    publish(gatherer.add_frame(frame))
-                except Exception as e:  # a frame that validates but cannot be decided on: never fatal
+                    if why is not None:
+                        raise MessageError(why)
+                    frame = Frame.from_bytes(data)
+                    why = pipeline.frame_too_large(frame, len(data), limits)
+                    if why is not None:
+                        raise MessageError(why)
+                    return frame
+                except MessageError as e:
                     health.reject("frame", e)
-
-        def on_partial(sample) -> None:
-            key = str(sample.key_expr)
+                    return None
             try:
-                part = Partial.from_bytes(sample.payload.to_bytes())
+                part = Partial.from_bytes(data)
                 if key[len(prefix):] != part.worker:
                     raise MessageError(f"partial from worker {part.worker!r} on key {key}")
+                return part
             except MessageError as e:
-                with lock:
-                    health.reject("partial", e)
-                return
-            with lock:
-                try:
-                    publish(gatherer.add_partial(part))
-                except Exception as e:  # never fatal
-                    health.reject("partial", e)
+                health.reject("partial", e)
+                return None
 
-        # Messages are handled in zenoh's callback threads (no hand-over to another thread: one wake-up
-        # less per message); this thread only expires deadlines and publishes the status.
-        subs = [s.declare_subscriber(f"vergence/{rig}/frame", on_frame),
-                s.declare_subscriber(prefix + "*", on_partial)]
+        def handle(batch) -> None:
+            # frames newest (last arrived) first, and only until KEEP_FRAMES valid ones: the older ones of a
+            # backlog would be superseded anyway, so they are let go (shed) without the cost of decoding them
+            frames = [x for k, x in batch if k == "frame"]
+            msgs = []
+            for i, item in enumerate(reversed(frames)):
+                if len(msgs) >= KEEP_FRAMES:
+                    inbox.count_shed("frame", len(frames) - i)
+                    break
+                m = decode("frame", item)
+                if m is not None:
+                    msgs.append(m)
+            msgs += [m for m in (decode(k, x) for k, x in batch if k == "partial") if m is not None]
+            with lock:
+                for m in newest_first(msgs):
+                    try:
+                        if isinstance(m, Frame):
+                            publish(gatherer.add_frame(m))
+                        else:
+                            publish(gatherer.add_partial(m))
+                    except Exception as e:  # a message that validates but cannot be decided on: never fatal
+                        health.reject(m.KIND, e)
+
+        # zenoh's receiving threads only push into rings (Rust, no Python, no GIL: they never wait for this
+        # process, so no queue builds up in the network; the oldest go when a ring is full); one forwarder
+        # thread per ring hands the payloads to the inbox; this thread decodes, gathers, decides and
+        # publishes, expires deadlines, and publishes the status and the membership evidence
+        subs = {"frame": s.declare_subscriber(f"vergence/{rig}/frame", zenoh.handlers.RingChannel(FRAME_RING)),
+                "partial": s.declare_subscriber(prefix + "*", zenoh.handlers.RingChannel(PARTIAL_RING))}
+        wake = {"frame": f"vergence/{rig}/frame", "partial": prefix + WAKE}
+
+        def forward(kind: str) -> None:
+            sub = subs[kind]
+            while True:
+                smp = sub.recv()
+                if stop.is_set():
+                    return
+                inbox.put(kind, (str(smp.key_expr), smp.payload.to_bytes()))
+
+        forwarders = [threading.Thread(target=forward, args=(k,), name=f"reducer-{k}", daemon=True) for k in subs]
+        for th in forwarders:
+            th.start()
         token = s.liveliness().declare_token(alive)
         log.info("reducer %s on vergence/%s/{frame,correlation/*}, deadline %.0f ms", rid, rig, deadline * 1e3)
 
         def status(**extra) -> bytes:
             with lock:
                 return json.dumps(health.status(gatherer=dict(gatherer.counters), pending=len(gatherer.pending),
-                                                **extra)).encode()
+                                                shed=dict(inbox.shed), **extra)).encode()
+
+        def workers_report() -> bytes:
+            with lock:
+                return json.dumps(dict(gatherer.report(), rig=rig, id=rid, t_ns=time.time_ns(),
+                                       complete=gatherer.counters["complete"])).encode()
 
         next_status = time.monotonic() + STATUS_S
+        next_report = time.monotonic() + REPORT_S
         next_summary, seen = time.monotonic() + SUMMARY_S, (0, 0, 0)
         sleep = EXPIRE_S
         try:
-            while not stop.wait(sleep):
+            while not stop.is_set():
+                batch = inbox.drain(sleep)
+                if batch:
+                    handle(batch)
                 with lock:
                     gatherer.expire()
                     due = gatherer.next_deadline()
                 now = time.monotonic()
                 # wake at the next deadline (every 5 ms before: 200 wake-ups a second for nothing)
                 sleep = EXPIRE_S if due is None else min(EXPIRE_S, max(0.001, due - now))
+                if now >= next_report:
+                    pub_workers.put(workers_report())
+                    next_report = now + REPORT_S
                 if now >= next_status:
                     pub_status.put(status())
                     next_status = now + STATUS_S
@@ -161,8 +262,12 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
                             log.info("%s", summary(SUMMARY_S, *(a - b for a, b in zip(counts, seen)), last[0]))
                     seen, next_summary = counts, now + SUMMARY_S
         finally:
-            # no callback may still run while the session closes (it can hang the exit otherwise)
-            for sub in subs:
+            stop.set()
+            for kind, key in wake.items():  # wake the forwarders: a local, empty sample on their own subscription
+                s.put(key, b"", allowed_destination=zenoh.Locality.SESSION_LOCAL)
+            for th in forwarders:
+                th.join(5.0)
+            for sub in subs.values():
                 sub.undeclare()
             token.undeclare()
             pub_status.put(status(exiting=True))

@@ -1,8 +1,10 @@
 """`vergence replay FILE [--speed X] [--only KIND ...]`: publish a recording again, at its own pace.
 
-Replays frames, previews, correlations, decisions and profiles, under the recorded rig or --rig. Never
-commands or motor states: a replay must not move a motor (the deploy/ access rules forbid it too), and the
-live actuator's state is the truth. Status messages and liveliness events are not replayed either.
+Replays frames, previews, correlations, decisions and profiles under the rig `replay` (REPLAY_RIG), or
+--rig. Never commands or motor states, and never where a motor listens: a replay must not move a motor. It
+refuses (exit 2) a rig with a live actuator (its liveliness token), since a live reducer there would turn
+the replayed frames into commands; under the deploy/ access rules the replay role may publish only under
+vergence/replay/. Status messages and liveliness events are not replayed either.
 
 Frames are re-planned onto the workers alive now (their liveliness tokens), because the recorded plan names
 workers of the recorded run: live workers then compute them, and a live reducer reproduces the recorded
@@ -30,6 +32,7 @@ from . import session
 
 log = logging.getLogger("vergence.replay")
 KINDS = ("frame", "preview", "correlation", "decision", "profile")
+REPLAY_RIG = "replay"  # where a replay publishes by default: no actuator listens there
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -84,10 +87,15 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
     except RecordingError as e:
         print(f"vergence replay: {e}", file=sys.stderr)
         return 2
-    rig = rig or reader.header.get("rig") or "head"
+    rig = rig or REPLAY_RIG
     sent = skipped = bad = 0
     pubs_early: dict[str, zenoh.Publisher] = {}
     with reader, session.open_session(conf) as s:
+        if any(r.ok for r in s.liveliness().get(f"vergence/{rig}/alive/actuator/*", timeout=1.0)):
+            print(f"vergence replay: an actuator is alive on vergence/{rig}/: a reducer there would turn the "
+                  f"replayed frames into motor commands. Replay under another rig (--rig; default "
+                  f"{REPLAY_RIG}) and run workers and a reducer with that --rig", file=sys.stderr)
+            return 2
         workers = Workers()
         members = s.liveliness().declare_subscriber(f"vergence/{rig}/alive/worker/*", workers.on_sample,
                                                     history=True)

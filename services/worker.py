@@ -1,7 +1,10 @@
 """`vergence worker [--name ID]`: computes layer 4 for its shard of each frame.
 
 Subscribes to vergence/<rig>/frame with a RingChannel(1): a slow worker always works on the newest frame and
-never builds a queue. For each frame whose plan names it, publishes messages.Partial on
+never builds a queue; the frames its ring replaced before it took them are counted (`skipped`, from the
+gaps in the frame ids). Frames beyond [limits] max_frame_bytes / max_frame_ops, or captured further than
+[limits] max_skew_s from this host's clock, are counted as bad and not computed. For each frame whose plan
+names it, publishes messages.Partial on
 vergence/<rig>/correlation/<id>. Membership is its liveliness token vergence/<rig>/alive/worker/<id>, declared
 once the kernel is warm; the capture plans shards from these tokens. Counters go out as JSON on
 vergence/<rig>/status/worker/<id> every second and at exit.
@@ -19,7 +22,7 @@ import numpy as np
 import zenoh
 
 from vergence import kernel, pipeline
-from vergence.config import load
+from vergence.config import LimitSettings, load
 from vergence.match import Params
 from vergence.messages import Frame, MessageError
 
@@ -45,8 +48,36 @@ def warm_up(params: Params) -> None:
     pipeline.compute_partial(f, "w")
 
 
+def check_frame(data: bytes, limits: LimitSettings, now_ns: int) -> Frame:
+    """The frame in a message, if it is one a worker should compute; MessageError says why not."""
+    why = pipeline.frame_too_large(None, len(data), limits)
+    if why is None:
+        frame = Frame.from_bytes(data)
+        why = pipeline.frame_too_large(frame, len(data), limits)
+        if why is None and abs(frame.t_capture_ns - now_ns) > limits.max_skew_s * 1e9:
+            why = f"frame {frame.frame} captured {(frame.t_capture_ns - now_ns) / 1e9:+.3g} s from our clock"
+    if why is not None:
+        raise MessageError(why)
+    return frame
+
+
+class Gaps:
+    """Frames a one-slot ring replaced before the worker took them, from the gaps in the frame ids (a jump
+    back or a jump beyond `window` is a new capture or a forged id: not counted)."""
+
+    def __init__(self, window: int = 1000):
+        self.last = -1
+        self.window = window
+
+    def seen(self, fid: int) -> int:
+        gap = fid - self.last - 1 if self.last >= 0 else 0
+        self.last = fid
+        return gap if 0 < gap <= self.window else 0
+
+
 def main(rig: str, conf: zenoh.Config, stop: session.Stop, name: str | None = None,
-         params: Params | None = None) -> int:
+         params: Params | None = None, limits: LimitSettings | None = None) -> int:
+    limits = limits or LimitSettings()
     warm_up(params or Params())
     alive = session.alive_key(rig, "worker", name)
     wid = alive.rsplit("/", 1)[1]
@@ -57,6 +88,7 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, name: str | None = No
         pub = s.declare_publisher(f"vergence/{rig}/correlation/{wid}", express=True)
         status_pub = s.declare_publisher(f"vergence/{rig}/status/worker/{wid}")
         busy_ns = [0]
+        gaps = Gaps(limits.frame_window)
 
         def loop():
             while True:
@@ -65,10 +97,13 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, name: str | None = No
                     return
                 t0 = time.perf_counter_ns()
                 try:
-                    frame = Frame.from_bytes(sample.payload.to_bytes())
+                    frame = check_frame(sample.payload.to_bytes(), limits, time.time_ns())
                 except MessageError as e:
                     health.reject("frame", e)
                     continue
+                skipped = gaps.seen(frame.frame)
+                if skipped:
+                    health.count("skipped", skipped)
                 try:
                     part = pipeline.compute_partial(frame, wid)
                 except Exception as e:  # a frame that validates but cannot be computed: never fatal
@@ -102,4 +137,5 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, name: str | None = No
 def run(args: argparse.Namespace) -> int:
     settings = load(args.config)
     stop = session.Stop()
-    return main(args.rig or settings.rig, session.config_from_args(args), stop, args.name, settings.network)
+    return main(args.rig or settings.rig, session.config_from_args(args), stop, args.name, settings.network,
+                settings.limits)

@@ -141,7 +141,8 @@ def test_only_the_reducer_commands_and_only_the_actuator_reports(tmp_path, secre
                 try:
                     time.sleep(0.2)  # the router has told this client about the subscriber
                     for key in ("vergence/r/command", "vergence/r/motor/state", "vergence/r/frame",
-                                "vergence/**", "vergence/*/command", "vergence/r/*", "vergence/*/motor/*"):
+                                "vergence/**", "vergence/*/command", "vergence/r/*", "vergence/*/motor/*",
+                                "vergence/replay/frame", "vergence/r/workers"):
                         s.put(key, role.encode())
                     time.sleep(0.2)
                 finally:
@@ -152,8 +153,8 @@ def test_only_the_reducer_commands_and_only_the_actuator_reports(tmp_path, secre
         finally:
             watch.close()
     assert sorted(got) == sorted([
-        ("vergence/r/frame", b"capture"), ("vergence/r/frame", b"replay"),
-        ("vergence/r/command", b"reducer"), ("vergence/*/command", b"reducer"),
+        ("vergence/r/frame", b"capture"), ("vergence/replay/frame", b"capture"), ("vergence/replay/frame", b"replay"),
+        ("vergence/r/command", b"reducer"), ("vergence/*/command", b"reducer"), ("vergence/r/workers", b"reducer"),
         ("vergence/r/motor/state", b"actuator"),
     ])
 

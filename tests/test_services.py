@@ -189,7 +189,9 @@ def test_sigstop_worker_frames_dropped_not_queued(tmp_path, pair):
         commands.wait(n_cmd + 10, 10)  # the pipeline recovers
         after = status(P, s, "reducer")
         dropped = next(iter(after.values()))["gatherer"]["dropped"] - dropped0
-        assert 0.3 * RATE <= dropped <= 2 * RATE, dropped
+        # dropped, not queued: about 0.3-0.4 s of frames, until the reducer's evidence takes the silent worker
+        # out of the plan (pipeline.Roster), or the 0.6 s of the stop
+        assert 0.2 * RATE <= dropped <= 2 * RATE, dropped
         # not queued: after SIGCONT the stopped worker computes at most the stale frame its ring holds, plus
         # the frames that were in flight while the signal landed (under load, up to two)
         fr = by_frame(frames.snapshot(), Frame)
@@ -290,7 +292,9 @@ def test_garbage_on_every_key_kills_nothing(tmp_path, pair):
         (r,) = st["reducer"].values()
         (c,) = st["capture"].values()
         assert w["bad"]["frame"] >= 3  # its RingChannel(1) keeps only the newest of a burst
-        assert r["bad"]["frame"] >= 3 * 10 and r["bad"]["partial"] >= 3 * 2 * 10
+        # every message is counted: rejected, or shed by the reducer's bounded inbox under the burst
+        assert r["bad"]["frame"] + r["shed"]["frame"] >= 3 * 10
+        assert r["bad"]["partial"] + r["shed"]["partial"] >= 3 * 2 * 10
         assert c["bad"]["motor_state"] >= 3 * len(junk) and c["bad"]["decision"] >= 3 * len(junk)
         # no garbage frame was ever turned into a command
         assert all(c.magnitude_px < 14 and c.rig == P.rig for c in valid())

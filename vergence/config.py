@@ -7,6 +7,7 @@
     [reducer]   # deadline_ms
     [control]   # gain, dead_band_px, max_step_deg, min_deg, max_deg
     [actuator]  # driver, port, and the motor (see vergence.motors)
+    [limits]    # what a message may claim before it is believed (clock skew, frame window, sizes, membership)
 """
 
 from __future__ import annotations
@@ -23,8 +24,8 @@ from .control import ControlSettings
 from .match import Params
 from .motors.base import MotorSettings
 
-__all__ = ["ConfigError", "RigSettings", "CaptureSettings", "ReducerSettings", "ActuatorSettings", "Settings", "load",
-           "from_dict"]
+__all__ = ["ConfigError", "RigSettings", "CaptureSettings", "ReducerSettings", "ActuatorSettings", "LimitSettings",
+           "Settings", "load", "from_dict"]
 
 
 class ConfigError(ValueError):
@@ -91,6 +92,38 @@ class ActuatorSettings:
 
 
 @dataclass(frozen=True)
+class LimitSettings:
+    """What a message may claim before it moves any state (a message is a claim, not a fact).
+
+    max_skew_s: a capture time more than this ahead of or behind the receiver's clock (time.time_ns: same
+    host, or an NTP'd cluster) is implausible. frame_window: a frame id more than this ahead of the newest
+    completed frame is implausible. reanchor_s: when no frame completed for this long, the reducer forgets
+    its newest frame and takes any plausible one again (self-recovery). max_frame_bytes, max_frame_ops: the
+    largest frame a worker computes (its bytes; rows x offsets x window^2 of layer 4). miss_s: a worker in
+    the plan that the reducer has not heard from for this long, and whose shards missed miss_frames frames in a
+    row, leaves the plan; probation_s: when it is
+    tried again (doubling on each miss, up to 32 x)."""
+
+    max_skew_s: float = 2.0
+    frame_window: int = 1000
+    reanchor_s: float = 1.0
+    max_frame_bytes: int = 4 * 1024 * 1024
+    max_frame_ops: int = 200_000_000
+    miss_s: float = 0.25
+    miss_frames: int = 3
+    probation_s: float = 4.0
+
+    def __post_init__(self):
+        for name in ("max_skew_s", "reanchor_s", "miss_s", "probation_s"):
+            v = getattr(self, name)
+            if not (v > 0 and v < float("inf")):
+                raise ValueError(f"{name} must be a positive number, got {v}")
+        for name in ("frame_window", "max_frame_bytes", "max_frame_ops", "miss_frames"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
 class Settings:
     rig: str = "head"
     geometry: RigSettings = field(default_factory=RigSettings)  # the TOML's [rig] table
@@ -99,6 +132,7 @@ class Settings:
     reducer: ReducerSettings = field(default_factory=ReducerSettings)
     control: ControlSettings = field(default_factory=ControlSettings)
     actuator: ActuatorSettings = field(default_factory=ActuatorSettings)
+    limits: LimitSettings = field(default_factory=LimitSettings)
 
 
 def _coerce(path: str, value, tp):

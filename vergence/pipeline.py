@@ -20,12 +20,13 @@ import numpy as np
 
 from . import kernel, retina
 from .control import ControlSettings, Controller
+from .config import LimitSettings
 from .decide import Decision
 from .match import Params, apply_checks, decide_scores
 from .messages import Command, Frame, Partial, Profile, Verdict
 
 __all__ = ["plan_shards", "make_frame", "frame_params", "compute_partial", "reduce", "make_profile", "make_verdict",
-           "Gatherer", "Result", "WindowControl", "Health"]
+           "Gatherer", "Roster", "Result", "WindowControl", "Health", "frame_cost"]
 
 
 def plan_shards(workers, k_count: int) -> list[list]:
@@ -92,6 +93,22 @@ def compute_partial(frame: Frame, worker: str, t_done: bool = True) -> Partial |
     return Partial(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, worker=worker, k0=k0, k1=k1,
                    rows=scores.shape[0], scores=scores.astype("<f8", copy=False).tobytes(),
                    t_done_ns=time.time_ns() if t_done else 0)
+
+
+def frame_cost(frame: Frame) -> int:
+    """Layer 4's work on a frame: rows x offsets x window^2 (what LimitSettings.max_frame_ops bounds)."""
+    return (2 * frame.vsearch + 1) * frame.k_count * frame.window * frame.window
+
+
+def frame_too_large(frame: Frame | None, size: int, limits: LimitSettings) -> str | None:
+    """Why a frame (or its message of `size` bytes, before decoding when frame is None) is beyond the
+    settings' bounds, or None."""
+    if size > limits.max_frame_bytes:
+        return f"frame of {size} bytes, more than max_frame_bytes {limits.max_frame_bytes}"
+    if frame is not None and frame_cost(frame) > limits.max_frame_ops:
+        return (f"frame {frame.width} px wide, w {frame.window}, +-{frame.vsearch} rows: {frame_cost(frame)} "
+                f"operations, more than max_frame_ops {limits.max_frame_ops}")
+    return None
 
 
 def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
@@ -199,53 +216,94 @@ class Gatherer:
     counted; so is every older frame still pending once a newer one completes (a command is never older
     than one already sent). Nothing is ever published from an incomplete profile.
 
-    counters: frames (Frames accepted), partials, complete, dropped (deadline), superseded, no_plan,
-    unexpected (a Partial for no shard of its frame's plan, or a duplicate), late (for a frame already
-    done or dropped), bad (a Partial that does not fit its frame), restarts (frame ids jumped back by more
-    with a newer capture time: a new capture process)."""
+    A message is a claim: it moves no state unless it is plausible (LimitSettings). Its capture time must be
+    within max_skew_s of this host's clock (wall_ns); its frame id at most frame_window ahead of the newest
+    completed frame. Only a completed frame moves the "done up to" mark (a frame, a time) that makes older
+    messages late; a frame that expires is remembered as done only when its Frame was in, and partials whose
+    Frame never came (`orphaned`) are forgotten. When nothing completes for reanchor_s, the mark is
+    forgotten (`reanchors`) and any plausible frame is taken again: the gatherer recovers by itself.
+
+    counters: frames (Frames accepted), partials, complete, dropped (a Frame whose shards missed the deadline),
+    superseded, orphaned (partials whose Frame never came: counted apart from dropped, a forged partial
+    cannot inflate `dropped`), no_plan, unexpected (a Partial for no shard of its frame's plan, or a
+    duplicate), late (for a frame already done or dropped), bad (a Partial that does not fit its frame),
+    restarts (a Frame whose id went back with a newer capture time: a new capture process), reanchors,
+    implausible_time, implausible_frame (rejected claims, nothing changed).
+
+    answered: per worker, (monotonic time, frame id) of its latest partial that fitted a Frame's plan, and
+    misses: frames naming it that expired without its partial, in a row (the evidence for membership,
+    report())."""
 
     MAX_PENDING = 256
+    MAX_PARTIALS = 64  # partials kept for one frame whose Frame is not in yet
+    MAX_FINISHED = 1024
 
-    def __init__(self, params: Params, control: ControlSettings | None = None, deadline_s: float = 0.05):
+    def __init__(self, params: Params, control: ControlSettings | None = None, deadline_s: float = 0.05,
+                 limits: LimitSettings | None = None, wall_ns=time.time_ns):
         self.params = params
         self.controller = Controller(control)
         self.deadline_s = deadline_s
+        self.limits = limits or LimitSettings()
+        self.wall_ns = wall_ns
         self.pending: dict[int, _Pending] = {}
-        self.done_upto = -1  # every frame id <= this is finished (reduced, dropped or superseded)
-        self.done_t_ns = 0  # the newest capture time among the finished frames
-        self.counters = dict(frames=0, partials=0, complete=0, dropped=0, superseded=0, no_plan=0,
-                             unexpected=0, late=0, bad=0, restarts=0)
+        self.done_upto = -1  # every frame id <= this is finished: moved by completed frames only
+        self.done_t_ns = 0  # the newest capture time among the completed frames (never ahead of our clock)
+        self.expired: set[int] = set()  # ids > done_upto whose Frame expired (their stragglers are late)
+        self.t_progress: float | None = None  # monotonic time of the latest completion
+        self.newest = -1  # the newest frame id whose Frame was accepted
+        self.answered: dict[str, tuple[float, int]] = {}
+        self.misses: dict[str, int] = {}
+        self.counters = dict(frames=0, partials=0, complete=0, dropped=0, superseded=0, orphaned=0, no_plan=0,
+                             unexpected=0, late=0, bad=0, restarts=0, reanchors=0, implausible_time=0,
+                             implausible_frame=0)
 
-    def _entry(self, frame_id: int, t_capture_ns: int, now: float) -> _Pending | None:
-        if frame_id <= self.done_upto:
-            if t_capture_ns <= self.done_t_ns:
+    # -- plausibility --------------------------------------------------------------------------------------
+    def implausible(self, frame_id: int, t_capture_ns: int, now: float) -> str | None:
+        """Why a message of this frame and capture time is not believed (a counter's name), or None."""
+        if abs(t_capture_ns - self.wall_ns()) > self.limits.max_skew_s * 1e9:
+            return "implausible_time"
+        if self.done_upto >= 0 and frame_id > self.done_upto + self.limits.frame_window:
+            return "implausible_frame"
+        return None
+
+    def _recover(self, now: float) -> None:
+        """Nothing completed for reanchor_s: forget the done mark (a stuck state recovers by itself)."""
+        if self.done_upto >= 0 and (self.t_progress is None or now - self.t_progress > self.limits.reanchor_s):
+            self.done_upto, self.done_t_ns, self.newest = -1, 0, -1
+            self.expired.clear()
+            self.counters["reanchors"] += 1
+
+    def _entry(self, frame_id: int, t_capture_ns: int, now: float, is_frame: bool) -> _Pending | None:
+        self._recover(now)
+        why = self.implausible(frame_id, t_capture_ns, now)
+        if why is not None:
+            self.counters[why] += 1
+            return None
+        if frame_id <= self.done_upto or frame_id in self.expired:
+            if not (is_frame and frame_id <= self.done_upto and t_capture_ns > self.done_t_ns):
                 self.counters["late"] += 1
                 return None
-            # an id already finished, captured later than every finished frame: a new capture process
-            # started its ids again
+            # a Frame with an id already finished, captured later than every completed frame: a new capture
+            # process started its ids again
             self.pending.clear()
-            self.done_upto = frame_id - 1
-            self.done_t_ns = 0
+            self.expired.clear()
+            self.done_upto, self.done_t_ns, self.newest = frame_id - 1, 0, -1
             self.counters["restarts"] += 1
         e = self.pending.get(frame_id)
         if e is None:
             if len(self.pending) >= self.MAX_PENDING:
                 oldest = min(self.pending)
-                self._done(oldest, self.pending.pop(oldest))
-                self.counters["dropped"] += 1
+                self._expired(oldest, self.pending.pop(oldest))
             e = self.pending[frame_id] = _Pending(now, t_capture_ns)
         return e
 
-    def _done(self, fid: int, e: _Pending) -> None:
-        self.done_upto = max(self.done_upto, fid)
-        self.done_t_ns = max(self.done_t_ns, e.t_capture_ns)
-
+    # -- inputs --------------------------------------------------------------------------------------------
     def add_frame(self, frame: Frame, now: float | None = None) -> list[Result]:
         now = time.monotonic() if now is None else now
         if not frame.plan:
             self.counters["no_plan"] += 1
             return self.expire(now)
-        e = self._entry(frame.frame, frame.t_capture_ns, now)
+        e = self._entry(frame.frame, frame.t_capture_ns, now, True)
         if e is None:
             return self.expire(now)
         if e.frame is not None:
@@ -253,25 +311,37 @@ class Gatherer:
             return self.expire(now)
         self.counters["frames"] += 1
         e.frame = frame
-        # partials that came first but do not fit this plan
-        for wid in [w for w, p in e.partials.items() if frame.shard(w) != (p.k0, p.k1)]:
-            del e.partials[wid]
-            self.counters["unexpected"] += 1
+        self.newest = max(self.newest, frame.frame)
+        # partials that came first: those that do not fit this plan go, the others are evidence
+        for wid, p in list(e.partials.items()):
+            if frame.shard(wid) != (p.k0, p.k1):
+                del e.partials[wid]
+                self.counters["unexpected"] += 1
+            else:
+                self._answer(wid, frame.frame, now)
         return self._try(frame.frame, e, now)
 
     def add_partial(self, partial: Partial, now: float | None = None) -> list[Result]:
         now = time.monotonic() if now is None else now
-        e = self._entry(partial.frame, partial.t_capture_ns, now)
+        e = self._entry(partial.frame, partial.t_capture_ns, now, False)
         if e is None:
             return self.expire(now)
         self.counters["partials"] += 1
         if partial.worker in e.partials or (e.frame is not None and
-                                            e.frame.shard(partial.worker) != (partial.k0, partial.k1)):
+                                            e.frame.shard(partial.worker) != (partial.k0, partial.k1)) or (
+                e.frame is None and len(e.partials) >= self.MAX_PARTIALS):
             self.counters["unexpected"] += 1
             return self.expire(now)
         e.partials[partial.worker] = partial
+        if e.frame is not None:
+            self._answer(partial.worker, partial.frame, now)
         return self._try(partial.frame, e, now)
 
+    def _answer(self, wid: str, fid: int, now: float) -> None:
+        self.answered[wid] = (now, fid)
+        self.misses[wid] = 0
+
+    # -- assembling ----------------------------------------------------------------------------------------
     def _try(self, fid: int, e: _Pending, now: float) -> list[Result]:
         out = self.expire(now)
         f = e.frame
@@ -284,30 +354,47 @@ class Gatherer:
             a = p.array()
             if a.shape != (rows, k1 - k0):
                 self.counters["bad"] += 1
-                self.counters["dropped"] += 1
-                self._finish(fid)
+                self._expired(fid, self.pending.pop(fid))
                 return out
             parts.append(a)
         scores = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
-        self._finish(fid)
+        self._finish(fid, now)
         self.counters["complete"] += 1
         out.append(Result.of(f, scores, self.params, self.controller))
         return out
 
-    def _finish(self, fid: int) -> None:
-        """Frame fid (pending) is done: every older pending frame is superseded."""
-        self._done(fid, self.pending.pop(fid))
+    def _expired(self, fid: int, e: _Pending) -> None:
+        """A pending frame given up (deadline, bad shard, too many pending): dropped when its Frame was in
+        (its missing workers get a miss), orphaned otherwise (forgotten: it moves nothing)."""
+        if e.frame is None:
+            self.counters["orphaned"] += 1
+            return
+        self.counters["dropped"] += 1
+        for wid, _, _ in e.frame.plan:
+            if wid not in e.partials:
+                self.misses[wid] = self.misses.get(wid, 0) + 1
+        self.expired.add(fid)
+        if len(self.expired) > self.MAX_FINISHED:
+            self.expired.discard(min(self.expired))
+
+    def _finish(self, fid: int, now: float) -> None:
+        """Frame fid (pending) completed: the done mark moves to it and every older pending frame is
+        superseded."""
+        e = self.pending.pop(fid)
+        self.done_upto = max(self.done_upto, fid)
+        self.done_t_ns = max(self.done_t_ns, min(e.t_capture_ns, self.wall_ns()))
+        self.t_progress = now
+        self.expired = {k for k in self.expired if k > self.done_upto}
         for old in [k for k in self.pending if k < fid]:
-            self._done(old, self.pending.pop(old))
-            self.counters["superseded"] += 1
+            o = self.pending.pop(old)
+            self.counters["superseded" if o.frame is not None else "orphaned"] += 1
 
     def expire(self, now: float | None = None) -> list[Result]:
         """Drop the frames whose deadline has passed; returns [] (a uniform return for the callers)."""
         now = time.monotonic() if now is None else now
         limit = now - self.deadline_s
         for fid in [k for k, e in self.pending.items() if e.t_first <= limit]:
-            self._done(fid, self.pending.pop(fid))
-            self.counters["dropped"] += 1
+            self._expired(fid, self.pending.pop(fid))
         return []
 
     def next_deadline(self) -> float | None:
@@ -316,6 +403,100 @@ class Gatherer:
             return None
         return min(e.t_first for e in self.pending.values()) + self.deadline_s
 
+    def report(self, now: float | None = None, forget_s: float = 60.0) -> dict:
+        """The membership evidence the reducer publishes (vergence/<rig>/workers): the newest frame it has a
+        Frame of, and per worker heard of in the last forget_s: seconds since its latest fitting partial
+        (None: never) and the frames naming it that expired without its partial, in a row."""
+        now = time.monotonic() if now is None else now
+        for wid in [w for w, (t, _) in self.answered.items() if now - t > forget_s]:
+            del self.answered[wid]
+            self.misses.pop(wid, None)
+        workers = {}
+        for wid in set(self.answered) | set(self.misses):
+            t = self.answered.get(wid)
+            workers[wid] = {"age_s": None if t is None else round(now - t[0], 4), "misses": self.misses.get(wid, 0)}
+        return {"frame": self.newest, "workers": workers}
+
+
+class Roster:
+    """The workers the capture plans with: the live liveliness tokens (an invitation, not a guarantee),
+    minus those the reducer's evidence (Gatherer.report) shows missing.
+
+    A worker in the plan for at least miss_s that the latest report (no older than 4 x miss_s) shows with
+    at least miss_frames expired frames in a row without its partial, and no partial for miss_s (or none
+    ever), leaves the plan for probation_s, doubling on each exclusion in a row (up to 32 x); it is then
+    tried again. One that answers is back to a clean record. Without reports (no reducer), the plan is the
+    tokens, as before. counters: excluded, readmitted, reports."""
+
+    def __init__(self, miss_s: float = 0.25, probation_s: float = 1.0, miss_frames: int = 3,
+                 clock=time.monotonic):
+        self.miss_s, self.probation_s, self.miss_frames = miss_s, probation_s, miss_frames
+        self.clock = clock
+        self.lock = threading.Lock()
+        self.tokens: set[str] = set()
+        self.joined: dict[str, float] = {}  # when each planned worker entered the plan
+        self.out: dict[str, float] = {}  # excluded until (monotonic)
+        self.strikes: dict[str, int] = {}
+        self.changes = 0
+        self.counters = dict(excluded=0, readmitted=0, reports=0)
+
+    def token(self, wid: str, alive: bool) -> None:
+        now = self.clock()
+        with self.lock:
+            if alive and wid not in self.tokens:
+                self.tokens.add(wid)
+                self.joined[wid] = now
+            elif not alive and wid in self.tokens:
+                self.tokens.discard(wid)
+                self.joined.pop(wid, None)
+                self.out.pop(wid, None)
+                self.strikes.pop(wid, None)
+            else:
+                return
+            self.changes += 1
+
+    def on_report(self, report: dict) -> list[str]:
+        """Apply one reducer report (Gatherer.report's dict); returns the workers it excluded."""
+        now = self.clock()
+        gone = []
+        with self.lock:
+            self.counters["reports"] += 1
+            workers = report.get("workers") or {}
+            for wid in list(self.joined):
+                w = workers.get(wid) if isinstance(workers, dict) else None
+                if not isinstance(w, dict):
+                    continue
+                age, misses = w.get("age_s"), w.get("misses", 0)
+                answers = isinstance(age, (int, float)) and age < self.miss_s
+                if answers:
+                    self.strikes[wid] = 0
+                    continue
+                if (now - self.joined[wid] >= self.miss_s and isinstance(misses, int)
+                        and misses >= self.miss_frames):
+                    k = self.strikes.get(wid, 0)
+                    self.out[wid] = now + self.probation_s * 2 ** min(k, 5)
+                    self.strikes[wid] = k + 1
+                    del self.joined[wid]
+                    self.counters["excluded"] += 1
+                    self.changes += 1
+                    gone.append(wid)
+        return gone
+
+    def snapshot(self) -> tuple[int, list[str]]:
+        """(a change counter, the sorted ids to plan with): excluded workers whose probation ended come back."""
+        now = self.clock()
+        with self.lock:
+            for wid in [w for w, t in self.out.items() if now >= t]:
+                del self.out[wid]
+                if wid in self.tokens:
+                    self.joined[wid] = now
+                    self.counters["readmitted"] += 1
+                    self.changes += 1
+            return self.changes, sorted(self.joined)
+
+    def excluded(self) -> list[str]:
+        with self.lock:
+            return sorted(self.out)
 
 
 class WindowControl:

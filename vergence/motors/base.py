@@ -31,7 +31,9 @@ class MotorSettings:
     per command. dead_band_deg: a target closer than this to the goal does not move the motor.
     watchdog_s: no valid command for this long -> hold the present position (0 = never).
     max_age_s: a command whose frame was captured longer ago than this is stale and ignored (0 = no check;
-    needs the capture host's clock to agree with ours). torque_off_on_stop: release the motor on exit.
+    needs the capture host's clock to agree with ours). max_skew_s: a command captured more than this
+    ahead of our clock is implausible and ignored (a claim from the future would otherwise make every real
+    command stale); 0 = no check. torque_off_on_stop: release the motor on exit.
     timeout_s: serial reply timeout; retries: attempts per transaction before it counts as failed.
     tau_s, start_deg: the simulated motor's first-order time constant and its starting pan.
     """
@@ -48,6 +50,7 @@ class MotorSettings:
     dead_band_deg: float = 0.0
     watchdog_s: float = 2.0
     max_age_s: float = 0.0
+    max_skew_s: float = 2.0
     torque_off_on_stop: bool = True
     set_profile_velocity: bool = False
     timeout_s: float = 0.05
@@ -64,7 +67,7 @@ class MotorSettings:
             raise ValueError(f"ticks_per_rev must be positive, got {self.ticks_per_rev}")
         if not (self.max_step_deg > 0 and math.isfinite(self.max_step_deg)):
             raise ValueError(f"max_step_deg must be a positive number, got {self.max_step_deg}")
-        for name in ("max_speed_deg_s", "dead_band_deg", "watchdog_s", "max_age_s", "tau_s"):
+        for name in ("max_speed_deg_s", "dead_band_deg", "watchdog_s", "max_age_s", "max_skew_s", "tau_s"):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
                 raise ValueError(f"{name} must be >= 0, got {v}")
@@ -202,7 +205,9 @@ class Safety:
     """Turns untrusted targets into goals: within [min, max], at most max_step from the previous goal.
 
     A target that is not finite, or comes from a frame captured before the last accepted one (stale), or
-    older than max_age_s, is ignored; one outside the soft limits or too far from the goal is clamped. The
+    older than max_age_s, or more than max_skew_s ahead of the clock (implausible), is ignored; the
+    remembered capture time is never ahead of the clock, so no command locks the later ones out. One
+    outside the soft limits or too far from the goal is clamped. The
     goal starts at the present position clamped into the limits. Counters: accepted, clamped, ignored, held
     (inside the dead band).
     """
@@ -246,11 +251,14 @@ class Safety:
         if not math.isfinite(x):
             return self._ignore(f"target {x} is not finite")
         if t_capture_ns > 0:
+            if self.s.max_skew_s > 0 and now_ns is not None and t_capture_ns - now_ns > self.s.max_skew_s * 1e9:
+                return self._ignore(f"implausible: frame {frame} captured {(t_capture_ns - now_ns) / 1e9:.3g} s "
+                                    f"in the future")
             if t_capture_ns < self.last_t_capture:
                 return self._ignore(f"stale: frame {frame} captured before frame {self.last_frame}")
             if self.s.max_age_s > 0 and now_ns is not None and now_ns - t_capture_ns > self.s.max_age_s * 1e9:
                 return self._ignore(f"stale: frame {frame} is {(now_ns - t_capture_ns) / 1e9:.3f} s old")
-            self.last_t_capture = t_capture_ns
+            self.last_t_capture = t_capture_ns if now_ns is None else min(t_capture_ns, now_ns)
             self.last_frame = frame
         reasons = []
         if x < self.lo or x > self.hi:
