@@ -31,7 +31,10 @@ class Params:
     halves_check: each half of the fovea (left, right, top, bottom; weighed by the support weights when they
     are on) must find its own best match, searched within halves_range px of the winner, within 2 px of it
     (halves_consistent): abstain at depth edges where one half of the window sees another surface.
-    max_window: dynamic window; when not confident, grow w by 8 px per try up to this size (0: off)."""
+    max_window: dynamic window; when not confident, grow w by 8 px per try up to this size (0: off).
+    photometric: before layer 1, map the slave band's intensities onto the master's over the same rows
+    ("affine": mean and standard deviation, "histogram": quantiles, "none"; retina.photometric): two cameras
+    never have the same gain and offset."""
 
     window: int = 15
     vsearch: int = 6
@@ -49,12 +52,18 @@ class Params:
     halves_check: bool = True
     halves_range: int = 12
     max_window: int = 47
+    photometric: str = "histogram"
+
+    def __post_init__(self):
+        if self.photometric not in retina.PHOTOMETRIC:
+            raise ValueError(f"photometric must be one of {', '.join(retina.PHOTOMETRIC)}, got {self.photometric!r}")
 
     @classmethod
     def paper(cls, **overrides) -> "Params":
         """The paper's network: no extension (vertical search, circular D, sub-pixel, abstention...)."""
         base = dict(vsearch=0, vshift_cost=0.0, circular=False, subpixel=False, min_margin=0.0, min_texture=0.0,
-                    min_correlation=0.0, lr_check=False, support=False, halves_check=False, max_window=0)
+                    min_correlation=0.0, lr_check=False, support=False, halves_check=False, max_window=0,
+                    photometric="none")
         base.update(overrides)
         return cls(**base)
 
@@ -181,7 +190,7 @@ def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, pa
 
 
 def _one(master, slave, x, y, w, p: Params) -> Match:
-    fovea, band = retina.features(master, slave, (x, y), w, p.vsearch)
+    fovea, band = retina.features(master, slave, (x, y), w, p.vsearch, p.photometric)
     weights = kernel.support_weights(fovea, p.support_gamma, p.support_radius) if p.support else None
     scores = kernel.correlate(fovea, band, circular=p.circular, weights=weights)
     mrows = retina.band_strip(master, y, w) if p.lr_check else None

@@ -14,7 +14,8 @@ import cv2
 import numba
 import numpy as np
 
-__all__ = ["BorderError", "gray", "strip", "fovea_strip", "band_strip", "planes", "features", "check_point"]
+__all__ = ["BorderError", "gray", "strip", "fovea_strip", "band_strip", "planes", "features", "check_point",
+           "PHOTOMETRIC", "photometric", "slave_band_strip"]
 
 
 class BorderError(ValueError):
@@ -149,14 +150,57 @@ def planes(s: np.ndarray) -> np.ndarray:
     return out
 
 
+PHOTOMETRIC = ("none", "affine", "histogram")
+
+
+def photometric(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "affine") -> np.ndarray:
+    """The slave's gray strip with its intensities mapped onto the master's over the same rows (ours: two
+    cameras never have the same gain and offset, and layers 2-4 compare raw I and G).
+
+    mode "affine": s' = mu_m + (s - mu_s) * sd_m / sd_s, the mean and standard deviation of the two strips
+    (a flat slave strip is only shifted to the master's mean); "histogram": each slave level goes to the master
+    level at the same quantile (undoes any monotonic response, saturation included); "none": unchanged.
+    Rounded and clipped to uint8, so that layers 1-4 stay exact integers."""
+    if mode == "none":
+        return slave_strip
+    if mode not in PHOTOMETRIC:
+        raise ValueError(f"photometric must be one of {', '.join(PHOTOMETRIC)}, got {mode!r}")
+    s = np.asarray(slave_strip)
+    m = np.asarray(master_strip)
+    if mode == "affine":
+        ms, ss = float(s.mean()), float(s.std())
+        mm, sm = float(m.mean()), float(m.std())
+        a = sm / ss if ss > 1e-6 else 1.0
+        lut = np.arange(256, dtype=np.float64) * a + (mm - a * ms)
+    else:
+        cs = np.cumsum(np.bincount(s.ravel(), minlength=256)).astype(np.float64)
+        cm = np.cumsum(np.bincount(m.ravel(), minlength=256)).astype(np.float64)
+        # the mid-quantile of each slave level, looked up on the master's cumulative histogram
+        qs = (cs - 0.5 * np.bincount(s.ravel(), minlength=256)) / cs[-1]
+        lut = np.interp(qs, (cm - 0.5 * np.bincount(m.ravel(), minlength=256)) / cm[-1], np.arange(256.0))
+    lut = np.clip(np.rint(lut), 0, 255).astype(np.uint8)
+    return lut[s]
+
+
+def slave_band_strip(master: np.ndarray, slave: np.ndarray, y: int, window: int, vsearch: int = 0,
+                     mode: str = "none") -> np.ndarray:
+    """band_strip of the slave, its intensities mapped onto the master's same rows (photometric, `mode`)."""
+    band = band_strip(slave, y, window, vsearch)
+    if mode == "none":
+        return band
+    return photometric(band, band_strip(master, y, window, vsearch), mode)
+
+
 def features(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = None, window: int = 15,
-             vsearch: int = 0) -> tuple[np.ndarray, np.ndarray]:
+             vsearch: int = 0, photometric: str = "none") -> tuple[np.ndarray, np.ndarray]:
     """Layer 1 for one fixation point: (fovea (3, w, w), band (3, w + 2R, W)), both uint8.
 
-    at is (x, y) in the master image, the image centre (W // 2, H // 2) by default."""
+    at is (x, y) in the master image, the image centre (W // 2, H // 2) by default. photometric: map the
+    slave band's intensities onto the master's first (see photometric())."""
     if master.shape[:2] != slave.shape[:2]:
         raise ValueError(f"master and slave differ in size: {master.shape[1]} x {master.shape[0]} and "
                          f"{slave.shape[1]} x {slave.shape[0]}")
     x, y = at if at is not None else (master.shape[1] // 2, master.shape[0] // 2)
     check_point(master.shape, x, y, window, vsearch)
-    return planes(fovea_strip(master, x, y, window)), planes(band_strip(slave, y, window, vsearch))
+    return (planes(fovea_strip(master, x, y, window)),
+            planes(slave_band_strip(master, slave, y, window, vsearch, photometric)))
