@@ -48,7 +48,8 @@ def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, p
     """A Frame for the fovea at `at` (default: the image centre) of the master, window w (default
     params.window): the fovea and band gray strips with their Sobel margins, and the master band too when
     params.lr_check needs it. The slave band is mapped onto the master's intensities here (params.photometric),
-    so the workers and the reducer see the same band as vergence.match(). Raises retina.BorderError when the window does not fit."""
+    so the workers and the reducer see the same band as vergence.match(). Raises retina.BorderError when the
+    window does not fit."""
     if t_capture_ns is None:
         t_capture_ns = time.time_ns()
     h, wd = master.shape[:2]
