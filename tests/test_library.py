@@ -318,7 +318,7 @@ def test_photometric_undoes_the_slave_cameras_gain_and_offset(mode):
 
 @pytest.mark.parametrize("gain,off", [(1.3, 20), (0.7, -15)])
 def test_match_holds_under_the_slave_cameras_gain(gain, off):
-    """The default network (photometric 'histogram') gives the same winner with the slave at another gain
+    """The default network (photometric 'affine') gives the same winner with the slave at another gain
     and offset as at the master's; the same pair without the mapping is thrown off."""
     master, slave = shifted_pair(7, seed=5)
     dim = np.clip(slave * gain + off, 0, 255).astype(np.uint8)

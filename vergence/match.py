@@ -52,7 +52,7 @@ class Params:
     halves_check: bool = True
     halves_range: int = 12
     max_window: int = 47
-    photometric: str = "histogram"
+    photometric: str = "affine"
 
     def __post_init__(self):
         if self.photometric not in retina.PHOTOMETRIC:

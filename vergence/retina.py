@@ -151,33 +151,62 @@ def planes(s: np.ndarray) -> np.ndarray:
 
 
 PHOTOMETRIC = ("none", "affine", "histogram")
+AFFINE_QUANTILES = (0.3, 0.5, 0.7)
 
 
 def photometric(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "affine") -> np.ndarray:
     """The slave's gray strip with its intensities mapped onto the master's over the same rows (ours: two
     cameras never have the same gain and offset, and layers 2-4 compare raw I and G).
 
-    mode "affine": s' = mu_m + (s - mu_s) * sd_m / sd_s, the mean and standard deviation of the two strips
-    (a flat slave strip is only shifted to the master's mean); "histogram": each slave level goes to the master
-    level at the same quantile (undoes any monotonic response, saturation included); "none": unchanged.
-    Rounded and clipped to uint8, so that layers 1-4 stay exact integers."""
+    mode "affine": s' = m50 + (s - s50) * (m70 - m30) / (s70 - s30), from the 30th, 50th and 70th percentiles
+    of the two strips (robust to black borders and to clipping at either end; a flat slave strip is only shifted
+    to the master's median); "histogram": each slave level goes to the master level at the same quantile (any
+    monotonic response); "none": unchanged. The map is a lookup table on the 256 levels and the result uint8,
+    so that layers 1-4 stay exact integers."""
     if mode == "none":
         return slave_strip
     if mode not in PHOTOMETRIC:
         raise ValueError(f"photometric must be one of {', '.join(PHOTOMETRIC)}, got {mode!r}")
     s = np.asarray(slave_strip)
     m = np.asarray(master_strip)
+    levels = np.arange(256, dtype=np.float64)
+    hs = np.bincount(s.ravel(), minlength=256).astype(np.float64)
+    hm = np.bincount(m.ravel(), minlength=256).astype(np.float64)
+    # Each strip's darkest and brightest level is taken as clipped (black or saturated: 0 and 255 when the camera
+    # clips; a black border, a turned camera seeing past the scene in the simulator, is such a level too, at the
+    # slave's offset): those pixels say nothing of the gain and would drag any statistic. They are left out of
+    # both strips; the share by which the slave has more of them than the master (its gain clipped those) is cut
+    # off the master's darkest / brightest end, so that the two distributions left still correspond.
+    ns, nm = hs.sum(), hm.sum()
+    (lo_s, hi_s), (lo_m, hi_m) = (np.flatnonzero(h)[[0, -1]] for h in (hs, hm))
+    cut_lo = max(0.0, hs[lo_s] / ns - hm[lo_m] / nm)
+    cut_hi = max(0.0, hs[hi_s] / ns - hm[hi_m] / nm)
+    hs[[lo_s, hi_s]] = 0.0
+    hm[[lo_m, hi_m]] = 0.0
+    if hs.sum() < 2 or hm.sum() < 2:
+        return slave_strip
+    f_lo, f_hi = cut_lo * nm / hm.sum(), cut_hi * nm / hm.sum()
+    if f_lo + f_hi >= 0.9:
+        return slave_strip
+    # the mid-quantile of each level on each strip's cumulative histogram; a slave quantile q lies at the
+    # master's f_lo + q (1 - f_lo - f_hi)
+    qs = (np.cumsum(hs) - 0.5 * hs) / hs.sum()
+    qm = (np.cumsum(hm) - 0.5 * hm) / hm.sum()
+    ls, lm = levels[hs > 0], levels[hm > 0]
+    qs_in, qm_in = qs[hs > 0], qm[hm > 0]
     if mode == "affine":
-        ms, ss = float(s.mean()), float(s.std())
-        mm, sm = float(m.mean()), float(m.std())
-        a = sm / ss if ss > 1e-6 else 1.0
-        lut = np.arange(256, dtype=np.float64) * a + (mm - a * ms)
+        # gain and offset from the 30th, 50th and 70th percentiles
+        q = np.asarray(AFFINE_QUANTILES)
+        ps = np.interp(q, qs_in, ls)
+        pm = np.interp(f_lo + q * (1.0 - f_lo - f_hi), qm_in, lm)
+        a = (pm[2] - pm[0]) / (ps[2] - ps[0]) if ps[2] - ps[0] >= 1.0 else 1.0
+        lut = pm[1] + (levels - ps[1]) * a
     else:
-        cs = np.cumsum(np.bincount(s.ravel(), minlength=256)).astype(np.float64)
-        cm = np.cumsum(np.bincount(m.ravel(), minlength=256)).astype(np.float64)
-        # the mid-quantile of each slave level, looked up on the master's cumulative histogram
-        qs = (cs - 0.5 * np.bincount(s.ravel(), minlength=256)) / cs[-1]
-        lut = np.interp(qs, (cm - 0.5 * np.bincount(m.ravel(), minlength=256)) / cm[-1], np.arange(256.0))
+        # each slave level to the master level at the same quantile
+        lut = np.interp(f_lo + qs * (1.0 - f_lo - f_hi), qm_in, lm)
+        # a clipped level: to the master's clipped level, or to the middle of the share the slave's gain clipped
+        lut[lo_s] = lo_m if cut_lo <= 0 else np.interp(0.5 * f_lo, qm_in, lm)
+        lut[hi_s] = hi_m if cut_hi <= 0 else np.interp(1.0 - 0.5 * f_hi, qm_in, lm)
     lut = np.clip(np.rint(lut), 0, 255).astype(np.uint8)
     return lut[s]
 
