@@ -24,7 +24,8 @@ class Params:
     min_margin, min_texture: abstain below this peak-to-rival margin or this mean fovea gradient.
     min_correlation: abstain unless the winning slave window's intensities correlate with the fovea's (Pearson
     r, see correlation()) by at least this: the independent sensor noise of two cameras looking at a flat
-    wall correlates by less than 0.25 even at the best of all offsets, a real match mostly by 0.6 to 1.
+    wall correlates by less than 0.25 even at the best of all offsets (a black wall, its noise clipped at 0, once
+    by 0.31), a real match mostly by 0.6 to 1.
     lr_check: match the winning slave window back into the master band; abstain unless it lands within
     lr_tolerance px of the fovea. support: adaptive support weights (Yoon & Kweon) on the fovea, with
     support_gamma (intensity) and support_radius (distance, px) as their two scales.
@@ -43,7 +44,7 @@ class Params:
     subpixel: bool = True
     min_margin: float = 0.03
     min_texture: float = 1.5
-    min_correlation: float = 0.3
+    min_correlation: float = 0.35
     lr_check: bool = True
     lr_tolerance: float = 0.75
     support: bool = True

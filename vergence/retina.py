@@ -204,9 +204,15 @@ def photometric(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "
     else:
         # each slave level to the master level at the same quantile
         lut = np.interp(f_lo + qs * (1.0 - f_lo - f_hi), qm_in, lm)
-        # a clipped level: to the master's clipped level, or to the middle of the share the slave's gain clipped
-        lut[lo_s] = lo_m if cut_lo <= 0 else np.interp(0.5 * f_lo, qm_in, lm)
-        lut[hi_s] = hi_m if cut_hi <= 0 else np.interp(1.0 - 0.5 * f_hi, qm_in, lm)
+        if cut_lo > 0:  # the slave's clipped level: to the middle of the share its gain clipped
+            lut[lo_s] = np.interp(0.5 * f_lo, qm_in, lm)
+        if cut_hi > 0:
+            lut[hi_s] = np.interp(1.0 - 0.5 * f_hi, qm_in, lm)
+    # a clipped level the master has as much of (black on both sides, say): to the master's
+    if cut_lo <= 0:
+        lut[lo_s] = lo_m
+    if cut_hi <= 0:
+        lut[hi_s] = hi_m
     lut = np.clip(np.rint(lut), 0, 255).astype(np.uint8)
     return lut[s]
 
