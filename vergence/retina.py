@@ -167,11 +167,12 @@ def photometric(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "
         return slave_strip
     if mode not in PHOTOMETRIC:
         raise ValueError(f"photometric must be one of {', '.join(PHOTOMETRIC)}, got {mode!r}")
-    s = np.asarray(slave_strip)
-    m = np.asarray(master_strip)
+    s = np.ascontiguousarray(slave_strip)
+    m = np.ascontiguousarray(master_strip)
+    if s.dtype != np.uint8 or m.dtype != np.uint8 or s.ndim != 2 or m.ndim != 2:
+        raise ValueError(f"photometric maps 2-D uint8 strips, got {s.dtype} {s.shape} and {m.dtype} {m.shape}")
     levels = np.arange(256, dtype=np.float64)
-    hs = np.bincount(s.ravel(), minlength=256).astype(np.float64)
-    hm = np.bincount(m.ravel(), minlength=256).astype(np.float64)
+    hs, hm = (cv2.calcHist([a], [0], None, [256], [0, 256]).ravel().astype(np.float64) for a in (s, m))
     # Each strip's darkest and brightest level is taken as clipped (black or saturated: 0 and 255 when the camera
     # clips; a black border, a turned camera seeing past the scene in the simulator, is such a level too, at the
     # slave's offset): those pixels say nothing of the gain and would drag any statistic. They are left out of
@@ -214,7 +215,7 @@ def photometric(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "
     if cut_hi <= 0:
         lut[hi_s] = hi_m
     lut = np.clip(np.rint(lut), 0, 255).astype(np.uint8)
-    return lut[s]
+    return cv2.LUT(s, lut)
 
 
 def slave_band_strip(master: np.ndarray, slave: np.ndarray, y: int, window: int, vsearch: int = 0,
