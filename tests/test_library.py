@@ -289,14 +289,50 @@ def test_vertical_misalignment_is_found_by_vertical_search():
 def test_faithful_params_turn_every_extension_off():
     p = vergence.FAITHFUL
     assert (p.vsearch, p.circular, p.subpixel, p.min_margin, p.min_texture, p.min_correlation, p.lr_check,
-            p.support, p.halves_check, p.max_window) == (0, False, False, 0.0, 0.0, 0.0, False, False, False, 0)
+            p.support, p.halves_check, p.max_window, p.photometric) == (0, False, False, 0.0, 0.0, 0.0, False, False,
+                                                                        False, 0, "none")
     with pytest.raises(TypeError, match="unknown parameter"):
         vergence.Params.build(windw=3)
+    with pytest.raises(ValueError, match="photometric must be one of none, affine, histogram"):
+        vergence.Params(photometric="gamma")
+
+
+@pytest.mark.parametrize("mode", ["affine", "histogram"])
+def test_photometric_undoes_the_slave_cameras_gain_and_offset(mode):
+    """retina.photometric maps the slave's gray strip onto the master's: a slave seeing the same rows at
+    gain 1.3 / +20 or 0.7 / -15 comes back within a level or two (bar its saturated pixels), the same strip
+    comes back unchanged, and 'none' leaves it alone."""
+    rng = np.random.default_rng(3)
+    master = cv2.GaussianBlur(rng.integers(30, 200, (29, 642), dtype=np.uint8), (5, 5), 1.0)
+    assert np.array_equal(retina.photometric(master, master, mode), master)
+    for gain, off in ((1.3, 20), (0.7, -15)):
+        slave = np.clip(master * gain + off, 0, 255).astype(np.uint8)
+        assert np.abs(slave.astype(int) - master).mean() > 10
+        back = retina.photometric(slave, master, mode).astype(int)
+        unsat = (slave > 0) & (slave < 255)
+        assert np.abs(back - master)[unsat].mean() < 1.0 and np.abs(back - master)[unsat].max() <= 3
+        assert retina.photometric(slave, master, "none") is slave
+    flat = np.full_like(master, 77)
+    assert np.all(retina.photometric(flat, master, mode) == retina.photometric(flat, master, mode)[0, 0])
+
+
+@pytest.mark.parametrize("gain,off", [(1.3, 20), (0.7, -15)])
+def test_match_holds_under_the_slave_cameras_gain(gain, off):
+    """The default network (photometric 'affine') gives the same winner with the slave at another gain
+    and offset as at the master's; the same pair without the mapping is thrown off."""
+    master, slave = shifted_pair(7, seed=5)
+    dim = np.clip(slave * gain + off, 0, 255).astype(np.uint8)
+    same = vergence.match(master, slave)
+    m = vergence.match(master, dim)
+    assert m.confident and (m.decision.k, m.decision.v) == (same.decision.k, same.decision.v)
+    assert m.offset_px == pytest.approx(same.offset_px, abs=0.1)
+    raw = vergence.match(master, dim, photometric="none")
+    assert raw.decision.confidence < m.decision.confidence
 
 
 def test_correlation_check_tells_a_match_from_two_fields_of_noise():
     """correlation(): 1 for the same content (whatever the gain and offset between the cameras), 0 for a flat
-    window, and below the default min_correlation (0.3) for independent noise, even at the best offset."""
+    window, and below 0.3 (the default min_correlation is 0.35) for independent noise, even at the best offset."""
     from vergence.match import correlation
 
     rng = np.random.default_rng(4)

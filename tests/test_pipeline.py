@@ -48,14 +48,17 @@ def test_plan_is_a_valid_frame_plan():
 
 
 @pytest.mark.parametrize("params", [Params(), Params.paper(), Params(vsearch=0, circular=False),
-                                    Params(support=True)], ids=["default", "paper", "flat", "support"])
+                                    Params(support=True), Params(photometric="affine")],
+                         ids=["default", "paper", "flat", "support", "affine"])
 @pytest.mark.parametrize("nworkers", [1, 2, 3])
-def test_shards_concatenate_to_correlate(params, nworkers):
+@pytest.mark.parametrize("gain", [1.0, 0.7])
+def test_shards_concatenate_to_correlate(params, nworkers, gain):
     m, s = textured()
+    s = np.clip(s * gain + (-15 if gain != 1 else 0), 0, 255).astype(np.uint8)  # the slave camera's gain
     f = Frame.from_bytes(frame_of(m, s, params, workers=[f"w{i}" for i in range(nworkers)]).to_bytes())
     parts = [Partial.from_bytes(pipeline.compute_partial(f, f"w{i}").to_bytes()) for i in range(nworkers)]
     got = np.concatenate([p.array() for p in parts], axis=1)
-    fovea, band = retina.features(m, s, window=params.window, vsearch=params.vsearch)
+    fovea, band = retina.features(m, s, window=params.window, vsearch=params.vsearch, photometric=params.photometric)
     w = kernel.support_weights(fovea, params.support_gamma) if params.support else None
     want = np.atleast_2d(kernel.correlate(fovea, band, circular=params.circular, weights=w))
     assert got.shape == want.shape == (2 * params.vsearch + 1, m.shape[1] - params.window + 1)

@@ -24,14 +24,18 @@ class Params:
     min_margin, min_texture: abstain below this peak-to-rival margin or this mean fovea gradient.
     min_correlation: abstain unless the winning slave window's intensities correlate with the fovea's (Pearson
     r, see correlation()) by at least this: the independent sensor noise of two cameras looking at a flat
-    wall correlates by less than 0.25 even at the best of all offsets, a real match mostly by 0.6 to 1.
+    wall correlates by less than 0.25 even at the best of all offsets (a black wall, its noise clipped at 0, once
+    by 0.31), a real match mostly by 0.6 to 1.
     lr_check: match the winning slave window back into the master band; abstain unless it lands within
     lr_tolerance px of the fovea. support: adaptive support weights (Yoon & Kweon) on the fovea, with
     support_gamma (intensity) and support_radius (distance, px) as their two scales.
     halves_check: each half of the fovea (left, right, top, bottom; weighed by the support weights when they
     are on) must find its own best match, searched within halves_range px of the winner, within 2 px of it
     (halves_consistent): abstain at depth edges where one half of the window sees another surface.
-    max_window: dynamic window; when not confident, grow w by 8 px per try up to this size (0: off)."""
+    max_window: dynamic window; when not confident, grow w by 8 px per try up to this size (0: off).
+    photometric: before layer 1, map the slave band's intensities onto the master's over the same rows
+    ("affine": mean and standard deviation, "histogram": quantiles, "none"; retina.photometric): two cameras
+    never have the same gain and offset."""
 
     window: int = 15
     vsearch: int = 6
@@ -40,7 +44,7 @@ class Params:
     subpixel: bool = True
     min_margin: float = 0.03
     min_texture: float = 1.5
-    min_correlation: float = 0.3
+    min_correlation: float = 0.35
     lr_check: bool = True
     lr_tolerance: float = 0.75
     support: bool = True
@@ -49,12 +53,18 @@ class Params:
     halves_check: bool = True
     halves_range: int = 12
     max_window: int = 47
+    photometric: str = "affine"
+
+    def __post_init__(self):
+        if self.photometric not in retina.PHOTOMETRIC:
+            raise ValueError(f"photometric must be one of {', '.join(retina.PHOTOMETRIC)}, got {self.photometric!r}")
 
     @classmethod
     def paper(cls, **overrides) -> "Params":
         """The paper's network: no extension (vertical search, circular D, sub-pixel, abstention...)."""
         base = dict(vsearch=0, vshift_cost=0.0, circular=False, subpixel=False, min_margin=0.0, min_texture=0.0,
-                    min_correlation=0.0, lr_check=False, support=False, halves_check=False, max_window=0)
+                    min_correlation=0.0, lr_check=False, support=False, halves_check=False, max_window=0,
+                    photometric="none")
         base.update(overrides)
         return cls(**base)
 
@@ -186,7 +196,7 @@ def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, pa
 
 
 def _one(master, slave, x, y, w, p: Params) -> Match:
-    fovea, band = retina.features(master, slave, (x, y), w, p.vsearch)
+    fovea, band = retina.features(master, slave, (x, y), w, p.vsearch, p.photometric)
     weights = kernel.support_weights(fovea, p.support_gamma, p.support_radius) if p.support else None
     scores = kernel.correlate(fovea, band, circular=p.circular, weights=weights)
     mrows = retina.band_strip(master, y, w) if p.lr_check else None

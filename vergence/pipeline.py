@@ -48,7 +48,9 @@ def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, p
                t_capture_ns: int | None = None) -> Frame:
     """A Frame for the fovea at `at` (default: the image centre) of the master, window w (default
     params.window): the fovea and band gray strips with their Sobel margins, and the master band too when
-    params.lr_check needs it. Raises retina.BorderError when the window does not fit."""
+    params.lr_check needs it. The slave band is mapped onto the master's intensities here (params.photometric),
+    so the workers and the reducer see the same band as vergence.match(). Raises retina.BorderError when the
+    window does not fit."""
     if t_capture_ns is None:
         t_capture_ns = time.time_ns()
     h, wd = master.shape[:2]
@@ -58,7 +60,7 @@ def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, p
     w = params.window if window is None else window
     retina.check_point(master.shape, x, y, w, params.vsearch)
     fovea = retina.fovea_strip(master, x, y, w)
-    band = retina.band_strip(slave, y, w, params.vsearch)
+    band = retina.slave_band_strip(master, slave, y, w, params.vsearch, params.photometric)
     mband = retina.band_strip(master, y, w) if params.lr_check else None
     return Frame(rig=rig, frame=frame, t_capture_ns=t_capture_ns, pan_rad=float(pan_rad), width=wd, height=h,
                  x=x, y=y, window=w, vsearch=params.vsearch, focal_px=float(focal_px), fovea=fovea.tobytes(),

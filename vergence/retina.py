@@ -14,7 +14,8 @@ import cv2
 import numba
 import numpy as np
 
-__all__ = ["BorderError", "gray", "strip", "fovea_strip", "band_strip", "planes", "features", "check_point"]
+__all__ = ["BorderError", "gray", "strip", "fovea_strip", "band_strip", "planes", "features", "check_point",
+           "PHOTOMETRIC", "photometric", "slave_band_strip"]
 
 
 class BorderError(ValueError):
@@ -149,14 +150,93 @@ def planes(s: np.ndarray) -> np.ndarray:
     return out
 
 
+PHOTOMETRIC = ("none", "affine", "histogram")
+AFFINE_QUANTILES = (0.3, 0.5, 0.7)
+
+
+def photometric(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "affine") -> np.ndarray:
+    """The slave's gray strip with its intensities mapped onto the master's over the same rows (ours: two
+    cameras never have the same gain and offset, and layers 2-4 compare raw I and G).
+
+    mode "affine": s' = m50 + (s - s50) * (m70 - m30) / (s70 - s30), from the 30th, 50th and 70th percentiles
+    of the two strips (robust to black borders and to clipping at either end; a flat slave strip is only shifted
+    to the master's median); "histogram": each slave level goes to the master level at the same quantile (any
+    monotonic response); "none": unchanged. The map is a lookup table on the 256 levels and the result uint8,
+    so that layers 1-4 stay exact integers."""
+    if mode == "none":
+        return slave_strip
+    if mode not in PHOTOMETRIC:
+        raise ValueError(f"photometric must be one of {', '.join(PHOTOMETRIC)}, got {mode!r}")
+    s = np.ascontiguousarray(slave_strip)
+    m = np.ascontiguousarray(master_strip)
+    if s.dtype != np.uint8 or m.dtype != np.uint8 or s.ndim != 2 or m.ndim != 2:
+        raise ValueError(f"photometric maps 2-D uint8 strips, got {s.dtype} {s.shape} and {m.dtype} {m.shape}")
+    levels = np.arange(256, dtype=np.float64)
+    hs, hm = (cv2.calcHist([a], [0], None, [256], [0, 256]).ravel().astype(np.float64) for a in (s, m))
+    # Each strip's darkest and brightest level is taken as clipped (black or saturated: 0 and 255 when the camera
+    # clips; a black border, a turned camera seeing past the scene in the simulator, is such a level too, at the
+    # slave's offset): those pixels say nothing of the gain and would drag any statistic. They are left out of
+    # both strips; the share by which the slave has more of them than the master (its gain clipped those) is cut
+    # off the master's darkest / brightest end, so that the two distributions left still correspond.
+    ns, nm = hs.sum(), hm.sum()
+    (lo_s, hi_s), (lo_m, hi_m) = (np.flatnonzero(h)[[0, -1]] for h in (hs, hm))
+    cut_lo = max(0.0, hs[lo_s] / ns - hm[lo_m] / nm)
+    cut_hi = max(0.0, hs[hi_s] / ns - hm[hi_m] / nm)
+    hs[[lo_s, hi_s]] = 0.0
+    hm[[lo_m, hi_m]] = 0.0
+    if hs.sum() < 2 or hm.sum() < 2:
+        return slave_strip
+    f_lo, f_hi = cut_lo * nm / hm.sum(), cut_hi * nm / hm.sum()
+    if f_lo + f_hi >= 0.9:
+        return slave_strip
+    # the mid-quantile of each level on each strip's cumulative histogram; a slave quantile q lies at the
+    # master's f_lo + q (1 - f_lo - f_hi)
+    qs = (np.cumsum(hs) - 0.5 * hs) / hs.sum()
+    qm = (np.cumsum(hm) - 0.5 * hm) / hm.sum()
+    ls, lm = levels[hs > 0], levels[hm > 0]
+    qs_in, qm_in = qs[hs > 0], qm[hm > 0]
+    if mode == "affine":
+        # gain and offset from the 30th, 50th and 70th percentiles
+        q = np.asarray(AFFINE_QUANTILES)
+        ps = np.interp(q, qs_in, ls)
+        pm = np.interp(f_lo + q * (1.0 - f_lo - f_hi), qm_in, lm)
+        a = (pm[2] - pm[0]) / (ps[2] - ps[0]) if ps[2] - ps[0] >= 1.0 else 1.0
+        lut = pm[1] + (levels - ps[1]) * a
+    else:
+        # each slave level to the master level at the same quantile
+        lut = np.interp(f_lo + qs * (1.0 - f_lo - f_hi), qm_in, lm)
+        if cut_lo > 0:  # the slave's clipped level: to the middle of the share its gain clipped
+            lut[lo_s] = np.interp(0.5 * f_lo, qm_in, lm)
+        if cut_hi > 0:
+            lut[hi_s] = np.interp(1.0 - 0.5 * f_hi, qm_in, lm)
+    # a clipped level the master has as much of (black on both sides, say): to the master's
+    if cut_lo <= 0:
+        lut[lo_s] = lo_m
+    if cut_hi <= 0:
+        lut[hi_s] = hi_m
+    lut = np.clip(np.rint(lut), 0, 255).astype(np.uint8)
+    return cv2.LUT(s, lut)
+
+
+def slave_band_strip(master: np.ndarray, slave: np.ndarray, y: int, window: int, vsearch: int = 0,
+                     mode: str = "none") -> np.ndarray:
+    """band_strip of the slave, its intensities mapped onto the master's same rows (photometric, `mode`)."""
+    band = band_strip(slave, y, window, vsearch)
+    if mode == "none":
+        return band
+    return photometric(band, band_strip(master, y, window, vsearch), mode)
+
+
 def features(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = None, window: int = 15,
-             vsearch: int = 0) -> tuple[np.ndarray, np.ndarray]:
+             vsearch: int = 0, photometric: str = "none") -> tuple[np.ndarray, np.ndarray]:
     """Layer 1 for one fixation point: (fovea (3, w, w), band (3, w + 2R, W)), both uint8.
 
-    at is (x, y) in the master image, the image centre (W // 2, H // 2) by default."""
+    at is (x, y) in the master image, the image centre (W // 2, H // 2) by default. photometric: map the
+    slave band's intensities onto the master's first (see photometric())."""
     if master.shape[:2] != slave.shape[:2]:
         raise ValueError(f"master and slave differ in size: {master.shape[1]} x {master.shape[0]} and "
                          f"{slave.shape[1]} x {slave.shape[0]}")
     x, y = at if at is not None else (master.shape[1] // 2, master.shape[0] // 2)
     check_point(master.shape, x, y, window, vsearch)
-    return planes(fovea_strip(master, x, y, window)), planes(band_strip(slave, y, window, vsearch))
+    return (planes(fovea_strip(master, x, y, window)),
+            planes(slave_band_strip(master, slave, y, window, vsearch, photometric)))
