@@ -68,6 +68,10 @@ ENTITIES = {
 }
 
 
+# frames carry the truth (a simulated target) in this build: then the view keeps listening to them
+FRAME_TRUTH = "truth_pan_rad" in Frame.__dataclass_fields__
+
+
 class MissingExtra(RuntimeError):
     """rerun-sdk is not installed."""
 
@@ -136,6 +140,7 @@ class Cockpit:
         self.scale: float | None = None  # preview px per image px (latest preview)
         self.size: tuple[int, int] | None = None  # the full image (width, height), from the frames
         self.at: dict[int, tuple[int, int]] = {}  # frame id -> fovea (x, y), recent frames
+        self.point: tuple[int, int] | None = None  # the latest frame's fovea point (the capture keeps it)
         self.decided: set[int] = set()  # frames whose decision was logged (recent)
         self.workers: set[str] = set()
 
@@ -215,6 +220,7 @@ class Cockpit:
     def _frame(self, f: Frame) -> None:
         self.size = (f.width, f.height)
         self._remember(self.at, f.frame, (f.x, f.y))
+        self.point = (f.x, f.y)
         truth = getattr(f, "truth_pan_rad", None)
         if _finite(truth):
             self._time(f.frame, f.t_capture_ns)
@@ -223,7 +229,7 @@ class Cockpit:
     def _boxes(self, v: Verdict) -> None:
         at = (getattr(v, "x", None), getattr(v, "y", None))
         if not all(isinstance(c, int) for c in at):
-            at = self.at.get(v.frame)
+            at = self.at.get(v.frame) or self.point
         if at is None:  # the capture's default point: the centre (k_centre = x - w // 2)
             height = self.size[1] if self.size else None
             if height is None:
@@ -425,16 +431,24 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--spawn", action="store_true", help="open the native viewer (needs a display); the default "
                                                          "when neither --save nor --web is given")
     p.add_argument("--timeout", type=float, default=None, metavar="S", help="exit after S seconds")
+    p.add_argument("--nice", type=int, default=10, metavar="N",
+                   help="run at this niceness, so that the loop's processes come first on a busy CPU (default 10)")
 
 
 def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, port: int = 9090,
-         grpc_port: int = 9876, spawn: bool = False, bind: str = "0.0.0.0", timeout: float | None = None) -> int:
+         grpc_port: int = 9876, spawn: bool = False, bind: str = "0.0.0.0", timeout: float | None = None,
+         nice: int = 10) -> int:
     import time
 
     import zenoh
 
     from . import session
 
+    if nice:
+        try:  # before rerun's and zenoh's threads start: they inherit it
+            os.nice(nice)
+        except OSError:
+            pass
     try:
         rr = import_rerun()
     except MissingExtra as e:
@@ -463,7 +477,10 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
 
     end = time.monotonic() + timeout if timeout is not None else None
     with session.open_session(conf) as s:
-        subs = [s.declare_subscriber(prefix + k, on_sample) for k in WATCHED]
+        subs = [s.declare_subscriber(prefix + k, on_sample) for k in WATCHED if k != "frame"]
+        # frames (60 Hz, ~20 KB each at 640 px) only for what decisions may not carry: the fovea's point (the
+        # capture keeps it) until the first frame, the truth for as long as frames carry one
+        frames = [s.declare_subscriber(prefix + "frame", on_sample)]
         subs.append(s.liveliness().declare_subscriber(prefix + "alive/**", on_alive, history=True))
         log.info("view: rig %s -> %s", rig, ", ".join(x for x in (save and f"file {save}", url, spawn and "viewer")
                                                        if x))
@@ -471,6 +488,8 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
             while not stop.is_set() and (end is None or time.monotonic() < end):
                 ready.wait(0.1)
                 ready.clear()
+                if frames and cockpit.at and not FRAME_TRUTH:
+                    frames.pop().undeclare()
                 while inbox:
                     rest, payload, t_ns = inbox.popleft()
                     try:
@@ -482,7 +501,7 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
                         cockpit.bad["error"] += 1
                         log.warning("message on %s not logged: %s", rest, e)
         finally:
-            for sub in subs:
+            for sub in subs + frames:
                 sub.undeclare()
     while inbox:  # what arrived before the subscriptions closed
         rest, payload, t_ns = inbox.popleft()
@@ -500,4 +519,4 @@ def run(args: argparse.Namespace) -> int:
     spawn = args.spawn or not (args.save or args.web)
     rig = args.rig or load(args.config).rig
     return main(rig, session.config_from_args(args), session.Stop(), save=args.save, web=args.web, port=args.port,
-                grpc_port=args.grpc_port, spawn=spawn, bind=args.bind, timeout=args.timeout)
+                grpc_port=args.grpc_port, spawn=spawn, bind=args.bind, timeout=args.timeout, nice=args.nice)
