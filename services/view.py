@@ -61,7 +61,7 @@ ENTITIES = {
     "decision/confident": "1 when the camera may move, else 0",
     "decision/offset_px": "how far right of the fovea's column its match lies in the slave, px",
     "decision/window": "the fovea side the frame was decided with, px",
-    "decision/latency_ms": "capture to decision, ms",
+    "latency/decision_ms": "capture to decision, ms",
     "workers/alive": "the number of live workers",
     "workers/<id>": "1 while worker <id> is alive, 0 after",
     "status/<role>/<id>": "each process's status message (text log)",
@@ -120,7 +120,8 @@ def blueprint(rr):
                            rrb.TimeSeriesView(origin="pan", name="pan, degrees"),
                            rrb.TimeSeriesView(origin="decision", name="decision")),
             row_shares=[3, 2]),
-        rrb.TimeSeriesView(origin="depth", name="depth, m"), rrb.TimeSeriesView(origin="workers", name="workers"),
+        rrb.TimeSeriesView(origin="depth", name="depth, m"), rrb.TimeSeriesView(origin="latency", name="latency"),
+        rrb.TimeSeriesView(origin="workers", name="workers"),
         collapse_panels=True)
 
 
@@ -260,7 +261,7 @@ class Cockpit:
         self._scalar("decision/offset_px", v.offset_px)
         self._scalar("decision/window", v.window)
         if v.t_reduced_ns and v.t_capture_ns:
-            self._scalar("decision/latency_ms", (v.t_reduced_ns - v.t_capture_ns) / 1e6)
+            self._scalar("latency/decision_ms", (v.t_reduced_ns - v.t_capture_ns) / 1e6)
         depth = getattr(v, "depth_m", None)
         if _finite(depth):
             self._scalar("depth", depth)
@@ -325,11 +326,76 @@ def start(rr, app: str, *, save: str | None = None, web: bool = False, port: int
     if web:
         host = "127.0.0.1" if bind.startswith("127.") else host_address()
         data = server.uri.replace("0.0.0.0", host)
-        rr.serve_web_viewer(web_port=port, open_browser=False, connect_to=data)
+        inner = _free_port()
+        rr.serve_web_viewer(web_port=inner, open_browser=False, connect_to=data)
+        serve_offline(bind, port, inner, grpc_port)
         from urllib.parse import quote
 
         url = f"http://{host}:{port}/?url={quote(data, safe='')}"
     return url
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def csp(grpc_port: int) -> str:
+    """The Content-Security-Policy the cockpit's page is served with: the page may load only from where it
+    came and fetch only from the cockpit's data port. The bundled viewer otherwise calls out from the
+    browser: its usage analytics (tel.rerun.io, no opt-out in the web build), a check for a newer release
+    (api.github.com) and Google's fonts; a head's network has no business calling out."""
+    data = f"http://*:{grpc_port} ws://*:{grpc_port}"
+    return ("default-src 'self'; script-src 'self' 'unsafe-inline' 'wasm-unsafe-eval'; "
+            "style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; font-src 'self' data:; "
+            f"worker-src 'self' blob:; connect-src 'self' {data}; form-action 'none'; base-uri 'self'")
+
+
+def serve_offline(bind: str, port: int, inner: int, grpc_port: int):
+    """Serve the viewer of 127.0.0.1:inner (rerun's own web server) on bind:port with csp(grpc_port), from a
+    daemon thread; every file is fetched once and kept (the wasm is ~40 MB)."""
+    import http.server
+    import urllib.error
+    import urllib.request
+
+    cache: dict[str, tuple[int, str, bytes]] = {}
+    lock = threading.Lock()
+    policy = csp(grpc_port)
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):  # noqa: N802 (the http.server API)
+            path = self.path.split("?", 1)[0]
+            with lock:
+                hit = cache.get(path)
+            if hit is None:
+                try:
+                    with urllib.request.urlopen(f"http://127.0.0.1:{inner}{path}", timeout=30) as r:
+                        hit = (r.status, r.headers.get("Content-Type", "application/octet-stream"), r.read())
+                except urllib.error.HTTPError as e:
+                    hit = (e.code, "text/plain", b"")
+                except OSError as e:
+                    self.send_error(502, f"the viewer's files: {e}")
+                    return
+                if hit[0] == 200:
+                    with lock:
+                        cache[path] = hit
+            status, ctype, body = hit
+            self.send_response(status)
+            self.send_header("Content-Type", ctype)
+            self.send_header("Content-Length", str(len(body)))
+            self.send_header("Content-Security-Policy", policy)
+            self.send_header("Cache-Control", "no-cache")
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args):  # quiet
+            pass
+
+    httpd = http.server.ThreadingHTTPServer((bind, port), Handler)
+    httpd.daemon_threads = True
+    threading.Thread(target=httpd.serve_forever, name="viewer-http", daemon=True).start()
+    return httpd
 
 
 # -- recordings and the simulator -----------------------------------------------------------------------

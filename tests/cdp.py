@@ -103,7 +103,8 @@ class Browser:
                                   stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                   start_new_session=True)
         self.port, self.ws, self.n = port, None, 0
-        self.requests: list[str] = []  # URLs the page asked for (after Network.enable)
+        self.requests: dict[str, str] = {}  # request id -> URL the page asked for (after Network.enable)
+        self.blocked: dict[str, str] = {}  # request id -> why the browser did not send it (csp, ...)
 
     def connect(self, timeout: float = 30.0) -> None:
         end = time.monotonic() + timeout
@@ -126,7 +127,9 @@ class Browser:
         while True:
             msg = json.loads(self.ws.recv())
             if msg.get("method") == "Network.requestWillBeSent":
-                self.requests.append(msg["params"]["request"]["url"])
+                self.requests[msg["params"]["requestId"]] = msg["params"]["request"]["url"]
+            elif msg.get("method") == "Network.loadingFailed" and msg["params"].get("blockedReason"):
+                self.blocked[msg["params"]["requestId"]] = msg["params"]["blockedReason"]
             if msg.get("id") == self.n:
                 if "error" in msg:
                     raise RuntimeError(f"{method}: {msg['error']}")

@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +55,12 @@ def image(row: dict) -> np.ndarray:
     return np.asarray(buf, np.uint8).reshape(fmt["height"], fmt["width"], -1)
 
 
+def cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) a process used so far, all its threads."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def frames_of(items) -> list[int]:
     return sorted({M.Verdict.from_bytes(b).frame for _, b, _ in items})
 
@@ -69,7 +76,9 @@ def missing(frames: list[int]) -> int:
 def test_view_save_records_3s_of_up(tmp_path):
     """`vergence up` (simulated rig, 60 Hz, previews at 10 Hz and 320 px) and `vergence view --save`: 3 s of
     it in the .rrd, with the images, both boxes where the decisions put them, the profile and the pan, on the
-    frame numbers of the decisions the test itself received."""
+    frame numbers of the decisions the test itself received; and what the view costs the loop (frames left
+    without a decision, 3 s without and 3 s with it; VERGENCE_VIEW_COST_S=10 for longer windows)."""
+    span = float(os.environ.get("VERGENCE_VIEW_COST_S", "3"))
     cfg = tmp_path / "settings.toml"
     cfg.write_text("[capture]\npreview_hz = 10\npreview_width = 320\n")
     rrd = tmp_path / "cockpit.rrd"
@@ -82,21 +91,24 @@ def test_view_save_records_3s_of_up(tmp_path):
         decisions = P.collect(s, P.key("decision"))
         wait_for(lambda: len(decisions) >= 10, 180, "the loop's first decisions", logs=P.logs)  # slow warm-up
         n0 = len(decisions)
-        wait_for(lambda: len(decisions) >= n0 + 180, 30, "3 s of decisions without the view", logs=P.logs)
+        wait_for(lambda: len(decisions) >= n0 + 60 * span, 5 + 3 * span, "decisions without the view", logs=P.logs)
         before = frames_of(decisions.snapshot()[n0:])
         v = P.start("view", "view", "--save", str(rrd))
         wait_for(lambda: "view: rig" in v.text(), 60, "the view to subscribe", logs=P.logs)
-        n1 = len(decisions)
-        wait_for(lambda: len(decisions) >= n1 + 180, 30, "3 s of decisions at 60 Hz", logs=P.logs)
+        n = len(decisions)  # the view's first second (its first frames and previews) is not measured
+        wait_for(lambda: len(decisions) >= n + 60, 10, "a second of decisions with the view", logs=P.logs)
+        n1, c0, t0 = len(decisions), cpu_s(v.pid), time.monotonic()
+        wait_for(lambda: len(decisions) >= n1 + 60 * span, 5 + 3 * span, "decisions with the view", logs=P.logs)
         during = frames_of(decisions.snapshot()[n1:])
+        share = (cpu_s(v.pid) - c0) / (time.monotonic() - t0)
         v.signal(signal.SIGINT)
         assert v.wait(30) == 0, v.tail()
         assert "Traceback" not in v.text()
         got = {d.frame: d for d in (M.Verdict.from_bytes(b) for _, b, _ in decisions.snapshot())}
-    # the loop's cost: frames left without a decision (gaps in the frame ids), 3 s without and 3 s with the view
+    # the loop's cost: frames left without a decision (gaps in the frame ids), `span` s without and with the view
     lost_before, lost_during = missing(before), missing(during)
-    print(f"frames without a decision: {lost_before} of {len(before) + lost_before} without the view, "
-          f"{lost_during} of {len(during) + lost_during} with it")
+    print(f"\nframes without a decision: {lost_before} of {len(before) + lost_before} without the view, "
+          f"{lost_during} of {len(during) + lost_during} with it; the view used {100 * share:.0f} % of a core")
     assert lost_during <= lost_before + 2  # a shared 2-core machine loses the odd frame with or without it
     e = read_rrd(rrd)
     for path in ("/rig/master", "/rig/slave", "/rig/master/fovea", "/rig/slave/match", "/rig/correlation",
@@ -210,7 +222,7 @@ def test_replay_view_turns_a_recording_into_the_cockpit(tmp_path):
         (cx, _), = matches[v.frame]
         assert cx == pytest.approx((32 + v.offset_px + 0.5) * 0.5)
     assert [len(r["BarChart:values"][0]["buffer"]) for r in e["/rig/correlation"]] == [58, 58, 58]
-    assert scalar(e["/decision/latency_ms"]) == pytest.approx({5: 3.0, 6: 3.0, 7: 3.0})
+    assert scalar(e["/latency/decision_ms"]) == pytest.approx({5: 3.0, 6: 3.0, 7: 3.0})
     assert e["/workers/alive"][0]["Scalars:scalars"] == [1.0]
 
 
@@ -316,11 +328,11 @@ def test_web_viewer_shows_the_image_panel_in_headless_chromium(tmp_path):
         url = wait_for(lambda: next((w for w in v.text().split() if w.startswith(f"http://127.0.0.1:{web}/")),
                                     None), 60, "the viewer's URL", logs=P.logs)
         with open(tmp_path / "chromium.log", "wb") as log:
-            b = Browser(exe, "about:blank", devtools, str(tmp_path / "profile"), log, width=1280, height=800)
+            b = Browser(exe, url, devtools, str(tmp_path / "profile"), log, width=1280, height=800)
             try:
                 b.connect()
                 b.call("Network.enable")
-                b.call("Page.navigate", url=url)
+                b.call("Page.reload")  # again, now that the requests are watched
                 shots = []
 
                 def shown():
@@ -339,4 +351,10 @@ def test_web_viewer_shows_the_image_panel_in_headless_chromium(tmp_path):
     (tmp_path / "cockpit.png").write_bytes(png)
     if os.environ.get("VERGENCE_SCREENSHOT"):
         Path(os.environ["VERGENCE_SCREENSHOT"]).write_bytes(png)
-    assert not [u for u in b.requests if "tel.rerun.io" in u], b.requests
+    # nothing left for another host: the bundled viewer's analytics, release check and fonts are blocked by
+    # the page's Content-Security-Policy before they are sent
+    out = {u for i, u in b.requests.items() if not u.startswith(("http://127.0.0.1", "data:", "blob:"))
+           and b.blocked.get(i) != "csp"}
+    print("blocked by the page's CSP:", sorted({b.requests[i].split("?")[0] for i, r in b.blocked.items()
+                                                 if r == "csp" and i in b.requests}))
+    assert not out, out
