@@ -22,7 +22,8 @@ BROWSERS = ("chromium-headless-shell", "chromium", "chromium-browser")
 # software rendering (no GPU on a head or in CI): SwiftShader through ANGLE gives the viewer its WebGL
 FLAGS = ("--headless", "--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swiftshader",
          "--disable-dev-shm-usage", "--no-first-run", "--no-default-browser-check", "--hide-scrollbars",
-         "--mute-audio")
+         "--mute-audio", "--disable-renderer-backgrounding", "--disable-background-timer-throttling",
+         "--disable-backgrounding-occluded-windows")
 
 
 def find_browser() -> str | None:
@@ -54,14 +55,13 @@ class WebSocket:
             raise ConnectionError(f"no WebSocket upgrade: {head[:200]!r}")
         self.buf = head.split(b"\r\n\r\n", 1)[1]
 
-    def _read(self, n: int) -> bytes:
+    def _fill(self, n: int) -> None:
+        """At least n bytes in the buffer (a timeout leaves what was read in it, so a later call goes on)."""
         while len(self.buf) < n:
             chunk = self.sock.recv(1 << 20)
             if not chunk:
                 raise ConnectionError("DevTools closed the socket")
             self.buf += chunk
-        out, self.buf = self.buf[:n], self.buf[n:]
-        return out
 
     def send(self, text: str) -> None:
         data = text.encode()
@@ -79,14 +79,18 @@ class WebSocket:
     def recv(self) -> str:
         message = b""
         while True:
-            b0, b1 = self._read(2)
-            n = b1 & 0x7F
+            self._fill(2)
+            b0, b1 = self.buf[0], self.buf[1]
+            n, head = b1 & 0x7F, 2
             if n == 126:
-                n = struct.unpack(">H", self._read(2))[0]
+                self._fill(4)
+                n, head = struct.unpack(">H", self.buf[2:4])[0], 4
             elif n == 127:
-                n = struct.unpack(">Q", self._read(8))[0]
-            payload = self._read(n)
-            message += payload
+                self._fill(10)
+                n, head = struct.unpack(">Q", self.buf[2:10])[0], 10
+            self._fill(head + n)  # the whole frame before any of it is taken
+            message += self.buf[head:head + n]
+            self.buf = self.buf[head + n:]
             if b0 & 0x80:  # FIN
                 return message.decode()
 
@@ -121,10 +125,17 @@ class Browser:
                 raise TimeoutError(f"no DevTools page on port {self.port} (browser rc {self.p.poll()})")
             time.sleep(0.3)
 
-    def call(self, method: str, **params) -> dict:
+    def call(self, method: str, timeout: float = 180.0, **params) -> dict:
+        """The result of a DevTools command; TimeoutError after `timeout` s (events keep the socket busy, so
+        the deadline is checked between messages too; a late answer is skipped by its id)."""
         self.n += 1
         self.ws.send(json.dumps({"id": self.n, "method": method, "params": params}))
+        end = time.monotonic() + timeout
         while True:
+            left = end - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"{method}: no answer within {timeout} s")
+            self.ws.sock.settimeout(left)
             msg = json.loads(self.ws.recv())
             if msg.get("method") == "Network.requestWillBeSent":
                 self.requests[msg["params"]["requestId"]] = msg["params"]["request"]["url"]
@@ -138,8 +149,13 @@ class Browser:
     def evaluate(self, expression: str):
         return self.call("Runtime.evaluate", expression=expression, returnByValue=True).get("result", {}).get("value")
 
-    def screenshot(self) -> bytes:
-        return base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
+    def screenshot(self, timeout: float = 60.0) -> bytes | None:
+        """A PNG of the page, or None when the browser did not give one within `timeout` s (a busy renderer:
+        ask again later; the late answer is skipped by id)."""
+        try:
+            return base64.b64decode(self.call("Page.captureScreenshot", timeout=timeout, format="png")["data"])
+        except TimeoutError:
+            return None
 
     def close(self) -> None:
         if self.ws:

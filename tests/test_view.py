@@ -337,6 +337,8 @@ def test_web_viewer_shows_the_image_panel_in_headless_chromium(tmp_path):
 
                 def shown():
                     png = b.screenshot()
+                    if png is None:
+                        return False
                     shots.append(png)
                     return image_panel_shown(png) > 0.04
 
@@ -358,3 +360,7 @@ def test_web_viewer_shows_the_image_panel_in_headless_chromium(tmp_path):
     print("blocked by the page's CSP:", sorted({b.requests[i].split("?")[0] for i, r in b.blocked.items()
                                                  if r == "csp" and i in b.requests}))
     assert not out, out
+    # and the console says why: the viewer's analytics calls were refused by the policy, none sent
+    console = (tmp_path / "chromium.log").read_text(errors="replace")
+    calls = [line for line in console.splitlines() if "tel.rerun.io" in line]
+    assert all("Content Security Policy" in line for line in calls), calls[:3]
