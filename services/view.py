@@ -542,7 +542,17 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
         ready.set()
 
     end = time.monotonic() + timeout if timeout is not None else None
-    with session.open_session(conf) as s:
+    try:
+        s = _open(session, conf, stop, end)
+    except RuntimeError as e:
+        print(f"vergence view: {e}", file=sys.stderr)
+        rr.disconnect()
+        return 2
+    if s is None:  # stopped (or timed out) before the router answered
+        print("vergence view: stopped before reaching a router (is one running on --connect?)", file=sys.stderr)
+        rr.disconnect()
+        return 1
+    with s:
         subs = [s.declare_subscriber(prefix + k, on_sample) for k in WATCHED if k != "frame"]
         # frames (60 Hz, ~20 KB each at 640 px) only for what decisions may not carry: the fovea's point (the
         # capture keeps it) until the first frame, the truth for as long as frames carry one
@@ -577,12 +587,42 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
     return 0
 
 
+def _open(session, conf, stop, end: float | None):
+    """The zenoh session, opened in a thread: a client keeps trying to reach its router, and a main thread
+    blocked in zenoh.open would never see Ctrl-C. None when stopped (or past `end`) first."""
+    import time
+
+    box: list = []
+
+    def opener():
+        try:
+            box.append(session.open_session(conf))
+        except Exception as e:  # a bad endpoint or config: said by the main thread
+            box.append(e)
+
+    t = threading.Thread(target=opener, name="zenoh-open", daemon=True)
+    t.start()
+    while t.is_alive():
+        if stop.wait(0.1) or (end is not None and time.monotonic() > end):
+            return None
+    if box and isinstance(box[0], Exception):
+        raise RuntimeError(f"cannot open a zenoh session: {box[0]}")
+    return box[0] if box else None
+
+
 def run(args: argparse.Namespace) -> int:
     from vergence.config import load
 
     from . import session
 
+    import zenoh
+
     spawn = args.spawn or not (args.save or args.web)
     rig = args.rig or load(args.config).rig
-    return main(rig, session.config_from_args(args), session.Stop(), save=args.save, web=args.web, port=args.port,
+    try:
+        conf = session.config_from_args(args)
+    except zenoh.ZError as e:
+        print(f"vergence view: bad zenoh options: {str(e).split(' at /')[0]}", file=sys.stderr)
+        return 2
+    return main(rig, conf, session.Stop(), save=args.save, web=args.web, port=args.port,
                 grpc_port=args.grpc_port, spawn=spawn, bind=args.bind, timeout=args.timeout, nice=args.nice)
