@@ -364,3 +364,13 @@ def test_web_viewer_shows_the_image_panel_in_headless_chromium(tmp_path):
     console = (tmp_path / "chromium.log").read_text(errors="replace")
     calls = [line for line in console.splitlines() if "tel.rerun.io" in line]
     assert all("Content Security Policy" in line for line in calls), calls[:3]
+
+
+def test_view_without_a_router_gives_up_at_its_timeout(tmp_path):
+    """A client keeps trying to reach its router; the view still stops (its --timeout here, Ctrl-C the same
+    way), saying why, with nothing left behind."""
+    out = subprocess.run([VERGENCE, "view", "--save", str(tmp_path / "x.rrd"), "--connect",
+                          f"tcp/127.0.0.1:{free_port()}", "--timeout", "2"], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 1
+    assert "vergence view: stopped before reaching a router" in out.stderr and "Traceback" not in out.stderr
