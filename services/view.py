@@ -326,9 +326,7 @@ def start(rr, app: str, *, save: str | None = None, web: bool = False, port: int
     if web:
         host = "127.0.0.1" if bind.startswith("127.") else host_address()
         data = server.uri.replace("0.0.0.0", host)
-        inner = _free_port()
-        rr.serve_web_viewer(web_port=inner, open_browser=False, connect_to=data)
-        serve_offline(bind, port, inner, grpc_port)
+        serve_offline(bind, port, viewer_assets(), grpc_port)
         from urllib.parse import quote
 
         url = f"http://{host}:{port}/?url={quote(data, safe='')}"
@@ -352,36 +350,60 @@ def csp(grpc_port: int) -> str:
             f"worker-src 'self' blob:; connect-src 'self' {data}; form-action 'none'; base-uri 'self'")
 
 
-def serve_offline(bind: str, port: int, inner: int, grpc_port: int):
-    """Serve the viewer of 127.0.0.1:inner (rerun's own web server) on bind:port with csp(grpc_port), from a
-    daemon thread; every file is fetched once and kept (the wasm is ~40 MB)."""
-    import http.server
-    import urllib.error
+ASSETS = ("/", "/re_viewer.js", "/re_viewer_bg.wasm", "/favicon.ico", "/apple-touch-icon.png")
+
+
+def viewer_assets(timeout: float = 120.0) -> dict[str, tuple[str, bytes]]:
+    """The web viewer's files (path -> (content type, bytes)), read once from rerun's own web server, run in a
+    helper process that stops once they are read: that server listens on every interface (it cannot be told
+    otherwise) and serves the page without the policy of csp()."""
+    import time
     import urllib.request
 
-    cache: dict[str, tuple[int, str, bytes]] = {}
-    lock = threading.Lock()
+    inner = _free_port()
+    code = ("import sys, time, rerun as rr\n"
+            "rr.serve_web_viewer(web_port=int(sys.argv[1]), open_browser=False)\n"
+            "time.sleep(3600)\n")
+    helper = subprocess.Popen([sys.executable, "-c", code, str(inner)], stdin=subprocess.DEVNULL,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    out: dict[str, tuple[str, bytes]] = {}
+    try:
+        end = time.monotonic() + timeout
+        for path in ASSETS:
+            while True:
+                try:
+                    with urllib.request.urlopen(f"http://127.0.0.1:{inner}{path}", timeout=30) as r:
+                        out[path] = (r.headers.get("Content-Type", "application/octet-stream"), r.read())
+                    break
+                except OSError as e:
+                    if helper.poll() is not None or time.monotonic() > end:
+                        raise RuntimeError(f"the web viewer's files: {e}") from None
+                    time.sleep(0.2)
+    finally:
+        helper.terminate()
+        try:
+            helper.wait(10)
+        except subprocess.TimeoutExpired:
+            helper.kill()
+            helper.wait(5)
+    return out
+
+
+def serve_offline(bind: str, port: int, assets: dict[str, tuple[str, bytes]], grpc_port: int):
+    """Serve the viewer's files on bind:port with csp(grpc_port), from a daemon thread."""
+    import http.server
+
     policy = csp(grpc_port)
 
     class Handler(http.server.BaseHTTPRequestHandler):
         def do_GET(self):  # noqa: N802 (the http.server API)
             path = self.path.split("?", 1)[0]
-            with lock:
-                hit = cache.get(path)
+            hit = assets.get("/" if path == "/index.html" else path)
             if hit is None:
-                try:
-                    with urllib.request.urlopen(f"http://127.0.0.1:{inner}{path}", timeout=30) as r:
-                        hit = (r.status, r.headers.get("Content-Type", "application/octet-stream"), r.read())
-                except urllib.error.HTTPError as e:
-                    hit = (e.code, "text/plain", b"")
-                except OSError as e:
-                    self.send_error(502, f"the viewer's files: {e}")
-                    return
-                if hit[0] == 200:
-                    with lock:
-                        cache[path] = hit
-            status, ctype, body = hit
-            self.send_response(status)
+                self.send_error(404)
+                return
+            ctype, body = hit
+            self.send_response(200)
             self.send_header("Content-Type", ctype)
             self.send_header("Content-Length", str(len(body)))
             self.send_header("Content-Security-Policy", policy)
