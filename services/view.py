@@ -319,6 +319,10 @@ def start(rr, app: str, *, save: str | None = None, web: bool = False, port: int
     if web:
         server = rr.GrpcServerSink(bind_ip=bind, port=grpc_port)
         sinks.append(server)
+    if spawn and sys.platform.startswith("linux") and not (os.environ.get("DISPLAY")
+                                                         or os.environ.get("WAYLAND_DISPLAY")):
+        raise RuntimeError("--spawn needs a display (DISPLAY or WAYLAND_DISPLAY is not set): give --web to watch "
+                           "from a browser, or --save FILE.rrd")
     if spawn:
         rr.spawn(connect=False, port=grpc_port + 1 if web else 9876)
         sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{grpc_port + 1 if web else 9876}/proxy"))
@@ -555,7 +559,11 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
     ready = threading.Event()
     prefix = f"vergence/{rig}/"
 
+    full = [0]  # samples pushed out of a full inbox (the viewer fell behind)
+
     def on_sample(sample) -> None:
+        if len(inbox) == inbox.maxlen:
+            full[0] += 1
         inbox.append((str(sample.key_expr)[len(prefix):], sample.payload.to_bytes(), time.time_ns()))
         ready.set()
 
@@ -605,7 +613,7 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
         rest, payload, t_ns = inbox.popleft()
         (cockpit.alive if isinstance(payload, bool) else cockpit.feed)(rest, payload, t_ns)
     rr.disconnect()  # flushes the file
-    log.info("view exits: logged %s, bad %s", dict(cockpit.counts), dict(cockpit.bad))
+    log.info("view exits: logged %s, bad %s, dropped %d (behind)", dict(cockpit.counts), dict(cockpit.bad), full[0])
     return 0
 
 

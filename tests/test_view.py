@@ -374,3 +374,11 @@ def test_view_without_a_router_gives_up_at_its_timeout(tmp_path):
                          timeout=60)
     assert out.returncode == 1
     assert "vergence view: stopped before reaching a router" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_spawn_without_a_display_says_what_to_do_instead(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    out = subprocess.run([VERGENCE, "view", "--timeout", "2", "--connect", f"tcp/127.0.0.1:{free_port()}"],
+                         capture_output=True, text=True, timeout=60, env=env)
+    assert out.returncode == 2
+    assert "--spawn needs a display" in out.stderr and "give --web" in out.stderr
