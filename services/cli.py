@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "monitor": ("services.monitor", "live view of the correlation topics"),
     "record": ("services.record", "record every vergence/<rig>/** message to a file"),
     "replay": ("services.replay", "publish a recording again"),
+    "view": ("services.view", "the rig's cockpit in Rerun: images, boxes, profile, pans (the [view] extra)"),
 }
 
 

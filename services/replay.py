@@ -11,6 +11,9 @@ workers of the recorded run: live workers then compute them, and a live reducer 
 profiles exactly (layer 4 does not depend on how k is split). Their capture time is moved to the replay's
 clock (same spacing), so a reducer that is already running takes them as new frames; frame ids and every
 other field are as recorded. To recompute only: `--only frame`, with workers and a reducer running.
+
+`--view FILE.rrd|web[:PORT]|spawn` publishes nothing: it turns the recording into the cockpit of
+`vergence view` (services/view.py), saved, served to a browser or shown in the native viewer.
 """
 
 from __future__ import annotations
@@ -44,6 +47,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help=f"replay only these kinds, repeatable: {', '.join(KINDS)} (default: all)")
     p.add_argument("--wait-workers", type=float, default=5.0, metavar="S",
                    help="how long to wait for live workers before replaying frames (default 5)")
+    p.add_argument("--view", metavar="FILE.rrd|web[:PORT]|spawn",
+                   help="publish nothing: turn the recording into `vergence view`'s Rerun cockpit, saved to "
+                        "FILE.rrd, served to a browser, or in the native viewer (the [view] extra)")
 
 
 def kind_of(rest: str) -> str | None:
@@ -160,6 +166,10 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.view:
+        from . import view
+
+        return view.view_recording(args.file, args.view, args.rig, session.Stop())
     if not args.speed >= 0:
         print("vergence replay: --speed must be >= 0", file=sys.stderr)
         return 2

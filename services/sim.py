@@ -62,6 +62,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE", help="settings TOML: [network], [control], [actuator.motor]")
     p.add_argument("--json", action="store_true", help="one JSON line per frame, the starting state first")
     p.add_argument("--plot", metavar="FILE.png", help="write the pan trajectory and the first/last profiles")
+    p.add_argument("--save", metavar="FILE.rrd", help="write the run as a Rerun recording: the views, the fovea "
+                   "and match boxes, the profile, pan against truth (the [view] extra)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -94,6 +96,9 @@ def run(args: argparse.Namespace) -> int:
     steps = []
     # the fovea, and its truth: (converged slave pan, disparity), NaN where unknown
     at, truth = (rig.size[0] // 2, rig.size[1] // 2), (rig.truth_pan_rad, rig.disparity)
+    saving = _start_save(args.save, rig) if args.save else None
+    if args.save and saving is None:
+        return 2
     segments = []  # (first frame, (x, y)) of each fixation
     for s in closed_loop(rig, args.frames, params, settings.control, settings.actuator.motor, args.rate,
                          fixations=fixations):
@@ -105,6 +110,8 @@ def run(args: argparse.Namespace) -> int:
         s = dataclasses.replace(s, truth_pan_deg=math.degrees(truth[0]),
                                 error_px=rig.focal_px * math.tan(pan - truth[0]))
         steps.append(s)
+        if saving:
+            saving(s, args.rate)
         dep = depth.fixated_depth(x=at[0], y=at[1], width=rig.size[0], height=rig.size[1], focal_px=rig.focal_px,
                                   slave_pan_rad=pan, offset_px=s.offset_px, v_shift=s.v, confident=s.confident,
                                   sigma_d_px=depth.disparity_sigma(s.scores, s.k, s.window), baseline_m=baseline,
@@ -123,6 +130,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"frame {s.frame:3d}  ({at[0]}, {at[1]})  pan {s.pan_deg:+8.3f} deg  error {s.error_px:+8.2f} px  "
                   f"offset {s.offset_px:+8.2f} px  {'confident' if s.confident else 'abstains '}  "
                   f"w={s.window}  target {tgt}  depth {z}", flush=True)
+    if saving:
+        saving.rr.disconnect()  # flushes the file
+        print(f"wrote {args.save} ({len(steps)} frames): `rerun {args.save}` shows it", file=sys.stderr)
     if args.plot:
         from vergence.sim.plot import plot_run
 
@@ -143,3 +153,28 @@ def run(args: argparse.Namespace) -> int:
                       + ("within 1 px from frame %d on (%d frames after the fixation)" % (n, n - first)
                          if n is not None else "not within 1 px at the end"))
     return 0
+
+
+def _start_save(path: str, rig: Rig):
+    """A function logging each Step to the Rerun recording `path` (None after printing why not). The views
+    come from a copy of the rig taken before the loop: it renders the same pans in the same order, so its
+    images (noise included) are the ones the network saw."""
+    import copy
+
+    from . import view
+
+    try:
+        rr = view.import_rerun()
+        rr.init(view.APP_ID + "-sim", spawn=False)
+        rr.save(path, default_blueprint=view.blueprint(rr))
+    except (view.MissingExtra, OSError, RuntimeError) as e:
+        print(f"vergence sim: {e}", file=sys.stderr)
+        return None
+    twin = copy.deepcopy(rig)
+
+    def log_step(s, rate_hz: float) -> None:
+        master, slave = twin.render(math.radians(s.pan_deg))
+        view.log_sim_step(rr, s, master, slave, (master.shape[1] // 2, master.shape[0] // 2), rate_hz)
+
+    log_step.rr = rr
+    return log_step
