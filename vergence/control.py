@@ -1,11 +1,24 @@
-"""From the network's decision to a pan set-point: pixels -> angle, gain, dead band, rate limit, limits."""
+"""From the network's decision to a pan set-point: pixels -> angle, gain, dead band, rate limit, limits.
+
+Two modes ([control] mode):
+- "p": each confident decision sets the target pan at capture + gain x the measured correction; an
+  abstention does not move the slave.
+- "predictive": each confident decision is a measurement of where the target is (the pan at capture + the
+  measured correction) at its capture time; a constant-velocity Kalman filter (Predictor) estimates the
+  target's pan and its rate from that stream, and the command is the estimate extrapolated `lead_s` past
+  the capture (to when the motor will act on it). A measurement far off the prediction (gate_px) restarts
+  the filter (a jump, not a motion). An abstention coasts on the estimate for at most coast_s, then the
+  slave holds. The dead band, step and pan limits apply to the command as in "p".
+"""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 
-__all__ = ["pixels_to_angle", "ControlSettings", "Controller"]
+__all__ = ["pixels_to_angle", "ControlSettings", "Controller", "Predictor", "MODES"]
+
+MODES = ("p", "predictive")
 
 
 def pixels_to_angle(offset_px: float, focal_px: float, centre_px: float = 0.0) -> float:
@@ -18,14 +31,87 @@ def pixels_to_angle(offset_px: float, focal_px: float, centre_px: float = 0.0) -
 
 @dataclass(frozen=True)
 class ControlSettings:
-    """gain: fraction of the measured correction applied per decision; dead_band_px: no move below it;
-    max_step_deg: the largest change of the set-point per decision; min_deg/max_deg: the head's pan limits."""
+    """mode: "p" or "predictive" (see the module's docstring). gain: fraction of the measured correction
+    applied per decision (p); dead_band_px: no move below it; max_step_deg: the largest change of the
+    set-point per decision; min_deg/max_deg: the head's pan limits.
+    predictive: lead_s: how far past the capture the command aims (capture-to-command latency + motor
+    latency + the motor's time constant); accel_deg_s2: the standard deviation of the target's
+    acceleration (the filter's process noise); noise_px: the measurement's
+    noise; gate_px: a measurement further than this from the prediction restarts the filter; coast_s: how
+    long abstentions coast on the estimate before the slave holds; max_rate_deg_s: the estimated rate is
+    bounded by it."""
 
+    mode: str = "p"
     gain: float = 1.0
     dead_band_px: float = 0.25
     max_step_deg: float = 10.0
     min_deg: float = -45.0
     max_deg: float = 45.0
+    lead_s: float = 0.02
+    accel_deg_s2: float = 300.0
+    noise_px: float = 0.3
+    gate_px: float = 6.0
+    coast_s: float = 0.25
+    max_rate_deg_s: float = 90.0
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise ValueError(f"mode={self.mode!r}: must be one of {', '.join(MODES)}")
+        for name in ("lead_s", "accel_deg_s2", "noise_px", "gate_px", "coast_s", "max_rate_deg_s"):
+            v = getattr(self, name)
+            if not (v >= 0 and math.isfinite(v)):
+                raise ValueError(f"{name}={v}: must be a finite number >= 0")
+        if not self.noise_px > 0:
+            raise ValueError(f"noise_px={self.noise_px}: must be > 0")
+
+
+class Predictor:
+    """A constant-velocity Kalman filter of the target's pan (radians) over capture times (seconds).
+
+    update(t, z) takes a measurement z of the target's pan captured at t; at(t) is the estimate there.
+    q: the variance of the target's acceleration (rad^2/s^4, piecewise constant between measurements), r: the measurement variance (rad^2), gate: the largest innovation
+    (rad) taken as motion (larger: restart at z), vmax: the bound of the estimated rate (rad/s)."""
+
+    def __init__(self, q: float, r: float, gate: float, vmax: float):
+        self.q, self.r, self.gate, self.vmax = q, r, gate, vmax
+        self.t: float | None = None
+        self.x = self.v = 0.0
+        self.p = [[0.0, 0.0], [0.0, 0.0]]
+        self.restarts = 0
+
+    def reset(self) -> None:
+        self.t = None
+
+    def _start(self, t: float, z: float) -> None:
+        self.t, self.x, self.v = t, z, 0.0
+        self.p = [[self.r, 0.0], [0.0, (self.vmax / 2) ** 2]]
+
+    def update(self, t: float, z: float) -> None:
+        if self.t is None or t < self.t - 1.0:  # none yet, or time went back (a new capture): start over
+            self._start(t, z)
+            return
+        dt = max(0.0, t - self.t)
+        (p00, p01), (_, p11) = self.p
+        x = self.x + self.v * dt
+        q = self.q  # piecewise-constant white acceleration of variance q
+        p00 = p00 + dt * (2 * p01 + dt * p11) + q * dt ** 4 / 4
+        p01 = p01 + dt * p11 + q * dt ** 3 / 2
+        p11 = p11 + q * dt ** 2
+        y = z - x
+        if abs(y) > self.gate:
+            self.restarts += 1
+            self._start(t, z)
+            return
+        s = p00 + self.r
+        k0, k1 = p00 / s, p01 / s
+        self.x = x + k0 * y
+        self.v = max(-self.vmax, min(self.vmax, self.v + k1 * y))
+        self.p = [[(1 - k0) * p00, (1 - k0) * p01], [(1 - k0) * p01, p11 - k1 * p01]]
+        self.t = t
+
+    def at(self, t: float) -> float:
+        """The estimated pan at time t (the last estimate carried at the estimated rate)."""
+        return self.x + self.v * (t - self.t)
 
 
 class Controller:
@@ -33,16 +119,48 @@ class Controller:
 
     def __init__(self, settings: ControlSettings | None = None):
         self.s = settings or ControlSettings()
+        self.predictor: Predictor | None = None
+        self.t_confident: float | None = None  # capture time of the last confident decision
+        self.coasting = 0  # abstentions answered from the estimate
+
+    def _bounded(self, pan_at_capture: float, step: float) -> float:
+        lim = math.radians(self.s.max_step_deg)
+        step = max(-lim, min(lim, step))
+        return max(math.radians(self.s.min_deg), min(math.radians(self.s.max_deg), pan_at_capture + step))
 
     def target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool = True,
-               centre_px: float = 0.0) -> float | None:
+               centre_px: float = 0.0, t_s: float | None = None) -> float | None:
         """The new absolute pan (radians) or None when the camera should not move (not confident, inside
-        the dead band, or a non-finite input)."""
+        the dead band, or a non-finite input). t_s: the frame's capture time in seconds (any epoch; the
+        predictive mode needs it, and acts as "p" without it)."""
+        if self.s.mode == "predictive" and t_s is not None and math.isfinite(t_s):
+            return self._predictive(pan_at_capture, offset_px, focal_px, confident, centre_px, t_s)
         if not confident or not all(math.isfinite(v) for v in (pan_at_capture, offset_px, focal_px)):
             return None
         if focal_px <= 0 or abs(offset_px) < self.s.dead_band_px:
             return None
-        step = self.s.gain * pixels_to_angle(offset_px, focal_px, centre_px)
-        lim = math.radians(self.s.max_step_deg)
-        step = max(-lim, min(lim, step))
-        return max(math.radians(self.s.min_deg), min(math.radians(self.s.max_deg), pan_at_capture + step))
+        return self._bounded(pan_at_capture, self.s.gain * pixels_to_angle(offset_px, focal_px, centre_px))
+
+    def _predictive(self, pan: float, offset_px: float, focal_px: float, confident: bool, centre_px: float,
+                    t: float) -> float | None:
+        if not (math.isfinite(pan) and math.isfinite(focal_px) and focal_px > 0):
+            return None
+        if self.predictor is None:
+            one = math.atan(1.0 / focal_px)
+            self.predictor = Predictor(q=math.radians(self.s.accel_deg_s2) ** 2,
+                                       r=(self.s.noise_px * one) ** 2, gate=self.s.gate_px * one,
+                                       vmax=math.radians(self.s.max_rate_deg_s))
+        f = self.predictor
+        if confident and math.isfinite(offset_px):
+            f.update(t, pan + pixels_to_angle(offset_px, focal_px, centre_px))
+            self.t_confident = t
+        elif f.t is None or self.t_confident is None or t - self.t_confident > self.s.coast_s \
+                or t < self.t_confident:
+            f.reset()  # nothing to coast on, or coasted long enough: hold
+            return None
+        else:
+            self.coasting += 1
+        goal = f.at(t + self.s.lead_s)
+        if abs(goal - pan) < math.atan(self.s.dead_band_px / focal_px):
+            return None
+        return self._bounded(pan, goal - pan)

@@ -253,8 +253,9 @@ class Rig:
         n = self._banks[camera][i, dy:dy + h, dx:dx + w]
         return np.clip(img + n, 0, 255).astype(np.uint8)
 
-    def render(self, slave_pan_rad: float) -> tuple[np.ndarray, np.ndarray]:
-        """(master, slave) uint8 gray views, the slave panned to slave_pan_rad (radians)."""
+    def render(self, slave_pan_rad: float, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(master, slave) uint8 gray views, the slave panned to slave_pan_rad (radians); the scene is
+        still, so the time t does not matter (the moving scene's render takes it too)."""
         if not math.isfinite(slave_pan_rad):
             raise ValueError(f"slave pan {slave_pan_rad} is not finite")
         slave = self._warp(self.right, slave_pan_rad, self.slave_tilt_rad)
@@ -272,7 +273,11 @@ class Rig:
         """atan(1 / f): the pan of one pixel at the view centre (the convergence tolerance)."""
         return math.atan(1.0 / self.focal_px)
 
-    def error_px(self, slave_pan_rad: float) -> float:
+    def truth_pan(self, t: float = 0.0) -> float:
+        """The converged pan at time t: the scene is still, always truth_pan_rad."""
+        return self.truth_pan_rad
+
+    def error_px(self, slave_pan_rad: float, t: float = 0.0) -> float:
         """f tan(pan - truth): how many pixels the slave has turned past the converged pan (positive: too far
         right, the fixated point is then left of the slave's centre). NaN when the truth is unknown."""
         return self.focal_px * math.tan(slave_pan_rad - self.truth_pan_rad)
