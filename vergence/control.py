@@ -69,8 +69,9 @@ class Predictor:
     """A constant-velocity Kalman filter of the target's pan (radians) over capture times (seconds).
 
     update(t, z) takes a measurement z of the target's pan captured at t; at(t) is the estimate there.
-    q: the variance of the target's acceleration (rad^2/s^4, piecewise constant between measurements), r: the measurement variance (rad^2), gate: the largest innovation
-    (rad) taken as motion (larger: restart at z), vmax: the bound of the estimated rate (rad/s)."""
+    q: the variance of the target's acceleration (rad^2/s^4, piecewise constant between measurements),
+    r: the measurement variance (rad^2), gate: the largest innovation (rad) taken as motion (larger:
+    restart at z), vmax: the bound of the estimated rate (rad/s)."""
 
     def __init__(self, q: float, r: float, gate: float, vmax: float):
         self.q, self.r, self.gate, self.vmax = q, r, gate, vmax

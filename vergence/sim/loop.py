@@ -55,7 +55,8 @@ class Step:
         def known(v: float) -> float | None:
             return v if math.isfinite(v) else None
 
-        return {"frame": self.frame, "t_s": self.t_s, "pan_deg": self.pan_deg, "truth_pan_deg": known(self.truth_pan_deg),
+        return {"frame": self.frame, "t_s": self.t_s, "pan_deg": self.pan_deg,
+                "truth_pan_deg": known(self.truth_pan_deg),
                 "error_px": known(self.error_px), "offset_px": self.offset_px, "confident": self.confident,
                 "k": self.k, "v": self.v, "window": self.window, "confidence": self.confidence,
                 "target_deg": self.target_deg}
