@@ -177,3 +177,55 @@ class MovingRig:
         master = self._view(z, 0.0, 0.0)
         slave = self._view(z, self.head.baseline_m, slave_pan_rad)
         return self.noise(master, 0), self.noise(slave, 1)
+
+    # -- construction from text ---------------------------------------------------------------------------
+
+    KEYS = ("motion", "baseline", "focal", "size", "noise", "seed", "pan", "texture", "target", "bg")
+
+    @classmethod
+    def from_options(cls, **items: str | None) -> "MovingRig":
+        """A moving rig from keyword strings (None: default): motion=SPEC, baseline=M (0.06), focal=PX
+        (0.8 x width), size=WxH (640x480), noise=SIGMA, seed=N, pan=DEG (the slave's start pan),
+        texture=FILE|flat (the target's; default procedural), target=M (its width), bg=M (the background's
+        distance). A bad key or value raises ValueError naming it."""
+        from ..sources import read_image
+
+        items = {k: v for k, v in items.items() if v is not None}
+        unknown = sorted(set(items) - set(cls.KEYS))
+        if unknown:
+            raise ValueError(f"sim source: {unknown[0]}= does not go with motion=; keys: {', '.join(cls.KEYS)}")
+
+        def num(key, conv=float, default=None):
+            if key not in items:
+                return default
+            try:
+                v = conv(items[key])
+            except ValueError:
+                raise ValueError(f"sim source: {key}={items[key]!r} is not a {conv.__name__}") from None
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ValueError(f"sim source: {key}={items[key]!r} is not finite")
+            return v
+
+        try:
+            size = (640, 480)
+            if "size" in items:
+                try:
+                    size = tuple(int(p) for p in items["size"].lower().split("x"))
+                    assert len(size) == 2
+                except (ValueError, AssertionError):
+                    raise ValueError(f"size={items['size']!r} must be WxH") from None
+            focal = num("focal", default=0.8 * size[0])
+            head = Head(num("baseline", default=0.06), focal, size)
+            tex = items.get("texture")
+            if tex is not None and tex != "flat":
+                tex = read_image(tex)
+            return cls(items.get("motion", "still:z=0.8"), head, target_tex=tex, target_m=num("target"),
+                       bg_m=num("bg"), noise=num("noise", default=0.0), start_pan_deg=num("pan", default=0.0),
+                       seed=num("seed", int, 0))
+        except ValueError as e:
+            msg = str(e)
+            raise ValueError(msg if msg.startswith("sim source") else f"sim source: {msg}") from None
+
+    def pan_off_truth(self, px: float, t: float = 0.0) -> float:
+        """truth(t) + atan(px / f): the slave pan px pixels past the converged one."""
+        return self.truth_pan(t) + math.atan(px / self.focal_px)

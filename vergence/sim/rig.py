@@ -153,7 +153,7 @@ class Rig:
             "offset", "blur", "vmis", "pan", "seed", "gimbal")
 
     @classmethod
-    def from_spec(cls, spec: str) -> "Rig":
+    def from_spec(cls, spec: str):
         """A rig from the text after `sim:` ("" = the generated scene, defaults everywhere).
 
         Items separated by ':' as key=value: left=PATH, right=PATH (a rectified pair), disparity=PATH
@@ -161,18 +161,31 @@ class Rig:
         disparity at the fixation point); fixate=X,Y (default the centre), focal=F (px), size=WxH (views),
         noise=SIGMA, gain=G, offset=O, blur=S, vmis=PX, pan=DEG (the slave's start pan), seed=N,
         gimbal=helmholtz|fick.
+        With motion=SPEC (vergence.sim.motion, e.g. motion=sine:z=0.8,amp=0.3,hz=0.5) the scene is the moving
+        target on the physical rig instead (vergence.sim.moving.MovingRig.from_options: baseline=M,
+        focal=PX, size=WxH, noise, seed, pan, texture=FILE|flat, target=M, bg=M).
         A bad key or value raises ValueError naming it."""
+        from .moving import MovingRig
+        from .motion import KINDS
+
         items: dict[str, str] = {}
-        for item in (spec or "").split(":"):
+        parts = (spec or "").split(":")
+        keys = cls.KEYS + tuple(k for k in MovingRig.KEYS if k not in cls.KEYS)
+        while parts:
+            item = parts.pop(0)
             if not item.strip():
                 continue
             key, eq, value = item.partition("=")
-            key = key.strip()
+            key, value = key.strip(), value.strip()
             if not eq:
-                raise ValueError(f"sim source item {item!r} is not key=value; keys: {', '.join(cls.KEYS)}")
-            if key not in cls.KEYS:
-                raise ValueError(f"sim source: unknown key {key!r}; keys: {', '.join(cls.KEYS)}")
-            items[key] = value.strip()
+                raise ValueError(f"sim source item {item!r} is not key=value; keys: {', '.join(keys)}")
+            if key not in keys:
+                raise ValueError(f"sim source: unknown key {key!r}; keys: {', '.join(keys)}")
+            if key == "motion" and parts and (value in KINDS or parts[0].partition("=")[0].strip() not in keys):
+                value = f"{value}:{parts.pop(0).strip()}"  # motion=sine:z=0.8,... : the next item is its own
+            items[key] = value
+        if "motion" in items:
+            return MovingRig.from_options(**items)
         return cls.from_options(**items)
 
     @classmethod
