@@ -110,17 +110,18 @@ def run(args: argparse.Namespace) -> int:
                   f"offset {s.offset_px:+8.2f} px  {'confident' if s.confident else 'abstains '}  "
                   f"w={s.window}  target {tgt}", flush=True)
     moving = args.motion is not None
+    skip = int(round(args.rate)) if len(steps) > args.rate else 0  # the statistics after the first second
     if args.plot:
         from vergence.sim.plot import plot_run, plot_tracking
 
         if moving:
             plot_tracking(steps, args.plot, f"{rig.motion.spec}, {args.rate:g} Hz, {control.mode}, "
-                          f"b={rig.head.baseline_m:g} m, f={rig.focal_px:g} px", first=int(round(args.rate)))
+                          f"b={rig.head.baseline_m:g} m, f={rig.focal_px:g} px", first=skip)
         else:
             plot_run(steps, args.plot, math.degrees(rig.one_px_rad))
     if moving and not args.json:
-        e = tracking_error(steps, first=int(round(args.rate)))
-        print(f"after the first second ({e['frames']} frames): RMS {e['rms_px']:.2f} px ({e['rms_deg']:.3f} deg), "
+        e = tracking_error(steps, first=skip)
+        print(f"from frame {skip} ({e['frames']} frames): RMS {e['rms_px']:.2f} px ({e['rms_deg']:.3f} deg), "
               f"max {e['max_px']:.2f} px ({e['max_deg']:.3f} deg)")
     elif not args.json:
         n = frames_to_converge(steps)

@@ -5,10 +5,11 @@ Two modes ([control] mode):
   abstention does not move the slave.
 - "predictive": each confident decision is a measurement of where the target is (the pan at capture + the
   measured correction) at its capture time; a constant-velocity Kalman filter (Predictor) estimates the
-  target's pan and its rate from that stream, and the command is the estimate extrapolated `lead_s` past
-  the capture (to when the motor will act on it). A measurement far off the prediction (gate_px) restarts
+  target's pan and its rate from that stream, and the command is the estimate extrapolated `lead_s` plus
+  half a decision interval past the capture (to when the motor will be acting on it). A measurement far off the prediction (gate_px) restarts
   the filter (a jump, not a motion). An abstention coasts on the estimate for at most coast_s, then the
-  slave holds. The dead band, step and pan limits apply to the command as in "p".
+  slave holds. The dead band applies around the last set-point (no new command within dead_band_px of
+  it), the step and pan limits as in "p".
 """
 
 from __future__ import annotations
@@ -34,22 +35,22 @@ class ControlSettings:
     """mode: "p" or "predictive" (see the module's docstring). gain: fraction of the measured correction
     applied per decision (p); dead_band_px: no move below it; max_step_deg: the largest change of the
     set-point per decision; min_deg/max_deg: the head's pan limits.
-    predictive: lead_s: how far past the capture the command aims (capture-to-command latency + motor
-    latency + the motor's time constant); accel_deg_s2: the standard deviation of the target's
+    predictive: lead_s: how far past the capture the command aims, besides half the interval between
+    decisions (capture-to-command latency + motor latency + the motor's time constant); accel_deg_s2: the standard deviation of the target's
     acceleration (the filter's process noise); noise_px: the measurement's
     noise; gate_px: a measurement further than this from the prediction restarts the filter; coast_s: how
     long abstentions coast on the estimate before the slave holds; max_rate_deg_s: the estimated rate is
     bounded by it."""
 
-    mode: str = "p"
+    mode: str = "predictive"
     gain: float = 1.0
     dead_band_px: float = 0.25
     max_step_deg: float = 10.0
     min_deg: float = -45.0
     max_deg: float = 45.0
     lead_s: float = 0.02
-    accel_deg_s2: float = 300.0
-    noise_px: float = 0.3
+    accel_deg_s2: float = 700.0
+    noise_px: float = 1.0
     gate_px: float = 6.0
     coast_s: float = 0.25
     max_rate_deg_s: float = 90.0
@@ -123,6 +124,9 @@ class Controller:
         self.predictor: Predictor | None = None
         self.t_confident: float | None = None  # capture time of the last confident decision
         self.coasting = 0  # abstentions answered from the estimate
+        self.last_goal: float | None = None  # the predictive mode's last set-point
+        self.t_prev: float | None = None  # the last decision's capture time
+        self.period: float | None = None  # the decisions' interval, smoothed
 
     def _bounded(self, pan_at_capture: float, step: float) -> float:
         lim = math.radians(self.s.max_step_deg)
@@ -158,10 +162,19 @@ class Controller:
         elif f.t is None or self.t_confident is None or t - self.t_confident > self.s.coast_s \
                 or t < self.t_confident:
             f.reset()  # nothing to coast on, or coasted long enough: hold
+            self.last_goal = None
             return None
         else:
             self.coasting += 1
-        goal = f.at(t + self.s.lead_s)
-        if abs(goal - pan) < math.atan(self.s.dead_band_px / focal_px):
+        if self.t_prev is not None and 0 < t - self.t_prev < 1.0:
+            self.period = t - self.t_prev if self.period is None else 0.9 * self.period + 0.1 * (t - self.t_prev)
+        self.t_prev = t
+        # a set-point holds until the next decision: aim at the middle of that interval
+        goal = f.at(t + self.s.lead_s + 0.5 * (self.period or 0.0))
+        # the dead band around the set-point already sent (around the present pan before any): re-sending
+        # about the same goal would only pass the estimate's noise, and the encoder's whole ticks, to the motor
+        ref = pan if self.last_goal is None else self.last_goal
+        if abs(goal - ref) < math.atan(self.s.dead_band_px / focal_px):
             return None
-        return self._bounded(pan, goal - pan)
+        self.last_goal = self._bounded(pan, goal - pan)
+        return self.last_goal
