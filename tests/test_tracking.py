@@ -197,8 +197,9 @@ def test_still_target_with_noise_never_moves_once_converged(z):
     for seed in (0, 1):
         steps = run(f"still:z={z}", frames=150, seed=seed, noise=3.0, start_px=12.0)
         first = next(s.frame for s in steps if abs(s.error_px) < 0.5)
-        pans = [s.pan_deg for s in steps if s.frame >= first + 10]
-        assert len(set(pans)) == 1, (z, seed)
+        after = [s for s in steps if s.frame >= first + 5]
+        assert all(s.target_deg is None for s in after), (z, seed)  # not one command
+        assert max(s.pan_deg for s in after) - min(s.pan_deg for s in after) < 1e-3  # the tail of the last move
         assert abs(steps[-1].error_px) < 0.5
 
 
@@ -263,3 +264,70 @@ def test_cli_motion_json_and_plot(tmp_path):
 def test_cli_motion_errors(args, says):
     r = vsim(*args)
     assert r.returncode == 2 and says in r.stderr
+
+
+def test_bench_tracking_rows():
+    from vergence.bench import bench_tracking
+
+    rows = bench_tracking(hzs=(1.0,), rates=(60.0,), seconds=2.0)
+    assert [(r["motion"], r["mode"]) for r in rows] == [("sine:z=0.8,amp=0.3,hz=1", "p"),
+                                                        ("sine:z=0.8,amp=0.3,hz=1", "predictive"),
+                                                        ("step:z0=1.2,z1=0.6,at=1", "p"),
+                                                        ("step:z0=1.2,z1=0.6,at=1", "predictive")]
+    assert rows[0]["frames"] == 61 and rows[1]["rms_px"] < rows[0]["rms_px"]
+    assert rows[1]["rms_deg"] == pytest.approx(math.degrees(math.atan(rows[1]["rms_px"] / F)), rel=0.05)
+    assert all(r["settle_frames"] <= 6 and r["overshoot_px"] < 3 for r in rows[2:])
+
+
+# -- the same through the distributed service ---------------------------------------------------------------------
+
+def _interp(ts, vs, t):
+    return float(np.interp(t, ts, vs))
+
+
+@pytest.mark.slow
+def test_up_tracks_a_sine_at_60_hz(tmp_path):
+    """`vergence up --source 'sim:motion=sine:z=0.8,amp=0.3,hz=0.5:focal=500' --rate 60` (router, sim actuator,
+    2 workers, reducer, capture as real processes): the tracking error over 10 s, from the recorded stream.
+
+    Two measures, both printed: the error of each decided frame (its slave pan at capture, as the decision
+    says, against the truth the frame carries) and the error of the motor itself (the motor states' pan,
+    interpolated at each capture time, against that frame's truth). The first must be <= 1.5 px RMS."""
+    from procs import Procs, free_port, wait_for
+    from vergence.messages import Frame, MotorState, Verdict
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    spec = "sim:motion=sine:z=0.8,amp=0.3,hz=0.5:focal=500"
+    with Procs(tmp_path) as P:
+        P.endpoint = endpoint
+        P.start("up", "up", "--listen", endpoint, "--source", spec, "--workers", "2", "--rate", "60",
+                connect=False)
+        s = P.session()
+        frames = P.collect(s, P.key("frame"))
+        decisions = P.collect(s, P.key("decision"))
+        states = P.collect(s, P.key("motor/state"))
+
+        def decoded(col, cls):
+            return [cls.from_bytes(b) for _, b, _ in col.snapshot()]
+
+        # 2 s to converge, then 10 s measured
+        wait_for(lambda: len(decisions.snapshot()) > 5, 60, "decisions", logs=P.logs)
+        t_start = decoded(decisions, Verdict)[0].t_capture_ns
+        wait_for(lambda: decoded(decisions, Verdict)[-1].t_capture_ns - t_start > 12.5e9, 60, "12.5 s of decisions",
+                 logs=P.logs)
+        fr = {f.frame: f for f in decoded(frames, Frame)}
+        ds = [d for d in decoded(decisions, Verdict) if 2e9 <= d.t_capture_ns - t_start <= 12e9 and d.frame in fr]
+        ms = sorted(decoded(states, MotorState), key=lambda m: m.t_ns)
+    assert len(ds) > 100 and all(fr[d.frame].truth_pan_rad is not None for d in ds)
+    rate = (len(ds) - 1) / ((ds[-1].t_capture_ns - ds[0].t_capture_ns) / 1e9)
+    err = np.array([F * math.tan(d.pan_rad - fr[d.frame].truth_pan_rad) for d in ds])
+    ts, pans = [m.t_ns for m in ms], [m.pan_rad for m in ms]
+    motor = np.array([F * math.tan(_interp(ts, pans, d.t_capture_ns) - fr[d.frame].truth_pan_rad) for d in ds])
+    confident = np.mean([d.confident for d in ds])
+    rms, mrms = float(np.sqrt(np.mean(err ** 2))), float(np.sqrt(np.mean(motor ** 2)))
+    print(f"\nvergence up, sine 0.5 Hz: {len(ds)} decisions in 10 s ({rate:.1f} Hz), {confident:.0%} confident; "
+          f"RMS {rms:.2f} px (max {np.abs(err).max():.2f}) at the decided frames, motor {mrms:.2f} px "
+          f"(max {np.abs(motor).max():.2f})")
+    truths = [fr[d.frame].truth_pan_rad for d in ds]
+    assert max(truths) - min(truths) > math.radians(3)  # the target did move: -3.1 .. -6.8 deg
+    assert rms <= 1.5

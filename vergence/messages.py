@@ -190,6 +190,8 @@ class Frame(Message):
     master_band: bytes = b""
     support_gamma: float = 8.0
     support_radius: float = 7.0
+    # a simulated source's ground truth: the converged slave pan at capture (None from real cameras)
+    truth_pan_rad: float | None = None
 
     @property
     def k_count(self) -> int:
@@ -221,6 +223,8 @@ class Frame(Message):
         self.band_strip()
         self.master_band_strip()
         _finite("frame.support_gamma", self.support_gamma, self.support_radius)
+        if self.truth_pan_rad is not None:
+            _finite("frame.truth_pan_rad", self.truth_pan_rad)
         if self.support_gamma <= 0 or self.support_radius <= 0:
             raise MessageError("frame.support_gamma and frame.support_radius must be positive")
         covered = 0
@@ -376,6 +380,7 @@ class Preview(Message):
     master: bytes
     slave: bytes
     pan_rad: float = 0.0
+    truth_pan_rad: float | None = None  # a simulated source's converged slave pan at capture
 
     def images(self) -> tuple[np.ndarray, np.ndarray]:
         shape = (self.height, self.width)
@@ -384,6 +389,8 @@ class Preview(Message):
 
     def validate(self) -> None:
         self.images()
+        if self.truth_pan_rad is not None:
+            _finite("preview.truth_pan_rad", self.truth_pan_rad)
 
 
 KINDS: dict[str, type[Message]] = {c.KIND: c for c in (Frame, Partial, Verdict, Profile, Command, MotorState,
