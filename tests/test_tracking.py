@@ -157,11 +157,15 @@ def test_predictive_controller_coasts_then_holds():
         g = c.target(pan, F * math.tan(0.1 * t - pan), F, True, t_s=t)
         pan = g if g is not None else pan
     coast = [c.target(pan, math.nan, F, False, t_s=(20 + i) / 60) for i in range(12)]
-    assert all(g is not None for g in coast[:5])  # 0.1 s of coasting at 60 Hz
-    assert all(g is None for g in coast[6:])  # then hold
-    # each coasted set-point is where the target will be lead_s + half a frame after its capture
-    lead = 0.02 + 0.5 / 60
-    assert max(abs(g - 0.1 * ((20 + i) / 60 + lead)) for i, g in enumerate(coast[:5])) < 1e-6
+    # coasted set-points carry the last estimate at a fading rate (time constant coast_s / 2 = 0.05 s) to
+    # lead_s + half a frame past their capture (None: within the dead band of the last one): short of the
+    # target, never past it; after coast_s = 0.1 s, hold
+    x, at = 0.1 * 19 / 60, [(20 + i) / 60 + 0.02 + 0.5 / 60 for i in range(12)]
+    want = [x + 0.1 * 0.05 * (1 - math.exp(-(a - 19 / 60) / 0.05)) for a in at]
+    sent = [(g, w, a) for g, w, a in zip(coast[:5], want, at) if g is not None]
+    assert len(sent) >= 1 and c.coasting >= 5
+    assert all(g == pytest.approx(w, abs=1e-9) and g < 0.1 * a for g, w, a in sent)
+    assert all(g is None for g in coast[6:])
 
 
 # -- the Musts, in `vergence sim`'s loop -------------------------------------------------------------------------
@@ -334,3 +338,52 @@ def test_up_tracks_a_sine_at_60_hz(tmp_path):
     truths = [fr[d.frame].truth_pan_rad for d in ds]
     assert max(truths) - min(truths) > math.radians(3)  # the target did move: -3.1 .. -6.8 deg
     assert rms <= 1.5
+
+
+# -- the truth on the wire -----------------------------------------------------------------------------------------
+
+def _frame(truth):
+    from vergence import pipeline
+
+    rig = MovingRig("still:z=0.8", HEAD)
+    master, slave = rig.render(0.0)
+    f = pipeline.make_frame(master, slave, rig="head", frame=3, pan_rad=-0.07, focal_px=F, params=vergence.Params(),
+                            plan=[["w", 0, 640 - 15 + 1]], t_capture_ns=5)
+    f.truth_pan_rad = truth
+    return f
+
+
+def test_frame_truth_travels_and_is_checked():
+    from vergence.messages import Frame, MessageError
+
+    f = _frame(HEAD.converged_pan(0.8))
+    assert Frame.from_bytes(f.to_bytes()).truth_pan_rad == HEAD.converged_pan(0.8)
+    assert Frame.from_bytes(_frame(None).to_bytes()).truth_pan_rad is None
+    with pytest.raises(MessageError, match="truth_pan_rad"):
+        Frame.from_bytes(_frame(math.nan).to_bytes())
+
+
+def test_monitor_shows_the_truth_beside_the_pan():
+    from vergence.monitor import Monitor, render_text
+
+    mon = Monitor("head")
+    truth = HEAD.converged_pan(0.8)
+    mon.feed("vergence/head/frame", _frame(truth).to_bytes(), t_ns=1)
+    s = mon.snapshot()
+    assert s.truth_rad == truth and s.truth_error_px == pytest.approx(F * math.tan(-0.07 - truth))
+    text = render_text(s, color=False)
+    assert "truth  -4.289°" in text and f"{F * math.tan(-0.07 - truth):+.2f} px" in text
+    mon2 = Monitor("head")
+    mon2.feed("vergence/head/frame", _frame(None).to_bytes(), t_ns=1)
+    assert "truth" not in render_text(mon2.snapshot(), color=False)
+
+
+def test_sim_source_reports_the_truth_of_each_read():
+    src = open_source("sim:motion=sine:z=0.8,amp=0.3,hz=0.5:focal=500")
+    assert src.truth_pan_rad is None  # nothing read yet
+    src.read(0.0)
+    assert src.truth_pan_rad == pytest.approx(HEAD.converged_pan(0.8), abs=0.01)  # t ~ 0
+    assert open_source("sim").truth_pan_rad is None
+    still = open_source("sim")
+    still.read(0.0)
+    assert still.truth_pan_rad == pytest.approx(still.rig.truth_pan_rad)

@@ -8,9 +8,9 @@ Two modes ([control] mode):
   target's pan and its rate from that stream, and the command is the estimate extrapolated `lead_s` plus
   half a decision interval past the capture (to when the motor will be acting on it). A measurement far
   off the prediction (gate_px) restarts the filter (a jump, not a motion). An abstention coasts on the
-  estimate for at most coast_s, then the slave holds. The rate is used only when its last two estimates
-  agree in sign. No new command within dead_band_px of the present pan or of the last set-point; the step
-  and pan limits as in "p".
+  estimate (its rate fading with the time constant coast_s / 2) for at most coast_s, then the slave
+  holds. The dead band applies around the last set-point (no new command within dead_band_px of it), the
+  step and pan limits as in "p".
 The default is "predictive": in `vergence bench tracking` it halves to quarters p's error on every sine
 (p lags by the loop's latency, about a frame), at the price of up to a few tenths of a pixel of overshoot
 on a step. Its filter is kept calm (accel_deg_s2 700, noise_px 1): a livelier one (1000 / 0.5) tracks a
@@ -82,7 +82,6 @@ class Predictor:
 
     def __init__(self, q: float, r: float, gate: float, vmax: float):
         self.q, self.r, self.gate, self.vmax = q, r, gate, vmax
-        self.v0 = vmax / 2  # the rate's standard deviation at a (re)start
         self.t: float | None = None
         self.x = self.v = 0.0
         self.p = [[0.0, 0.0], [0.0, 0.0]]
@@ -93,7 +92,7 @@ class Predictor:
 
     def _start(self, t: float, z: float) -> None:
         self.t, self.x, self.v = t, z, 0.0
-        self.p = [[self.r, 0.0], [0.0, self.v0 ** 2]]
+        self.p = [[self.r, 0.0], [0.0, (self.vmax / 2) ** 2]]
 
     def update(self, t: float, z: float) -> None:
         if self.t is None or t < self.t - 1.0:  # none yet, or time went back (a new capture): start over
@@ -134,7 +133,6 @@ class Controller:
         self.last_goal: float | None = None  # the predictive mode's last set-point
         self.t_prev: float | None = None  # the last decision's capture time
         self.period: float | None = None  # the decisions' interval, smoothed
-        self.v_hist: list[float] = []
 
     def _bounded(self, pan_at_capture: float, step: float) -> float:
         lim = math.radians(self.s.max_step_deg)
@@ -168,29 +166,26 @@ class Controller:
             self.period = t - self.t_prev if self.period is None else 0.9 * self.period + 0.1 * (t - self.t_prev)
         self.t_prev = t
         # a set-point holds until the next decision: aim at the middle of that interval
-        lead = self.s.lead_s + 0.5 * (self.period or 0.0)
-        db = math.atan(self.s.dead_band_px / focal_px)
+        at = t + self.s.lead_s + 0.5 * (self.period or 0.0)
         if confident and math.isfinite(offset_px):
-            z = pan + pixels_to_angle(offset_px, focal_px, centre_px)
-            f.update(t, z)
+            f.update(t, pan + pixels_to_angle(offset_px, focal_px, centre_px))
             self.t_confident = t
-            # the rate counts when its last two estimates agree in sign: a matcher torn between two
-            # offsets a pixel apart (ambiguous texture) makes it alternate, and would move a still slave
-            self.v_hist = (self.v_hist + [f.v])[-2:]
-            same = all(x > 0 for x in self.v_hist) or all(x < 0 for x in self.v_hist)
-            goal = f.x + (f.v if same else 0.0) * lead
+            goal = f.at(at)
         elif f.t is None or self.t_confident is None or t - self.t_confident > self.s.coast_s \
                 or t < self.t_confident:
             f.reset()  # nothing to coast on, or coasted long enough: hold
             self.last_goal = None
-            self.v_hist = []
             return None
         else:
+            # coast on the estimate, its rate fading (time constant coast_s / 2): never more than
+            # rate x coast_s / 2 past the last estimate
             self.coasting += 1
-            goal = f.at(t + lead)
-        # no move within the dead band of the present pan, nor of the set-point already sent (re-sending
-        # about the same goal would only pass the estimate's noise, and the encoder's whole ticks, on)
-        if abs(goal - pan) < db or (self.last_goal is not None and abs(goal - self.last_goal) < db):
+            tau = self.s.coast_s / 2
+            goal = f.x + f.v * tau * (1 - math.exp(-max(0.0, at - f.t) / tau)) if tau > 0 else f.x
+        # the dead band around the set-point already sent (around the present pan before any): re-sending
+        # about the same goal would only pass the estimate's noise, and the encoder's whole ticks, to the motor
+        ref = pan if self.last_goal is None else self.last_goal
+        if abs(goal - ref) < math.atan(self.s.dead_band_px / focal_px):
             return None
         self.last_goal = self._bounded(pan, goal - pan)
         return self.last_goal
