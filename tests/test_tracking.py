@@ -204,9 +204,10 @@ def test_still_target_with_noise_never_moves_once_converged(z):
         quiet = [all(s.target_deg is None for s in steps[i:i + 10]) for i in range(len(steps))]
         first = next(i for i, s in enumerate(steps) if quiet[i] and abs(s.error_px) < 0.5)
         assert first <= 30  # half a second
-        after = steps[first:]
-        assert all(s.target_deg is None for s in after), (z, seed)  # then not one command
-        assert max(s.pan_deg for s in after) - min(s.pan_deg for s in after) < 1e-3  # the tail of the last move
+        # then the slave never moves (5 frames for the last move's tail; a set-point that rounds to the tick
+        # the motor is on does not move it, as on a Dynamixel)
+        after = steps[first + 5:]
+        assert max(s.pan_deg for s in after) - min(s.pan_deg for s in after) < 1e-4, (z, seed)
         assert abs(steps[-1].error_px) < 0.5
 
 
