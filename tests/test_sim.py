@@ -254,8 +254,11 @@ def test_cli_pair_without_truth_and_start_off(tmp_path, scene):
     cv2.imwrite(str(tmp_path / "l.png"), scene.left)
     cv2.imwrite(str(tmp_path / "r.png"), scene.right)
     cv2.imwrite(str(tmp_path / "d.png"), scene.disparity.astype(np.uint8))
+    cfg = tmp_path / "ideal.toml"  # the motor and controller this test was written for (see IDEAL_MOTOR)
+    cfg.write_text('[control]\nmode = "p"\n[actuator.motor]\ntau_s = 0.02\nlatency_s = 0.0\n'
+                   'max_accel_deg_s2 = 0.0\nquantise = false\n')
     cmd = [sys.executable, "-m", "services.cli", "sim", "--left", str(tmp_path / "l.png"), "--right",
-           str(tmp_path / "r.png"), "--size", "640x480", "--frames", "3", "--json"]
+           str(tmp_path / "r.png"), "--size", "640x480", "--frames", "3", "--json", "--config", str(cfg)]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     rows = [json.loads(line) for line in r.stdout.splitlines()]  # strict JSON: no NaN
     assert r.returncode == 0 and len(rows) == 4
