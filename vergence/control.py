@@ -11,11 +11,12 @@ Two modes ([control] mode):
   estimate (its rate fading with the time constant coast_s / 2) for at most coast_s, then the slave
   holds. The dead band applies around the last set-point (no new command within dead_band_px of it), the
   step and pan limits as in "p".
-The default is "predictive": in `vergence bench tracking` it halves to quarters p's error on every sine
-(p lags by the loop's latency, about a frame), at the price of up to a few tenths of a pixel of overshoot
-on a step. Its filter is kept calm (accel_deg_s2 700, noise_px 1): a livelier one (1000 / 0.5) tracks a
-2 Hz sine a little closer but rings by +-2 px with the paper's network, whose whole-pixel decisions feed
-the filter a loop-correlated error.
+The default is "predictive": in `vergence bench tracking` p's error is 2.2-3.9 times its own on sines
+from 0.5 Hz on (p lags by the loop's latency, about a frame plus the motor), about the same at 0.25 Hz; its
+costs are a few tenths of a pixel of overshoot on a step and, on still Middlebury scenes, a couple of
+points of convergence where the matcher hesitates between offsets a pixel apart. Its filter is kept calm
+(accel_deg_s2 700, noise_px 1): a livelier one (1000 / 0.5) tracked a 2 Hz sine a little closer but rang
+by +-2 px with the paper's network, whose whole-pixel decisions feed the filter a loop-correlated error.
 """
 
 from __future__ import annotations
