@@ -9,8 +9,9 @@ Two modes ([control] mode):
   half a decision interval past the capture (to when the motor will be acting on it). A measurement far
   off the prediction (gate_px) restarts the filter (a jump, not a motion). An abstention coasts on the
   estimate (its rate fading with the time constant coast_s / 2) for at most coast_s, then the slave
-  holds. The dead band applies around the last set-point (no new command within dead_band_px of it), the
-  step and pan limits as in "p".
+  holds. No command within dead_band_px of the present pan, nor of the last set-point while the motor is
+  there (within 1 px or 0.1 degree: a motor settles on its nearest tick); the step and pan limits as in
+  "p".
 The default is "predictive": in `vergence bench tracking` p's error is 2.2-3.9 times its own on sines
 from 0.5 Hz on (p lags by the loop's latency, about a frame plus the motor), about the same at 0.25 Hz; its
 costs are a few tenths of a pixel of overshoot on a step and, on still Middlebury scenes, a couple of
@@ -47,7 +48,7 @@ class ControlSettings:
     standard deviation of the target's acceleration (the filter's process noise); noise_px: the
     measurement's noise; gate_px: a measurement further than this from the prediction restarts the filter; coast_s: how
     long abstentions coast on the estimate before the slave holds; max_rate_deg_s: the estimated rate is
-    bounded by it."""
+    bounded by it; min_rate_deg_s: the rate extrapolated is the estimate less this (soft threshold)."""
 
     mode: str = "predictive"
     gain: float = 1.0
@@ -61,11 +62,13 @@ class ControlSettings:
     gate_px: float = 6.0
     coast_s: float = 0.25
     max_rate_deg_s: float = 90.0
+    min_rate_deg_s: float = 1.0
 
     def __post_init__(self):
         if self.mode not in MODES:
             raise ValueError(f"mode={self.mode!r}: must be one of {', '.join(MODES)}")
-        for name in ("lead_s", "accel_deg_s2", "noise_px", "gate_px", "coast_s", "max_rate_deg_s"):
+        for name in ("lead_s", "accel_deg_s2", "noise_px", "gate_px", "coast_s", "max_rate_deg_s",
+                     "min_rate_deg_s"):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
                 raise ValueError(f"{name}={v}: must be a finite number >= 0")
@@ -171,7 +174,11 @@ class Controller:
         if confident and math.isfinite(offset_px):
             f.update(t, pan + pixels_to_angle(offset_px, focal_px, centre_px))
             self.t_confident = t
-            goal = f.at(at)
+            # the rate, less min_rate_deg_s (soft threshold): the noise of a still target's rate estimate
+            # (whole-tick encoder readings during small moves, a hesitating matcher) is not extrapolated
+            vmin = math.radians(self.s.min_rate_deg_s)
+            v = math.copysign(max(0.0, abs(f.v) - vmin), f.v)
+            goal = f.x + v * (at - f.t)
         elif f.t is None or self.t_confident is None or t - self.t_confident > self.s.coast_s \
                 or t < self.t_confident:
             f.reset()  # nothing to coast on, or coasted long enough: hold
@@ -183,10 +190,15 @@ class Controller:
             self.coasting += 1
             tau = self.s.coast_s / 2
             goal = f.x + f.v * tau * (1 - math.exp(-max(0.0, at - f.t) / tau)) if tau > 0 else f.x
-        # the dead band around the set-point already sent (around the present pan before any): re-sending
-        # about the same goal would only pass the estimate's noise, and the encoder's whole ticks, to the motor
-        ref = pan if self.last_goal is None else self.last_goal
-        if abs(goal - ref) < math.atan(self.s.dead_band_px / focal_px):
+        # the dead band around the present pan, and around the set-point already sent while the motor is
+        # there (re-sending about the same goal would only pass the estimate's noise, and the encoder's
+        # whole ticks, to the motor); a set-point the motor is not at (lost, or no motor listening) is sent
+        # again
+        db = math.atan(self.s.dead_band_px / focal_px)
+        if abs(goal - pan) < db:
+            return None
+        if self.last_goal is not None and abs(goal - self.last_goal) < db \
+                and abs(self.last_goal - pan) <= max(math.atan(1.0 / focal_px), math.radians(0.1)):
             return None
         self.last_goal = self._bounded(pan, goal - pan)
         return self.last_goal
