@@ -388,3 +388,15 @@ def test_sim_source_reports_the_truth_of_each_read():
     still = open_source("sim")
     still.read(0.0)
     assert still.truth_pan_rad == pytest.approx(still.rig.truth_pan_rad)
+
+
+def test_servo_takes_the_newest_of_a_burst_of_goals():
+    clock = Clock()
+    m = SimMotor(MotorSettings(latency_s=0.002, tau_s=0.0, max_accel_deg_s2=0.0, max_speed_deg_s=1e6), clock=clock)
+    m.open()
+    for i in range(1000):  # a flood within 1 ms
+        clock.t += 1e-6
+        m.write_goal(math.radians(i % 7))
+    clock.t += 0.003
+    assert m.shaft == pytest.approx(m._quantise(math.radians(999 % 7)), abs=1e-12)
+    assert not m.pending

@@ -77,7 +77,7 @@ class SimMotor(Driver):
     def _advance(self) -> None:
         now = self.clock()
         while self.t + H <= now:
-            if self.pending and self.pending[0][0] <= self.t:
+            while self.pending and self.pending[0][0] <= self.t:  # every goal due by now: the newest wins
                 self.goal = self.pending.popleft()[1]
             if not self.torque:
                 self.vel = 0.0
