@@ -59,7 +59,7 @@ class ControlSettings:
     lead_s: float = 0.02
     accel_deg_s2: float = 700.0
     noise_px: float = 1.0
-    gate_px: float = 6.0
+    gate_px: float = 10.0
     coast_s: float = 0.25
     max_rate_deg_s: float = 90.0
     min_rate_deg_s: float = 1.0
