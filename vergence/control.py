@@ -12,10 +12,10 @@ Two modes ([control] mode):
   holds. No command within dead_band_px of the present pan, nor of the last set-point while the motor is
   there (within 1 px or 0.1 degree: a motor settles on its nearest tick); the step and pan limits as in
   "p".
-The default is "predictive": in `vergence bench tracking` p's error is 2.2-3.9 times its own on sines
-from 0.5 Hz on (p lags by the loop's latency, about a frame plus the motor), about the same at 0.25 Hz; its
-costs are a few tenths of a pixel of overshoot on a step and, on still Middlebury scenes, a couple of
-points of convergence where the matcher hesitates between offsets a pixel apart. Its filter is kept calm
+The default is "predictive": in `vergence bench tracking` p's error is 2.2-4.0 times its own on sines
+from 0.5 Hz on (p lags by the loop's latency, about a frame plus the motor), 1.2-2.1 times at 0.25 Hz, and
+both settle alike on a step; its cost, on still Middlebury scenes, is a few points of convergence where the
+matcher hesitates between offsets a pixel apart. Its filter is kept calm
 (accel_deg_s2 700, noise_px 1): a livelier one (1000 / 0.5) tracked a 2 Hz sine a little closer but rang
 by +-2 px with the paper's network, whose whole-pixel decisions feed the filter a loop-correlated error.
 """
