@@ -1,4 +1,5 @@
-"""`vergence bench kernel|match|pipeline`: benchmarks that print ratios against baselines run alongside."""
+"""`vergence bench kernel|match|pipeline|tracking`: benchmarks that print ratios against baselines run alongside
+(tracking: the p controller is the predictive one's baseline, in the same virtual-time runs)."""
 
 from __future__ import annotations
 
@@ -17,6 +18,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     m = sub.add_parser("match", help="vergence.match for one point of a 640 x 480 pair")
     m.add_argument("--json", action="store_true")
     m.add_argument("--repeats", type=int, default=400)
+    t = sub.add_parser("tracking", help="tracking error on a target moving in depth (simulated, virtual time): "
+                                        "sine 0.25-2 Hz x 30/60/120 Hz x p/predictive, and a step")
+    t.add_argument("--json", action="store_true", help="one JSON object per row")
+    t.add_argument("--seconds", type=float, default=5.0, help="length of each sine run (default 5)")
+    t.add_argument("--seed", type=int, default=0, help="seed of the scene's textures (default 0)")
+    t.add_argument("--rates", default="30,60,120", help="camera rates, Hz (default 30,60,120)")
+    t.add_argument("--hz", default="0.25,0.5,1,2", help="sine frequencies (default 0.25,0.5,1,2)")
     try:
         importlib.import_module("services.bench_pipeline").configure(
             sub.add_parser("pipeline", help="capture-to-command latency and throughput over Zenoh"))
@@ -63,7 +71,46 @@ def _match(args) -> int:
     return 0
 
 
+def _tracking(args) -> int:
+    from vergence.bench import bench_tracking
+
+    try:
+        rates = tuple(float(x) for x in args.rates.split(","))
+        hzs = tuple(float(x) for x in args.hz.split(","))
+        if not (args.seconds > 1 and all(r > 0 for r in rates) and all(h >= 0 for h in hzs)):
+            raise ValueError
+    except ValueError:
+        print("vergence bench tracking: --rates and --hz are comma-separated positive numbers, --seconds > 1",
+              file=sys.stderr)
+        return 2
+    if not args.json:
+        print(f"{'motion':28s} {'Hz':>5s} {'mode':>10s} {'RMS px':>7s} {'max px':>7s} {'RMS deg':>8s} "
+              f"{'max deg':>8s} {'settle':>6s} {'over px':>7s}")
+
+    def fmt(v, spec):
+        return format(v, spec) if v is not None else format("-", spec.split(".")[0].rstrip("f") + "s")
+
+    def show(r):
+        if args.json:
+            print(json.dumps(r), flush=True)
+            return
+        print(f"{r['motion']:28s} {r['rate_hz']:5.0f} {r['mode']:>10s} {fmt(r['rms_px'], '7.2f')} "
+              f"{fmt(r['max_px'], '7.2f')} {fmt(r['rms_deg'], '8.3f')} {fmt(r['max_deg'], '8.3f')} "
+              f"{fmt(r.get('settle_frames'), '6d') if 'settle_frames' in r else ' ' * 6} "
+              f"{fmt(r.get('overshoot_px'), '7.2f') if 'overshoot_px' in r else ''}", flush=True)
+
+    bench_tracking(hzs, rates, seconds=args.seconds, seed=args.seed, progress=show)
+    if not args.json:
+        print(f"b = 0.06 m, f = 500 px, 640 x 480, seed {args.seed}; sine: z = 0.8 m, amp = 0.3 m, {args.seconds:g} s "
+              "from a converged start, error after the first second; step: frames from the step to within 1 px "
+              "for good, overshoot past the new truth, error after settling. Virtual time, 5 ms capture to "
+              "command, the default simulated servo")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.bench == "tracking":
+        return _tracking(args)
     if args.bench == "kernel":
         return _kernel(args)
     if args.bench == "match":

@@ -240,6 +240,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                     except retina.BorderError:  # a grown window that no longer fits: back to the base one
                         windows.window = params.window
                         continue
+                    frame.truth_pan_rad = source.truth_pan_rad  # the simulator's ground truth, else None
                     pub_frame.put(frame.to_bytes())
                     published += 1
                     health.count("published")
@@ -251,7 +252,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                     m = cv2.resize(master, (pw, ph), interpolation=cv2.INTER_AREA)
                     sl = cv2.resize(slave, (pw, ph), interpolation=cv2.INTER_AREA)
                     pub_preview.put(Preview(rig=rig, frame=fid, t_capture_ns=t_ns, width=pw, height=ph, scale=pw / wd,
-                                            master=m.tobytes(), slave=sl.tobytes(), pan_rad=p_now).to_bytes())
+                                            master=m.tobytes(), slave=sl.tobytes(), pan_rad=p_now,
+                                            truth_pan_rad=source.truth_pan_rad).to_bytes())
                 if now >= next_status:
                     # the rate the pipeline holds: frames published vs frames the reducer completed
                     sent, done = published - published_at_status, decided[0] - decided[1]

@@ -1,9 +1,14 @@
-"""`vergence sim`: the closed loop on the simulated rig in one process (the library only, no Zenoh)."""
+"""`vergence sim`: the closed loop on the simulated rig in one process (the library only, no Zenoh).
+
+With --motion SPEC the scene is a target moving in depth in front of the physical rig (--baseline,
+--focal; vergence.sim.moving), and the output is a tracking run: pan, truth and error at each frame, the
+RMS and maximum error after the first second."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import math
 import sys
@@ -12,7 +17,8 @@ from vergence import Params, depth
 from vergence.config import ConfigError, load
 from vergence.sim import Rig
 from vergence.sim.fixation import truth_at
-from vergence.sim.loop import closed_loop, frames_to_converge
+from vergence.sim.loop import DELAY_S, closed_loop, frames_to_converge, tracking_error
+from vergence.sim.moving import MovingRig
 
 
 def fixate_at_arg(text: str) -> tuple[int, tuple[int, int]]:
@@ -50,11 +56,20 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gimbal", choices=("helmholtz", "fick"),
                    help="helmholtz: both cameras pan on one tilting "
                    "platform (default, the paper's rig); fick: each camera tilts on its own pan joint")
-    p.add_argument("--baseline", type=float, default=None, metavar="M",
-                   help="baseline of the rig in metres, for depth_m (default: settings [rig] baseline_m, 0.06)")
     p.add_argument("--fixate-at", type=fixate_at_arg, action="append", default=[], metavar="FRAME:X,Y",
                    help="from frame FRAME on, the fovea at (X, Y) of the master view (repeatable); the "
                    "re-convergence after each is reported")
+    p.add_argument("--motion", metavar="SPEC",
+                   help="a target moving in depth: still:z=Z | step:z0=Z0,z1=Z1,at=S | ramp:z0=Z0,z1=Z1,speed=M_S | "
+                        "sine:z=Z,amp=A,hz=F (metres, seconds)")
+    p.add_argument("--baseline", type=float, default=None, metavar="M",
+                   help="the rig's baseline in metres: the moving rig's (--motion), and depth_m's (default: "
+                   "settings [rig] baseline_m, 0.06)")
+    p.add_argument("--texture", metavar="FILE|flat",
+                   help="--motion: an image as the target's texture (default procedural; flat: none)")
+    p.add_argument("--mode", choices=("p", "predictive"), help="the controller (default: [control] mode)")
+    p.add_argument("--delay-ms", type=float, default=None, metavar="MS",
+                   help="capture to command, virtual (default 5)")
     p.add_argument("--frames", type=int, default=20, help="frames to run after the starting one (default 20)")
     p.add_argument("--rate", type=float, default=30.0,
                    help="frames per second of the virtual clock (default 30)")
@@ -70,10 +85,23 @@ def run(args: argparse.Namespace) -> int:
     try:
         settings = load(args.config)
         params = Params.paper(window=settings.network.window) if args.faithful else settings.network
-        rig = Rig.from_options(left=args.left, right=args.right, disparity=args.disparity, dscale=args.dscale,
-                               fixate=args.fixate, focal=args.focal, size=args.size, noise=args.noise,
-                               gain=args.gain, offset=args.offset, blur=args.blur, vmis=args.vmis,
-                               pan=args.start_pan, seed=args.seed, gimbal=args.gimbal)
+        static = dict(left=args.left, right=args.right, disparity=args.disparity, dscale=args.dscale,
+                      fixate=args.fixate, gain=args.gain, offset=args.offset, blur=args.blur, vmis=args.vmis,
+                      gimbal=args.gimbal)
+        control = settings.control if args.mode is None else dataclasses.replace(settings.control, mode=args.mode)
+        delay = DELAY_S if args.delay_ms is None else args.delay_ms / 1000.0
+        if args.motion is not None:
+            given = sorted(k for k, v in static.items() if v is not None)
+            if given:
+                raise ValueError(f"--{given[0]} does not go with --motion (the moving scene is generated)")
+            rig = MovingRig.from_options(motion=args.motion, baseline=args.baseline, focal=args.focal,
+                                         size=args.size, noise=args.noise, seed=args.seed, pan=args.start_pan,
+                                         texture=args.texture)
+        elif args.texture is not None:
+            raise ValueError("--texture goes with --motion")
+        else:
+            rig = Rig.from_options(focal=args.focal, size=args.size, noise=args.noise, pan=args.start_pan,
+                                   seed=args.seed, **static)
         if args.frames < 0 or not args.rate > 0:
             raise ValueError(f"--frames must be >= 0 and --rate > 0, got {args.frames} and {args.rate}")
         if args.start_off is not None:
@@ -83,10 +111,13 @@ def run(args: argparse.Namespace) -> int:
                 raise ValueError("--start-off needs the ground truth: --disparity FILE "
                                  "(or the generated scene)")
             rig.start_pan_rad = rig.pan_off_truth(args.start_off)
-        baseline = args.baseline if args.baseline is not None else settings.geometry.baseline_m
+        baseline = args.baseline if args.baseline is not None else (
+            rig.head.baseline_m if args.motion is not None else settings.geometry.baseline_m)
         if not (math.isfinite(baseline) and baseline > 0):
             raise ValueError(f"--baseline {baseline}: must be a positive number of metres")
         fixations = dict(args.fixate_at)
+        if fixations and args.motion is not None:
+            raise ValueError("--fixate-at does not go with --motion (the moving target is on the master's axis)")
         for f, (x, y) in fixations.items():
             if not (0 <= x < rig.size[0] and 0 <= y < rig.size[1]):
                 raise ValueError(f"--fixate-at {f}:{x},{y}: outside the {rig.size[0]} x {rig.size[1]} view")
@@ -94,21 +125,28 @@ def run(args: argparse.Namespace) -> int:
         print(f"vergence sim: {e}", file=sys.stderr)
         return 2
     steps = []
-    # the fovea, and its truth: (converged slave pan, disparity), NaN where unknown
-    at, truth = (rig.size[0] // 2, rig.size[1] // 2), (rig.truth_pan_rad, rig.disparity)
+    # the fovea, and its truth: (converged slave pan, disparity), NaN where unknown (a moving rig: per frame)
+    at, truth = (rig.size[0] // 2, rig.size[1] // 2), None
     saving = _start_save(args.save, rig) if args.save else None
     if args.save and saving is None:
         return 2
     segments = []  # (first frame, (x, y)) of each fixation
-    for s in closed_loop(rig, args.frames, params, settings.control, settings.actuator.motor, args.rate,
-                         fixations=fixations):
+    try:
+        run_ = closed_loop(rig, args.frames, params, control, settings.actuator.motor, args.rate, delay,
+                           fixations=fixations)
+        first = next(run_)
+    except ValueError as e:
+        print(f"vergence sim: {e}", file=sys.stderr)
+        return 2
+    for s in itertools.chain([first], run_):
         if s.frame in fixations or s.frame == 0:
             if s.frame in fixations:
                 at, truth = fixations[s.frame], truth_at(rig, *fixations[s.frame])
             segments.append((s.frame, at))
         pan = math.radians(s.pan_deg)
-        s = dataclasses.replace(s, truth_pan_deg=math.degrees(truth[0]),
-                                error_px=rig.focal_px * math.tan(pan - truth[0]))
+        if truth is not None:  # a fixation away from the centre: the truth of that point
+            s = dataclasses.replace(s, truth_pan_deg=math.degrees(truth[0]),
+                                    error_px=rig.focal_px * math.tan(pan - truth[0]))
         steps.append(s)
         if saving:
             saving(s, args.rate)
@@ -116,7 +154,10 @@ def run(args: argparse.Namespace) -> int:
                                   slave_pan_rad=pan, offset_px=s.offset_px, v_shift=s.v, confident=s.confident,
                                   sigma_d_px=depth.disparity_sigma(s.scores, s.k, s.window), baseline_m=baseline,
                                   master_pan_rad=rig.master_pan_rad, tilt_rad=rig.tilt_rad, gimbal=rig.gimbal)
-        truth_z = depth.depth_from_disparity(truth[1], baseline, rig.focal_px)
+        if args.motion is not None:
+            truth_z = rig.motion.z(s.t_s)
+        else:
+            truth_z = depth.depth_from_disparity(rig.disparity if truth is None else truth[1], baseline, rig.focal_px)
         if args.json:
             row = s.to_dict()
             row.update(x=at[0], y=at[1], converged=dep.converged,
@@ -133,11 +174,21 @@ def run(args: argparse.Namespace) -> int:
     if saving:
         saving.rr.disconnect()  # flushes the file
         print(f"wrote {args.save} ({len(steps)} frames): `rerun {args.save}` shows it", file=sys.stderr)
+    moving = args.motion is not None
+    skip = int(round(args.rate)) if len(steps) > args.rate else 0  # the statistics after the first second
     if args.plot:
-        from vergence.sim.plot import plot_run
+        from vergence.sim.plot import plot_run, plot_tracking
 
-        plot_run(steps, args.plot, math.degrees(rig.one_px_rad))
-    if not args.json:
+        if moving:
+            plot_tracking(steps, args.plot, f"{rig.motion.spec}, {args.rate:g} Hz, {control.mode}, "
+                          f"b={rig.head.baseline_m:g} m, f={rig.focal_px:g} px", first=skip)
+        else:
+            plot_run(steps, args.plot, math.degrees(rig.one_px_rad))
+    if moving and not args.json:
+        e = tracking_error(steps, first=skip)
+        print(f"from frame {skip} ({e['frames']} frames): RMS {e['rms_px']:.2f} px ({e['rms_deg']:.3f} deg), "
+              f"max {e['max_px']:.2f} px ({e['max_deg']:.3f} deg)")
+    elif not args.json:
         for i, (first, (x, y)) in enumerate(segments):
             end = segments[i + 1][0] if i + 1 < len(segments) else len(steps)
             seg = steps[first:end]

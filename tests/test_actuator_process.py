@@ -57,7 +57,8 @@ def test_sim_actuator(tmp_path):
         pub.put(command(P.rig, 0.1, 1))
         st = wait_state(col, lambda m: m.frame == 1, 5, "state of frame 1", P.logs)
         assert st.goal_rad == pytest.approx(0.1) and st.driver == "sim" and st.status == "ok"
-        st = wait_state(col, lambda m: abs(m.pan_rad - 0.1) < 1e-4, 5, "the motor at 0.1", P.logs)
+        at = (ticks(0.1) - 2048) * 2 * math.pi / 4096  # the simulated servo reports whole ticks, as a Dynamixel
+        st = wait_state(col, lambda m: abs(m.pan_rad - at) < 1e-9, 5, "the motor at 0.1 (its nearest tick)", P.logs)
         for i, bad in enumerate([math.nan, math.inf, 1e300, -1e300]):
             pub.put(command(P.rig, bad, 2 + i))
             time.sleep(0.05)  # one at a time: a burst would be coalesced (see the flood test)

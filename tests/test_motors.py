@@ -163,16 +163,19 @@ def test_loop_property(stream):
 
 # -- simulated motor -----------------------------------------------------------------------------------------
 
+IDEAL = dict(latency_s=0.0, max_accel_deg_s2=0.0, quantise=False)  # the servo's imperfections off
+
+
 def test_sim_first_order_and_speed():
     clock = Clock()
-    m = SimMotor(MotorSettings(tau_s=0.1, max_speed_deg_s=1000), clock=clock)
+    m = SimMotor(MotorSettings(tau_s=0.1, max_speed_deg_s=1000, **IDEAL), clock=clock)
     m.open()
     m.write_goal(0.1)
     clock.t += 0.1
     assert m.read_position() == pytest.approx(0.1 * (1 - math.exp(-1)))
     clock.t += 1.0
     assert m.read_position() == pytest.approx(0.1, abs=1e-5)
-    m2 = SimMotor(MotorSettings(tau_s=0.0, max_speed_deg_s=90), clock=clock)
+    m2 = SimMotor(MotorSettings(tau_s=0.0, max_speed_deg_s=90, **IDEAL), clock=clock)
     m2.open()
     m2.write_goal(math.radians(40))
     clock.t += 0.2
@@ -199,7 +202,7 @@ def test_sim_integration_independent_of_polling():
 
 def test_loop_tracks_commands_and_watchdog():
     clock = Clock()
-    ms = MotorSettings(watchdog_s=0.5, tau_s=0.05, max_speed_deg_s=1000)
+    ms = MotorSettings(watchdog_s=0.5, tau_s=0.05, max_speed_deg_s=1000, **IDEAL)
     loop = MotorLoop(SimMotor(ms, clock=clock), ms, rig="r", clock=clock, wall_ns=lambda: 7)
     s0 = loop.start()
     assert s0.status == "ok" and s0.pan_rad == 0.0 and s0.driver == "sim"

@@ -125,3 +125,55 @@ def bench_match(repeats: int = 400, seed: int = 0) -> dict:
             fn()
             times[name].append(time.perf_counter() - t0)
     return {k + "_ms": _median_ms(v) for k, v in times.items()}
+
+
+def bench_tracking(hzs=(0.25, 0.5, 1.0, 2.0), rates=(30.0, 60.0, 120.0), modes=("p", "predictive"),
+                   seconds: float = 5.0, seed: int = 0, baseline_m: float = 0.06, focal_px: float = 500.0,
+                   progress=None) -> list[dict]:
+    """Tracking error of the simulated loop (vergence.sim, virtual time) on `sine:z=0.8,amp=0.3,hz=F` for
+    each frequency, camera rate and controller mode, over `seconds` from a converged start, statistics after
+    the first second; then `step:z0=1.2,z1=0.6,at=1` at each rate and mode: the frames from the step to
+    within 1 px for good, and the overshoot past the new truth. One dict per row (progress(row) as each is
+    done)."""
+    import math
+
+    from .control import ControlSettings
+    from .sim.loop import closed_loop, tracking_error
+    from .sim.moving import Head, MovingRig
+
+    head = Head(baseline_m, focal_px)
+    rows = []
+
+    def loop(spec, rate, mode, frames):
+        rig = MovingRig(spec, head, seed=seed)
+        rig.start_pan_rad = rig.truth_pan(0.0)
+        return list(closed_loop(rig, frames, None, ControlSettings(mode=mode), None, rate))
+
+    for hz in hzs:
+        for rate in rates:
+            for mode in modes:
+                spec = f"sine:z=0.8,amp=0.3,hz={hz:g}"
+                steps = loop(spec, rate, mode, int(round(seconds * rate)))
+                row = dict(motion=spec, rate_hz=rate, mode=mode, **tracking_error(steps, int(round(rate))))
+                rows.append(row)
+                if progress:
+                    progress(row)
+    for rate in rates:
+        for mode in modes:
+            spec = "step:z0=1.2,z1=0.6,at=1"
+            steps = loop(spec, rate, mode, int(round(2 * rate)))
+            after = [s for s in steps if s.t_s >= 1.0]
+            settle = next((i for i in range(len(after)) if all(abs(s.error_px) <= 1.0 for s in after[i:])), None)
+            # the step brings the target nearer: the slave starts too far right (positive error); an
+            # overshoot is a negative error
+            over = max(0.0, -min(s.error_px for s in after))
+            row = dict(motion=spec, rate_hz=rate, mode=mode, settle_frames=settle,
+                       overshoot_px=over, **tracking_error(steps, int(round(rate)) + (settle or 0)))
+            rows.append(row)
+            if progress:
+                progress(row)
+    for r in rows:
+        for k, v in r.items():
+            if isinstance(v, float) and not math.isfinite(v):
+                r[k] = None
+    return rows

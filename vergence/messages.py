@@ -196,6 +196,8 @@ class Frame(Message):
     # the master's pan and the common tilt at capture (a fixed master: 0, 0), for the depth of the fixated point
     master_pan_rad: float = 0.0
     tilt_rad: float = 0.0
+    # a simulated source's ground truth: the converged slave pan at capture (None from real cameras)
+    truth_pan_rad: float | None = None
 
     @property
     def k_count(self) -> int:
@@ -228,6 +230,8 @@ class Frame(Message):
         self.band_strip()
         self.master_band_strip()
         _finite("frame.support_gamma", self.support_gamma, self.support_radius)
+        if self.truth_pan_rad is not None:
+            _finite("frame.truth_pan_rad", self.truth_pan_rad)
         if self.support_gamma <= 0 or self.support_radius <= 0:
             raise MessageError("frame.support_gamma and frame.support_radius must be positive")
         covered = 0
@@ -393,6 +397,7 @@ class Preview(Message):
     master: bytes
     slave: bytes
     pan_rad: float = 0.0
+    truth_pan_rad: float | None = None  # a simulated source's converged slave pan at capture
 
     def images(self) -> tuple[np.ndarray, np.ndarray]:
         shape = (self.height, self.width)
@@ -401,6 +406,8 @@ class Preview(Message):
 
     def validate(self) -> None:
         self.images()
+        if self.truth_pan_rad is not None:
+            _finite("preview.truth_pan_rad", self.truth_pan_rad)
 
 
 @dataclass

@@ -110,6 +110,10 @@ class Snapshot:
     pan_rad: float = math.nan             # actuator's measured position
     goal_rad: float = math.nan            # actuator's goal
     target_rad: float = math.nan          # last command's target
+    # a simulated source's ground truth, from the latest frame that carries it: the converged pan at its
+    # capture, and the frame's pan's error f tan(pan - truth) in pixels (NaN: no truth)
+    truth_rad: float = math.nan
+    truth_error_px: float = math.nan
     min_rad: float = math.nan
     max_rad: float = math.nan
     motor_status: str = ""
@@ -152,6 +156,7 @@ class Monitor:
         self._plan: dict[str, tuple[int, int]] = {}
         self._plan_frame = -1
         self._fovea: tuple[int, int] | None = None
+        self._truth: tuple[float, float] | None = None  # (truth, error px) of the latest frame with a truth
         self._partials: dict[str, tuple[int, int]] = {}
         self._motor: m.MotorState | None = None
         self._status: dict[str, dict] = {}
@@ -256,6 +261,8 @@ class Monitor:
         if f.plan:
             self._plan = {str(w): (int(a), int(b)) for w, a, b in f.plan}
             self._plan_frame = f.frame
+        if f.truth_pan_rad is not None:
+            self._truth = (f.truth_pan_rad, f.focal_px * math.tan(f.pan_rad - f.truth_pan_rad))
 
     def _on_profile(self, p: m.Profile, t: int) -> None:
         self._rates["profile"].add(t)
@@ -332,6 +339,8 @@ class Monitor:
                 s.motor_status, s.at_limit = mo.status, mo.at_limit
             if self._command is not None:
                 s.target_rad = self._command.pan_rad
+            if self._truth is not None:
+                s.truth_rad, s.truth_error_px = self._truth
             s.profile, s.command = self._profile, self._command
             s.pan_history = [((now - t) / 1e9, v) for t, v in self._pan_hist]
             s.target_history = [((now - t) / 1e9, v) for t, v in self._target_hist]
@@ -485,6 +494,9 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
         status += " AT LIMIT"
     out.append(f"pan {_deg(s.pan_rad)}   goal {_deg(s.goal_rad)}   target {_deg(s.target_rad)}{lim}   "
                f"status {status}")
+    if math.isfinite(s.truth_rad):
+        out.append(f"truth {_deg(s.truth_rad)} (the simulator's converged pan at the last capture; that frame's "
+                   f"pan is {s.truth_error_px:+.2f} px off it)")
     pans = [v for _, v in s.pan_history]
     if pans:
         lo, hi = min(pans), max(pans)

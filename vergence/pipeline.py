@@ -156,7 +156,7 @@ def make_profile(frame: Frame, scores: np.ndarray, d: Decision, t_reduced_ns: in
 
 def _command(frame: Frame, d: Decision, controller: Controller) -> Command | None:
     target = controller.target(frame.pan_rad, d.offset_px, frame.focal_px, d.confident,
-                               centre_px=frame.x - frame.width // 2)
+                               centre_px=frame.x - frame.width // 2, t_s=frame.t_capture_ns / 1e9)
     if target is None:
         return None
     return Command(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, pan_rad=target,

@@ -4,17 +4,22 @@
     video:LEFT,RIGHT     two video files read in step (rewound at the end)
     camera:0,1           two OpenCV devices (indices or paths)
     sim[:key=value:...]  the rig simulator (vergence.sim.Rig.from_spec); the slave is rendered at the pan
-                         the capture passes in, so the loop closes through the motor state
+                         the capture passes in, so the loop closes through the motor state. With
+                         motion=SPEC (sim:motion=sine:z=0.8,amp=0.3,hz=0.5:focal=500) a target moves in
+                         depth in front of the physical rig, on the wall clock from the first read
 
 Every source has .size (W, H), .focal_px (0: unknown, the capture picks one), .start_pan_rad, read(pan_rad)
--> (master, slave) uint8 gray arrays (the caller must not modify them), and close(). `master` says which
+-> (master, slave) uint8 gray arrays (the caller must not modify them), close(), and .truth_pan_rad: the
+converged slave pan of the last read when the source knows it (the simulator), else None. `master` says which
 camera is the fixed one ("left" or "right"). Errors are SourceError naming the file or device and the fix.
 No network code here.
 """
 
 from __future__ import annotations
 
+import math
 import os
+import time
 
 import cv2
 import numpy as np
@@ -56,6 +61,7 @@ class Source:
     size: tuple[int, int] = (0, 0)
     focal_px: float = 0.0
     start_pan_rad: float = 0.0
+    truth_pan_rad: float | None = None
 
     def __init__(self, master: str = "left"):
         if master not in ("left", "right"):
@@ -211,9 +217,16 @@ class SimSource(Source):
         # the master's aim and the gimbal, for the depth of the fixated point (services/capture.py)
         self.master_pan_rad, self.tilt_rad = float(self.rig.master_pan_rad), float(self.rig.tilt_rad)
         self.gimbal = self.rig.gimbal
+        self.t0: float | None = None  # the scene's time 0: the first read
 
     def read(self, pan_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-        return self.rig.render(pan_rad)
+        now = time.monotonic()
+        if self.t0 is None:
+            self.t0 = now
+        t = now - self.t0
+        truth = self.rig.truth_pan(t)
+        self.truth_pan_rad = truth if math.isfinite(truth) else None
+        return self.rig.render(pan_rad, t)
 
 
 def open_source(spec: str, master: str = "left") -> Source:

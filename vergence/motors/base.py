@@ -35,7 +35,12 @@ class MotorSettings:
     ahead of our clock is implausible and ignored (a claim from the future would otherwise make every real
     command stale); 0 = no check. torque_off_on_stop: release the motor on exit.
     timeout_s: serial reply timeout; retries: attempts per transaction before it counts as failed.
-    tau_s, start_deg: the simulated motor's first-order time constant and its starting pan.
+    The simulated motor (vergence.motors.simulated), defaults of a Dynamixel X-series on a 1 Mbps bus:
+    latency_s: from a goal written to the motor starting on it (the instruction and status packets, the
+    return delay and one control period: about 2 ms). max_accel_deg_s2: the largest acceleration (0: none).
+    tau_s: the position loop's time constant near the goal (the final approach is first order). quantise:
+    the goal and the reported position are whole ticks (ticks_per_rev), as a Dynamixel's are. start_deg:
+    its starting pan.
     """
 
     id: int = 1
@@ -55,8 +60,11 @@ class MotorSettings:
     set_profile_velocity: bool = False
     timeout_s: float = 0.05
     retries: int = 3
-    tau_s: float = 0.02
+    tau_s: float = 0.01
     start_deg: float = 0.0
+    latency_s: float = 0.002
+    max_accel_deg_s2: float = 5000.0
+    quantise: bool = True
 
     def __post_init__(self):
         if self.direction not in (1, -1):
@@ -67,7 +75,8 @@ class MotorSettings:
             raise ValueError(f"ticks_per_rev must be positive, got {self.ticks_per_rev}")
         if not (self.max_step_deg > 0 and math.isfinite(self.max_step_deg)):
             raise ValueError(f"max_step_deg must be a positive number, got {self.max_step_deg}")
-        for name in ("max_speed_deg_s", "dead_band_deg", "watchdog_s", "max_age_s", "max_skew_s", "tau_s"):
+        for name in ("max_speed_deg_s", "dead_band_deg", "watchdog_s", "max_age_s", "max_skew_s", "tau_s",
+                     "latency_s", "max_accel_deg_s2"):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
                 raise ValueError(f"{name} must be >= 0, got {v}")

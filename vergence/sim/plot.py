@@ -1,5 +1,5 @@
-"""A PNG of a closed-loop run, drawn with OpenCV: the pan trajectory and the layer-4 profiles of the first
-and the last frame (the paper's figure 5)."""
+"""PNGs of closed-loop runs, drawn with OpenCV: the pan trajectory and the layer-4 profiles of the first
+and the last frame (the paper's figure 5); for a moving target, truth and pan over time and the error."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 from ..decide import centre_offset
 from .loop import Step
 
-__all__ = ["plot_run", "draw_axes_plot"]
+__all__ = ["plot_run", "plot_tracking", "draw_axes_plot"]
 
 WHITE, BLACK, GREY = (255, 255, 255), (0, 0, 0), (170, 170, 170)
 BLUE, RED, GREEN, ORANGE = (200, 80, 20), (40, 40, 220), (40, 150, 40), (0, 140, 255)
@@ -96,6 +96,30 @@ def plot_run(steps: list[Step], path: str, one_px_deg: float, width: int = 900,
     draw_axes_plot(img, (0, height // 2, width, height), series, "Layer 4: y(k), first and last frame",
                    "k (offset of the slave window)", "y(k)",
                    vlines=[(first.k, ORANGE, "k* first"), (last.k, BLUE, "k* last"), (kc, RED, "k_c")])
+    if not cv2.imwrite(path, img):
+        raise OSError(f"cannot write {path}")
+    return img
+
+
+def plot_tracking(steps: list[Step], path: str, title: str = "", first: int = 0, width: int = 900,
+                  height: int = 700) -> np.ndarray:
+    """Write the PNG (and return the image) of a tracking run: the converged pan (truth) and the slave's
+    pan over time on top, the error in pixels below from frame `first` on (grey: +-1 px)."""
+    from .loop import tracking_error
+
+    img = np.full((height, width, 3), 255, np.uint8)
+    t = np.array([s.t_s for s in steps])
+    pans = np.array([s.pan_deg for s in steps])
+    truth = np.array([s.truth_pan_deg for s in steps])
+    err = np.array([s.error_px for s in steps])
+    draw_axes_plot(img, (0, 0, width, height // 2), [(t, truth, GREEN, "truth (converged pan)"),
+                                                      (t, pans, BLUE, "slave pan")],
+                   f"Slave pan and truth: {title}", "time (s)", "pan (deg)")
+    e = tracking_error(steps, first)
+    t0 = steps[first].t_s if first < len(steps) else 0.0
+    draw_axes_plot(img, (0, height // 2, width, height), [(t[first:], err[first:], RED, "error (px)")],
+                   f"Error f tan(pan - truth): from {t0:g} s, RMS {e['rms_px']:.2f} px, max {e['max_px']:.2f} px",
+                   "time (s)", "error (px)", hlines=[(1.0, GREY), (-1.0, GREY), (0.0, BLACK)])
     if not cv2.imwrite(path, img):
         raise OSError(f"cannot write {path}")
     return img

@@ -153,7 +153,7 @@ class Rig:
             "offset", "blur", "vmis", "pan", "seed", "gimbal")
 
     @classmethod
-    def from_spec(cls, spec: str) -> "Rig":
+    def from_spec(cls, spec: str):
         """A rig from the text after `sim:` ("" = the generated scene, defaults everywhere).
 
         Items separated by ':' as key=value: left=PATH, right=PATH (a rectified pair), disparity=PATH
@@ -161,18 +161,31 @@ class Rig:
         disparity at the fixation point); fixate=X,Y (default the centre), focal=F (px), size=WxH (views),
         noise=SIGMA, gain=G, offset=O, blur=S, vmis=PX, pan=DEG (the slave's start pan), seed=N,
         gimbal=helmholtz|fick.
+        With motion=SPEC (vergence.sim.motion, e.g. motion=sine:z=0.8,amp=0.3,hz=0.5) the scene is the moving
+        target on the physical rig instead (vergence.sim.moving.MovingRig.from_options: baseline=M,
+        focal=PX, size=WxH, noise, seed, pan, texture=FILE|flat, target=M, bg=M).
         A bad key or value raises ValueError naming it."""
+        from .moving import MovingRig
+        from .motion import KINDS
+
         items: dict[str, str] = {}
-        for item in (spec or "").split(":"):
+        parts = (spec or "").split(":")
+        keys = cls.KEYS + tuple(k for k in MovingRig.KEYS if k not in cls.KEYS)
+        while parts:
+            item = parts.pop(0)
             if not item.strip():
                 continue
             key, eq, value = item.partition("=")
-            key = key.strip()
+            key, value = key.strip(), value.strip()
             if not eq:
-                raise ValueError(f"sim source item {item!r} is not key=value; keys: {', '.join(cls.KEYS)}")
-            if key not in cls.KEYS:
-                raise ValueError(f"sim source: unknown key {key!r}; keys: {', '.join(cls.KEYS)}")
-            items[key] = value.strip()
+                raise ValueError(f"sim source item {item!r} is not key=value; keys: {', '.join(keys)}")
+            if key not in keys:
+                raise ValueError(f"sim source: unknown key {key!r}; keys: {', '.join(keys)}")
+            if key == "motion" and parts and (value in KINDS or parts[0].partition("=")[0].strip() not in keys):
+                value = f"{value}:{parts.pop(0).strip()}"  # motion=sine:z=0.8,... : the next item is its own
+            items[key] = value
+        if "motion" in items:
+            return MovingRig.from_options(**items)
         return cls.from_options(**items)
 
     @classmethod
@@ -253,8 +266,9 @@ class Rig:
         n = self._banks[camera][i, dy:dy + h, dx:dx + w]
         return np.clip(img + n, 0, 255).astype(np.uint8)
 
-    def render(self, slave_pan_rad: float) -> tuple[np.ndarray, np.ndarray]:
-        """(master, slave) uint8 gray views, the slave panned to slave_pan_rad (radians)."""
+    def render(self, slave_pan_rad: float, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(master, slave) uint8 gray views, the slave panned to slave_pan_rad (radians); the scene is
+        still, so the time t does not matter (the moving scene's render takes it too)."""
         if not math.isfinite(slave_pan_rad):
             raise ValueError(f"slave pan {slave_pan_rad} is not finite")
         slave = self._warp(self.right, slave_pan_rad, self.slave_tilt_rad)
@@ -272,7 +286,11 @@ class Rig:
         """atan(1 / f): the pan of one pixel at the view centre (the convergence tolerance)."""
         return math.atan(1.0 / self.focal_px)
 
-    def error_px(self, slave_pan_rad: float) -> float:
+    def truth_pan(self, t: float = 0.0) -> float:
+        """The converged pan at time t: the scene is still, always truth_pan_rad."""
+        return self.truth_pan_rad
+
+    def error_px(self, slave_pan_rad: float, t: float = 0.0) -> float:
         """f tan(pan - truth): how many pixels the slave has turned past the converged pan (positive: too far
         right, the fixated point is then left of the slave's centre). NaN when the truth is unknown."""
         return self.focal_px * math.tan(slave_pan_rad - self.truth_pan_rad)

@@ -1,0 +1,236 @@
+"""A physical rig and a scene that moves in depth: the simulator of dynamic vergence.
+
+The head (Head): two pinhole cameras of focal f px with the principal point at the view centre
+(W // 2, H // 2), the master at the origin looking along +z, the slave baseline_m to its right (+x), both
+upright (y down). A point at depth Z on the master's optical axis has the disparity d = b f / Z, and the
+slave fixates it at the pan -atan(b / Z) (positive pan turns the slave toward +x, as everywhere here).
+
+The scene (MovingRig): a textured fronto-parallel target, a square target_m wide centred on the master's
+optical axis at the distance Z(t) of a trajectory (vergence.sim.motion), in front of a textured background
+plane at bg_m. Each view is rendered from the geometry: the plane-to-view homography
+K R^T [s e1, s e2, (0, 0, Z) - C - s (u0, v0, 0)] of each textured plane (s metres per texel, (u0, v0) its
+centre texel, C the camera's centre, R its rotation), the target blended over the background through its
+warped mask. Time is whatever the caller says (render(pan, t)): virtual in `vergence sim`, the wall clock
+since start in the capture's sim source."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .motion import Motion, parse_motion
+from .rig import intrinsics, rotation
+from .scene import texture
+
+__all__ = ["Head", "MovingRig"]
+
+
+@dataclass(frozen=True)
+class Head:
+    """The rig's geometry: baseline (m), focal length (px), view size (W, H)."""
+
+    baseline_m: float = 0.06
+    focal_px: float = 512.0
+    size: tuple[int, int] = (640, 480)
+
+    def __post_init__(self):
+        if not (self.baseline_m > 0 and math.isfinite(self.baseline_m)):
+            raise ValueError(f"baseline={self.baseline_m}: must be a positive number of metres")
+        if not (self.focal_px > 0 and math.isfinite(self.focal_px)):
+            raise ValueError(f"focal={self.focal_px}: must be a positive number of pixels")
+        if self.size[0] < 16 or self.size[1] < 16:
+            raise ValueError(f"size={self.size[0]}x{self.size[1]}: views must be at least 16 x 16")
+
+    def disparity_px(self, z_m: float) -> float:
+        """d = b f / Z of a point at depth Z on the master's axis."""
+        return self.baseline_m * self.focal_px / z_m
+
+    def converged_pan(self, z_m: float) -> float:
+        """The slave pan (radians) that fixates the point at depth Z on the master's axis: -atan(b / Z)."""
+        return -math.atan(self.baseline_m / z_m)
+
+    def depth(self, slave_pan_rad: float) -> float:
+        """The inverse: the depth on the master's axis the slave fixates at this pan (inf when parallel)."""
+        return self.baseline_m / math.tan(-slave_pan_rad) if slave_pan_rad < 0 else math.inf
+
+    @property
+    def K(self) -> np.ndarray:
+        return intrinsics(self.focal_px, self.size[0] // 2, self.size[1] // 2)
+
+
+class _Noise:
+    """Per-camera Gaussian sensor noise cut out of a few pre-drawn fields (as vergence.sim.rig.Rig)."""
+
+    BANK, PAD = 6, 64
+
+    def __init__(self, sigma: float, seed: int):
+        self.sigma = float(sigma)
+        self.rng = np.random.default_rng(seed + 1_000_003)
+        self.banks: list[np.ndarray] = []
+
+    def __call__(self, img: np.ndarray, camera: int) -> np.ndarray:
+        if self.sigma <= 0:
+            return img
+        h, w = img.shape
+        while len(self.banks) <= camera:
+            shape = (self.BANK, h + self.PAD, w + self.PAD)
+            self.banks.append(np.rint(self.rng.standard_normal(shape, dtype=np.float32)
+                                      * np.float32(self.sigma)).astype(np.int16))
+        i, dy, dx = (int(v) for v in self.rng.integers(0, (self.BANK, self.PAD, self.PAD)))
+        return np.clip(img + self.banks[camera][i, dy:dy + h, dx:dx + w], 0, 255).astype(np.uint8)
+
+
+class MovingRig:
+    """The head in front of the moving target (see the module's docstring).
+
+    motion: a Motion or its spec text. target_tex: the target's texture (uint8 gray; None: procedural,
+    "flat": uniform gray, no texture at all). target_m: the target's width (default: 240 px wide at its
+    farthest). bg_m: the background's distance (default max(3, 2 x the farthest target)). noise: sensor
+    noise sigma, each camera its own. start_pan_deg: the slave's pan before the loop starts."""
+
+    # the master looks straight ahead, untilted (both gimbals agree there): for the depth of the fixated point
+    master_pan_rad = 0.0
+    tilt_rad = 0.0
+    gimbal = "helmholtz"
+
+    def __init__(self, motion: Motion | str, head: Head | None = None, *, target_tex: np.ndarray | str | None = None,
+                 target_m: float | None = None, bg_m: float | None = None, noise: float = 0.0,
+                 start_pan_deg: float = 0.0, seed: int = 0):
+        self.motion = parse_motion(motion) if isinstance(motion, str) else motion
+        self.head = head or Head()
+        self.size = self.head.size
+        self.focal_px = self.head.focal_px
+        zmin, zmax = self.motion.z_range
+        f = self.focal_px
+        self.target_m = float(target_m) if target_m is not None else 240.0 * zmax / f
+        self.bg_m = float(bg_m) if bg_m is not None else max(3.0, 2.0 * zmax)
+        if not (self.target_m > 0 and math.isfinite(self.target_m)):
+            raise ValueError(f"target={target_m}: must be a positive width in metres")
+        if not (math.isfinite(self.bg_m) and self.bg_m > zmax):
+            raise ValueError(f"bg={bg_m}: the background must be farther than the target's farthest {zmax:g} m")
+        if not (noise >= 0 and math.isfinite(noise)):
+            raise ValueError(f"noise={noise}: must be a finite number >= 0")
+        if not math.isfinite(start_pan_deg):
+            raise ValueError(f"pan={start_pan_deg}: must be a finite number")
+        self.start_pan_rad = math.radians(start_pan_deg)
+        rng = np.random.default_rng(seed)
+        # the target: about one texel per pixel at the middle of its range
+        zref = math.sqrt(zmin * zmax)
+        n = max(16, int(round(self.target_m * f / zref)))
+        if isinstance(target_tex, str) and target_tex == "flat":
+            tex = np.full((n, n), 128, np.uint8)
+        elif target_tex is not None:
+            if not (isinstance(target_tex, np.ndarray) and target_tex.ndim == 2 and target_tex.dtype == np.uint8):
+                raise ValueError("texture: must be a 2-D uint8 gray image")
+            th, tw = target_tex.shape
+            tex = cv2.resize(target_tex, (n, max(16, round(n * th / tw))), interpolation=cv2.INTER_AREA)
+        else:
+            tex = texture(rng, n, n, float(rng.uniform(110, 150)), 48.0)
+        self.target_tex = tex
+        self.target_s = self.target_m / tex.shape[1]  # metres per texel
+        # the background: one texel per pixel, wide enough for +-60 degrees
+        w, h = self.size
+        bw, bh = 3 * w + 64, 3 * h + 64
+        self.bg_tex = texture(rng, bh, bw, float(rng.uniform(80, 170)), 40.0)
+        self.bg_s = self.bg_m / f
+        self.noise = _Noise(noise, seed)
+        self._tex_mask = np.ascontiguousarray(np.dstack([tex, np.full(tex.shape, 255, np.uint8)]))
+
+    # -- geometry ---------------------------------------------------------------------------------------
+
+    def truth_pan(self, t: float) -> float:
+        """The converged slave pan at time t: -atan(b / Z(t))."""
+        return self.head.converged_pan(self.motion.z(t))
+
+    @property
+    def truth_pan_rad(self) -> float:
+        return self.truth_pan(0.0)
+
+    @property
+    def one_px_rad(self) -> float:
+        return math.atan(1.0 / self.focal_px)
+
+    def error_px(self, slave_pan_rad: float, t: float = 0.0) -> float:
+        """f tan(pan - truth(t)): positive when the slave has turned too far right."""
+        return self.focal_px * math.tan(slave_pan_rad - self.truth_pan(t))
+
+    def _homography(self, tex_shape, s: float, z: float, centre_x: float, pan: float) -> np.ndarray:
+        th, tw = tex_shape
+        u0, v0 = (tw - 1) / 2.0, (th - 1) / 2.0
+        plane = np.array([[s, 0.0, -s * u0 - centre_x], [0.0, s, -s * v0], [0.0, 0.0, z]])
+        return self.head.K @ rotation(pan, 0.0).T @ plane
+
+    def _view(self, z: float, centre_x: float, pan: float) -> np.ndarray:
+        size = self.size
+        hb = self._homography(self.bg_tex.shape, self.bg_s, self.bg_m, centre_x, pan)
+        bg = cv2.warpPerspective(self.bg_tex, hb, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        ht = self._homography(self.target_tex.shape, self.target_s, z, centre_x, pan)
+        # texture and mask in one warp, outside = 0: the texture channel comes out premultiplied by the mask
+        tm = cv2.warpPerspective(self._tex_mask, ht, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                 borderValue=(0, 0, 0, 0))
+        a = tm[..., 1].astype(np.float32) * np.float32(1 / 255)
+        return np.rint(bg * (1 - a) + tm[..., 0]).astype(np.uint8)
+
+    def render(self, slave_pan_rad: float, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(master, slave) uint8 gray views at time t, the slave panned to slave_pan_rad."""
+        if not (math.isfinite(slave_pan_rad) and math.isfinite(t)):
+            raise ValueError(f"slave pan {slave_pan_rad} or time {t} is not finite")
+        z = self.motion.z(t)
+        master = self._view(z, 0.0, 0.0)
+        slave = self._view(z, self.head.baseline_m, slave_pan_rad)
+        return self.noise(master, 0), self.noise(slave, 1)
+
+    # -- construction from text ---------------------------------------------------------------------------
+
+    KEYS = ("motion", "baseline", "focal", "size", "noise", "seed", "pan", "texture", "target", "bg")
+
+    @classmethod
+    def from_options(cls, **items: str | None) -> "MovingRig":
+        """A moving rig from keyword strings (None: default): motion=SPEC, baseline=M (0.06), focal=PX
+        (0.8 x width), size=WxH (640x480), noise=SIGMA, seed=N, pan=DEG (the slave's start pan),
+        texture=FILE|flat (the target's; default procedural), target=M (its width), bg=M (the background's
+        distance). A bad key or value raises ValueError naming it."""
+        from ..sources import read_image
+
+        items = {k: v for k, v in items.items() if v is not None}
+        unknown = sorted(set(items) - set(cls.KEYS))
+        if unknown:
+            raise ValueError(f"sim source: {unknown[0]}= does not go with motion=; keys: {', '.join(cls.KEYS)}")
+
+        def num(key, conv=float, default=None):
+            if key not in items:
+                return default
+            try:
+                v = conv(items[key])
+            except ValueError:
+                raise ValueError(f"sim source: {key}={items[key]!r} is not a {conv.__name__}") from None
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ValueError(f"sim source: {key}={items[key]!r} is not finite")
+            return v
+
+        try:
+            size = (640, 480)
+            if "size" in items:
+                try:
+                    size = tuple(int(p) for p in items["size"].lower().split("x"))
+                    assert len(size) == 2
+                except (ValueError, AssertionError):
+                    raise ValueError(f"size={items['size']!r} must be WxH") from None
+            focal = num("focal", default=0.8 * size[0])
+            head = Head(num("baseline", default=0.06), focal, size)
+            tex = items.get("texture")
+            if tex is not None and tex != "flat":
+                tex = read_image(tex)
+            return cls(items.get("motion", "still:z=0.8"), head, target_tex=tex, target_m=num("target"),
+                       bg_m=num("bg"), noise=num("noise", default=0.0), start_pan_deg=num("pan", default=0.0),
+                       seed=num("seed", int, 0))
+        except ValueError as e:
+            msg = str(e)
+            raise ValueError(msg if msg.startswith("sim source") else f"sim source: {msg}") from None
+
+    def pan_off_truth(self, px: float, t: float = 0.0) -> float:
+        """truth(t) + atan(px / f): the slave pan px pixels past the converged one."""
+        return self.truth_pan(t) + math.atan(px / self.focal_px)
