@@ -69,7 +69,7 @@ def test_fixate_through_vergence_up(tmp_path):
     (d = 36 px: 0.853 m): its first decision there within 0.2 s at 30 Hz, the slave pan re-converged within
     1 px of that point's converged pan, the depth within 1 %. Out-of-image, NaN and non-msgpack requests are
     rejected and counted, and the fovea stays. `vergence fixate 320,400` (the background, d = 8 px) as a user
-    runs it."""
+    runs it (within two stated sigmas there: 8 px of disparity hold no 1 % depth)."""
     rig = Rig.from_spec("")
     cfg = tmp_path / "v.toml"
     cfg.write_text("[rig]\nbaseline_m = 0.06\n")
@@ -134,7 +134,12 @@ def test_fixate_through_vergence_up(tmp_path):
         wait_for(lambda: abs(pan() - truth) <= rig.one_px_rad, 10, "the slave converged on (320, 400)", logs=P.logs)
         t3 = time.time_ns()
         z = wait_for(lambda: _converged_depths(decisions, (320, 400), t3, 10), 10, "converged there", logs=P.logs)
-        assert d == 8 and np.median(z) == pytest.approx(0.06 * 512 / 8, rel=0.01)
+        # 3.84 m at 8 px: a 0.1 px residual is 1.3 %, and the decisions say so (sigma about 1.8 %): within two of
+        # their own sigmas (measured 3.89-3.90 m; the 1 % bar above is for d = 24 and 36 px)
+        sigma = np.median([v.depth_sigma_m for _, v in _verdicts(decisions, t3) if (v.x, v.y) == (320, 400)
+                           and v.converged])
+        assert d == 8 and 0.01 * 3.84 < sigma < 0.03 * 3.84
+        assert np.median(z) == pytest.approx(0.06 * 512 / 8, abs=2 * sigma)
 
 
 @pytest.mark.slow
