@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from .motion import Motion, parse_motion
-from .rig import intrinsics, rotation
+from .rig import intrinsics, option_number, rotation
 from .scene import texture
 
 __all__ = ["Head", "MovingRig"]
@@ -201,15 +201,7 @@ class MovingRig:
             raise ValueError(f"sim source: {unknown[0]}= does not go with motion=; keys: {', '.join(cls.KEYS)}")
 
         def num(key, conv=float, default=None):
-            if key not in items:
-                return default
-            try:
-                v = conv(items[key])
-            except ValueError:
-                raise ValueError(f"sim source: {key}={items[key]!r} is not a {conv.__name__}") from None
-            if isinstance(v, float) and not math.isfinite(v):
-                raise ValueError(f"sim source: {key}={items[key]!r} is not finite")
-            return v
+            return option_number(items, key, conv, default)
 
         try:
             size = (640, 480)

@@ -35,6 +35,20 @@ __all__ = ["Rig", "rotation", "homography"]
 GIMBALS = ("helmholtz", "fick")
 
 
+def option_number(items: dict, key: str, conv=float, default=None):
+    """items[key] (a sim source's option text) as conv (float or int), default when absent; ValueError naming
+    the key when it is not a finite number."""
+    if key not in items:
+        return default
+    try:
+        v = conv(items[key])
+    except ValueError:
+        raise ValueError(f"sim source: {key}={items[key]!r} is not a {conv.__name__}") from None
+    if isinstance(v, float) and not math.isfinite(v):
+        raise ValueError(f"sim source: {key}={items[key]!r} is not finite")
+    return v
+
+
 def rotation(pan_rad: float, tilt_rad: float, gimbal: str = "helmholtz") -> np.ndarray:
     """Camera to world (x right, y down, z forward): R_x(tilt) R_y(pan) (helmholtz) or R_y(pan) R_x(tilt)."""
     cp, sp = math.cos(pan_rad), math.sin(pan_rad)
@@ -194,15 +208,7 @@ class Rig:
         items = {k: v for k, v in items.items() if v is not None}
 
         def num(key, conv=float, default=None):
-            if key not in items:
-                return default
-            try:
-                v = conv(items[key])
-            except ValueError:
-                raise ValueError(f"sim source: {key}={items[key]!r} is not a {conv.__name__}") from None
-            if isinstance(v, float) and not math.isfinite(v):
-                raise ValueError(f"sim source: {key}={items[key]!r} is not finite")
-            return v
+            return option_number(items, key, conv, default)
 
         def pair(key, sep, conv):
             if key not in items:
