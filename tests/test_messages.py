@@ -116,7 +116,7 @@ def test_decision_validation_names_the_field(change, says):
 
 
 @pytest.mark.parametrize("kind", list(SAMPLES))
-@pytest.mark.parametrize("mutation", ["missing", "wrong-type", "old-schema", "not-a-map", "list"])
+@pytest.mark.parametrize("mutation", ["missing", "wrong-type", "old-schema", "no-schema", "not-a-map", "list"])
 def test_wrong_types_and_fields_raise_message_error(kind, mutation):
     d = SAMPLES[kind].to_dict()
     name = next(iter(k for k in d if k != "v"))
@@ -126,6 +126,8 @@ def test_wrong_types_and_fields_raise_message_error(kind, mutation):
         d[name] = {"x": 1}
     elif mutation == "old-schema":
         d["v"] = 0
+    elif mutation == "no-schema":
+        del d["v"]
     elif mutation == "not-a-map":
         d = "frame"
     else:

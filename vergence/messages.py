@@ -4,7 +4,7 @@ Decoding never trusts its input: a message that is not a map, lacks a field, has
 type, or arrays whose sizes do not agree with their shape fields raises MessageError, which services count
 and skip. msgspec checks the types (one Decoder per kind, made once; its errors name the field, `at $.x`),
 each kind's validate() the values. Arrays travel as binary fields (raw little-endian bytes), never as lists of
-numbers. A map without `v` reads as this schema; another `v` is refused.
+numbers. A map without `v`, or with another schema's, is refused.
 """
 
 from __future__ import annotations
@@ -50,6 +50,8 @@ class Message(msgspec.Struct, tag_field="v", tag=SCHEMA):
             raise MessageError(f"{cls.KIND}: {len(data)} bytes, more than {MAX_MESSAGE}")
         try:
             msg = _DECODERS[cls].decode(data)
+            if type(msg) is not cls:  # the sentinel kind of _NoSchema
+                raise msgspec.ValidationError(f"Invalid value {-2**63} - at `$.v`")
         except msgspec.ValidationError as e:
             if str(e).endswith("at `$.v`"):
                 raise MessageError(f"{cls.KIND}: schema version: {e}, this build speaks {SCHEMA}") from None
@@ -67,6 +69,11 @@ class Message(msgspec.Struct, tag_field="v", tag=SCHEMA):
 
     def validate(self) -> None:
         """Cross-field checks; raise MessageError."""
+
+
+class _NoSchema(Message, tag=-2**63):
+    """A decoder's second choice that no message is (its v is no schema), so that msgspec, choosing between two
+    tagged kinds, requires the tag: a map without `v` is refused, as it was before msgspec."""
 
 
 def replace(msg: Message, **changes) -> Message:
@@ -355,6 +362,6 @@ KINDS: dict[str, type[Message]] = {c.KIND: c for c in (Frame, Partial, Verdict, 
                                                          Preview, Fixate)}
 
 for _cls in KINDS.values():
-    _DECODERS[_cls] = msgspec.msgpack.Decoder(_cls)
+    _DECODERS[_cls] = msgspec.msgpack.Decoder(typing.Union[_cls, _NoSchema])
     _FLOATS[_cls] = tuple(name for name, tp in typing.get_type_hints(_cls).items()
                           if name in _cls.__struct_fields__ and tp in (float, float | None))
