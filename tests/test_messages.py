@@ -172,10 +172,13 @@ def test_settings_from_toml(tmp_path):
 
 
 @pytest.mark.parametrize("data,says", [
-    ({"network": {"window": "big"}}, "network.window: expected int"),
-    ({"capture": {"rate_hz": True}}, "capture.rate_hz: expected float"),
+    ({"network": {"window": "big"}}, r"network\.window: expected `int`, got `str`"),
+    ({"capture": {"rate_hz": True}}, r"capture\.rate_hz: expected `float`, got `bool`"),
+    ({"actuator": {"motor": {"retries": 0}}}, r"actuator\.motor: retries must be >= 1"),
+    ({"rig": {"gimbal": "x"}}, r"rig: gimbal='x': must be helmholtz or fick"),
     ({"control": 3}, "control: expected a table"),
-    ({"colour": 1}, "colour: unknown setting"),
+    ({"colour": 1}, "colour: unknown setting; known here: actuator, capture, control, geometry"),
+    (5, "settings: expected a table, got `int`"),
 ])
 def test_bad_settings_name_the_field(data, says):
     with pytest.raises(ConfigError, match=says):
