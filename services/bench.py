@@ -117,6 +117,3 @@ def run(args: argparse.Namespace) -> int:
         return _match(args)
     return importlib.import_module("services.bench_pipeline").run(args)
 
-
-if __name__ == "__main__":
-    sys.exit(0)

@@ -2,7 +2,7 @@
 
 The settings are frozen dataclasses (vergence.match.Params, vergence.control.ControlSettings and
 vergence.motors.MotorSettings among them); msgspec checks a parsed file against them (types, unknown keys,
-each class's __post_init__), its errors giving the path: `network.window: expected `int`, got `str``.
+each class's __post_init__), its errors giving the path (network.window: expected `int`, got `str`).
 
     rig = "head"          # the rig's name (the key prefix vergence/<rig>/), or name = "head" in [rig]
     [rig]       # the rig's geometry: baseline_m, focal_px, master, gimbal (vergence.depth)
