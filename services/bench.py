@@ -1,5 +1,5 @@
-"""`vergence bench kernel|match|pipeline|tracking`: benchmarks that print ratios against baselines run alongside
-(tracking: the p controller is the predictive one's baseline, in the same virtual-time runs)."""
+"""`vergence bench kernel|match|messages|pipeline|tracking`: benchmarks that print ratios against baselines run
+alongside (tracking: the p controller is the predictive one's baseline, in the same virtual-time runs)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     m = sub.add_parser("match", help="vergence.match for one point of a 640 x 480 pair")
     m.add_argument("--json", action="store_true")
     m.add_argument("--repeats", type=int, default=400)
+    g = sub.add_parser("messages", help="decode and encode time per message kind vs a bare msgpack parse")
+    g.add_argument("--json", action="store_true", help="one JSON object per kind")
+    g.add_argument("--repeats", type=int, default=9)
     t = sub.add_parser("tracking", help="tracking error on a target moving in depth (simulated, virtual time): "
                                         "sine 0.25-2 Hz x 30/60/120 Hz x p/predictive, and a step")
     t.add_argument("--json", action="store_true", help="one JSON object per row")
@@ -71,6 +74,21 @@ def _match(args) -> int:
     return 0
 
 
+def _messages(args) -> int:
+    from vergence.bench import bench_messages
+
+    for r in bench_messages(args.repeats):
+        if args.json:
+            print(json.dumps(r))
+        else:
+            print(f"{r['kind']:9s} {r['bytes']:6d} B  decode {r['decode_us']:6.2f} us  (msgpack.unpackb "
+                  f"{r['msgpack_us']:6.2f} us, x{r['vs_msgpack']:.2f})  encode {r['encode_us']:5.2f} us")
+    if not args.json:
+        print("medians in us at 640 x 480, w = 15, R = 6; decode = Class.from_bytes (msgspec, type and value checks), "
+              "its baseline a bare msgpack parse to a dict")
+    return 0
+
+
 def _tracking(args) -> int:
     from vergence.bench import bench_tracking
 
@@ -109,6 +127,8 @@ def _tracking(args) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.bench == "messages":
+        return _messages(args)
     if args.bench == "tracking":
         return _tracking(args)
     if args.bench == "kernel":
@@ -117,6 +137,3 @@ def run(args: argparse.Namespace) -> int:
         return _match(args)
     return importlib.import_module("services.bench_pipeline").run(args)
 
-
-if __name__ == "__main__":
-    sys.exit(0)

@@ -32,7 +32,7 @@ import zenoh
 
 from vergence import depth, kernel, pipeline
 from vergence.config import load
-from vergence.messages import Frame, MessageError, Partial
+from vergence.messages import Frame, MessageError, Partial, replace as replace_message
 
 from . import session
 
@@ -148,9 +148,9 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
                     health.count("commands")
                 where = depth.decision_fields(r.frame, r.decision, r.scores, geo.baseline_m, geo.gimbal,
                                               geo.master or settings.capture.master)
-                pub_decision.put(dataclasses.replace(r.verdict, **where).to_bytes())
+                pub_decision.put(replace_message(r.verdict, **where).to_bytes())
                 if pub_profile.matching_status.matching:  # up to 65 KB at 640 px: only encoded when wanted
-                    pub_profile.put(dataclasses.replace(r.profile, **where).to_bytes())
+                    pub_profile.put(replace_message(r.profile, **where).to_bytes())
                 health.count("profiles")
 
         def decode(kind: str, item):

@@ -23,12 +23,11 @@ import logging
 import sys
 import threading
 import time
-from dataclasses import replace
 
 import zenoh
 
 from vergence import pipeline
-from vergence.messages import Frame, MessageError
+from vergence.messages import Frame, MessageError, replace
 from vergence.recording import Reader, RecordingError
 
 from . import session

@@ -69,7 +69,7 @@ ENTITIES = {
 
 
 # frames carry the truth (a simulated target) in this build: then the view keeps listening to them
-FRAME_TRUTH = "truth_pan_rad" in Frame.__dataclass_fields__
+FRAME_TRUTH = "truth_pan_rad" in Frame.__struct_fields__
 
 
 class MissingExtra(RuntimeError):

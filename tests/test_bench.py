@@ -37,6 +37,15 @@ def test_bench_match_reports_its_parts():
     assert all(v > 0 for v in r.values())
 
 
+def test_bench_messages_reports_each_kind_against_a_bare_parse():
+    rows = _rows("messages", "--json", "--repeats", "1", timeout=300)
+    assert [(r["kind"], r["bytes"]) for r in rows] == [("frame", 30118), ("partial", 32651), ("decision", 261),
+                                                      ("command", 139)]
+    for r in rows:
+        assert r["decode_us"] > 0 and r["msgpack_us"] > 0 and r["encode_us"] > 0
+        assert r["vs_msgpack"] == pytest.approx(r["decode_us"] / r["msgpack_us"])
+
+
 def _ours(rig_part: str) -> list[str]:
     """Command lines of live processes whose arguments contain rig_part."""
     out = []

@@ -4,7 +4,6 @@ rig, the first decision at the new point within 0.2 s, the loop re-converged the
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import subprocess
@@ -18,7 +17,7 @@ from procs import VERGENCE, Procs, free_port, wait_for
 from services.capture import Fovea
 from vergence import monitor, pipeline
 from vergence.match import Params
-from vergence.messages import SCHEMA, Fixate, MotorState, Verdict
+from vergence.messages import SCHEMA, Fixate, MotorState, Verdict, replace as replace_message
 from vergence.sim import Rig
 from vergence.sim.fixation import truth_at
 
@@ -165,7 +164,7 @@ def test_monitor_shows_the_fovea_and_the_depth():
     r = pipeline.Result.of(f, pipeline.compute_partial(f, "w").array(), p, pipeline.Controller())
     mon = monitor.Monitor("head")
     mon.feed("vergence/head/frame", f.to_bytes())
-    mon.feed("vergence/head/profile", dataclasses.replace(r.profile, x=80, y=60, converged=True, depth_m=1.234,
+    mon.feed("vergence/head/profile", replace_message(r.profile, x=80, y=60, converged=True, depth_m=1.234,
                                                           depth_sigma_m=0.012).to_bytes())
     s = mon.snapshot()
     assert s.fovea == (80, 60)
@@ -174,7 +173,7 @@ def test_monitor_shows_the_fovea_and_the_depth():
     mon.feed("vergence/head/frame", f.to_bytes())
     text = monitor.render_text(mon.snapshot(), color=False)
     assert "fovea (90, 60) (the profile's: (80, 60))" in text
-    mon.feed("vergence/head/profile", dataclasses.replace(r.profile, frame=4, x=90, y=60).to_bytes())
+    mon.feed("vergence/head/profile", replace_message(r.profile, frame=4, x=90, y=60).to_bytes())
     assert "fovea (90, 60)   not converged, no depth" in monitor.render_text(mon.snapshot(), color=False)
     assert monitor.render_png(mon.snapshot()).shape == (720, 960, 3)
 

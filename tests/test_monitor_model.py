@@ -125,7 +125,7 @@ def test_drops_from_profile_gaps_without_frames():
 def test_malformed_counted_and_skipped():
     mon = Monitor("head")
     assert mon.feed("vergence/head/profile", b"\xc1garbage") is None
-    assert mon.feed("vergence/head/frame", m.Command(**command(1, T0, 1).__dict__).to_bytes()) is None
+    assert mon.feed("vergence/head/frame", command(1, T0, 1).to_bytes()) is None
     bad = profile(1, T0)
     bad.scores = bad.scores[:-8]  # wrong size
     assert mon.feed("vergence/head/profile", bad.to_bytes()) is None

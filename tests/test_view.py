@@ -237,10 +237,7 @@ def test_replay_view_rejects_a_bad_target(tmp_path):
 def test_newer_fields_are_logged_when_present(tmp_path):
     """Fields other branches add (depth on the decision, the truth on the frame) are read with defaults: logged
     when the message carries them, absent otherwise."""
-    from dataclasses import dataclass
-
-    @dataclass
-    class Deep(M.Verdict):
+    class Deep(M.Verdict, kw_only=True):
         depth_m: float = 1.25
         depth_sigma_m: float = 0.05
         truth_pan_rad: float = 0.02

@@ -12,7 +12,8 @@ import numpy as np
 from . import kernel, retina
 from .match import Params, match
 
-__all__ = ["KernelCase", "CASES", "bench_kernel", "bench_match", "numpy_correlate", "opencv_correlate"]
+__all__ = ["KernelCase", "CASES", "bench_kernel", "bench_match", "bench_messages", "message_samples", "numpy_correlate",
+           "opencv_correlate"]
 
 
 @dataclass(frozen=True)
@@ -125,6 +126,51 @@ def bench_match(repeats: int = 400, seed: int = 0) -> dict:
             fn()
             times[name].append(time.perf_counter() - t0)
     return {k + "_ms": _median_ms(v) for k, v in times.items()}
+
+
+def message_samples() -> dict:
+    """One message of each hot kind at the pipeline's sizes: 640 x 480, w = 15, R = 6, two workers."""
+    from . import messages as M
+
+    W, w, R = 640, 15, 6
+    K, rows = W - w + 1, 2 * R + 1
+    return {
+        "frame": M.Frame(rig="head", frame=7, t_capture_ns=123, pan_rad=0.1, width=W, height=480, x=320, y=240,
+                         window=w, vsearch=R, focal_px=512.0, fovea=bytes((w + 2) ** 2),
+                         band=bytes((w + 2 * R + 2) * (W + 2)), plan=[["a-1", 0, K // 2], ["b-2", K // 2, K]],
+                         master_band=bytes((w + 2) * (W + 2))),
+        "partial": M.Partial(rig="head", frame=7, t_capture_ns=1, worker="a-1", k0=0, k1=K // 2, rows=rows,
+                             scores=np.zeros((rows, K // 2)).tobytes(), texture=3.0, t_done_ns=5),
+        "decision": M.Verdict(rig="head", frame=7, t_capture_ns=1, t_reduced_ns=2, window=w, k=3, k_sub=3.2,
+                              v_shift=0, k_centre=3, direction=0, magnitude=0, offset_px=0.2, confidence=0.5,
+                              confident=True, texture=9.0, pan_rad=0.0, x=320, y=240),
+        "command": M.Command(rig="head", frame=7, t_capture_ns=1, pan_rad=0.2, correction_rad=0.01, direction=1,
+                             magnitude_px=3.0, confidence=0.4, t_sent_ns=9),
+    }
+
+
+def bench_messages(repeats: int = 9, number: int = 2000) -> list[dict]:
+    """Decode (msgspec, checked: Class.from_bytes) and encode time per message kind, in us (median over repeats
+    of the best of 3 x number), against msgpack.unpackb of the same bytes to a dict (a parse, no checks), the
+    baseline, interleaved in the same run."""
+    import statistics
+    import timeit
+
+    import msgpack
+
+    rows = []
+    for kind, msg in message_samples().items():
+        data, cls = msg.to_bytes(), type(msg)
+        t: dict[str, list[float]] = {"decode_us": [], "msgpack_us": [], "encode_us": []}
+        for _ in range(repeats):
+            for name, fn in (("decode_us", lambda: cls.from_bytes(data)),
+                             ("msgpack_us", lambda: msgpack.unpackb(data, raw=False)),
+                             ("encode_us", msg.to_bytes)):
+                t[name].append(min(timeit.repeat(fn, number=number, repeat=3)) / number * 1e6)
+        r = {"kind": kind, "bytes": len(data), **{k: statistics.median(v) for k, v in t.items()}}
+        r["vs_msgpack"] = r["decode_us"] / r["msgpack_us"]
+        rows.append(r)
+    return rows
 
 
 def bench_tracking(hzs=(0.25, 0.5, 1.0, 2.0), rates=(30.0, 60.0, 120.0), modes=("p", "predictive"),

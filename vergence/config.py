@@ -1,5 +1,9 @@
 """Typed settings for every process, loaded from one TOML file; errors name the offending field.
 
+The settings are frozen dataclasses (vergence.match.Params, vergence.control.ControlSettings and
+vergence.motors.MotorSettings among them); msgspec checks a parsed file against them (types, unknown keys,
+each class's __post_init__), its errors giving the path (network.window: expected `int`, got `str`).
+
     rig = "head"          # the rig's name (the key prefix vergence/<rig>/), or name = "head" in [rig]
     [rig]       # the rig's geometry: baseline_m, focal_px, master, gimbal (vergence.depth)
     [network]   # vergence.match.Params: window, vsearch, circular, subpixel, min_margin, ...
@@ -15,10 +19,11 @@ from __future__ import annotations
 import dataclasses
 import re
 import tomllib
-import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import msgspec
 
 from .control import ControlSettings
 from .match import Params
@@ -135,35 +140,20 @@ class Settings:
     limits: LimitSettings = field(default_factory=LimitSettings)
 
 
-def _coerce(path: str, value, tp):
-    origin = typing.get_origin(tp)
-    if origin in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        if value is None:
-            return None
-        tp = args[0]
-        origin = typing.get_origin(tp)
-    if dataclasses.is_dataclass(tp):
-        return _build(path, value, tp)
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-    elif tp is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-    elif tp is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-    elif tp is str:
-        if isinstance(value, str):
-            return value
-    elif origin in (list, tuple):
-        (inner, *_) = typing.get_args(tp)
-        if isinstance(value, (list, tuple)):
-            return type(value)(_coerce(f"{path}[{i}]", v, inner) for i, v in enumerate(value))
-    else:
-        return value
-    raise ConfigError(f"{path}: expected {getattr(tp, '__name__', tp)}, got {value!r}")
+_CHECKS: dict[type, type] = {}
+
+
+def _check_type(cls):
+    """A msgspec.Struct with the settings dataclass cls's fields and types (nested settings too) that forbids
+    unknown keys: msgspec.convert into it checks a table's keys and types, naming the path; made once per class.
+    Its defaults are never used (the dataclass's are)."""
+    check = _CHECKS.get(cls)
+    if check is None:
+        hints = typing.get_type_hints(cls)
+        spec = [(f.name, _check_type(hints[f.name]) if dataclasses.is_dataclass(hints[f.name]) else hints[f.name],
+                 None) for f in dataclasses.fields(cls) if f.init]
+        check = _CHECKS[cls] = msgspec.defstruct(f"{cls.__name__}Check", spec, forbid_unknown_fields=True)
+    return check
 
 
 def _rig_table(data: dict) -> dict:
@@ -179,33 +169,41 @@ def _rig_table(data: dict) -> dict:
     if not isinstance(name, str):
         raise ConfigError(f"rig.name: expected str, got {name!r}")
     data["rig"] = name
-    data["geometry"] = _build("rig", table, RigSettings)
+    data["geometry"] = table
     return data
 
 
-def _build(path: str, data, cls):
-    if dataclasses.is_dataclass(data) and isinstance(data, cls):
-        return data
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path or 'settings'}: expected a table, got {data!r}")
-    if cls is Settings:
-        data = _rig_table(data)
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted(set(data) - names)
+def _known(cls, path: list[str]) -> list[str]:
+    """The setting names of the table at path (the dataclass fields there)."""
+    for part in path:
+        cls = typing.get_type_hints(cls)[part]
+    return sorted(f.name for f in dataclasses.fields(cls) if f.init)
+
+
+def _error(e: msgspec.ValidationError, cls) -> ConfigError:
+    """msgspec's "what - at `$.a.b`" as "a.b: what" (the [rig] table's fields by their TOML name, rig.x)."""
+    what, _, at = str(e).partition(" - at `$")
+    path = [p for p in at.rstrip("`").split(".") if p]
+    if cls is Settings and path[:1] == ["geometry"]:
+        path[0] = "rig"
+    unknown = re.fullmatch(r"Object contains unknown field `(.*)`", what)
     if unknown:
-        where = f"{path}." if path else ""
-        raise ConfigError(f"{where}{unknown[0]}: unknown setting; known here: {', '.join(sorted(names))}")
-    kw = {k: _coerce(f"{path}.{k}" if path else k, v, hints[k]) for k, v in data.items()}
-    try:
-        return cls(**kw)
-    except (TypeError, ValueError) as e:
-        raise ConfigError(f"{path or 'settings'}: {e}") from None
+        names = _known(cls, ["geometry" if p == "rig" and cls is Settings else p for p in path])
+        return ConfigError(f"{'.'.join(path + [unknown[1]])}: unknown setting; known here: {', '.join(names)}")
+    what = what.replace("Expected `object`", "expected a table").replace("Expected", "expected")
+    return ConfigError(f"{'.'.join(path) or 'settings'}: {what}")
 
 
 def from_dict(data: dict, cls=Settings):
-    """Settings (or any settings dataclass) from a plain dict, checked field by field."""
-    return _build("", data, cls)
+    """Settings (or any settings dataclass) from a plain dict (a parsed TOML), checked by msgspec: types, unknown
+    keys and each class's own value checks, the error naming the field's path (network.window)."""
+    if cls is Settings and isinstance(data, dict):
+        data = _rig_table(data)
+    try:
+        msgspec.convert(data, _check_type(cls))  # the keys and the types
+        return msgspec.convert(data, cls)  # the values, each settings class's __post_init__
+    except msgspec.ValidationError as e:
+        raise _error(e, cls) from None
 
 
 def load(path: str | Path | None = None, cls=Settings):
@@ -226,18 +224,6 @@ def load(path: str | Path | None = None, cls=Settings):
             hint = ' (rig = "..." and a [rig] table cannot both be there: write name = "..." in [rig])'
         raise ConfigError(f"{p}: not valid TOML: {e}{hint}") from None
     try:
-        return _build("", data, cls)
+        return from_dict(data, cls)
     except ConfigError as e:
         raise ConfigError(f"{p}: {e}") from None
-
-
-def replace(settings, **changes):
-    """dataclasses.replace that checks types like the loader (section.field=value overrides)."""
-    data = dataclasses.asdict(settings)
-    for dotted, value in changes.items():
-        d = data
-        *parents, leaf = dotted.split(".")
-        for part in parents:
-            d = d.setdefault(part, {})
-        d[leaf] = value
-    return _build("", data, type(settings))

@@ -16,8 +16,6 @@ from . import simd
 
 __all__ = ["sad", "portable_sad", "half_sads", "correlate", "scores_from_sad", "support_weights", "warm_up"]
 
-CIRCULAR_D = True  # default of the circular direction comparison (an extension; faithful turns it off)
-
 
 # The kernel is written for the vectoriser: the innermost loop runs over k with unsigned indices (so no
 # negative-index check survives and no array view is made per row: views cost reference counting), the

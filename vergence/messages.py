@@ -1,151 +1,84 @@
-"""Every message on the wire: a dataclass per kind, msgpack maps with a schema version `v`.
+"""Every message on the wire: a msgspec.Struct per kind, msgpack maps with a schema version `v`.
 
 Decoding never trusts its input: a message that is not a map, lacks a field, has a field of the wrong
 type, or arrays whose sizes do not agree with their shape fields raises MessageError, which services count
-and skip. Arrays travel as binary fields (raw little-endian bytes), never as lists of numbers.
+and skip. msgspec checks the types (one Decoder per kind, made once; its errors name the field, `at $.x`),
+each kind's validate() the values. Arrays travel as binary fields (raw little-endian bytes), never as lists of
+numbers. A map without `v`, or with another schema's, is refused.
 """
 
 from __future__ import annotations
 
 import math
-import types
 import typing
-from dataclasses import MISSING, dataclass, field, fields
 from typing import ClassVar
 
-import msgpack
+import msgspec
 import numpy as np
 
-__all__ = ["SCHEMA", "MessageError", "Frame", "Partial", "Verdict", "Profile", "Command", "MotorState",
-           "Preview", "Fixate", "KINDS", "decode"]
+__all__ = ["SCHEMA", "MessageError", "Message", "Frame", "Partial", "Verdict", "Profile", "Command", "MotorState",
+           "Preview", "Fixate", "KINDS", "replace"]
 
 SCHEMA = 1
 MAX_MESSAGE = 64 * 1024 * 1024
+
+_ENCODER = msgspec.msgpack.Encoder()
+_DECODERS: dict[type, msgspec.msgpack.Decoder] = {}
+_FLOATS: dict[type, tuple[str, ...]] = {}
 
 
 class MessageError(ValueError):
     """A message that cannot be decoded or fails validation."""
 
 
-def _expected(name: str, what: str, value) -> MessageError:
-    return MessageError(f"field {name!r}: expected {what}, got {type(value).__name__}")
-
-
-def _checker(tp):
-    """A function (value, name) -> the value as the field's type, or MessageError: built once per field type,
-    so decoding a message does no typing introspection."""
-    origin = typing.get_origin(tp)
-    if origin in (typing.Union, types.UnionType):
-        args = typing.get_args(tp)
-        optional = type(None) in args
-        subs = [_checker(a) for a in args if a is not type(None)]
-
-        def check_union(value, name):
-            if value is None and optional:
-                return None
-            errors = []
-            for sub in subs:
-                try:
-                    return sub(value, name)
-                except MessageError as e:
-                    errors.append(str(e))
-            raise MessageError(errors[0] if len(errors) == 1 else f"field {name!r}: unexpected {type(value).__name__}")
-        return check_union
-    if tp is float:
-        def check_float(value, name):
-            if type(value) is float:
-                # every NaN decodes to the one math.nan, so that messages with NaN fields (a decision's depth
-                # while not converged) compare equal after a round trip, as dataclass and dict equality
-                # compare identical objects as equal
-                return value if value == value else math.nan
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise _expected(name, "a number", value)
-            return float(value)
-        return check_float
-    if tp in (int, bool, str):
-        what = {int: "an integer", bool: "a boolean", str: "a string"}[tp]
-
-        def check_exact(value, name):
-            if type(value) is tp:
-                return value
-            if tp is not bool and isinstance(value, tp) and not isinstance(value, bool):
-                return value  # a subclass (an IntEnum, a str subclass)
-            raise _expected(name, what, value)
-        return check_exact
-    if tp is bytes:
-        def check_bytes(value, name):
-            if type(value) is bytes:
-                return value
-            if not isinstance(value, (bytes, bytearray)):
-                raise _expected(name, "bytes", value)
-            return bytes(value)
-        return check_bytes
-    if origin is list:
-        (inner,) = typing.get_args(tp)
-        sub = _checker(inner)
-
-        def check_list(value, name):
-            if not isinstance(value, (list, tuple)):
-                raise _expected(name, "a list", value)
-            return [sub(x, f"{name}[{i}]") for i, x in enumerate(value)]
-        return check_list
-    raise TypeError(f"unsupported field type {tp!r}")  # a programming error, not bad input
-
-
-_SPECS: dict[type, list] = {}
-
-
-def _spec(cls) -> list[tuple[str, str, object, bool]]:
-    """(field name, qualified name, checker, has a default) of every field of a message class, built once."""
-    spec = _SPECS.get(cls)
-    if spec is None:
-        hints = typing.get_type_hints(cls)  # ~140 us: once per class, not per message
-        spec = _SPECS[cls] = [(f.name, f"{cls.KIND}.{f.name}", _checker(hints[f.name]),
-                               f.default is not MISSING or f.default_factory is not MISSING) for f in fields(cls)]
-    return spec
-
-
-class Message:
-    """Base of every message: to_bytes / from_bytes with validation."""
+class Message(msgspec.Struct, tag_field="v", tag=SCHEMA):
+    """Base of every message: to_bytes / from_bytes with validation; `v`, the schema version, is the tag."""
 
     KIND: ClassVar[str] = ""
 
     def to_dict(self) -> dict:
-        d = {name: getattr(self, name) for name, _, _, _ in _spec(type(self))}
+        d = {name: getattr(self, name) for name in self.__struct_fields__}
         d["v"] = SCHEMA
         return d
 
     def to_bytes(self) -> bytes:
-        return msgpack.packb(self.to_dict(), use_bin_type=True)
-
-    @classmethod
-    def from_dict(cls, d) -> "Message":
-        if not isinstance(d, dict):
-            raise MessageError(f"{cls.KIND}: expected a map, got {type(d).__name__}")
-        if d.get("v") != SCHEMA:
-            raise MessageError(f"{cls.KIND}: schema version {d.get('v')!r}, this build speaks {SCHEMA}")
-        kw = {}
-        for name, qual, check, has_default in _spec(cls):
-            if name in d:
-                kw[name] = check(d[name], qual)
-            elif not has_default:
-                raise MessageError(f"{cls.KIND}: missing field {name!r}")
-        msg = cls(**kw)
-        msg.validate()
-        return msg
+        return _ENCODER.encode(self)
 
     @classmethod
     def from_bytes(cls, data: bytes) -> "Message":
         if len(data) > MAX_MESSAGE:
             raise MessageError(f"{cls.KIND}: {len(data)} bytes, more than {MAX_MESSAGE}")
         try:
-            d = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True)
-        except Exception as e:  # msgpack raises a zoo of exception types on garbage
+            msg = _DECODERS[cls].decode(data)
+            if type(msg) is not cls:  # the sentinel kind of _NoSchema
+                raise msgspec.ValidationError(f"Invalid value {-2**63} - at `$.v`")
+        except msgspec.ValidationError as e:
+            if str(e).endswith("at `$.v`"):
+                raise MessageError(f"{cls.KIND}: schema version: {e}, this build speaks {SCHEMA}") from None
+            raise MessageError(f"{cls.KIND}: {e}") from None
+        except (msgspec.DecodeError, TypeError, ValueError, RecursionError, OverflowError) as e:
             raise MessageError(f"{cls.KIND}: not msgpack ({type(e).__name__}: {e})") from None
-        return cls.from_dict(d)
+        # every NaN decodes to the one math.nan, so that messages with NaN fields (a decision's depth while not
+        # converged) compare equal after a round trip, as Struct equality compares identical objects as equal
+        for name in _FLOATS[cls]:
+            x = getattr(msg, name)
+            if x != x:
+                setattr(msg, name, math.nan)
+        msg.validate()
+        return msg
 
     def validate(self) -> None:
         """Cross-field checks; raise MessageError."""
+
+
+class _NoSchema(Message, tag=-2**63):
+    """A decoder's second choice that no message is (its v is no schema), so that msgspec, choosing between two
+    tagged kinds, requires the tag: a map without `v` is refused, as it was before msgspec."""
+
+
+def replace(msg: Message, **changes) -> Message:
+    """A copy of a message with some fields changed (msgspec.structs.replace; no validation)."""
+    return msgspec.structs.replace(msg, **changes)
 
 
 def _array(name: str, data: bytes, dtype, shape: tuple[int, ...]) -> np.ndarray:
@@ -163,7 +96,6 @@ def _finite(name: str, *values: float) -> None:
             raise MessageError(f"{name}: not a finite number ({x})")
 
 
-@dataclass
 class Frame(Message):
     """vergence/<rig>/frame: what layer 1 needs of one stereo frame, and the shard plan for it.
 
@@ -185,7 +117,7 @@ class Frame(Message):
     focal_px: float
     fovea: bytes
     band: bytes
-    plan: list[list[str | int]] = field(default_factory=list)
+    plan: list[list[str | int]] = []
     circular: bool = True
     support: bool = False
     # the master's rows of the fovea at full width, for the reducer's left-right check (empty when the
@@ -253,7 +185,6 @@ class Frame(Message):
         return None
 
 
-@dataclass
 class Partial(Message):
     """vergence/<rig>/correlation/<worker>: one worker's layer-4 scores y(v, k) for k0..k1-1, float64."""
 
@@ -278,8 +209,17 @@ class Partial(Message):
         self.array()
 
 
-@dataclass
-class Verdict(Message):
+class _Where(Message, kw_only=True):
+    """A decision's keyword-only fields with their defaults (what an older reducer did not send)."""
+
+    x: int = -1
+    y: int = -1
+    converged: bool = False
+    depth_m: float = math.nan
+    depth_sigma_m: float = math.nan
+
+
+class Verdict(_Where):
     """vergence/<rig>/decision: the reducer's decision on every frame, a Profile without its scores (under 250
     bytes, where a profile is 65 KB at 640 px with vertical search), for whoever needs only the decision (the
     capture's dynamic window, a user's own logic). window: the fovea side it was decided with.
@@ -306,11 +246,6 @@ class Verdict(Message):
     confident: bool
     texture: float
     pan_rad: float
-    x: int = field(default=-1, kw_only=True)
-    y: int = field(default=-1, kw_only=True)
-    converged: bool = field(default=False, kw_only=True)
-    depth_m: float = field(default=math.nan, kw_only=True)
-    depth_sigma_m: float = field(default=math.nan, kw_only=True)
 
     def validate(self) -> None:
         if self.window < 1:
@@ -319,7 +254,6 @@ class Verdict(Message):
             _finite(f"{self.KIND}.{name}", getattr(self, name))
 
 
-@dataclass
 class Profile(Verdict):
     """vergence/<rig>/profile: the decision (Verdict's fields) with the full layer-4 scores of the frame
     (rows x K float64), its width and the plan's workers."""
@@ -328,7 +262,7 @@ class Profile(Verdict):
     width: int
     rows: int
     scores: bytes
-    workers: list[str] = field(default_factory=list)
+    workers: list[str] = []
 
     def array(self) -> np.ndarray:
         return _array("profile.scores", self.scores, "<f8", (self.rows, self.width - self.window + 1))
@@ -340,7 +274,6 @@ class Profile(Verdict):
         self.array()
 
 
-@dataclass
 class Command(Message):
     """vergence/<rig>/command: pan_rad, the absolute target pan of the slave (pan at capture + correction)."""
 
@@ -356,7 +289,6 @@ class Command(Message):
     t_sent_ns: int = 0
 
 
-@dataclass
 class MotorState(Message):
     """vergence/<rig>/motor/state: where the slave pan is, where it is going, and what safety did."""
 
@@ -383,7 +315,6 @@ class MotorState(Message):
         _finite("motor_state.pan_rad", self.pan_rad, self.goal_rad, self.min_rad, self.max_rad)
 
 
-@dataclass
 class Preview(Message):
     """vergence/<rig>/preview: downscaled gray master and slave images (width x height each), low rate."""
 
@@ -410,7 +341,6 @@ class Preview(Message):
             _finite("preview.truth_pan_rad", self.truth_pan_rad)
 
 
-@dataclass
 class Fixate(Message):
     """vergence/<rig>/fixate: move the fovea of the running capture to master pixel (x, y) from the next frame
     on (`vergence fixate X,Y`). x, y are rounded to the nearest pixel; a point where the fovea does not fit
@@ -431,7 +361,7 @@ class Fixate(Message):
 KINDS: dict[str, type[Message]] = {c.KIND: c for c in (Frame, Partial, Verdict, Profile, Command, MotorState,
                                                          Preview, Fixate)}
 
-
-def decode(cls: type[Message], data: bytes) -> Message:
-    """cls.from_bytes, for symmetry with services that pick the class from the key."""
-    return cls.from_bytes(data)
+for _cls in KINDS.values():
+    _DECODERS[_cls] = msgspec.msgpack.Decoder(typing.Union[_cls, _NoSchema])
+    _FLOATS[_cls] = tuple(name for name, tp in typing.get_type_hints(_cls).items()
+                          if name in _cls.__struct_fields__ and tp in (float, float | None))

@@ -16,6 +16,7 @@ import threading
 import time
 from dataclasses import dataclass, field, replace
 
+import msgspec
 import numpy as np
 
 from . import kernel, retina
@@ -149,7 +150,7 @@ def make_verdict(frame: Frame, d: Decision, t_reduced_ns: int) -> Verdict:
 
 def make_profile(frame: Frame, scores: np.ndarray, d: Decision, t_reduced_ns: int) -> Profile:
     """The Profile message of a reduced frame: its Verdict with the whole layer-4 vector."""
-    return Profile(**vars(make_verdict(frame, d, t_reduced_ns)), width=frame.width,
+    return Profile(**msgspec.structs.asdict(make_verdict(frame, d, t_reduced_ns)), width=frame.width,
                    rows=scores.shape[0], scores=np.ascontiguousarray(scores, "<f8").tobytes(),
                    workers=[str(e[0]) for e in frame.plan])
 
