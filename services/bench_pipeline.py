@@ -87,7 +87,7 @@ class Cluster:
         self.spawn("reducer", "reducer")
 
     def spawn(self, name: str, *args: str, member: bool = True) -> subprocess.Popen:
-        argv = [sys.executable, "-m", "services.cli", *args]
+        argv = [sys.executable, "-m", "vergence_services.cli", *args]
         if member:
             argv += ["--connect", self.endpoint, "--rig", self.rig, "--config", self.config] + self.extra
         log = open(self.dir / f"{name}.log", "ab")
@@ -243,7 +243,7 @@ def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: 
 
 _SUB = """
 import sys, time, zenoh
-from services import session
+from vergence_services import session
 s = zenoh.open(session.zenoh_config("client", [sys.argv[1]]))
 s.declare_subscriber("bench/floor", lambda smp: smp.payload.to_bytes())
 time.sleep(60)
@@ -260,7 +260,7 @@ def messaging_floor(workdir: Path, n: int = 3000, size: int = 27_000) -> dict:
     """CPU time per message of a router and of one Python subscriber (a callback that copies the payload),
     for `size`-byte messages published at 1 kHz by this process: the cost every hop of the pipeline pays."""
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    procs = [subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen", endpoint],
+    procs = [subprocess.Popen([sys.executable, "-m", "vergence_services.cli", "router", "--listen", endpoint],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)]
     try:
         time.sleep(0.5)
