@@ -89,7 +89,8 @@ def test_a_bad_part_raises_clearly(build):
         build()
 
 
-# what each deployed role publishes (put) and declares (liveliness token), as the services build it
+# what each deployed role publishes (put) and declares (liveliness token), as the services build it (the
+# monitor and the cockpit only subscribe)
 def _role_keys(rig: str) -> dict[str, list[str]]:
     r = keys.REPLAY_RIG
     return {
@@ -98,8 +99,8 @@ def _role_keys(rig: str) -> dict[str, list[str]]:
         "worker": [keys.correlation(rig, "w-1"), keys.status(rig, "worker", "w-1"), keys.alive(rig, "worker", "w-1")],
         "reducer": [keys.decision(rig), keys.profile(rig), keys.command(rig), keys.workers(rig),
                     keys.status(rig, "reducer", "r-1"), keys.alive(rig, "reducer", "r-1")],
-        "actuator": [keys.motor_state(rig), keys.status(rig, "actuator", "a-1"), keys.alive(rig, "actuator", "a-1")],
-        "monitor": [keys.alive(rig, "monitor", "m-1"), keys.alive(rig, "record", "m-1")],
+        "actuator": [keys.motor_state(rig), keys.alive(rig, "actuator", "a-1")],
+        "monitor": [keys.alive(rig, "record", "m-1")],  # the recorder runs as the monitor role
         "replay": [keys.frame(r), keys.preview(r), keys.correlation(r, "w-1"), keys.decision(r), keys.profile(r),
                    keys.alive(r, "replay", "p-1")],
         "fixate": [keys.fixate(rig)],
