@@ -15,6 +15,7 @@ import sys
 import threading
 import time
 
+from vergence import keys
 from vergence.config import ConfigError, load
 from vergence.motors import DRIVERS, PortError, make_driver
 from vergence.motors.runner import MotorLoop
@@ -94,16 +95,16 @@ def main(settings, conf, stop: session.Stop) -> int:
         return 2
     s = session.open_session(conf)
     try:
-        pub = s.declare_publisher(f"vergence/{rig}/motor/state")
+        pub = s.declare_publisher(keys.motor_state(rig))
         inbox = Latest()
-        sub = s.declare_subscriber(f"vergence/{rig}/command",
+        sub = s.declare_subscriber(keys.command(rig),
                                    lambda sample: inbox.put(sample.payload.to_bytes()))
         token = s.liveliness().declare_token(session.alive_key(rig, "actuator"))
 
         def publish(state):
             pub.put(state.to_bytes())
 
-        log.info("actuator %s on %s: %s", driver.describe(), f"vergence/{rig}/command", first.status)
+        log.info("actuator %s on %s: %s", driver.describe(), keys.command(rig), first.status)
         publish(first)
         try:
             serve(loop, publish, inbox, stop, a.state_hz)

@@ -29,7 +29,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     t.add_argument("--rates", default="30,60,120", help="camera rates, Hz (default 30,60,120)")
     t.add_argument("--hz", default="0.25,0.5,1,2", help="sine frequencies (default 0.25,0.5,1,2)")
     try:
-        importlib.import_module("services.bench_pipeline").configure(
+        importlib.import_module("vergence_services.bench_pipeline").configure(
             sub.add_parser("pipeline", help="capture-to-command latency and throughput over Zenoh"))
     except ModuleNotFoundError:
         pass
@@ -135,5 +135,5 @@ def run(args: argparse.Namespace) -> int:
         return _kernel(args)
     if args.bench == "match":
         return _match(args)
-    return importlib.import_module("services.bench_pipeline").run(args)
+    return importlib.import_module("vergence_services.bench_pipeline").run(args)
 

@@ -87,7 +87,7 @@ class Cluster:
         self.spawn("reducer", "reducer")
 
     def spawn(self, name: str, *args: str, member: bool = True) -> subprocess.Popen:
-        argv = [sys.executable, "-m", "services.cli", *args]
+        argv = [sys.executable, "-m", "vergence_services.cli", *args]
         if member:
             argv += ["--connect", self.endpoint, "--rig", self.rig, "--config", self.config] + self.extra
         log = open(self.dir / f"{name}.log", "ab")
@@ -144,6 +144,7 @@ def in_process_ms(master, slave, params, n: int = 30) -> float:
 def run_rate(cl: Cluster, s, source: str, rate: float, frames: int) -> dict:
     """One capture run at `rate`: WARM_FRAMES frames to start the capture (not counted), then `frames`
     frames; the latency of the commands that came back for those."""
+    from vergence import keys
     from vergence.messages import Command, MotorState
 
     warm = min(WARM_FRAMES, max(2, frames // 5))
@@ -156,8 +157,8 @@ def run_rate(cl: Cluster, s, source: str, rate: float, frames: int) -> dict:
             got.append((t, sample.payload.to_bytes()))
 
     states: list[bytes] = []
-    sub = s.declare_subscriber(f"vergence/{cl.rig}/command", on_cmd)
-    sub_state = s.declare_subscriber(f"vergence/{cl.rig}/motor/state",
+    sub = s.declare_subscriber(keys.command(cl.rig), on_cmd)
+    sub_state = s.declare_subscriber(keys.motor_state(cl.rig),
                                      lambda smp: states.append(smp.payload.to_bytes()))
     try:
         cap = cl.spawn("capture", "capture", "--source", source, "--rate", str(rate), "--frames",
@@ -201,6 +202,7 @@ def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: 
                   emit, p99_limit: float = float("inf")) -> list[dict]:
     """Runs at each rate in turn (the first always; a later one only while the previous one had no drop and
     p99 <= p99_limit ms), for each worker count."""
+    from vergence import keys
     from vergence.match import Params
 
     master, slave = synthetic_pair(width, height)
@@ -218,7 +220,7 @@ def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: 
         try:
             s = _session(cl.endpoint)
             try:
-                alive = f"vergence/{cl.rig}/alive/worker/*"
+                alive = keys.alives(cl.rig, "worker")
                 ok = _wait(lambda: len(list(s.liveliness().get(alive, timeout=0.5))) >= nw, 60)
                 if not ok:
                     raise RuntimeError(f"the {nw} worker(s) did not come up; see the logs in {workdir}")
@@ -241,7 +243,7 @@ def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: 
 
 _SUB = """
 import sys, time, zenoh
-from services import session
+from vergence_services import session
 s = zenoh.open(session.zenoh_config("client", [sys.argv[1]]))
 s.declare_subscriber("bench/floor", lambda smp: smp.payload.to_bytes())
 time.sleep(60)
@@ -258,7 +260,7 @@ def messaging_floor(workdir: Path, n: int = 3000, size: int = 27_000) -> dict:
     """CPU time per message of a router and of one Python subscriber (a callback that copies the payload),
     for `size`-byte messages published at 1 kHz by this process: the cost every hop of the pipeline pays."""
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    procs = [subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen", endpoint],
+    procs = [subprocess.Popen([sys.executable, "-m", "vergence_services.cli", "router", "--listen", endpoint],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)]
     try:
         time.sleep(0.5)

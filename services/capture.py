@@ -31,7 +31,7 @@ import time
 import cv2
 import zenoh
 
-from vergence import pipeline, retina
+from vergence import keys, pipeline, retina
 from vergence.config import load
 from vergence.messages import Fixate, MessageError, MotorState, Preview, Verdict
 from vergence.sources import SourceError, open_source
@@ -132,7 +132,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         source.close()
         return 2
     alive = session.alive_key(rig, "capture")
-    cid = alive.rsplit("/", 1)[1]
+    cid = keys.parse(alive).ident
     health = pipeline.Health("capture", cid, log)
     windows = pipeline.WindowControl(params)
     lim = settings.limits
@@ -153,7 +153,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
             health.reject("motor_state", e)
 
     def on_token(sample):
-        wid = str(sample.key_expr).rsplit("/", 1)[1]
+        wid = keys.parse(str(sample.key_expr)).ident
         members.token(wid, sample.kind == zenoh.SampleKind.PUT)
         log.info("workers: %s", sorted(members.tokens))
 
@@ -183,18 +183,18 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
     pw = min(cs.preview_width, wd) if cs.preview_width > 0 else wd
     ph = max(1, round(ht * pw / wd))
     with session.open_session(conf) as s:
-        pub_frame = s.declare_publisher(f"vergence/{rig}/frame", express=True)
-        pub_preview = s.declare_publisher(f"vergence/{rig}/preview")
-        pub_status = s.declare_publisher(f"vergence/{rig}/status/capture/{cid}")
-        subs = [s.declare_subscriber(f"vergence/{rig}/motor/state", on_motor),
-                s.declare_subscriber(f"vergence/{rig}/workers", on_report),
-                s.liveliness().declare_subscriber(f"vergence/{rig}/alive/worker/*", on_token, history=True)]
+        pub_frame = s.declare_publisher(keys.frame(rig), express=True)
+        pub_preview = s.declare_publisher(keys.preview(rig))
+        pub_status = s.declare_publisher(keys.status(rig, "capture", cid))
+        subs = [s.declare_subscriber(keys.motor_state(rig), on_motor),
+                s.declare_subscriber(keys.workers(rig), on_report),
+                s.liveliness().declare_subscriber(keys.alives(rig, "worker"), on_token, history=True)]
         if params.max_window:
-            subs.append(s.declare_subscriber(f"vergence/{rig}/decision", on_decision))
-        subs.append(s.declare_subscriber(f"vergence/{rig}/fixate", lambda sm: fovea.on_fixate(sm.payload.to_bytes())))
+            subs.append(s.declare_subscriber(keys.decision(rig), on_decision))
+        subs.append(s.declare_subscriber(keys.fixate(rig), lambda sm: fovea.on_fixate(sm.payload.to_bytes())))
         token = s.liveliness().declare_token(alive)
-        log.info("capture %s: %s (%d x %d, f=%.1f px) at %s Hz on vergence/%s/frame", cid, cs.source, wd, ht,
-                 focal, cs.rate_hz or "max", rig)
+        log.info("capture %s: %s (%d x %d, f=%.1f px) at %s Hz on %s", cid, cs.source, wd, ht,
+                 focal, cs.rate_hz or "max", keys.frame(rig))
         plan_key, plan = None, []
         fid = 0
         published = 0

@@ -10,20 +10,20 @@ import sys
 
 # name: (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "match": ("services.match", "decide where the master fovea lies in the slave image (no Zenoh)"),
-    "sim": ("services.sim", "closed loop on the simulated rig, in one process (no Zenoh)"),
-    "bench": ("services.bench", "benchmarks: kernel, match, pipeline"),
-    "up": ("services.up", "an embedded router and every process on this machine"),
-    "router": ("services.router", "a Zenoh router"),
-    "capture": ("services.capture", "read a stereo source and publish frames"),
-    "worker": ("services.worker", "compute layer 4 for a shard of each frame"),
-    "reducer": ("services.reducer", "gather shards, decide, publish profile and command"),
-    "actuator": ("services.actuator", "drive the slave pan motor"),
-    "fixate": ("services.fixate", "move the running capture's fovea to a master pixel"),
-    "monitor": ("services.monitor", "live view of the correlation topics"),
-    "record": ("services.record", "record every vergence/<rig>/** message to a file"),
-    "replay": ("services.replay", "publish a recording again"),
-    "view": ("services.view", "the rig's cockpit in Rerun: images, boxes, profile, pans (the [view] extra)"),
+    "match": ("vergence_services.match", "decide where the master fovea lies in the slave image (no Zenoh)"),
+    "sim": ("vergence_services.sim", "closed loop on the simulated rig, in one process (no Zenoh)"),
+    "bench": ("vergence_services.bench", "benchmarks: kernel, match, pipeline"),
+    "up": ("vergence_services.up", "an embedded router and every process on this machine"),
+    "router": ("vergence_services.router", "a Zenoh router"),
+    "capture": ("vergence_services.capture", "read a stereo source and publish frames"),
+    "worker": ("vergence_services.worker", "compute layer 4 for a shard of each frame"),
+    "reducer": ("vergence_services.reducer", "gather shards, decide, publish profile and command"),
+    "actuator": ("vergence_services.actuator", "drive the slave pan motor"),
+    "fixate": ("vergence_services.fixate", "move the running capture's fovea to a master pixel"),
+    "monitor": ("vergence_services.monitor", "live view of the correlation topics"),
+    "record": ("vergence_services.record", "record every vergence/<rig>/** message to a file"),
+    "replay": ("vergence_services.replay", "publish a recording again"),
+    "view": ("vergence_services.view", "the rig's cockpit in Rerun: images, boxes, profile, pans (the [view] extra)"),
 }
 
 

@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 
+from vergence import keys
 from vergence.config import load
 from vergence.messages import Fixate, MessageError, Verdict
 
@@ -59,12 +60,12 @@ def main(rig: str, conf, x: float, y: float, source: str, wait: float) -> int:
             seen.set()
 
     with session.open_session(conf) as s:
-        sub = s.declare_subscriber(f"vergence/{rig}/decision", on_decision) if wait > 0 else None
+        sub = s.declare_subscriber(keys.decision(rig), on_decision) if wait > 0 else None
         try:
             t0 = time.monotonic()
-            s.put(f"vergence/{rig}/fixate", Fixate(x=x, y=y, t_ns=time.time_ns(), source=source).to_bytes())
+            s.put(keys.fixate(rig), Fixate(x=x, y=y, t_ns=time.time_ns(), source=source).to_bytes())
             if sub is None:
-                print(f"fixate ({x:g}, {y:g}) sent on vergence/{rig}/fixate")
+                print(f"fixate ({x:g}, {y:g}) sent on {keys.fixate(rig)}")
                 return 0
             if not seen.wait(wait):
                 print(f"vergence fixate: no decision at ({target[0]}, {target[1]}) within {wait:g} s (is a "

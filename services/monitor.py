@@ -25,6 +25,7 @@ import time
 
 import zenoh
 
+from vergence import keys
 from vergence.config import load
 from vergence.monitor import Monitor, png_bytes, render_text
 
@@ -33,7 +34,7 @@ from . import session
 log = logging.getLogger("vergence.monitor")
 # the keys the monitor watches under vergence/<rig>/: not the partials (their shards come from the frames'
 # plans) nor the previews, so a monitor costs the rig little
-WATCHED = ("frame", "profile", "command", "motor/state", "status/**")
+WATCHED = (keys.frame, keys.profile, keys.command, keys.motor_state, keys.statuses)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -59,18 +60,18 @@ class Watch:
         self.model = model
         self.profiles = threading.Condition()
         self.n_profiles = 0
-        self.subs = [s.declare_subscriber(f"vergence/{rig}/{k}", self._on_sample) for k in WATCHED]
-        self.subs.append(s.liveliness().declare_subscriber(f"vergence/{rig}/alive/**", self._on_alive,
+        self.subs = [s.declare_subscriber(k(rig), self._on_sample) for k in WATCHED]
+        self.subs.append(s.liveliness().declare_subscriber(keys.alives(rig), self._on_alive,
                                                            history=True))
 
     def _on_sample(self, sample) -> None:
         try:
-            key = str(sample.key_expr)
-            msg = self.model.feed(key, sample.payload.to_bytes())
+            k = keys.parse(str(sample.key_expr))
+            msg = self.model.feed(str(sample.key_expr), sample.payload.to_bytes())
         except Exception as e:  # never let a message kill the callback thread; the model counts its own
             log.warning("sample on %s not handled: %s", sample.key_expr, e)
             return
-        if msg is not None and key.endswith("/profile"):
+        if msg is not None and k is not None and k.kind == keys.PROFILE:
             with self.profiles:
                 self.n_profiles += 1
                 self.profiles.notify_all()
@@ -124,7 +125,7 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, args: argparse.Namesp
                 cols = shutil.get_terminal_size((100, 40)).columns if tty else 100
                 print(render_text(model.snapshot(), width=cols, color=color), file=out, flush=True)
                 if not got:
-                    print(f"vergence monitor: no profile on vergence/{rig}/profile within {wait:g} s "
+                    print(f"vergence monitor: no profile on {keys.profile(rig)} within {wait:g} s "
                           f"(is a reducer running with workers and a capture on this router?)", file=sys.stderr)
                 return 0 if got else 1
             end = time.monotonic() + args.timeout if args.timeout is not None else None
@@ -149,7 +150,7 @@ def _png(watch: Watch, model: Monitor, args: argparse.Namespace, stop: session.S
     t0 = time.monotonic()
     stop.wait(max(0.0, min(args.history, wait)))  # the recent pan history
     if not watch.wait_profile(watch.n_profiles, t0 + wait, stop):
-        print(f"vergence monitor: no profile on vergence/{model.rig}/profile within {wait:g} s; no PNG written",
+        print(f"vergence monitor: no profile on {keys.profile(model.rig)} within {wait:g} s; no PNG written",
               file=sys.stderr)
         return 1
     snap = model.snapshot()

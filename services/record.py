@@ -20,6 +20,7 @@ import time
 
 import zenoh
 
+from vergence import keys
 from vergence.config import load
 from vergence.recording import RecordingError, Writer
 
@@ -61,11 +62,11 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, path: str, duration: 
     th = threading.Thread(target=write_loop, name="record-writer", daemon=True)
     th.start()
     t0 = time.monotonic()
-    key = f"vergence/{rig}/**"
+    key = keys.everything(rig)
     try:
         with session.open_session(conf) as s:
             subs = [s.declare_subscriber(key, on_sample),
-                    s.liveliness().declare_subscriber(f"vergence/{rig}/alive/**", on_alive, history=True)]
+                    s.liveliness().declare_subscriber(keys.alives(rig), on_alive, history=True)]
             # a token says the recorder listens (tests and tools wait for it before starting a capture)
             token = s.liveliness().declare_token(session.alive_key(rig, "record"))
             log.info("recording %s into %s", key, path)

@@ -30,7 +30,7 @@ import time
 
 import zenoh
 
-from vergence import depth, kernel, pipeline
+from vergence import depth, kernel, keys, pipeline
 from vergence.config import load
 from vergence.messages import Frame, MessageError, Partial, replace as replace_message
 
@@ -124,17 +124,16 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
     limits = settings.limits
     gatherer = pipeline.Gatherer(settings.network, settings.control, deadline, limits)
     alive = session.alive_key(rig, "reducer")
-    rid = alive.rsplit("/", 1)[1]
+    rid = keys.parse(alive).ident
     health = pipeline.Health("reducer", rid, log)
-    prefix = f"vergence/{rig}/correlation/"
     lock = threading.Lock()  # the gatherer: the loop thread and the status
     inbox = Inbox()
     with session.open_session(conf) as s:
-        pub_decision = s.declare_publisher(f"vergence/{rig}/decision", express=True)
-        pub_profile = s.declare_publisher(f"vergence/{rig}/profile", express=True)
-        pub_command = s.declare_publisher(f"vergence/{rig}/command", express=True)
-        pub_status = s.declare_publisher(f"vergence/{rig}/status/reducer/{rid}")
-        pub_workers = s.declare_publisher(f"vergence/{rig}/workers", express=True)
+        pub_decision = s.declare_publisher(keys.decision(rig), express=True)
+        pub_profile = s.declare_publisher(keys.profile(rig), express=True)
+        pub_command = s.declare_publisher(keys.command(rig), express=True)
+        pub_status = s.declare_publisher(keys.status(rig, "reducer", rid))
+        pub_workers = s.declare_publisher(keys.workers(rig), express=True)
 
         last: list[pipeline.Result] = []
         geo = settings.geometry
@@ -171,7 +170,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
                     return None
             try:
                 part = Partial.from_bytes(data)
-                if key[len(prefix):] != part.worker:
+                k = keys.parse(key)
+                if k is None or k.ident != part.worker:
                     raise MessageError(f"partial from worker {part.worker!r} on key {key}")
                 return part
             except MessageError as e:
@@ -205,9 +205,9 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
         # process, so no queue builds up in the network; the oldest go when a ring is full); one forwarder
         # thread per ring hands the payloads to the inbox; this thread decodes, gathers, decides and
         # publishes, expires deadlines, and publishes the status and the membership evidence
-        subs = {"frame": s.declare_subscriber(f"vergence/{rig}/frame", zenoh.handlers.RingChannel(FRAME_RING)),
-                "partial": s.declare_subscriber(prefix + "*", zenoh.handlers.RingChannel(PARTIAL_RING))}
-        wake = {"frame": f"vergence/{rig}/frame", "partial": prefix + WAKE}
+        subs = {"frame": s.declare_subscriber(keys.frame(rig), zenoh.handlers.RingChannel(FRAME_RING)),
+                "partial": s.declare_subscriber(keys.correlations(rig), zenoh.handlers.RingChannel(PARTIAL_RING))}
+        wake = {"frame": keys.frame(rig), "partial": keys.correlation(rig, WAKE)}
 
         def forward(kind: str) -> None:
             sub = subs[kind]
@@ -221,7 +221,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
         for th in forwarders:
             th.start()
         token = s.liveliness().declare_token(alive)
-        log.info("reducer %s on vergence/%s/{frame,correlation/*}, deadline %.0f ms", rid, rig, deadline * 1e3)
+        log.info("reducer %s on %s and %s, deadline %.0f ms", rid, keys.frame(rig), keys.correlations(rig),
+                 deadline * 1e3)
 
         def status(**extra) -> bytes:
             with lock:

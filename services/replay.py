@@ -26,15 +26,16 @@ import time
 
 import zenoh
 
-from vergence import pipeline
+from vergence import keys, pipeline
 from vergence.messages import Frame, MessageError, replace
 from vergence.recording import Reader, RecordingError
 
 from . import session
 
 log = logging.getLogger("vergence.replay")
-KINDS = ("frame", "preview", "correlation", "decision", "profile")
-REPLAY_RIG = "replay"  # where a replay publishes by default: no actuator listens there
+# the kinds (vergence.keys) a replay publishes again; REPLAY_RIG: where by default (no actuator listens there)
+KINDS = (keys.FRAME, keys.PREVIEW, keys.CORRELATION, keys.DECISION, keys.PROFILE)
+REPLAY_RIG = keys.REPLAY_RIG
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -51,15 +52,6 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "FILE.rrd, served to a browser, or in the native viewer (the [view] extra)")
 
 
-def kind_of(rest: str) -> str | None:
-    """The replayable kind of a key's part after vergence/<rig>/, or None."""
-    if rest in ("frame", "preview", "decision", "profile"):
-        return rest
-    if rest.startswith("correlation/"):
-        return "correlation"
-    return None
-
-
 class Workers:
     """The live workers of the target rig, from their liveliness tokens."""
 
@@ -68,7 +60,10 @@ class Workers:
         self.lock = threading.Lock()
 
     def on_sample(self, sample) -> None:
-        wid = str(sample.key_expr).rsplit("/", 1)[1]
+        k = keys.parse(str(sample.key_expr))
+        if k is None or k.kind != keys.ALIVE:
+            return
+        wid = k.ident
         with self.lock:
             (self.ids.add if sample.kind == zenoh.SampleKind.PUT else self.ids.discard)(wid)
 
@@ -96,13 +91,13 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
     sent = skipped = bad = 0
     pubs_early: dict[str, zenoh.Publisher] = {}
     with reader, session.open_session(conf) as s:
-        if any(r.ok for r in s.liveliness().get(f"vergence/{rig}/alive/actuator/*", timeout=1.0)):
-            print(f"vergence replay: an actuator is alive on vergence/{rig}/: a reducer there would turn the "
+        if any(r.ok for r in s.liveliness().get(keys.alives(rig, "actuator"), timeout=1.0)):
+            print(f"vergence replay: an actuator is alive on {keys.prefix(rig)}: a reducer there would turn the "
                   f"replayed frames into motor commands. Replay under another rig (--rig; default "
                   f"{REPLAY_RIG}) and run workers and a reducer with that --rig", file=sys.stderr)
             return 2
         workers = Workers()
-        members = s.liveliness().declare_subscriber(f"vergence/{rig}/alive/worker/*", workers.on_sample,
+        members = s.liveliness().declare_subscriber(keys.alives(rig, "worker"), workers.on_sample,
                                                     history=True)
         token = s.liveliness().declare_token(session.alive_key(rig, "replay"))
         if "frame" in kinds:
@@ -110,16 +105,16 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
             while not workers.snapshot() and time.monotonic() < deadline and not stop.wait(0.05):
                 pass
             if not workers.snapshot():
-                log.warning("no live worker on vergence/%s/alive/worker/*: frames keep their recorded plan "
-                            "and nobody will compute them", rig)
+                log.warning("no live worker on %s: frames keep their recorded plan "
+                            "and nobody will compute them", keys.alives(rig, "worker"))
             else:
                 # a new session learns the subscribers' routes from the router a moment after it opens; a
                 # put before that reaches nobody (the capture waits likewise): wait, bounded, for them
-                pub = s.declare_publisher(f"vergence/{rig}/frame")
+                pub = s.declare_publisher(keys.frame(rig))
                 while not pub.matching_status.matching and time.monotonic() < deadline and not stop.wait(0.02):
                     pass
                 stop.wait(0.1)  # the reducer's route is matched; let the workers' routes land too
-                pubs_early = {f"vergence/{rig}/frame": pub}
+                pubs_early = {keys.frame(rig): pub}
         pubs: dict[str, zenoh.Publisher] = dict(pubs_early)
         t0_rec = t0_now = None
         shift = 0
@@ -127,8 +122,8 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
             for rec in reader:
                 if stop.is_set():
                     break
-                parts = rec.key.split("/", 2)
-                kind = kind_of(parts[2]) if len(parts) == 3 and parts[0] == "vergence" else None
+                k = keys.parse(rec.key)
+                kind = k.kind if k is not None else None
                 if rec.event != "put" or kind not in kinds:
                     skipped += 1
                     continue
@@ -147,7 +142,7 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
                         bad += 1
                         log.warning("recorded frame skipped: %s", e)
                         continue
-                key = f"vergence/{rig}/{parts[2]}"
+                key = k.under(rig)
                 pub = pubs.get(key)
                 if pub is None:
                     pub = pubs[key] = s.declare_publisher(key)
@@ -160,7 +155,7 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
             members.undeclare()  # no callback may still run while the session closes
             token.undeclare()
         note = " (the last record was truncated)" if reader.truncated else ""
-        log.info("replayed %d messages to vergence/%s, skipped %d, bad %d%s", sent, rig, skipped, bad, note)
+        log.info("replayed %d messages to %s, skipped %d, bad %d%s", sent, keys.prefix(rig), skipped, bad, note)
     return 0
 
 

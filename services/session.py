@@ -118,7 +118,9 @@ def alive_key(rig: str, role: str, name: str | None = None) -> str:
         name = f"{os.uname().nodename}-{os.getpid()}"
     elif not name.endswith(f"-{os.getpid()}"):
         name = f"{name}-{os.getpid()}"
-    return f"vergence/{rig}/alive/{role}/{name}"
+    from vergence import keys  # here, not at the top: `vergence router` never pays for importing vergence
+
+    return keys.alive(rig, role, name)
 
 
 class Stop:

@@ -71,7 +71,7 @@ def _die_with_parent() -> None:
 
 def commands(args: argparse.Namespace, rig: str) -> list[tuple[str, list[str]]]:
     """(name, argv) of every child, in start order: router, actuator, workers, reducer, capture."""
-    base = [sys.executable, "-m", "services.cli"]
+    base = [sys.executable, "-m", "vergence_services.cli"]
     common = ["--mode", "peer", "--connect", args.listen, "--listen", "tcp/127.0.0.1:0", "--rig", rig]
     common += ["--config", args.config] if args.config else []
     out = [("router", base + ["router", "--listen", args.listen])]

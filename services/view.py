@@ -38,13 +38,14 @@ from pathlib import Path
 
 import numpy as np
 
+from vergence import keys
 from vergence.messages import Command, Frame, MessageError, MotorState, Preview, Profile, Verdict
 
 log = logging.getLogger("vergence.view")
 APP_ID = "vergence"
 INSTALL_HINT = "pip install 'vergence[view]' (in a checkout: pip install -e '.[view]')"
 # what the cockpit subscribes to under vergence/<rig>/
-WATCHED = ("preview", "frame", "decision", "profile", "command", "motor/state", "status/**")
+WATCHED = (keys.preview, keys.frame, keys.decision, keys.profile, keys.command, keys.motor_state, keys.statuses)
 ENTITIES = {
     "rig/master": "the master's preview image",
     "rig/master/fovea": "the fovea, a box on the master image",
@@ -172,41 +173,42 @@ class Cockpit:
     # -- one sample ----------------------------------------------------------------------------------------
 
     def feed(self, rest: str, payload: bytes, t_ns: int | None = None) -> str | None:
-        """Log one message whose key is vergence/<rig>/<rest>; returns its kind, or None when skipped."""
+        """Log one message whose key is vergence/<rig>/<rest>; returns its kind (vergence.keys), or None when
+        skipped."""
+        kind = keys.kind_of(rest)
         try:
-            if rest == "preview":
+            if kind == keys.PREVIEW:
                 self._preview(Preview.from_bytes(payload))
-            elif rest == "frame":
+            elif kind == keys.FRAME:
                 self._frame(Frame.from_bytes(payload))
-            elif rest == "decision":
+            elif kind == keys.DECISION:
                 self._decision(Verdict.from_bytes(payload))
-            elif rest == "profile":
+            elif kind == keys.PROFILE:
                 self._profile(Profile.from_bytes(payload))
-            elif rest == "command":
+            elif kind == keys.COMMAND:
                 self._command(Command.from_bytes(payload))
-            elif rest == "motor/state":
+            elif kind == keys.MOTOR_STATE:
                 self._motor(MotorState.from_bytes(payload))
-            elif rest.startswith("status/"):
+            elif kind == keys.STATUS:
                 self._status(rest, payload, t_ns)
             else:
                 return None
         except (MessageError, ValueError, TypeError) as e:
-            self.bad[rest.split("/")[0]] += 1
+            self.bad[kind] += 1
             if sum(self.bad.values()) <= 10:
                 log.warning("malformed message on %s skipped: %s", rest, e)
             return None
-        kind = rest.split("/")[0] if rest.startswith("status/") else rest
         self.counts[kind] += 1
         return kind
 
     def alive(self, rest: str, present: bool, t_ns: int | None = None) -> None:
         """A liveliness token vergence/<rig>/<rest> (alive/<role>/<id>) appeared or went away."""
-        parts = rest.split("/")
-        if len(parts) != 3 or parts[1] != "worker":
+        k = keys.Key("", keys.kind_of(rest), rest)
+        if k.kind != keys.ALIVE or k.role != "worker" or "/" in k.ident:
             return
-        (self.workers.add if present else self.workers.discard)(parts[2])
+        (self.workers.add if present else self.workers.discard)(k.ident)
         self._time(None, t_ns)
-        self._scalar(f"workers/{parts[2]}", 1.0 if present else 0.0)
+        self._scalar(f"workers/{k.ident}", 1.0 if present else 0.0)
         self._scalar("workers/alive", len(self.workers))
 
     def _preview(self, p: Preview) -> None:
@@ -453,7 +455,6 @@ def view_recording(path: str, target: str, rig: str | None, stop=None) -> int:
         print(f"vergence replay: {e}", file=sys.stderr)
         return 2
     rig = rig or reader.header.get("rig") or "head"
-    prefix = f"vergence/{rig}/"
     with reader:
         url = start(rr, f"{APP_ID}-{rig}", **sinks)
         if url:
@@ -461,9 +462,10 @@ def view_recording(path: str, target: str, rig: str | None, stop=None) -> int:
         cockpit = Cockpit(rr)
         try:
             for rec in reader:
-                if not rec.key.startswith(prefix):
+                k = keys.parse(rec.key)
+                if k is None or k.rig != rig:
                     continue
-                rest = rec.key[len(prefix):]
+                rest = k.rest
                 if rec.event in ("alive", "dead"):
                     cockpit.alive(rest, rec.event == "alive", rec.t_ns)
                 elif rec.event == "put":
@@ -557,7 +559,7 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
     cockpit = Cockpit(rr)
     inbox: collections.deque = collections.deque(maxlen=20000)  # zenoh threads -> this thread
     ready = threading.Event()
-    prefix = f"vergence/{rig}/"
+    prefix = keys.prefix(rig)  # what the callbacks strip: the cockpit takes the rest of the key
 
     full = [0]  # samples pushed out of a full inbox (the viewer fell behind)
 
@@ -583,11 +585,11 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
         rr.disconnect()
         return 1
     with s:
-        subs = [s.declare_subscriber(prefix + k, on_sample) for k in WATCHED if k != "frame"]
+        subs = [s.declare_subscriber(k(rig), on_sample) for k in WATCHED if k is not keys.frame]
         # frames (60 Hz, ~20 KB each at 640 px) only for what decisions may not carry: the fovea's point (the
         # capture keeps it) until the first frame, the truth for as long as frames carry one
-        frames = [s.declare_subscriber(prefix + "frame", on_sample)]
-        subs.append(s.liveliness().declare_subscriber(prefix + "alive/**", on_alive, history=True))
+        frames = [s.declare_subscriber(keys.frame(rig), on_sample)]
+        subs.append(s.liveliness().declare_subscriber(keys.alives(rig), on_alive, history=True))
         log.info("view: rig %s -> %s", rig, ", ".join(x for x in (save and f"file {save}", url, spawn and "viewer")
                                                        if x))
         try:

@@ -21,7 +21,7 @@ import time
 import numpy as np
 import zenoh
 
-from vergence import kernel, pipeline
+from vergence import kernel, keys, pipeline
 from vergence.config import LimitSettings, load
 from vergence.match import Params
 from vergence.messages import Frame, MessageError
@@ -80,13 +80,13 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, name: str | None = No
     limits = limits or LimitSettings()
     warm_up(params or Params())
     alive = session.alive_key(rig, "worker", name)
-    wid = alive.rsplit("/", 1)[1]
+    wid = keys.parse(alive).ident
     health = pipeline.Health("worker", wid, log)
-    frame_key = f"vergence/{rig}/frame"
+    frame_key = keys.frame(rig)
     with session.open_session(conf) as s:
         sub = s.declare_subscriber(frame_key, zenoh.handlers.RingChannel(1))
-        pub = s.declare_publisher(f"vergence/{rig}/correlation/{wid}", express=True)
-        status_pub = s.declare_publisher(f"vergence/{rig}/status/worker/{wid}")
+        pub = s.declare_publisher(keys.correlation(rig, wid), express=True)
+        status_pub = s.declare_publisher(keys.status(rig, "worker", wid))
         busy_ns = [0]
         gaps = Gaps(limits.frame_window)
 

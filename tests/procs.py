@@ -28,6 +28,8 @@ import time
 import uuid
 from pathlib import Path
 
+from vergence import keys
+
 VERGENCE = str(Path(sys.executable).with_name("vergence"))
 
 __all__ = ["free_port", "Proc", "Procs", "wait_for", "VERGENCE"]
@@ -189,7 +191,8 @@ class Procs:
         return s
 
     def key(self, suffix: str) -> str:
-        return f"vergence/{self.rig}/{suffix}"
+        """vergence/<rig>/<suffix> (the suffix as vergence.keys names it: frame, motor/state, status/** ...)."""
+        return keys.prefix(self.rig) + suffix
 
     def collect(self, session, key: str) -> "Collector":
         """Record every sample on key (with its arrival time) from now on."""
@@ -206,8 +209,8 @@ class Procs:
     def wait_alive(self, session, role: str, n: int = 1, timeout: float = 15.0) -> list[str]:
         """Wait until at least n liveliness tokens vergence/<rig>/alive/<role>/* exist; their ids."""
         def ids():
-            got = [str(r.ok.key_expr).rsplit("/", 1)[1]
-                   for r in session.liveliness().get(self.key(f"alive/{role}/*"), timeout=1.0) if r.ok]
+            got = [keys.parse(str(r.ok.key_expr)).ident
+                   for r in session.liveliness().get(keys.alives(self.rig, role), timeout=1.0) if r.ok]
             return got if len(got) >= n else None
 
         return wait_for(ids, timeout, f"{n} {role} token(s)", interval=0.1, logs=self.logs)

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from services.bench_pipeline import summary
+from vergence_services.bench_pipeline import summary
 
-CLI = [sys.executable, "-m", "services.cli", "bench"]
+CLI = [sys.executable, "-m", "vergence_services.cli", "bench"]
 
 
 def _rows(*args: str, timeout: float) -> list[dict]:

@@ -15,7 +15,7 @@ from test_accuracy import ref_winner
 
 
 def vergence(*args, timeout=60):
-    return subprocess.run([sys.executable, "-m", "services.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "vergence_services.cli", *args], capture_output=True, text=True,
                           timeout=timeout)
 
 

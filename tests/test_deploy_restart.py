@@ -1,7 +1,8 @@
 """Router restart while the pipeline runs: capture, worker, reducer and actuator reconnect by themselves and
 commands resume. Measured: from the new router's start to the first command of a frame captured after it,
 and the whole gap in commands, with the router down 0.5 s and 3 s (zenoh's default reconnection backs off to
-seconds; services.session and the deployed configs retry every 0.1-0.5 s). Target: within 2 s of the restart.
+seconds; vergence_services.session (services/session.py) and the deployed configs retry every 0.1-0.5 s).
+Target: within 2 s of the restart.
 
 Two set-ups: the services' own defaults (plain tcp, session.zenoh_config) and the deployed configs
 (deploy/router-tls.json5 and the per-role client configs of make-certs.sh: mutual TLS, user/password, ACL)."""
@@ -59,7 +60,7 @@ def test_router_restart_commands_resume(tmp_path, secrets, variant, down_s):
             def observer():  # with the services' own client settings (it must reconnect as fast as they do)
                 import zenoh
 
-                from services import session as zsession
+                from vergence_services import session as zsession
 
                 s = zenoh.open(zsession.zenoh_config("client", [endpoint]))
                 P._sessions.append(s)

@@ -24,7 +24,7 @@ from vergence.sim.scene import texture
 
 
 def vergence(*args, timeout=300):
-    return subprocess.run([sys.executable, "-m", "services.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "vergence_services.cli", *args], capture_output=True, text=True,
                           timeout=timeout)
 
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from procs import VERGENCE, Procs, free_port, wait_for
-from services.capture import Fovea
+from vergence_services.capture import Fovea
 from vergence import monitor, pipeline
 from vergence.match import Params
 from vergence.messages import SCHEMA, Fixate, MotorState, Verdict, replace as replace_message

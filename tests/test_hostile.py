@@ -223,7 +223,7 @@ def test_a_command_from_the_future_locks_nobody_out():
 # -- the worker's and the capture's checks ----------------------------------------------------------------------
 
 def test_frames_beyond_the_limits_are_not_computed():
-    from services.worker import Gaps, check_frame
+    from vergence_services.worker import Gaps, check_frame
 
     lim = LimitSettings(max_frame_bytes=100_000, max_frame_ops=1_000_000)
     now = time.time_ns()
@@ -243,7 +243,7 @@ def test_frames_beyond_the_limits_are_not_computed():
 
 
 def test_capture_ignores_implausible_motor_states():
-    from services.capture import motor_state_implausible
+    from vergence_services.capture import motor_state_implausible
 
     m = MotorSettings()
     now = time.time_ns()
@@ -257,7 +257,7 @@ def test_capture_ignores_implausible_motor_states():
 
 
 def test_reducer_serves_the_newest_frame_first():
-    from services.reducer import Inbox, newest_first
+    from vergence_services.reducer import Inbox, newest_first
 
     t = time.time_ns()
     f1, f2 = frame(1, t), frame(2, t + 1)

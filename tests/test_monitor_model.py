@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vergence import messages as m
-from vergence.monitor import Monitor, kind_of_key, profile_bars, render_png, render_text, png_bytes
+from vergence.monitor import Monitor, profile_bars, render_png, render_text, png_bytes
 
 W, WIN = 640, 15
 K = W - WIN + 1
@@ -66,18 +66,6 @@ def run_stream(mon: Monitor, seconds: float = 10.0, hz: float = 100.0, skip=(), 
             mon.feed("vergence/head/command", command(i, t, latency(i), 0.001 * i).to_bytes(), t + 2 * MS)
         mon.feed("vergence/head/motor/state", motor(t, 0.001 * i).to_bytes(), t + 3 * MS)
     return T0 + (n - 1) * step + 3 * MS
-
-
-@pytest.mark.parametrize("key,expected", [
-    ("vergence/head/frame", ("head", "frame", "frame")),
-    ("vergence/left/motor/state", ("left", "motor/state", "motor/state")),
-    ("vergence/head/correlation/h-12", ("head", "correlation", "correlation/h-12")),
-    ("vergence/head/alive/worker/h-12", ("head", "alive", "alive/worker/h-12")),
-    ("vergence/head/whatever", ("head", "", "whatever")),
-    ("other/head/frame", None),
-], ids=["frame", "motor", "correlation", "alive", "unknown", "foreign"])
-def test_kind_of_key(key, expected):
-    assert kind_of_key(key) == expected
 
 
 def test_rates_latency_and_drops():

@@ -267,8 +267,8 @@ def test_faithful_converges_on_real_scenes_where_the_paper_network_is_right(name
 
 def test_cli_json_and_plot(tmp_path):
     png = tmp_path / "run.png"
-    r = subprocess.run([sys.executable, "-m", "services.cli", "sim", "--start-pan", "2", "--frames", "6", "--json",
-                        "--plot", str(png)], capture_output=True, text=True, timeout=120)
+    r = subprocess.run([sys.executable, "-m", "vergence_services.cli", "sim", "--start-pan", "2", "--frames", "6",
+                        "--json", "--plot", str(png)], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     rows = [json.loads(line) for line in r.stdout.splitlines()]
     assert [o["frame"] for o in rows] == list(range(7))
@@ -280,7 +280,7 @@ def test_cli_json_and_plot(tmp_path):
 
 
 def test_cli_bad_option_says_which(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "services.cli", "sim", "--noise", "lots"], capture_output=True,
+    r = subprocess.run([sys.executable, "-m", "vergence_services.cli", "sim", "--noise", "lots"], capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 2 and "noise='lots'" in r.stderr
 
@@ -292,7 +292,7 @@ def test_cli_pair_without_truth_and_start_off(tmp_path, scene):
     cfg = tmp_path / "ideal.toml"  # the motor and controller this test was written for (see IDEAL_MOTOR)
     cfg.write_text('[control]\nmode = "p"\n[actuator.motor]\ntau_s = 0.02\nlatency_s = 0.0\n'
                    'max_accel_deg_s2 = 0.0\nquantise = false\n')
-    cmd = [sys.executable, "-m", "services.cli", "sim", "--left", str(tmp_path / "l.png"), "--right",
+    cmd = [sys.executable, "-m", "vergence_services.cli", "sim", "--left", str(tmp_path / "l.png"), "--right",
            str(tmp_path / "r.png"), "--size", "640x480", "--frames", "3", "--json", "--config", str(cfg)]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     rows = [json.loads(line) for line in r.stdout.splitlines()]  # strict JSON: no NaN

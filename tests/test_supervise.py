@@ -45,7 +45,7 @@ def children(up) -> dict[str, list]:
             continue
         if ch.pid in waiting:
             continue
-        kind = argv[argv.index("services.cli") + 1] if "services.cli" in argv else "?"
+        kind = argv[argv.index("vergence_services.cli") + 1] if "vergence_services.cli" in argv else "?"
         out.setdefault(kind, []).append(ch)
     return out
 
@@ -53,7 +53,7 @@ def children(up) -> dict[str, list]:
 def start_up(P: Procs, tmp_path, *extra: str):
     """`vergence up` (2 workers, a still textured pair at 20 Hz) on a free port, and a collector of the
     decisions in the test's own Zenoh client (one that reconnects when the router comes back)."""
-    from services import session
+    from vergence_services import session
 
     P.endpoint = f"tcp/127.0.0.1:{free_port()}"
     up = P.start("up", "up", "--listen", P.endpoint, "--source", textured_pair(tmp_path), "--rate", "20",
@@ -103,7 +103,7 @@ def test_a_sigkilled_child_is_restarted_and_decisions_resume_within_3_s(tmp_path
                      f"a standby {kind} ready", interval=0.1, logs=P.logs)
         # a peer of the children too, linked to them directly (as they are to one another): what it gets does
         # not go through the router
-        from services import session
+        from vergence_services import session
 
         peer = session.open_session(session.zenoh_config("peer", [P.endpoint], ["tcp/127.0.0.1:0"]))
         P._sessions.append(peer)

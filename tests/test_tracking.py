@@ -244,7 +244,7 @@ def test_abstention_coasts_then_holds_never_runs_away():
 # -- the CLI -----------------------------------------------------------------------------------------------------
 
 def vsim(*args, timeout=240):
-    return subprocess.run([sys.executable, "-m", "services.cli", "sim", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "vergence_services.cli", "sim", *args], capture_output=True, text=True,
                           timeout=timeout)
 
 

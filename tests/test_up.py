@@ -17,11 +17,11 @@ from procs import Procs
 def test_busy_port_is_refused_with_a_hint(tmp_path):
     with Procs(tmp_path) as P:
         P.router()
-        up = subprocess.run([sys.executable, "-m", "services.cli", "up", "--listen", P.endpoint],
+        up = subprocess.run([sys.executable, "-m", "vergence_services.cli", "up", "--listen", P.endpoint],
                             capture_output=True, text=True, timeout=30)
         assert up.returncode == 2 and f"{P.endpoint} is already in use" in up.stderr
         assert "started" not in up.stderr  # no child was started
-        router = subprocess.run([sys.executable, "-m", "services.cli", "router", "--listen", P.endpoint],
+        router = subprocess.run([sys.executable, "-m", "vergence_services.cli", "router", "--listen", P.endpoint],
                                 capture_output=True, text=True, timeout=30)
         assert router.returncode == 2
         assert router.stderr.startswith("vergence router: cannot start on")
@@ -30,14 +30,14 @@ def test_busy_port_is_refused_with_a_hint(tmp_path):
 
 
 def _child(name: str, code: str):
-    from services import up
+    from vergence_services import up
 
     return up.Child(name, [sys.executable, "-c", code])
 
 
 def _supervise_until(children, stop, cond, timeout: float) -> int:
     """Run up.supervise in this thread until cond() holds (checked from a timer thread) or timeout."""
-    from services import up
+    from vergence_services import up
 
     def watch():
         end = time.monotonic() + timeout
@@ -53,7 +53,7 @@ def _supervise_until(children, stop, cond, timeout: float) -> int:
 
 
 def test_a_dead_child_is_restarted_with_a_doubling_back_off(caplog):
-    from services import session
+    from vergence_services import session
 
     starts = []
     c = _child("flaky", "import sys; sys.exit(1)")
@@ -81,7 +81,7 @@ def test_a_dead_child_is_restarted_with_a_doubling_back_off(caplog):
 
 
 def test_the_back_off_caps_and_resets_after_a_stable_run(monkeypatch, caplog):
-    from services import session, up
+    from vergence_services import session, up
 
     monkeypatch.setattr(up, "BACKOFF_S", (0.1, 0.4))  # scaled down from (0.2, 5.0)
     quick = _child("quick", "import sys; sys.exit(1)")
@@ -104,7 +104,7 @@ def test_the_back_off_caps_and_resets_after_a_stable_run(monkeypatch, caplog):
 
 
 def test_no_restart_during_shutdown_and_exit_2_at_first_start_stops_up(caplog):
-    from services import session
+    from vergence_services import session
 
     runner = _child("runner", "import time; time.sleep(60)")
     runner.start()
@@ -123,11 +123,11 @@ def test_no_restart_during_shutdown_and_exit_2_at_first_start_stops_up(caplog):
 
 
 def test_a_standby_takes_over_at_once_and_leaves_when_up_stops(monkeypatch, caplog):
-    from services import session, up
+    from vergence_services import session, up
 
     monkeypatch.setattr(up, "STANDBY_DELAY_S", 0.2)
     # a child that, as every service, waits in session.open_session's standby hook before its work
-    c = _child("svc", "from services import session; session._standby(); import time; time.sleep(60)")
+    c = _child("svc", "from vergence_services import session; session._standby(); import time; time.sleep(60)")
     c.standby_due = 0.0
     c.start()
     stop = session.Stop(install=False)

@@ -22,7 +22,7 @@ from vergence.recording import Writer
 rr = pytest.importorskip("rerun", reason="rerun-sdk (the [view] extra, part of [test]) is not installed")
 from rerun.chunk import RrdReader  # noqa: E402
 
-from services import view  # noqa: E402
+from vergence_services import view  # noqa: E402
 
 
 def read_rrd(path) -> dict[str, list[dict]]:
@@ -262,7 +262,7 @@ def test_newer_fields_are_logged_when_present(tmp_path):
 
 def test_a_missing_extra_says_how_to_install_it(tmp_path):
     code = ("import sys; sys.modules['rerun_cli'] = None; sys.modules['rerun'] = None\n"
-            "from services.cli import main; sys.exit(main(['view', '--save', 'x.rrd', '--connect', "
+            "from vergence_services.cli import main; sys.exit(main(['view', '--save', 'x.rrd', '--connect', "
             "'tcp/127.0.0.1:1']))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=tmp_path)
     assert out.returncode == 2
@@ -277,7 +277,7 @@ def test_analytics_are_off_for_the_user_after_a_project_process_used_rerun(tmp_p
     import json
 
     env = {**os.environ, "XDG_CONFIG_HOME": str(tmp_path / "cfg")}
-    code = "from services import view; view.import_rerun()"
+    code = "from vergence_services import view; view.import_rerun()"
     subprocess.run([sys.executable, "-c", code], env=env, check=True, timeout=120, capture_output=True)
     conf = json.loads((tmp_path / "cfg" / "rerun" / "analytics.json").read_text())
     assert conf["analytics_enabled"] is False

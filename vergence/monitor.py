@@ -24,28 +24,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import keys
 from . import messages as m
 
-__all__ = ["Monitor", "Snapshot", "Rate", "kind_of_key", "render_text", "render_png", "png_bytes",
+__all__ = ["Monitor", "Snapshot", "Rate", "render_text", "render_png", "png_bytes",
            "profile_bars"]
 
-# key suffix after vergence/<rig>/ -> message class (correlation/<id> handled apart)
-_KEYS: dict[str, type[m.Message]] = {"frame": m.Frame, "profile": m.Profile, "command": m.Command,
-                                     "motor/state": m.MotorState, "preview": m.Preview}
-
-
-def kind_of_key(key: str) -> tuple[str, str, str] | None:
-    """Split vergence/<rig>/<rest> into (rig, kind, rest). kind is frame, profile, command, motor/state,
-    preview, correlation, alive, status or '' (unknown); None when the key is not under vergence/."""
-    parts = key.split("/")
-    if len(parts) < 3 or parts[0] != "vergence" or not parts[1]:
-        return None
-    rig, rest = parts[1], "/".join(parts[2:])
-    if rest in _KEYS:
-        return rig, rest, rest
-    if parts[2] in ("correlation", "alive", "status") and len(parts) >= 4:
-        return rig, parts[2], rest
-    return rig, "", rest
+# kind (vergence.keys) -> message class (correlation/<id> handled apart)
+_KEYS: dict[str, type[m.Message]] = {keys.FRAME: m.Frame, keys.PROFILE: m.Profile, keys.COMMAND: m.Command,
+                                     keys.MOTOR_STATE: m.MotorState, keys.PREVIEW: m.Preview}
 
 
 class Rate:
@@ -175,15 +162,16 @@ class Monitor:
         key is not watched (ignored) or the payload is malformed (counted per kind in self.malformed,
         never raised)."""
         t_ns = self.clock() if t_ns is None else t_ns
-        k = kind_of_key(str(key))
-        if k is None or (self.rig is not None and k[0] != self.rig) or k[1] in ("", "alive"):
+        k = keys.parse(key)
+        if k is None or (self.rig is not None and k.rig != self.rig) or \
+                k.kind not in (*_KEYS, keys.CORRELATION, keys.STATUS):
             with self._lock:
                 self.ignored += 1
             return None
-        rig, kind, rest = k
-        if kind == "status":
-            return self._on_status(rest, payload, t_ns)
-        cls = m.Partial if kind == "correlation" else _KEYS[kind]
+        kind = k.kind
+        if kind == keys.STATUS:
+            return self._on_status(k.name, payload, t_ns)
+        cls = m.Partial if kind == keys.CORRELATION else _KEYS[kind]
         try:
             msg = cls.from_bytes(payload)
         except m.MessageError as e:
@@ -213,7 +201,7 @@ class Monitor:
         for fn in self.listeners:
             fn(msg.KIND, msg)
 
-    def _on_status(self, rest: str, payload: bytes, t_ns: int) -> dict | None:
+    def _on_status(self, name: str, payload: bytes, t_ns: int) -> dict | None:
         """vergence/<rig>/status/<role>/<id>: a process's JSON counters; the latest one per process is
         kept (the reducer's give the dropped frames), an `"exiting": true` one removes the process."""
         try:
@@ -223,9 +211,8 @@ class Monitor:
         except (ValueError, UnicodeDecodeError) as e:
             with self._lock:
                 self.malformed["status"] = self.malformed.get("status", 0) + 1
-                self.last_error["status"] = f"{rest}: {e}"
+                self.last_error["status"] = f"status/{name}: {e}"
             return None
-        name = rest[len("status/"):]
         with self._lock:
             if d.get("exiting"):
                 self._status.pop(name, None)
@@ -236,13 +223,10 @@ class Monitor:
 
     def liveliness(self, key: str, present: bool) -> None:
         """A liveliness token vergence/<rig>/alive/<role>/<id> appeared (present) or went away."""
-        k = kind_of_key(str(key))
-        if k is None or k[1] != "alive" or (self.rig is not None and k[0] != self.rig):
+        k = keys.parse(key)
+        if k is None or k.kind != keys.ALIVE or (self.rig is not None and k.rig != self.rig):
             return
-        parts = k[2].split("/")
-        if len(parts) < 3:
-            return
-        role, ident = parts[1], "/".join(parts[2:])
+        role, ident = k.role, k.ident
         with self._lock:
             ids = self._alive.setdefault(role, set())
             if present:
@@ -448,7 +432,7 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
     out.append("")
     p = s.profile
     if p is None:
-        out.append(c(DIM, "no profile yet (waiting on vergence/%s/profile)" % (s.rig or "*")))
+        out.append(c(DIM, "no profile yet (waiting on %s)" % keys.profile(s.rig or "*")))
     else:
         side = {-1: "◀ left", 0: "● centre", 1: "right ▶"}.get(p.direction, "?")
         conf = c(GREEN, "moves") if p.confident else c(YELLOW, "abstains")
