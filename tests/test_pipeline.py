@@ -189,6 +189,22 @@ def test_window_control():
     assert WindowControl(Params(max_window=0)).update(15, False) == 15
 
 
+def test_window_control_walks_the_windows_match_tries():
+    """One dynamic-window rule: the capture's window steps through exactly Params.windows(), which
+    vergence.match() tries in turn (15, 23, 31, 39 for max_window 40: never past it), and reset() is the base."""
+    p = Params(window=15, max_window=40)
+    assert p.windows() == [15, 23, 31, 39]
+    wc, seen = WindowControl(p, patience=1), [15]
+    for _ in range(5):
+        seen.append(wc.update(seen[-1], False))
+    assert seen == [15, 23, 31, 39, 39, 39]
+    down = [wc.update(w, True) for w in (39, 31, 23, 15)]
+    assert down == [31, 23, 15, 15]
+    wc.update(15, False)
+    wc.reset()
+    assert wc.window == 15 and wc.update(15, False) == 23
+
+
 def test_health_counts_and_logs_once(caplog):
     import logging
 

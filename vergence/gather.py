@@ -29,7 +29,7 @@ def frame_params(frame: Frame, params: Params) -> Params:
 
 
 def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
-    """vergence.match.decide_scores on a frame's complete scores: the decision of vergence.match() itself.
+    """vergence.decide.decide_scores on a frame's complete scores: the decision of vergence.match() itself.
 
     The slave band's features (for the left-right check, with the master band's gray strip, and the halves
     check) are computed only when the checks can change the result, i.e. when the decision without them is
