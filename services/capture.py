@@ -236,8 +236,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                 elif plan:
                     try:
                         frame = make_frame(master, slave, rig=rig, frame=fid, pan_rad=p_now, focal_px=focal,
-                                                    params=params, plan=plan, at=fovea.at(), window=w,
-                                                    t_capture_ns=t_ns)
+                                           params=params, plan=plan, at=fovea.at(), window=w,
+                                           t_capture_ns=t_ns)
                         frame.master_pan_rad, frame.tilt_rad = master_pan, tilt
                     except retina.BorderError:  # a grown window that no longer fits: back to the base one
                         windows.reset()

@@ -69,7 +69,7 @@ def warm_up(settings) -> None:
     p = dataclasses.replace(settings.network, window=15, vsearch=min(settings.network.vsearch, 2))
     g = Gatherer(p, settings.control)
     f = make_frame(img, img, rig="warm", frame=0, pan_rad=0.0, focal_px=100.0, params=p,
-                            plan=[["w", 0, 128 - 15 + 1]])
+                   plan=[["w", 0, 128 - 15 + 1]])
     g.add_frame(f)
     g.add_partial(compute_partial(f, "w"))
 

@@ -47,7 +47,7 @@ def warm_up(params: Params) -> None:
     img = rng.integers(0, 256, (64, 96), np.uint8)
     p = Params(window=15, vsearch=min(params.vsearch, 2), circular=params.circular, support=params.support)
     f = make_frame(img, img, rig="warm", frame=0, pan_rad=0.0, focal_px=80.0, params=p,
-                            plan=[["w", 0, 96 - 15 + 1]])
+                   plan=[["w", 0, 96 - 15 + 1]])
     compute_partial(f, "w")
 
 

@@ -165,7 +165,7 @@ def test_monitor_shows_the_fovea_and_the_depth():
     img = rng.integers(0, 256, (120, 200), np.uint8)
     p = Params(max_window=0)
     f = make_frame(img, img, rig="head", frame=3, pan_rad=0.0, focal_px=100.0, params=p,
-                            plan=[["w", 0, 186]], at=(80, 60))
+                   plan=[["w", 0, 186]], at=(80, 60))
     r = Result.of(f, compute_partial(f, "w").array(), p, Controller())
     mon = monitor.Monitor("head")
     mon.feed("vergence/head/frame", f.to_bytes())

@@ -52,7 +52,7 @@ P = Params(max_window=0)
 def frame(fid: int, t_ns: int, workers=("a", "b")) -> Frame:
     k = M.shape[1] - P.window + 1
     return make_frame(M, SL, rig="r", frame=fid, pan_rad=0.0, focal_px=100.0, params=P,
-                               plan=plan_shards(workers, k), t_capture_ns=t_ns)
+                      plan=plan_shards(workers, k), t_capture_ns=t_ns)
 
 
 def run_frame(g: Gatherer, fid: int, t_ns: int, now: float) -> list:
@@ -233,7 +233,7 @@ def test_frames_beyond_the_limits_are_not_computed():
     assert check_frame(f.to_bytes(), lim, now).frame == 1
     wide = np.zeros((60, 20_000), np.uint8)
     big = make_frame(wide, wide, rig="r", frame=2, pan_rad=0.0, focal_px=100.0, params=P,
-                              plan=[["a", 0, 20_000 - 14]], t_capture_ns=now)
+                     plan=[["a", 0, 20_000 - 14]], t_capture_ns=now)
     with pytest.raises(Exception, match="max_frame_bytes"):
         check_frame(big.to_bytes(), lim, now)
     with pytest.raises(Exception, match="max_frame_ops"):
@@ -379,7 +379,7 @@ def test_forged_partials_frames_and_states_stop_nothing(rig):
                                            min_rad=-2.0, max_rad=2.0, status="ok").to_bytes())
     wide = np.zeros((40, 250_000), np.uint8)
     big = make_frame(wide, wide, rig=P.rig, frame=BIG_FRAME, pan_rad=0.0, focal_px=100.0, params=P_BIG,
-                              plan=[["w1", 0, 250_000 - 14]], t_capture_ns=now)
+                     plan=[["w1", 0, 250_000 - 14]], t_capture_ns=now)
     s.put(P.key("frame"), big.to_bytes())
     after(P, c, t_a, base)
     red = wait_for(lambda: latest_status(c, "reducer").get("gatherer", {}).get("implausible_frame", 0) >= 1 and

@@ -31,7 +31,7 @@ def textured(h=120, w=200, seed=1, shift=SHIFT):
 def frame_of(master, slave, params, workers=("a",), fid=1, pan=0.0, focal=100.0, window=None):
     k = master.shape[1] - (window or params.window) + 1
     return make_frame(master, slave, rig="r", frame=fid, pan_rad=pan, focal_px=focal, params=params,
-                               plan=plan_shards(workers, k), window=window)
+                      plan=plan_shards(workers, k), window=window)
 
 
 @pytest.mark.parametrize("n,k,expect", [

@@ -350,7 +350,7 @@ def _frame(truth):
     rig = MovingRig("still:z=0.8", HEAD)
     master, slave = rig.render(0.0)
     f = make_frame(master, slave, rig="head", frame=3, pan_rad=-0.07, focal_px=F, params=vergence.Params(),
-                            plan=[["w", 0, 640 - 15 + 1]], t_capture_ns=5)
+                   plan=[["w", 0, 640 - 15 + 1]], t_capture_ns=5)
     f.truth_pan_rad = truth
     return f
 
