@@ -203,7 +203,7 @@ def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: 
     """Runs at each rate in turn (the first always; a later one only while the previous one had no drop and
     p99 <= p99_limit ms), for each worker count."""
     from vergence import keys
-    from vergence.match import Params
+    from vergence.params import Params
 
     master, slave = synthetic_pair(width, height)
     lp, rp = workdir / f"{name}-l.png", workdir / f"{name}-r.png"

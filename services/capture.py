@@ -4,7 +4,7 @@ Publishes on vergence/<rig>/frame a messages.Frame per image pair: only what lay
 and the slave band with their Sobel margins, the master band for the left-right check), the slave pan at
 capture time (the latest messages.MotorState on vergence/<rig>/motor/state; the source's start pan before
 any), and the shard plan made from the workers' liveliness tokens vergence/<rig>/alive/worker/* at that
-moment, minus the workers the reducer's evidence (vergence/<rig>/workers) shows silent (pipeline.Roster:
+moment, minus the workers the reducer's evidence (vergence/<rig>/workers) shows silent (vergence.frames.Roster:
 a token is an invitation, not a guarantee). A motor/state whose pan is outside the motor's limits or whose
 time is off our clock by more than [limits] max_skew_s is counted and ignored. With no worker alive, frames
 are counted (no_workers) and not published. A downscaled
@@ -31,12 +31,14 @@ import time
 import cv2
 import zenoh
 
-from vergence import keys, pipeline, retina
+from vergence import keys, retina
 from vergence.config import load
+from vergence.frames import Roster, WindowControl, make_frame, plan_shards
 from vergence.messages import Fixate, MessageError, MotorState, Preview, Verdict
 from vergence.sources import SourceError, open_source
 
 from . import session
+from .health import Health
 from .match import point_arg
 
 log = logging.getLogger("vergence.capture")
@@ -71,7 +73,7 @@ class Fovea:
 
     LOG_EVERY_S = 1.0
 
-    def __init__(self, x: int, y: int, shape: tuple[int, int], params, health: pipeline.Health):
+    def __init__(self, x: int, y: int, shape: tuple[int, int], params, health: Health):
         self.lock = threading.Lock()
         self.x, self.y = x, y
         self.shape, self.params, self.health = shape, params, health
@@ -133,10 +135,10 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         return 2
     alive = session.alive_key(rig, "capture")
     cid = keys.parse(alive).ident
-    health = pipeline.Health("capture", cid, log)
-    windows = pipeline.WindowControl(params)
+    health = Health("capture", cid, log)
+    windows = WindowControl(params)
     lim = settings.limits
-    members = pipeline.Roster(lim.miss_s, lim.probation_s, lim.miss_frames)
+    members = Roster(lim.miss_s, lim.probation_s, lim.miss_frames)
     fovea = Fovea(x, y, (ht, wd), params, health)
     pan = [source.start_pan_rad]
     decided = [0, 0]  # the reducer's complete frames: latest report, and at the last status
@@ -224,7 +226,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                 changes, ids = members.snapshot()
                 if (changes, w) != plan_key:
                     plan_key = (changes, w)
-                    plan = pipeline.plan_shards(ids, wd - w + 1)
+                    plan = plan_shards(ids, wd - w + 1)
                 fid += 1
                 health.count("frames")
                 if plan and not pub_frame.matching_status.matching:
@@ -233,12 +235,12 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                     health.count("unrouted")
                 elif plan:
                     try:
-                        frame = pipeline.make_frame(master, slave, rig=rig, frame=fid, pan_rad=p_now, focal_px=focal,
-                                                    params=params, plan=plan, at=fovea.at(), window=w,
-                                                    t_capture_ns=t_ns)
+                        frame = make_frame(master, slave, rig=rig, frame=fid, pan_rad=p_now, focal_px=focal,
+                                           params=params, plan=plan, at=fovea.at(), window=w,
+                                           t_capture_ns=t_ns)
                         frame.master_pan_rad, frame.tilt_rad = master_pan, tilt
                     except retina.BorderError:  # a grown window that no longer fits: back to the base one
-                        windows.window = params.window
+                        windows.reset()
                         continue
                     frame.truth_pan_rad = source.truth_pan_rad  # the simulator's ground truth, else None
                     pub_frame.put(frame.to_bytes())

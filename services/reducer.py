@@ -1,8 +1,8 @@
 """`vergence reducer`: gathers the shards of each frame, decides, publishes the profile and the command.
 
-Subscribes to vergence/<rig>/frame and vergence/<rig>/correlation/*; vergence.pipeline.Gatherer assembles
+Subscribes to vergence/<rig>/frame and vergence/<rig>/correlation/*; vergence.gather.Gatherer assembles
 each frame by the plan the frame carries, drops (and counts) a frame whose shards miss the deadline
-([reducer] deadline_ms), and reduces a complete one with vergence.match.decide_scores and the controller.
+([reducer] deadline_ms), and reduces a complete one with vergence.decide.decide_scores and the controller.
 Messages that are not plausible ([limits]: capture time, frame id, frame size) are counted and change
 nothing. Messages arrive in zenoh RingChannels (bounded, the oldest go); one thread takes everything that
 arrived, newest frame first, so an overloaded reducer serves the newest frame instead of queueing.
@@ -30,11 +30,15 @@ import time
 
 import zenoh
 
-from vergence import depth, kernel, keys, pipeline
+from vergence import depth, kernel, keys
 from vergence.config import load
+from vergence.frames import frame_too_large, make_frame
+from vergence.gather import Gatherer, Result
 from vergence.messages import Frame, MessageError, Partial, replace as replace_message
+from vergence.shards import compute_partial
 
 from . import session
+from .health import Health
 
 log = logging.getLogger("vergence.reducer")
 STATUS_S = 1.0
@@ -63,14 +67,14 @@ def warm_up(settings) -> None:
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, (64, 128), np.uint8)
     p = dataclasses.replace(settings.network, window=15, vsearch=min(settings.network.vsearch, 2))
-    g = pipeline.Gatherer(p, settings.control)
-    f = pipeline.make_frame(img, img, rig="warm", frame=0, pan_rad=0.0, focal_px=100.0, params=p,
-                            plan=[["w", 0, 128 - 15 + 1]])
+    g = Gatherer(p, settings.control)
+    f = make_frame(img, img, rig="warm", frame=0, pan_rad=0.0, focal_px=100.0, params=p,
+                   plan=[["w", 0, 128 - 15 + 1]])
     g.add_frame(f)
-    g.add_partial(pipeline.compute_partial(f, "w"))
+    g.add_partial(compute_partial(f, "w"))
 
 
-def summary(seconds: float, frames: int, lost: int, commands: int, last: pipeline.Result) -> str:
+def summary(seconds: float, frames: int, lost: int, commands: int, last: Result) -> str:
     """The reducer's periodic log line: what came through in the last `seconds`, and the latest decision."""
     d, f = last.decision, last.frame
     return (f"last {seconds:.0f} s: frames {frames} decided, {lost} dropped, commands {commands}; frame {f.frame}: "
@@ -122,10 +126,10 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
     warm_up(settings)
     deadline = (deadline_ms if deadline_ms is not None else settings.reducer.deadline_ms) / 1000.0
     limits = settings.limits
-    gatherer = pipeline.Gatherer(settings.network, settings.control, deadline, limits)
+    gatherer = Gatherer(settings.network, settings.control, deadline, limits)
     alive = session.alive_key(rig, "reducer")
     rid = keys.parse(alive).ident
-    health = pipeline.Health("reducer", rid, log)
+    health = Health("reducer", rid, log)
     lock = threading.Lock()  # the gatherer: the loop thread and the status
     inbox = Inbox()
     with session.open_session(conf) as s:
@@ -135,7 +139,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
         pub_status = s.declare_publisher(keys.status(rig, "reducer", rid))
         pub_workers = s.declare_publisher(keys.workers(rig), express=True)
 
-        last: list[pipeline.Result] = []
+        last: list[Result] = []
         geo = settings.geometry
 
         def publish(results) -> None:
@@ -156,12 +160,12 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
             """A Frame or Partial from (key, bytes), or None (counted by reason)."""
             key, data = item
             if kind == "frame":
-                why = pipeline.frame_too_large(None, len(data), limits)
+                why = frame_too_large(None, len(data), limits)
                 try:
                     if why is not None:
                         raise MessageError(why)
                     frame = Frame.from_bytes(data)
-                    why = pipeline.frame_too_large(frame, len(data), limits)
+                    why = frame_too_large(frame, len(data), limits)
                     if why is not None:
                         raise MessageError(why)
                     return frame

@@ -26,7 +26,8 @@ import time
 
 import zenoh
 
-from vergence import keys, pipeline
+from vergence import keys
+from vergence.frames import plan_shards
 from vergence.messages import Frame, MessageError, replace
 from vergence.recording import Reader, RecordingError
 
@@ -75,7 +76,7 @@ class Workers:
 def replan(payload: bytes, workers: list[str], t_shift_ns: int) -> bytes:
     """A recorded frame with the plan of the live workers and its capture time moved by t_shift_ns."""
     f = Frame.from_bytes(payload)
-    plan = pipeline.plan_shards(workers, f.k_count) if workers else f.plan
+    plan = plan_shards(workers, f.k_count) if workers else f.plan
     return replace(f, plan=plan, t_capture_ns=f.t_capture_ns + t_shift_ns).to_bytes()
 
 

@@ -21,12 +21,15 @@ import time
 import numpy as np
 import zenoh
 
-from vergence import kernel, keys, pipeline
+from vergence import kernel, keys
 from vergence.config import LimitSettings, load
-from vergence.match import Params
+from vergence.frames import frame_too_large, make_frame
 from vergence.messages import Frame, MessageError
+from vergence.params import Params
+from vergence.shards import compute_partial
 
 from . import session
+from .health import Health
 
 log = logging.getLogger("vergence.worker")
 STATUS_S = 1.0
@@ -43,17 +46,17 @@ def warm_up(params: Params) -> None:
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, (64, 96), np.uint8)
     p = Params(window=15, vsearch=min(params.vsearch, 2), circular=params.circular, support=params.support)
-    f = pipeline.make_frame(img, img, rig="warm", frame=0, pan_rad=0.0, focal_px=80.0, params=p,
-                            plan=[["w", 0, 96 - 15 + 1]])
-    pipeline.compute_partial(f, "w")
+    f = make_frame(img, img, rig="warm", frame=0, pan_rad=0.0, focal_px=80.0, params=p,
+                   plan=[["w", 0, 96 - 15 + 1]])
+    compute_partial(f, "w")
 
 
 def check_frame(data: bytes, limits: LimitSettings, now_ns: int) -> Frame:
     """The frame in a message, if it is one a worker should compute; MessageError says why not."""
-    why = pipeline.frame_too_large(None, len(data), limits)
+    why = frame_too_large(None, len(data), limits)
     if why is None:
         frame = Frame.from_bytes(data)
-        why = pipeline.frame_too_large(frame, len(data), limits)
+        why = frame_too_large(frame, len(data), limits)
         if why is None and abs(frame.t_capture_ns - now_ns) > limits.max_skew_s * 1e9:
             why = f"frame {frame.frame} captured {(frame.t_capture_ns - now_ns) / 1e9:+.3g} s from our clock"
     if why is not None:
@@ -81,7 +84,7 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, name: str | None = No
     warm_up(params or Params())
     alive = session.alive_key(rig, "worker", name)
     wid = keys.parse(alive).ident
-    health = pipeline.Health("worker", wid, log)
+    health = Health("worker", wid, log)
     frame_key = keys.frame(rig)
     with session.open_session(conf) as s:
         sub = s.declare_subscriber(frame_key, zenoh.handlers.RingChannel(1))
@@ -105,7 +108,7 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, name: str | None = No
                 if skipped:
                     health.count("skipped", skipped)
                 try:
-                    part = pipeline.compute_partial(frame, wid)
+                    part = compute_partial(frame, wid)
                 except Exception as e:  # a frame that validates but cannot be computed: never fatal
                     health.reject("frame", e)
                     continue

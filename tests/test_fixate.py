@@ -15,8 +15,13 @@ import pytest
 
 from procs import VERGENCE, Procs, free_port, wait_for
 from vergence_services.capture import Fovea
-from vergence import monitor, pipeline
-from vergence.match import Params
+from vergence_services.health import Health
+from vergence import monitor
+from vergence.control import Controller
+from vergence.frames import make_frame
+from vergence.gather import Result
+from vergence.params import Params
+from vergence.shards import compute_partial
 from vergence.messages import SCHEMA, Fixate, MotorState, Verdict, replace as replace_message
 from vergence.sim import Rig
 from vergence.sim.fixation import truth_at
@@ -31,7 +36,7 @@ def raw(**fields) -> bytes:
 
 
 def test_fovea_moves_on_a_valid_request_and_nothing_else():
-    health = pipeline.Health("capture", "t")
+    health = Health("capture", "t")
     fv = Fovea(320, 240, (480, 640), Params(), health)  # window 15, vertical search 6: x 7..632, y 13..466
     assert fv.on_fixate(fixate(100.4, 50.6, source="me")) == (100, 51) and fv.at() == (100, 51)
     assert fv.on_fixate(fixate(7, 13)) == (7, 13) and fv.on_fixate(fixate(632, 466)) == (632, 466)
@@ -159,9 +164,9 @@ def test_monitor_shows_the_fovea_and_the_depth():
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, (120, 200), np.uint8)
     p = Params(max_window=0)
-    f = pipeline.make_frame(img, img, rig="head", frame=3, pan_rad=0.0, focal_px=100.0, params=p,
-                            plan=[["w", 0, 186]], at=(80, 60))
-    r = pipeline.Result.of(f, pipeline.compute_partial(f, "w").array(), p, pipeline.Controller())
+    f = make_frame(img, img, rig="head", frame=3, pan_rad=0.0, focal_px=100.0, params=p,
+                   plan=[["w", 0, 186]], at=(80, 60))
+    r = Result.of(f, compute_partial(f, "w").array(), p, Controller())
     mon = monitor.Monitor("head")
     mon.feed("vergence/head/frame", f.to_bytes())
     mon.feed("vergence/head/profile", replace_message(r.profile, x=80, y=60, converged=True, depth_m=1.234,

@@ -1,6 +1,6 @@
 """Hostile messages and faults (issue #18): a message is a claim, not a fact.
 
-The library's plausibility rules first (vergence.pipeline.Gatherer and Roster, vergence.motors.base.Safety,
+The library's plausibility rules first (vergence.gather.Gatherer, vergence.frames.Roster, vergence.motors.base.Safety,
 the worker's and the capture's checks), with fake clocks; then each attack as a user would meet it: one
 process per role around a real router on 127.0.0.1, an outside Zenoh client doing the harm, and the
 figures asserted (decisions per second after the attack against before it, the sim motor's state)."""
@@ -15,11 +15,13 @@ import cv2
 import numpy as np
 import pytest
 
-from vergence import pipeline
 from vergence.config import LimitSettings
 from vergence.control import ControlSettings
-from vergence.match import Params
+from vergence.frames import Roster, make_frame, plan_shards
+from vergence.gather import Gatherer
 from vergence.messages import Command, Frame, MotorState, Partial, Verdict
+from vergence.params import Params
+from vergence.shards import compute_partial
 from vergence.motors.base import MotorSettings, Safety
 
 BIG_T = 2**64 - 1  # the capture time of the issue's forged messages
@@ -49,15 +51,15 @@ P = Params(max_window=0)
 
 def frame(fid: int, t_ns: int, workers=("a", "b")) -> Frame:
     k = M.shape[1] - P.window + 1
-    return pipeline.make_frame(M, SL, rig="r", frame=fid, pan_rad=0.0, focal_px=100.0, params=P,
-                               plan=pipeline.plan_shards(workers, k), t_capture_ns=t_ns)
+    return make_frame(M, SL, rig="r", frame=fid, pan_rad=0.0, focal_px=100.0, params=P,
+                      plan=plan_shards(workers, k), t_capture_ns=t_ns)
 
 
-def run_frame(g: pipeline.Gatherer, fid: int, t_ns: int, now: float) -> list:
+def run_frame(g: Gatherer, fid: int, t_ns: int, now: float) -> list:
     f = frame(fid, t_ns)
     out = g.add_frame(f, now=now)
     for w in ("a", "b"):
-        out += g.add_partial(pipeline.compute_partial(f, w), now=now)
+        out += g.add_partial(compute_partial(f, w), now=now)
     return out
 
 
@@ -66,8 +68,8 @@ def forged_partial(fid: int, t_ns: int, worker: str = "evil-1") -> Partial:
                    scores=np.zeros(3).tobytes())
 
 
-def gatherer(wall: Wall, **limits) -> pipeline.Gatherer:
-    return pipeline.Gatherer(P, ControlSettings(), 0.05, LimitSettings(**limits), wall_ns=wall)
+def gatherer(wall: Wall, **limits) -> Gatherer:
+    return Gatherer(P, ControlSettings(), 0.05, LimitSettings(**limits), wall_ns=wall)
 
 
 def test_limit_settings_are_checked():
@@ -141,7 +143,7 @@ def test_the_evidence_names_silent_workers():
     for i in range(4):
         f = frame(10 + i, wall.t, workers=["a", "fake"])
         g.add_frame(f, now=i * 0.1)
-        g.add_partial(pipeline.compute_partial(f, "a"), now=i * 0.1)
+        g.add_partial(compute_partial(f, "a"), now=i * 0.1)
         g.expire(now=i * 0.1 + 0.06)
     rep = g.report(now=0.5)
     assert rep["frame"] == 13 and rep["workers"]["fake"] == {"age_s": None, "misses": 4}
@@ -172,7 +174,7 @@ class Clock:
 
 def test_roster_drops_a_token_that_never_answers_and_tries_it_again():
     c = Clock()
-    r = pipeline.Roster(miss_s=0.25, probation_s=1.0, miss_frames=3, clock=c)
+    r = Roster(miss_s=0.25, probation_s=1.0, miss_frames=3, clock=c)
     r.token("w1", True)
     r.token("zz-fake-1", True)
     assert r.snapshot()[1] == ["w1", "zz-fake-1"]
@@ -200,7 +202,7 @@ def test_roster_drops_a_token_that_never_answers_and_tries_it_again():
 
 
 def test_roster_without_reports_plans_every_token():
-    r = pipeline.Roster(clock=Clock())
+    r = Roster(clock=Clock())
     r.token("a", True)
     r.token("b", True)
     assert r.on_report({"workers": "nonsense"}) == [] and r.snapshot()[1] == ["a", "b"]
@@ -230,8 +232,8 @@ def test_frames_beyond_the_limits_are_not_computed():
     f = frame(1, now)
     assert check_frame(f.to_bytes(), lim, now).frame == 1
     wide = np.zeros((60, 20_000), np.uint8)
-    big = pipeline.make_frame(wide, wide, rig="r", frame=2, pan_rad=0.0, focal_px=100.0, params=P,
-                              plan=[["a", 0, 20_000 - 14]], t_capture_ns=now)
+    big = make_frame(wide, wide, rig="r", frame=2, pan_rad=0.0, focal_px=100.0, params=P,
+                     plan=[["a", 0, 20_000 - 14]], t_capture_ns=now)
     with pytest.raises(Exception, match="max_frame_bytes"):
         check_frame(big.to_bytes(), lim, now)
     with pytest.raises(Exception, match="max_frame_ops"):
@@ -261,11 +263,11 @@ def test_reducer_serves_the_newest_frame_first():
 
     t = time.time_ns()
     f1, f2 = frame(1, t), frame(2, t + 1)
-    msgs = [f1, pipeline.compute_partial(f1, "a"), pipeline.compute_partial(f1, "b"),
-            pipeline.compute_partial(f2, "a"), f2, pipeline.compute_partial(f2, "b")]
+    msgs = [f1, compute_partial(f1, "a"), compute_partial(f1, "b"),
+            compute_partial(f2, "a"), f2, compute_partial(f2, "b")]
     order = newest_first(msgs)
     assert [(m.frame, type(m).__name__) for m in order[:2]] == [(2, "Frame"), (2, "Partial")]
-    g = pipeline.Gatherer(P, ControlSettings(), 0.05)
+    g = Gatherer(P, ControlSettings(), 0.05)
     out = [r for m in order for r in (g.add_frame(m, now=0.0) if isinstance(m, Frame) else
                                       g.add_partial(m, now=0.0))]
     assert [r.frame.frame for r in out] == [2] and g.counters["late"] == 3  # frame 1 is not decided at all
@@ -376,8 +378,8 @@ def test_forged_partials_frames_and_states_stop_nothing(rig):
     s.put(P.key("motor/state"), MotorState(rig=P.rig, t_ns=now, pan_rad=math.radians(80), goal_rad=0.0,
                                            min_rad=-2.0, max_rad=2.0, status="ok").to_bytes())
     wide = np.zeros((40, 250_000), np.uint8)
-    big = pipeline.make_frame(wide, wide, rig=P.rig, frame=BIG_FRAME, pan_rad=0.0, focal_px=100.0, params=P_BIG,
-                              plan=[["w1", 0, 250_000 - 14]], t_capture_ns=now)
+    big = make_frame(wide, wide, rig=P.rig, frame=BIG_FRAME, pan_rad=0.0, focal_px=100.0, params=P_BIG,
+                     plan=[["w1", 0, 250_000 - 14]], t_capture_ns=now)
     s.put(P.key("frame"), big.to_bytes())
     after(P, c, t_a, base)
     red = wait_for(lambda: latest_status(c, "reducer").get("gatherer", {}).get("implausible_frame", 0) >= 1 and

@@ -333,7 +333,7 @@ def test_match_holds_under_the_slave_cameras_gain(gain, off):
 def test_correlation_check_tells_a_match_from_two_fields_of_noise():
     """correlation(): 1 for the same content (whatever the gain and offset between the cameras), 0 for a flat
     window, and below 0.3 (the default min_correlation is 0.35) for independent noise, even at the best offset."""
-    from vergence.match import correlation
+    from vergence.decide import correlation
 
     rng = np.random.default_rng(4)
     fovea = retina.planes(rng.integers(0, 256, (17, 17)).astype(np.uint8))

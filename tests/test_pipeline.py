@@ -1,4 +1,5 @@
-"""vergence.pipeline and vergence.sources: the distributed steps as plain functions, no network."""
+"""The distributed steps as plain functions, no network: vergence.frames (capture), vergence.shards (worker),
+vergence.gather (reducer), vergence_services.health, and vergence.sources."""
 
 from __future__ import annotations
 
@@ -8,10 +9,14 @@ import cv2
 import numpy as np
 import pytest
 
-from vergence import kernel, match, pipeline, retina
+from vergence import kernel, match, retina
 from vergence.control import ControlSettings, Controller
-from vergence.match import Params
+from vergence.frames import WindowControl, make_frame, plan_shards
+from vergence.gather import Gatherer, reduce
 from vergence.messages import Frame, MessageError, Partial
+from vergence.params import Params
+from vergence.shards import compute_partial
+from vergence_services.health import Health
 from vergence.sources import FilesSource, SimSource, SourceError, open_source
 
 SHIFT = 12  # the slave sees the scene 12 px further left: the match lies 12 px right of the centre
@@ -25,8 +30,8 @@ def textured(h=120, w=200, seed=1, shift=SHIFT):
 
 def frame_of(master, slave, params, workers=("a",), fid=1, pan=0.0, focal=100.0, window=None):
     k = master.shape[1] - (window or params.window) + 1
-    return pipeline.make_frame(master, slave, rig="r", frame=fid, pan_rad=pan, focal_px=focal, params=params,
-                               plan=pipeline.plan_shards(workers, k), window=window)
+    return make_frame(master, slave, rig="r", frame=fid, pan_rad=pan, focal_px=focal, params=params,
+                      plan=plan_shards(workers, k), window=window)
 
 
 @pytest.mark.parametrize("n,k,expect", [
@@ -37,7 +42,7 @@ def frame_of(master, slave, params, workers=("a",), fid=1, pan=0.0, focal=100.0,
     (0, 10, []),
 ], ids=["one", "two", "three-uneven", "more-workers-than-offsets", "none"])
 def test_plan_shards(n, k, expect):
-    assert pipeline.plan_shards([f"w{i}" for i in reversed(range(n))], k) == expect
+    assert plan_shards([f"w{i}" for i in reversed(range(n))], k) == expect
 
 
 def test_plan_is_a_valid_frame_plan():
@@ -56,22 +61,22 @@ def test_shards_concatenate_to_correlate(params, nworkers, gain):
     m, s = textured()
     s = np.clip(s * gain + (-15 if gain != 1 else 0), 0, 255).astype(np.uint8)  # the slave camera's gain
     f = Frame.from_bytes(frame_of(m, s, params, workers=[f"w{i}" for i in range(nworkers)]).to_bytes())
-    parts = [Partial.from_bytes(pipeline.compute_partial(f, f"w{i}").to_bytes()) for i in range(nworkers)]
+    parts = [Partial.from_bytes(compute_partial(f, f"w{i}").to_bytes()) for i in range(nworkers)]
     got = np.concatenate([p.array() for p in parts], axis=1)
     fovea, band = retina.features(m, s, window=params.window, vsearch=params.vsearch, photometric=params.photometric)
     w = kernel.support_weights(fovea, params.support_gamma) if params.support else None
     want = np.atleast_2d(kernel.correlate(fovea, band, circular=params.circular, weights=w))
     assert got.shape == want.shape == (2 * params.vsearch + 1, m.shape[1] - params.window + 1)
     assert np.array_equal(got, want)
-    assert pipeline.compute_partial(f, "nobody") is None
+    assert compute_partial(f, "nobody") is None
 
 
 @pytest.mark.parametrize("params", [Params(max_window=0), Params.paper()], ids=["default", "paper"])
 def test_reduce_equals_match(params):
     m, s = textured()
     f = frame_of(m, s, params, pan=0.1, focal=150.0)
-    scores = np.atleast_2d(pipeline.compute_partial(f, "a").array())
-    prof, cmd = pipeline.reduce(f, scores, params, Controller())
+    scores = np.atleast_2d(compute_partial(f, "a").array())
+    prof, cmd = reduce(f, scores, params, Controller())
     d = match(m, s, params=params).decision
     assert (prof.k, prof.k_sub, prof.v_shift, prof.confident) == (d.k, d.k_sub, d.v, d.confident)
     assert prof.k - prof.k_centre == SHIFT and prof.workers == ["a"]
@@ -84,18 +89,18 @@ def test_reduce_equals_match(params):
 def test_reduce_flat_fovea_gives_no_command():
     m = np.full((60, 100), 90, np.uint8)
     f = frame_of(m, m, Params())
-    prof, cmd = pipeline.reduce(f, np.atleast_2d(pipeline.compute_partial(f, "a").array()), Params(), Controller())
+    prof, cmd = reduce(f, np.atleast_2d(compute_partial(f, "a").array()), Params(), Controller())
     assert not prof.confident and cmd is None
 
 
 def gather(params=Params(max_window=0), deadline=0.05):
-    return pipeline.Gatherer(params, ControlSettings(), deadline)
+    return Gatherer(params, ControlSettings(), deadline)
 
 
 def test_gatherer_complete_in_any_order():
     m, s = textured()
     f = frame_of(m, s, Params(), workers=["a", "b"])
-    pa, pb = pipeline.compute_partial(f, "a"), pipeline.compute_partial(f, "b")
+    pa, pb = compute_partial(f, "a"), compute_partial(f, "b")
     g = gather()
     assert g.add_partial(pb, now=0.0) == []
     assert g.add_frame(f, now=0.001) == []
@@ -110,11 +115,11 @@ def test_gatherer_drops_at_deadline_and_never_reduces_incomplete():
     f = frame_of(m, s, Params(), workers=["a", "b"])
     g = gather(deadline=0.05)
     g.add_frame(f, now=0.0)
-    g.add_partial(pipeline.compute_partial(f, "a"), now=0.01)
+    g.add_partial(compute_partial(f, "a"), now=0.01)
     assert g.next_deadline() == pytest.approx(0.05)
     g.expire(now=0.06)
     assert g.counters["dropped"] == 1 and not g.pending
-    assert g.add_partial(pipeline.compute_partial(f, "b"), now=0.07) == []  # too late: nothing published
+    assert g.add_partial(compute_partial(f, "b"), now=0.07) == []  # too late: nothing published
     assert g.counters["complete"] == 0 and g.counters["late"] == 1
 
 
@@ -124,19 +129,19 @@ def test_gatherer_supersedes_older_frames_and_rejects_foreign_partials():
     f2 = frame_of(m, s, Params(), workers=["a"], fid=2)  # a worker left: the next frame has a new plan
     g = gather()
     g.add_frame(f1, now=0.0)
-    g.add_partial(pipeline.compute_partial(f1, "a"), now=0.0)
+    g.add_partial(compute_partial(f1, "a"), now=0.0)
     g.add_frame(f2, now=0.001)
-    wrong = pipeline.compute_partial(f1, "b")
+    wrong = compute_partial(f1, "b")
     wrong.frame = 2  # b's range of frame 1 does not fit frame 2's plan
     assert g.add_partial(wrong, now=0.002) == [] and g.counters["unexpected"] == 1
-    (r,) = g.add_partial(pipeline.compute_partial(f2, "a"), now=0.003)
+    (r,) = g.add_partial(compute_partial(f2, "a"), now=0.003)
     assert r.frame.frame == 2 and g.counters["superseded"] == 1 and not g.pending
 
 
 def test_gatherer_bad_shape_drops_frame():
     m, s = textured()
     f = frame_of(m, s, Params(), workers=["a"])
-    p = pipeline.compute_partial(f, "a")
+    p = compute_partial(f, "a")
     p.rows, p.scores = 1, p.array()[:1].tobytes()  # fits its own sizes, not the frame's 5 rows
     g = gather()
     g.add_frame(f, now=0.0)
@@ -149,15 +154,15 @@ def test_gatherer_restart_and_no_plan():
     g = gather()
     old = frame_of(m, s, Params(), workers=["a"], fid=5)
     g.add_frame(old, now=0.0)
-    assert len(g.add_partial(pipeline.compute_partial(old, "a"), now=0.0)) == 1
-    stale = pipeline.compute_partial(old, "a")
+    assert len(g.add_partial(compute_partial(old, "a"), now=0.0)) == 1
+    stale = compute_partial(old, "a")
     stale.frame, stale.t_capture_ns = 3, old.t_capture_ns - 1  # reordered, older: late
     assert g.add_partial(stale, now=0.0) == [] and g.counters["late"] == 1
     f = frame_of(m, s, Params(), workers=["a"], fid=1)  # a new capture: ids from 1 again, later times
     f.t_capture_ns = old.t_capture_ns + 1
     g.add_frame(f, now=0.0)
     assert g.counters["restarts"] == 1
-    assert len(g.add_partial(pipeline.compute_partial(f, "a"), now=0.0)) == 1
+    assert len(g.add_partial(compute_partial(f, "a"), now=0.0)) == 1
     f.plan = []
     f.frame = 2
     g.add_frame(f, now=0.0)
@@ -176,18 +181,34 @@ def test_frame_master_band_round_trip_and_validation():
 
 
 def test_window_control():
-    wc = pipeline.WindowControl(Params(window=15, max_window=31), patience=2)
+    wc = WindowControl(Params(window=15, max_window=31), patience=2)
     assert wc.update(15, False) == 23
     assert wc.update(15, False) == 23  # an in-flight profile of the old window does not count
     assert wc.update(23, False) == 31 and wc.update(31, False) == 31
     assert wc.update(31, True) == 31 and wc.update(31, True) == 23
-    assert pipeline.WindowControl(Params(max_window=0)).update(15, False) == 15
+    assert WindowControl(Params(max_window=0)).update(15, False) == 15
+
+
+def test_window_control_walks_the_windows_match_tries():
+    """One dynamic-window rule: the capture's window steps through exactly Params.windows(), which
+    vergence.match() tries in turn (15, 23, 31, 39 for max_window 40: never past it), and reset() is the base."""
+    p = Params(window=15, max_window=40)
+    assert p.windows() == [15, 23, 31, 39]
+    wc, seen = WindowControl(p, patience=1), [15]
+    for _ in range(5):
+        seen.append(wc.update(seen[-1], False))
+    assert seen == [15, 23, 31, 39, 39, 39]
+    down = [wc.update(w, True) for w in (39, 31, 23, 15)]
+    assert down == [31, 23, 15, 15]
+    wc.update(15, False)
+    wc.reset()
+    assert wc.window == 15 and wc.update(15, False) == 23
 
 
 def test_health_counts_and_logs_once(caplog):
     import logging
 
-    h = pipeline.Health("worker", "w-1", logging.getLogger("t"))
+    h = Health("worker", "w-1", logging.getLogger("t"))
     with caplog.at_level(logging.WARNING):
         for _ in range(3):
             h.reject("frame", "garbage")

@@ -18,8 +18,9 @@ import pytest
 import zenoh
 
 from procs import Procs, free_port, textured_pair, wait_for
-from vergence import kernel, pipeline, retina
+from vergence import kernel, retina
 from vergence.config import load
+from vergence.gather import decide_frame
 from vergence.messages import Command, Frame, MessageError, Partial, Preview, Profile, Verdict
 
 RATE = 40  # frames per second in these tests: light on a shared 2-core machine
@@ -98,7 +99,7 @@ def test_profile_equals_correlate_with_1_2_3_workers(tmp_path, pair):
                 f = fr[prof.frame][1]
                 assert sorted(prof.workers) == sorted(ids)
                 assert np.array_equal(prof.array(), expected(f))  # bit-identical to the in-process kernel
-                d = pipeline.decide_frame(f, prof.array(), params)
+                d = decide_frame(f, prof.array(), params)
                 assert (prof.k, prof.k_sub, prof.confident) == (d.k, d.k_sub, d.confident)
                 assert prof.k - prof.k_centre == 12 and prof.confident
             # the small decision message says what the profile says, field for field
@@ -190,7 +191,7 @@ def test_sigstop_worker_frames_dropped_not_queued(tmp_path, pair):
         after = status(P, s, "reducer")
         dropped = next(iter(after.values()))["gatherer"]["dropped"] - dropped0
         # dropped, not queued: about 0.3-0.4 s of frames, until the reducer's evidence takes the silent worker
-        # out of the plan (pipeline.Roster), or the 0.6 s of the stop
+        # out of the plan (vergence.frames.Roster), or the 0.6 s of the stop
         assert 0.2 * RATE <= dropped <= 2 * RATE, dropped
         # not queued: after SIGCONT the stopped worker computes at most the stale frame its ring holds, plus
         # the frames that were in flight while the signal landed (under load, up to two)

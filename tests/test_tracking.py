@@ -345,12 +345,12 @@ def test_up_tracks_a_sine_at_60_hz(tmp_path):
 # -- the truth on the wire -----------------------------------------------------------------------------------------
 
 def _frame(truth):
-    from vergence import pipeline
+    from vergence.frames import make_frame
 
     rig = MovingRig("still:z=0.8", HEAD)
     master, slave = rig.render(0.0)
-    f = pipeline.make_frame(master, slave, rig="head", frame=3, pan_rad=-0.07, focal_px=F, params=vergence.Params(),
-                            plan=[["w", 0, 640 - 15 + 1]], t_capture_ns=5)
+    f = make_frame(master, slave, rig="head", frame=3, pan_rad=-0.07, focal_px=F, params=vergence.Params(),
+                   plan=[["w", 0, 640 - 15 + 1]], t_capture_ns=5)
     f.truth_pan_rad = truth
     return f
 

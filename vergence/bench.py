@@ -10,7 +10,8 @@ import cv2
 import numpy as np
 
 from . import kernel, retina
-from .match import Params, match
+from .match import match
+from .params import Params
 
 __all__ = ["KernelCase", "CASES", "bench_kernel", "bench_match", "bench_messages", "message_samples", "numpy_correlate",
            "opencv_correlate"]

@@ -1,12 +1,12 @@
 """Typed settings for every process, loaded from one TOML file; errors name the offending field.
 
-The settings are frozen dataclasses (vergence.match.Params, vergence.control.ControlSettings and
+The settings are frozen dataclasses (vergence.params.Params, vergence.control.ControlSettings and
 vergence.motors.MotorSettings among them); msgspec checks a parsed file against them (types, unknown keys,
 each class's __post_init__), its errors giving the path (network.window: expected `int`, got `str`).
 
     rig = "head"          # the rig's name (the key prefix vergence/<rig>/), or name = "head" in [rig]
     [rig]       # the rig's geometry: baseline_m, focal_px, master, gimbal (vergence.depth)
-    [network]   # vergence.match.Params: window, vsearch, circular, subpixel, min_margin, ...
+    [network]   # vergence.params.Params: window, vsearch, circular, subpixel, min_margin, ...
     [capture]   # source, rate_hz, preview_hz, focal_px, master
     [reducer]   # deadline_ms
     [control]   # gain, dead_band_px, max_step_deg, min_deg, max_deg
@@ -26,7 +26,7 @@ from pathlib import Path
 import msgspec
 
 from .control import ControlSettings
-from .match import Params
+from .params import Params
 from .motors.base import MotorSettings
 
 __all__ = ["ConfigError", "RigSettings", "CaptureSettings", "ReducerSettings", "ActuatorSettings", "LimitSettings",

@@ -1,12 +1,17 @@
-"""Winner-takes-all, layer 5 (direction and magnitude), the sub-pixel winner and the confidence."""
+"""Winner-takes-all, layer 5 (direction and magnitude), the sub-pixel winner and the confidence, and every
+check on a decision (correlation, left-right, halves: decide_scores, apply_checks)."""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
-__all__ = ["Decision", "decide", "centre_offset", "texture"]
+from . import kernel, retina
+from .params import Params
+
+__all__ = ["Decision", "decide", "centre_offset", "texture", "decide_scores", "apply_checks", "correlation",
+           "lr_consistent", "halves_consistent", "HALVES_TOLERANCE"]
 
 
 @dataclass(frozen=True)
@@ -103,3 +108,80 @@ def decide(scores: np.ndarray, window: int, *, k_centre: int | None = None, subp
     return Decision(k=k, k_sub=k_sub, v=vi - (nv - 1) // 2, k_centre=k_centre, direction=int(np.sign(d)),
                     magnitude=abs(d), offset_px=k_sub - k_centre, score=float(raw[vi, k]), confidence=margin,
                     texture=float(tex) if tex is not None else float("nan"), confident=bool(confident))
+
+
+def decide_scores(scores: np.ndarray, fovea: np.ndarray, x: int, params: Params,
+                  master_rows: np.ndarray | None = None, slave_band: np.ndarray | None = None) -> Decision:
+    """Layer 4's scores -> a Decision for the fovea (planes (3, w, w)) centred on master column x.
+
+    With params.min_correlation, a confident decision's slave window must correlate with the fovea
+    (correlation); with params.lr_check, it must also pass the left-right check (lr_consistent), given
+    the master's rows of the fovea as a gray strip with its margin ((w + 2, W + 2), retina.band_strip with
+    no vertical search) and the slave band's planes ((3, w + 2R, W)); with params.halves_check, it must also
+    pass halves_consistent, which reads the slave band's columns k - halves_range .. k + halves_range + w - 1
+    only. This is the one decision step of both match() and the reducer."""
+    w = fovea.shape[1]
+    d = decide(scores, w, k_centre=x - w // 2, subpixel=params.subpixel, tex=texture(fovea),
+               min_texture=params.min_texture, min_margin=params.min_margin, vshift_cost=params.vshift_cost)
+    return apply_checks(d, fovea, x, params, master_rows, slave_band)
+
+
+def apply_checks(d: Decision, fovea: np.ndarray, x: int, params: Params, master_rows: np.ndarray | None = None,
+                 slave_band: np.ndarray | None = None) -> Decision:
+    """decide_scores' second half: the correlation, left-right and halves checks on a decision (only a
+    confident one can change), for a caller that gets the bands only once it knows the decision (the reducer)."""
+    if params.min_correlation > 0 and d.confident and slave_band is not None:
+        d = replace(d, confident=correlation(fovea, slave_band, d) >= params.min_correlation)
+    if params.lr_check and d.confident and master_rows is not None and slave_band is not None:
+        d = replace(d, confident=lr_consistent(master_rows, slave_band, x, d, params))
+    if params.halves_check and d.confident and slave_band is not None:
+        d = replace(d, confident=halves_consistent(fovea, slave_band, d, params))
+    return d
+
+
+def correlation(fovea: np.ndarray, slave_band: np.ndarray, d: Decision) -> float:
+    """Pearson correlation of the fovea's intensities with those of the winning slave window (rows shifted
+    by v, columns k..k+w-1 of the band): near 1 for a real match, near 0 for two fields of independent
+    noise; 0 when either is flat."""
+    w = fovea.shape[1]
+    r = (slave_band.shape[1] - w) // 2
+    f = fovea[0].astype(np.float64)
+    s = slave_band[0, r + d.v : r + d.v + w, d.k : d.k + w].astype(np.float64)
+    f -= f.mean()
+    s -= s.mean()
+    den = float(np.sqrt((f * f).sum() * (s * s).sum()))
+    return float((f * s).sum()) / den if den > 0 else 0.0
+
+
+def lr_consistent(master_rows: np.ndarray, slave_band: np.ndarray, x: int, d: Decision, params: Params) -> bool:
+    """Left-right consistency: the winning slave window (rows shifted by v), matched back along the fovea's
+    own rows of the master, lands within params.lr_tolerance px of where the forward match says it should."""
+    half = x - d.k_centre
+    w = 2 * half + 1
+    r = (slave_band.shape[1] - w) // 2  # R
+    sf = np.ascontiguousarray(slave_band[:, r + d.v : r + d.v + w, d.k : d.k + w])
+    back = kernel.correlate(sf, retina.planes(master_rows), circular=params.circular)
+    bd = decide(back, w, k_centre=0, subpixel=params.subpixel)
+    expected = x - (d.k_sub - d.k)
+    return abs((bd.k_sub + half) - expected) <= params.lr_tolerance
+
+
+HALVES_TOLERANCE = 2  # px: how far a half's own best offset may lie from the winner (1 abstains at too many points)
+
+
+def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, params: Params) -> bool:
+    """The halves check: the left, right, top and bottom halves of the fovea (the centre row or column in
+    each), weighed by the fovea's support weights when params.support, each matched alone along the winning
+    row v at offsets within params.halves_range of the winner k, must each find their best offset within
+    HALVES_TOLERANCE (2) px of k. At a depth edge the half on the other surface finds that surface's offset:
+    the fovea straddles two surfaces and the winner may be the wrong one's (foreground fattening), so abstain.
+    Exact integers (kernel.half_sads, the four halves in one pass); reads the band's columns
+    k - halves_range .. k + halves_range + w - 1 of the winning rows only."""
+    w = fovea.shape[1]
+    r = (slave_band.shape[1] - w) // 2  # the vertical search R
+    kk = slave_band.shape[2] - w + 1
+    k0, k1 = max(0, d.k - params.halves_range), min(kk, d.k + params.halves_range + 1)
+    rows = slave_band[:, r + d.v : r + d.v + w, :]
+    wts = kernel.support_weights(fovea, params.support_gamma, params.support_radius) if params.support else None
+    s = kernel.half_sads(fovea, rows, k0, k1, circular=params.circular, weights=wts)
+    return bool(np.all(np.abs(k0 + np.argmin(s, axis=1) - d.k) <= HALVES_TOLERANCE))

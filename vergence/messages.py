@@ -121,7 +121,7 @@ class Frame(Message):
     circular: bool = True
     support: bool = False
     # the master's rows of the fovea at full width, for the reducer's left-right check (empty when the
-    # check is off); the support weights' two scales (vergence.match.Params.support_gamma / support_radius)
+    # check is off); the support weights' two scales (vergence.params.Params.support_gamma / support_radius)
     master_band: bytes = b""
     support_gamma: float = 8.0
     support_radius: float = 7.0

@@ -16,7 +16,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..control import ControlSettings, Controller
-from ..match import Params, match
+from ..match import match
+from ..params import Params
 from ..motors.base import MotorSettings, Safety
 from ..motors.simulated import SimMotor
 from .rig import Rig

@@ -1,0 +1,192 @@
+"""Capture side of one frame: two images -> a messages.Frame carrying only what layer 1 needs, the shard plan
+(membership -> who computes which k-range: plan_shards, Roster), the dynamic window driven by the decisions
+coming back (WindowControl), and a Frame's bounds every receiver applies (frame_cost, frame_too_large)."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from . import retina
+from .config import LimitSettings
+from .messages import Frame
+from .params import Params
+
+__all__ = ["plan_shards", "make_frame", "Roster", "WindowControl", "frame_cost", "frame_too_large"]
+
+
+def plan_shards(workers, k_count: int) -> list[list]:
+    """Split offsets 0..k_count-1 into contiguous ranges, one per worker (sorted by id, so every process
+    computes the same plan), sizes differing by at most one: [[id, k0, k1], ...]. More workers than offsets:
+    the extra ones get nothing. No worker: []."""
+    ids = sorted(set(workers))[: max(k_count, 0)]
+    n = len(ids)
+    plan = []
+    for i, wid in enumerate(ids):
+        k0 = i * k_count // n
+        k1 = (i + 1) * k_count // n
+        plan.append([wid, k0, k1])
+    return plan
+
+
+def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, pan_rad: float, focal_px: float,
+               params: Params, plan: list[list], at: tuple[int, int] | None = None, window: int | None = None,
+               t_capture_ns: int | None = None) -> Frame:
+    """A Frame for the fovea at `at` (default: the image centre) of the master, window w (default
+    params.window): the fovea and band gray strips with their Sobel margins, and the master band too when
+    params.lr_check needs it. The slave band is mapped onto the master's intensities here (params.photometric),
+    so the workers and the reducer see the same band as vergence.match(). Raises retina.BorderError when the
+    window does not fit."""
+    if t_capture_ns is None:
+        t_capture_ns = time.time_ns()
+    h, wd = master.shape[:2]
+    if slave.shape[:2] != (h, wd):
+        raise ValueError(f"master and slave differ in size: {wd} x {h} and {slave.shape[1]} x {slave.shape[0]}")
+    x, y = at if at is not None else (wd // 2, h // 2)
+    w = params.window if window is None else window
+    retina.check_point(master.shape, x, y, w, params.vsearch)
+    fovea = retina.fovea_strip(master, x, y, w)
+    band = retina.slave_band_strip(master, slave, y, w, params.vsearch, params.photometric)
+    mband = retina.band_strip(master, y, w) if params.lr_check else None
+    return Frame(rig=rig, frame=frame, t_capture_ns=t_capture_ns, pan_rad=float(pan_rad), width=wd, height=h,
+                 x=x, y=y, window=w, vsearch=params.vsearch, focal_px=float(focal_px), fovea=fovea.tobytes(),
+                 band=band.tobytes(), plan=plan, circular=params.circular, support=params.support,
+                 master_band=b"" if mband is None else mband.tobytes(), support_gamma=params.support_gamma,
+                 support_radius=params.support_radius)
+
+
+def frame_cost(frame: Frame) -> int:
+    """Layer 4's work on a frame: rows x offsets x window^2 (what LimitSettings.max_frame_ops bounds)."""
+    return (2 * frame.vsearch + 1) * frame.k_count * frame.window * frame.window
+
+
+def frame_too_large(frame: Frame | None, size: int, limits: LimitSettings) -> str | None:
+    """Why a frame (or its message of `size` bytes, before decoding when frame is None) is beyond the
+    settings' bounds, or None."""
+    if size > limits.max_frame_bytes:
+        return f"frame of {size} bytes, more than max_frame_bytes {limits.max_frame_bytes}"
+    if frame is not None and frame_cost(frame) > limits.max_frame_ops:
+        return (f"frame {frame.width} px wide, w {frame.window}, +-{frame.vsearch} rows: {frame_cost(frame)} "
+                f"operations, more than max_frame_ops {limits.max_frame_ops}")
+    return None
+
+
+class Roster:
+    """The workers the capture plans with: the live liveliness tokens (an invitation, not a guarantee),
+    minus those the reducer's evidence (Gatherer.report) shows missing.
+
+    A worker in the plan for at least miss_s that the latest report (no older than 4 x miss_s) shows with
+    at least miss_frames expired frames in a row without its partial, and no partial for miss_s (or none
+    ever), leaves the plan for probation_s, doubling on each exclusion in a row (up to 32 x); it is then
+    tried again. One that answers is back to a clean record. Without reports (no reducer), the plan is the
+    tokens, as before. counters: excluded, readmitted, reports."""
+
+    def __init__(self, miss_s: float = 0.25, probation_s: float = 1.0, miss_frames: int = 3,
+                 clock=time.monotonic):
+        self.miss_s, self.probation_s, self.miss_frames = miss_s, probation_s, miss_frames
+        self.clock = clock
+        self.lock = threading.Lock()
+        self.tokens: set[str] = set()
+        self.joined: dict[str, float] = {}  # when each planned worker entered the plan
+        self.out: dict[str, float] = {}  # excluded until (monotonic)
+        self.strikes: dict[str, int] = {}
+        self.changes = 0
+        self.counters = dict(excluded=0, readmitted=0, reports=0)
+
+    def token(self, wid: str, alive: bool) -> None:
+        now = self.clock()
+        with self.lock:
+            if alive and wid not in self.tokens:
+                self.tokens.add(wid)
+                self.joined[wid] = now
+            elif not alive and wid in self.tokens:
+                self.tokens.discard(wid)
+                self.joined.pop(wid, None)
+                self.out.pop(wid, None)
+                self.strikes.pop(wid, None)
+            else:
+                return
+            self.changes += 1
+
+    def on_report(self, report: dict) -> list[str]:
+        """Apply one reducer report (Gatherer.report's dict); returns the workers it excluded."""
+        now = self.clock()
+        gone = []
+        with self.lock:
+            self.counters["reports"] += 1
+            workers = report.get("workers") or {}
+            for wid in list(self.joined):
+                w = workers.get(wid) if isinstance(workers, dict) else None
+                if not isinstance(w, dict):
+                    continue
+                age, misses = w.get("age_s"), w.get("misses", 0)
+                answers = isinstance(age, (int, float)) and age < self.miss_s
+                if answers:
+                    self.strikes[wid] = 0
+                    continue
+                if (now - self.joined[wid] >= self.miss_s and isinstance(misses, int)
+                        and misses >= self.miss_frames):
+                    k = self.strikes.get(wid, 0)
+                    self.out[wid] = now + self.probation_s * 2 ** min(k, 5)
+                    self.strikes[wid] = k + 1
+                    del self.joined[wid]
+                    self.counters["excluded"] += 1
+                    self.changes += 1
+                    gone.append(wid)
+        return gone
+
+    def snapshot(self) -> tuple[int, list[str]]:
+        """(a change counter, the sorted ids to plan with): excluded workers whose probation ended come back."""
+        now = self.clock()
+        with self.lock:
+            for wid in [w for w, t in self.out.items() if now >= t]:
+                del self.out[wid]
+                if wid in self.tokens:
+                    self.joined[wid] = now
+                    self.counters["readmitted"] += 1
+                    self.changes += 1
+            return self.changes, sorted(self.joined)
+
+    def excluded(self) -> list[str]:
+        with self.lock:
+            return sorted(self.out)
+
+
+class WindowControl:
+    """The dynamic window of the service, driven by the decisions (Verdicts) coming back to the capture.
+
+    It moves along params.windows() (the one dynamic-window rule, shared with vergence.match()). Only a
+    decision made with the current window counts (frames in flight with an older one are ignored). Not
+    confident: one step up (8 px) to at most params.max_window. Confident `patience` times in a row: one step
+    down toward params.window, so a scene that needs the larger window does not flip every frame.
+    params.max_window = 0 keeps params.window."""
+
+    def __init__(self, params: Params, patience: int = 30):
+        self.sizes = params.windows()
+        self.step = 0  # index into sizes
+        self.patience = patience
+        self.streak = 0
+
+    @property
+    def window(self) -> int:
+        return self.sizes[self.step]
+
+    def reset(self) -> None:
+        """Back to the base window (a grown one that no longer fits the image at the fixation point)."""
+        self.step = 0
+        self.streak = 0
+
+    def update(self, window: int, confident: bool) -> int:
+        if window != self.window:
+            return self.window
+        if not confident:
+            self.streak = 0
+            self.step = min(self.step + 1, len(self.sizes) - 1)
+        else:
+            self.streak += 1
+            if self.streak >= self.patience and self.step > 0:
+                self.step -= 1
+                self.streak = 0
+        return self.window
