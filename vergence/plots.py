@@ -152,7 +152,9 @@ def tracking_figure(steps: list[Step], title: str = "", first: int = 0, width: i
     pans = np.array([s.pan_deg for s in steps], float)
     truth = np.array([s.truth_pan_deg for s in steps], float)
     err = np.array([s.error_px for s in steps], float)
-    top.plot(t, truth, color=GREEN, lw=1.5, label="truth (converged pan)", gid="truth")
+    # the truth wide and light under the pan: where they agree, the blue line runs inside the green one
+    top.plot(t, truth, color=GREEN, lw=4, alpha=0.45, solid_capstyle="butt", label="truth (converged pan)",
+             gid="truth")
     top.plot(t, pans, color=BLUE, lw=1.2, label="slave pan", gid="pan")
     _style(top, f"Slave pan and truth: {title}" if title else "Slave pan and truth", "time (s)", "pan (deg)")
     top.xaxis.set_tick_params(labelbottom=True)
