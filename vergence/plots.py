@@ -223,8 +223,9 @@ def monitor_figure(s: Snapshot, width: int = 960, height: int = 720) -> Figure:
             mid = (lo + hi) / 2
             bot.set_ylim(mid - 0.05, mid + 0.05)
         bot.ticklabel_format(axis="y", useOffset=False)
-        _style(bot, f"slave pan (blue) and commanded target (orange), last {span:.1f} s", "seconds before now",
-               "pan (deg)", legend)
+        none = "" if s.target_history else " (no command in it)"
+        _style(bot, f"slave pan (blue) and commanded target (orange), last {span:.1f} s{none}",
+               "seconds before now", "pan (deg)", legend)
     else:
         bot.text(0.5, 0.5, "no pan history", color=GREY, ha="center", va="center", transform=bot.transAxes)
         bot.set_title(f"slave pan (blue) and commanded target (orange), last {span:.1f} s", loc="left",
