@@ -27,7 +27,8 @@ import zenoh
 
 from vergence import keys
 from vergence.config import load
-from vergence.monitor import Monitor, png_bytes, render_text
+from vergence.monitor import Monitor, render_text
+from vergence.plots import monitor_png
 
 from . import session
 
@@ -154,7 +155,7 @@ def _png(watch: Watch, model: Monitor, args: argparse.Namespace, stop: session.S
               file=sys.stderr)
         return 1
     snap = model.snapshot()
-    data = png_bytes(snap, w, h)
+    data = monitor_png(snap, w, h)
     try:
         with open(args.png, "wb") as f:
             f.write(data)

@@ -177,7 +177,7 @@ def run(args: argparse.Namespace) -> int:
     moving = args.motion is not None
     skip = int(round(args.rate)) if len(steps) > args.rate else 0  # the statistics after the first second
     if args.plot:
-        from vergence.sim.plot import plot_run, plot_tracking
+        from vergence.plots import plot_run, plot_tracking
 
         if moving:
             plot_tracking(steps, args.plot, f"{rig.motion.spec}, {args.rate:g} Hz, {control.mode}, "

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from vergence import messages as m
-from vergence.monitor import Monitor, profile_bars, render_png, render_text, png_bytes
+from vergence.monitor import Monitor, profile_bars, render_text
+from vergence.plots import lines as plot_lines, monitor_figure, monitor_png, png_bytes
 
 W, WIN = 640, 15
 K = W - WIN + 1
@@ -181,21 +182,47 @@ def test_render_text_values():
 
 
 def test_png_of_profile():
+    """The figure holds the winner's row, the winner and the centre, and the pan and target histories;
+    its PNG opens at the asked size and is drawn."""
     mon = Monitor("head")
     now = run_stream(mon, 2.0, 50.0)
     s = mon.snapshot(now)
-    img = render_png(s, 960, 720)
-    assert img.shape == (720, 960, 3) and img.dtype == np.uint8
-    assert img.std() > 10                                        # not blank
-    red = (img[:, :, 2] > 180) & (img[:, :, 1] < 60) & (img[:, :, 0] < 60)
-    # the winner's red line sits at k*=300 on the k axis (90 .. 930 px for k 0 .. 625)
-    cols = np.nonzero(red[60:440].sum(axis=0) > 200)[0]
-    assert list(cols) == [round(90 + 840 * 300 / 625)]
-    data = png_bytes(s, 640, 480)
-    back = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    assert data[:8] == b"\x89PNG\r\n\x1a\n" and back.shape == (480, 640, 3)
-    blank = render_png(Monitor("head").snapshot(), 320, 240)
-    assert blank.shape == (240, 320, 3)
+    fig = monitor_figure(s, 960, 720)
+    top, bot = fig.axes
+    got = plot_lines(top)
+    y = scores()[0]
+    np.testing.assert_array_equal(got["profile"].get_ydata(), y)
+    assert list(got["profile"].get_xdata()) == list(range(K))
+    assert list(got["winner"].get_xdata()) == [300, 300] and list(got["centre"].get_xdata()) == [KC, KC]
+    assert list(got["winner_dot"].get_xdata()) == [300] and got["winner_dot"].get_ydata()[0] == y.max()
+    assert top.get_title(loc="left") == ("layer 4, frame 99: winner k*=300 (300.00), centre k_c=313, left 13 px, "
+                                         "confidence 0.500\n"
+                                         "fovea (320, 240)   not converged, no depth")
+    assert [t.get_text() for t in top.get_legend().get_texts()][1:] == ["winner k*=300 (300.00)", "centre k_c=313"]
+    got = plot_lines(bot)
+    pan, target = got["pan"], got["target"]
+    # the motor's pan 0.001 rad x i at 50 Hz, the last state 3 ms before now; the targets 1 ms before it
+    assert pan.get_ydata()[-1] == pytest.approx(np.degrees(0.099)) and pan.get_xdata()[-1] == 0
+    assert np.diff(pan.get_ydata()) == pytest.approx(np.degrees(0.001))
+    assert np.diff(pan.get_xdata()) == pytest.approx(0.02)
+    assert list(target.get_ydata()) == pytest.approx(list(pan.get_ydata()))
+    assert bot.get_xlim() == pytest.approx((-max(a for a, _ in s.target_history), 0))
+    assert (bot.get_xlabel(), bot.get_ylabel()) == ("seconds before now", "pan (deg)")
+
+    for w, h in [(960, 720), (640, 480), (160, 120)]:
+        data = monitor_png(s, w, h)
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and img.shape == (h, w, 3)
+        assert img.std() > 10                                                       # not blank
+        red = (img[:, :, 2] > 180) & (img[:, :, 1] < 80) & (img[:, :, 0] < 80)
+        assert red.sum() > h // 8                                                   # the red winner
+
+    blank = monitor_figure(Monitor("head").snapshot(), 320, 240)
+    assert [t.get_text() for t in blank.axes[0].texts] == ["no profile"]
+    assert [t.get_text() for t in blank.axes[1].texts] == ["no pan history"]
+    assert not plot_lines(blank.axes[0]) and not plot_lines(blank.axes[1])
+    img = cv2.imdecode(np.frombuffer(png_bytes(blank), np.uint8), cv2.IMREAD_COLOR)
+    assert img.shape == (240, 320, 3)
 
 
 def test_drops_from_reducer_status():

@@ -8,6 +8,7 @@ import math
 import subprocess
 import sys
 
+import cv2
 import numpy as np
 import pytest
 
@@ -262,7 +263,9 @@ def test_cli_motion_json_and_plot(tmp_path):
         assert x["error_px"] == pytest.approx(F * math.tan(math.radians(x["pan_deg"] - x["truth_pan_deg"])))
         assert {"offset_px", "confident"} <= set(x)
     assert rows[0]["pan_deg"] == 0.0 and abs(rows[-1]["error_px"]) < 2
-    assert png.stat().st_size > 10_000
+    img = cv2.imread(str(png))  # the figure's values: tests/test_plots.py
+    assert img is not None and img.shape == (700, 900, 3)
+    assert (img < 200).any(axis=2).mean() > 0.01 and len(np.unique(img.reshape(-1, 3) // 32, axis=0)) >= 6
 
 
 @pytest.mark.parametrize("args,says", [(["--motion", "sine:z=1"], "missing amp"),

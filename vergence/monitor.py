@@ -5,8 +5,8 @@ liveliness events of vergence/<rig>/alive/**; it decodes them with vergence.mess
 malformed ones, and keeps what a user watches: rates, capture-to-command latency percentiles over the last
 seconds, dropped frames, live workers and their shards, pan and target, the latest profile and the recent
 pan history. snapshot() returns a plain Snapshot; render_text() draws the terminal screen (ANSI optional)
-and render_png() the paper's figure 5 (layer 4 against k, winner and centre marked) with the pan history,
-both from a Snapshot, so they are tested without Zenoh.
+from it, and vergence.plots.monitor_figure() the paper's figure 5 (layer 4 against k, winner and centre
+marked) with the pan history, so both are tested without Zenoh.
 
 Clocks: latencies are differences of time.time_ns() stamps taken on the capture and the reducer
 (t_capture_ns, Command.t_sent_ns / Profile.t_reduced_ns): across machines they need synchronised clocks.
@@ -27,8 +27,7 @@ import numpy as np
 from . import keys
 from . import messages as m
 
-__all__ = ["Monitor", "Snapshot", "Rate", "render_text", "render_png", "png_bytes",
-           "profile_bars"]
+__all__ = ["Monitor", "Snapshot", "Rate", "render_text", "profile_bars", "fixation_line"]
 
 # kind (vergence.keys) -> message class (correlation/<id> handled apart)
 _KEYS: dict[str, type[m.Message]] = {keys.FRAME: m.Frame, keys.PROFILE: m.Profile, keys.COMMAND: m.Command,
@@ -504,107 +503,3 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
     for kind, n in sorted(s.malformed.items()):
         out.append(c(RED, f"malformed {kind}: {n} (last: {s.last_error.get(kind, '')[:width - 30]})"))
     return "\n".join(out)
-
-
-# ---- the picture (the paper's figure 5) ----------------------------------------------------------------
-def render_png(s: Snapshot, width: int = 960, height: int = 720) -> np.ndarray:
-    """The latest profile y(k) against k with the winner (red) and the centre (blue, dashed) marked, and
-    below it the pan and the commanded target over the recent history: a BGR uint8 image."""
-    import cv2
-
-    img = np.full((height, width, 3), 255, np.uint8)
-    font = cv2.FONT_HERSHEY_SIMPLEX
-    black, grey = (0, 0, 0), (200, 200, 200)
-    red, blue, orange = (0, 0, 220), (200, 80, 0), (0, 140, 255)
-    left, right = 90, width - 30
-    top1, bot1 = 50, int(height * 0.62)
-    top2, bot2 = bot1 + 75, height - 45
-
-    def text(t: str, x: int, y: int, col=black, scale: float = 0.5) -> None:
-        cv2.putText(img, t, (int(x), int(y)), font, scale, col, 1, cv2.LINE_AA)
-
-    p = s.profile
-    if p is None:
-        text("no profile", left, top1 + 40, red, 0.8)
-    else:
-        y = _winning_row(p)
-        kk = len(y)
-        lo, hi = float(y.min()), float(y.max())
-        pad = (hi - lo) * 0.05 or 1.0
-        lo, hi = lo - pad, hi + pad
-
-        def px(k: float) -> int:
-            return int(round(left + (right - left) * k / max(1, kk - 1)))
-
-        def py(v: float) -> int:
-            return int(round(bot1 - (bot1 - top1) * (v - lo) / (hi - lo)))
-
-        cv2.rectangle(img, (left, top1), (right, bot1), black, 1)
-        for k in range(0, kk, 100):
-            cv2.line(img, (px(k), bot1), (px(k), bot1 + 5), black, 1)
-            text(str(k), px(k) - 10, bot1 + 20)
-        for v in np.linspace(y.min(), y.max(), 5):
-            cv2.line(img, (left - 5, py(v)), (left, py(v)), black, 1)
-            text(f"{v:.0f}", 5, py(v) + 5, black, 0.4)
-        # centre neuron: dashed blue
-        xc = px(p.k_centre)
-        for y0 in range(top1, bot1, 10):
-            cv2.line(img, (xc, y0), (xc, min(y0 + 5, bot1)), blue, 1)
-        pts = np.stack([[px(k) for k in range(kk)], [py(v) for v in y]], axis=1).astype(np.int32)
-        cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, black, 1, cv2.LINE_AA)
-        xw = px(p.k)
-        cv2.line(img, (xw, top1), (xw, bot1), red, 1)
-        cv2.circle(img, (xw, py(float(y[p.k]))), 5, red, 2, cv2.LINE_AA)
-        side = {-1: "left", 0: "centre", 1: "right"}.get(p.direction, "?")
-        text(f"layer 4, frame {p.frame}: winner k*={p.k} ({p.k_sub:.2f}), centre k_c={p.k_centre}, "
-             f"{side} {p.magnitude} px, confidence {p.confidence:.3f}"
-             f"{'' if p.confident else ' (abstains)'}", left, top1 - 15, black, 0.5)
-        text(fixation_line(s, "+-"), left, top1 - 35, black, 0.5)
-        text(f"k*={p.k}", min(xw + 4, right - 60), top1 + 18, red)
-        text(f"k_c={p.k_centre}", min(xc + 4, right - 70), top1 + 38, blue)
-        text("k (offset in the slave band)", (left + right) // 2 - 110, bot1 + 40)
-        text("y(k)", 10, top1 - 15)
-
-    # pan history panel
-    cv2.rectangle(img, (left, top2), (right, bot2), black, 1)
-    span = max([t for t, _ in s.pan_history + s.target_history] + [1.0])
-    series = [v for _, v in s.pan_history + s.target_history]
-    text(f"slave pan (blue) and target (orange), last {span:.1f} s, degrees", left, top2 - 12)
-    if series:
-        lo, hi = math.degrees(min(series)), math.degrees(max(series))
-        if hi - lo < 0.1:
-            lo, hi = lo - 0.05, hi + 0.05
-        pad = (hi - lo) * 0.1
-        lo, hi = lo - pad, hi + pad
-
-        def hx(age: float) -> int:
-            return int(round(right - (right - left) * age / span))
-
-        def hy(rad: float) -> int:
-            return int(round(bot2 - (bot2 - top2) * (math.degrees(rad) - lo) / (hi - lo)))
-
-        for v in (lo + pad, hi - pad):
-            text(f"{v:+.2f}", 5, int(round(bot2 - (bot2 - top2) * (v - lo) / (hi - lo))) + 5, black, 0.4)
-        if len(s.pan_history) >= 2:
-            pts = np.array([[hx(a), hy(v)] for a, v in s.pan_history], np.int32)
-            cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, blue, 2, cv2.LINE_AA)
-        elif s.pan_history:
-            a, v = s.pan_history[0]
-            cv2.circle(img, (hx(a), hy(v)), 3, blue, -1)
-        for a, v in s.target_history:
-            cv2.circle(img, (hx(a), hy(v)), 2, orange, -1)
-    else:
-        text("no pan history", left + 10, (top2 + bot2) // 2, grey)
-    text(f"-{span:.1f} s", left, bot2 + 20, black, 0.4)
-    text("now", right - 30, bot2 + 20, black, 0.4)
-    return img
-
-
-def png_bytes(s: Snapshot, width: int = 960, height: int = 720) -> bytes:
-    """render_png encoded as PNG bytes."""
-    import cv2
-
-    ok, buf = cv2.imencode(".png", render_png(s, width, height))
-    if not ok:
-        raise RuntimeError("OpenCV could not encode the PNG")
-    return buf.tobytes()
