@@ -112,7 +112,14 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, args: argparse.Namesp
     model = Monitor(rig, window_s=args.window)
     tty = out.isatty()
     color = args.color == "always" or (args.color == "auto" and tty)
-    with session.open_session(conf) as s:
+    once = args.png or args.once
+    try:
+        s = session.open_session(conf, timeout=(args.timeout if args.timeout is not None else 10.0) if once
+                                 else args.timeout)
+    except ConnectionError as e:
+        print(f"vergence monitor: {e}", file=sys.stderr)
+        return 1
+    with s:
         watch = Watch(s, rig, model)
         try:
             if args.png:

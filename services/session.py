@@ -12,15 +12,21 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import logging
 import os
 import signal
 import threading
+import time
 
 import zenoh
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 LEASE_MS = 1000
 STANDBY_ENV = "VERGENCE_STANDBY"  # see open_session and services/up.py
+SAY_WAITING_S = 1.0  # open_session says why nothing happens after this long without a router
+
+log = logging.getLogger("vergence.session")
+_stops: list[threading.Event] = []  # every Stop's event: open_session gives up when one is set
 
 
 def add_options(p: argparse.ArgumentParser, mode: str = "client") -> None:
@@ -79,7 +85,7 @@ def config_from_args(args: argparse.Namespace) -> zenoh.Config:
     return zenoh_config(args.mode, args.connect, args.listen, args.zenoh_config)
 
 
-def open_session(conf: zenoh.Config) -> zenoh.Session:
+def open_session(conf: zenoh.Config, timeout: float | None = None) -> zenoh.Session:
     """zenoh.open, after moving everything allocated so far out of the garbage collector's reach.
 
     A service has imported numpy, numba, OpenCV and zenoh and warmed its kernels by now: hundreds of
@@ -87,12 +93,49 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
     took half the reducer's CPU at 250 frames/s and stalled a message for tens of ms at a time; frozen, a
     collection only walks what the message loop allocates.
 
+    zenoh.open keeps trying while no router answers, and a main thread blocked in it never runs a signal
+    handler: it runs in a thread, and a SIGINT/SIGTERM (a Stop) meanwhile ends the process cleanly
+    (SystemExit 0, nothing opened); after SAY_WAITING_S it logs once which endpoints it waits for; past
+    `timeout` seconds it raises ConnectionError.
+
     A standby of `vergence up` (STANDBY_ENV set) waits here first, everything before its session done, until
     up starts it in place of a dead child (or leaves, if up closes the pipe)."""
     _standby()
     gc.collect()
     gc.freeze()
-    return zenoh.open(conf)
+    box: list = []
+
+    def opener():
+        try:
+            box.append(zenoh.open(conf))
+        except Exception as e:  # a bad endpoint or config: raised in the caller's thread
+            box.append(e)
+
+    t = threading.Thread(target=opener, name="zenoh-open", daemon=True)
+    t0 = time.monotonic()
+    said = False
+    t.start()
+    while t.is_alive():
+        t.join(0.05)
+        if any(e.is_set() for e in _stops):
+            raise SystemExit(0)  # stopped before a router answered: nothing to close
+        waited = time.monotonic() - t0
+        if t.is_alive() and not said and waited >= SAY_WAITING_S:
+            said = True
+            log.warning("no Zenoh router or peer answers at %s yet; still trying (Ctrl-C stops)", _endpoints(conf))
+        if t.is_alive() and timeout is not None and waited >= timeout:
+            raise ConnectionError(f"no Zenoh router or peer answered at {_endpoints(conf)} within {timeout:g} s "
+                                  "(is `vergence up` or `vergence router` running there? --connect ENDPOINT)")
+    if isinstance(box[0], Exception):
+        raise box[0]
+    return box[0]
+
+
+def _endpoints(conf: zenoh.Config) -> str:
+    try:
+        return ", ".join(json.loads(conf.get_json("connect/endpoints"))) or "no endpoint"
+    except Exception:  # an odd config file: say what we can
+        return "the configured endpoints"
 
 
 def _standby() -> None:
@@ -128,7 +171,8 @@ class Stop:
 
     def __init__(self, install: bool = True):
         self.event = threading.Event()
-        if install:
+        if install:  # the process's own: open_session gives up when it is set
+            _stops.append(self.event)
             for sig in (signal.SIGINT, signal.SIGTERM):
                 signal.signal(sig, self._handler)
 

@@ -1,0 +1,45 @@
+"""A process whose router does not answer (not started yet, a wrong --connect) says so, and still stops cleanly
+on SIGINT/SIGTERM: zenoh.open keeps trying, and a main thread blocked in it ran no signal handler (monitor,
+worker, record and the other services ignored SIGTERM until killed)."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import time
+
+import pytest
+
+from procs import VERGENCE, free_port, wait_for
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["term", "int"])
+@pytest.mark.parametrize("argv", [["worker"], ["reducer"], ["record", "{tmp}/x.vrec"], ["monitor"]],
+                         ids=["worker", "reducer", "record", "monitor"])
+def test_waiting_for_a_router_stops_on_a_signal(tmp_path, argv, sig):
+    log = tmp_path / "err.log"
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    with open(log, "wb") as fh:
+        p = subprocess.Popen([VERGENCE, *argv, "--connect", f"tcp/127.0.0.1:{free_port()}"], stdout=fh, stderr=fh)
+        try:
+            wait_for(lambda: b"still trying (Ctrl-C stops)" in log.read_bytes(), 60, "the waiting line",
+                     logs=log.read_text)
+            t0 = time.monotonic()
+            p.send_signal(sig)
+            assert p.wait(10) == 0
+            assert time.monotonic() - t0 < 2
+        finally:
+            if p.poll() is None:
+                p.kill()
+                p.wait(10)
+
+
+def test_monitor_once_gives_up_at_its_timeout(tmp_path):
+    t0 = time.monotonic()
+    r = subprocess.run([VERGENCE, "monitor", "--once", "--timeout", "2", "--connect",
+                        f"tcp/127.0.0.1:{free_port()}"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and time.monotonic() - t0 < 20
+    assert r.stderr.strip().splitlines()[-1].startswith("vergence monitor: no Zenoh router or peer answered at "
+                                                        "tcp/127.0.0.1:")
