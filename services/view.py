@@ -575,15 +575,18 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
 
     end = time.monotonic() + timeout if timeout is not None else None
     try:
-        s = _open(session, conf, stop, end)
-    except RuntimeError as e:
+        s = session.open_session(conf, timeout=timeout)
+    except SystemExit:  # Ctrl-C before a router answered
+        rr.disconnect()
+        raise
+    except ConnectionError as e:  # no router within --timeout
         print(f"vergence view: {e}", file=sys.stderr)
         rr.disconnect()
-        return 2
-    if s is None:  # stopped (or timed out) before the router answered
-        print("vergence view: stopped before reaching a router (is one running on --connect?)", file=sys.stderr)
-        rr.disconnect()
         return 1
+    except Exception as e:  # a bad endpoint or config
+        print(f"vergence view: cannot open a zenoh session: {e}", file=sys.stderr)
+        rr.disconnect()
+        return 2
     with s:
         subs = [s.declare_subscriber(k(rig), on_sample) for k in WATCHED if k is not keys.frame]
         # frames (60 Hz, ~20 KB each at 640 px) only for what decisions may not carry: the fovea's point (the
@@ -617,29 +620,6 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
     rr.disconnect()  # flushes the file
     log.info("view exits: logged %s, bad %s, dropped %d (behind)", dict(cockpit.counts), dict(cockpit.bad), full[0])
     return 0
-
-
-def _open(session, conf, stop, end: float | None):
-    """The zenoh session, opened in a thread: a client keeps trying to reach its router, and a main thread
-    blocked in zenoh.open would never see Ctrl-C. None when stopped (or past `end`) first."""
-    import time
-
-    box: list = []
-
-    def opener():
-        try:
-            box.append(session.open_session(conf))
-        except Exception as e:  # a bad endpoint or config: said by the main thread
-            box.append(e)
-
-    t = threading.Thread(target=opener, name="zenoh-open", daemon=True)
-    t.start()
-    while t.is_alive():
-        if stop.wait(0.1) or (end is not None and time.monotonic() > end):
-            return None
-    if box and isinstance(box[0], Exception):
-        raise RuntimeError(f"cannot open a zenoh session: {box[0]}")
-    return box[0] if box else None
 
 
 def run(args: argparse.Namespace) -> int:
