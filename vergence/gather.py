@@ -14,6 +14,7 @@ import numpy as np
 from . import retina
 from .config import LimitSettings
 from .control import ControlSettings, Controller
+from .motors.base import MotorSettings, Safety
 from .decide import Decision, apply_checks, decide_scores
 from .messages import Command, Frame, Partial, Profile, Verdict
 from .params import Params
@@ -156,9 +157,10 @@ class Gatherer:
     MAX_FINISHED = 1024
 
     def __init__(self, params: Params, control: ControlSettings | None = None, deadline_s: float = 0.05,
-                 limits: LimitSettings | None = None, wall_ns=time.time_ns):
+                 limits: LimitSettings | None = None, wall_ns=time.time_ns,
+                 motor: MotorSettings | Safety | None = None):
         self.params = params
-        self.controller = Controller(control)
+        self.controller = Controller(control, motor)  # motor: [actuator.motor], whose limits bound each command
         self.deadline_s = deadline_s
         self.limits = limits or LimitSettings()
         self.wall_ns = wall_ns
