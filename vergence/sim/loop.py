@@ -29,7 +29,8 @@ DELAY_S = 0.005  # capture to command, about what the distributed loop takes (ve
 
 @dataclass(frozen=True)
 class Step:
-    """One frame of the loop: the slave pan at capture and what the network made of that view.
+    """One frame of the loop: the slave pan at capture and what the network made of that view (its Match's
+    Decision, flattened: k, v, offset_px, confident, confidence; not a decision of its own).
 
     pan_deg / truth_pan_deg: the slave's pan and the converged pan; error_px: f tan(pan - truth), how far
     the slave is from converged, in pixels at the view centre (NaN when the truth is unknown). offset_px,
