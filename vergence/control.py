@@ -10,8 +10,7 @@ Two modes ([control] mode):
   off the prediction (gate_px) restarts the filter (a jump, not a motion). An abstention coasts on the
   estimate (its rate fading with the time constant coast_s / 2) for at most coast_s, then the slave
   holds. No command within dead_band_px of the present pan, nor of the last set-point while the motor is
-  there (within 1 px or 0.1 degree: a motor settles on its nearest tick); the step and pan limits as in
-  "p".
+  there (within 1 px or 0.1 degree: a motor settles on its nearest tick).
 
 The pan limits and the step limit are the motor's ([actuator.motor] min_deg, max_deg, max_step_deg): the
 Controller holds no copy of them, it asks the motor's safety layer (vergence.motors.base.Safety.limit_step)
@@ -19,6 +18,7 @@ to bound every set-point, so a set-point never leaves them; the actuator's own S
 arrives again (the last line). Its dead band is the larger of [control] dead_band_px (the measurement's: at
 the focal length, a correction smaller than this many pixels is noise) and the motor's dead_band_deg (a goal
 change the actuator would hold anyway).
+
 The default is "predictive": in `vergence bench tracking` p's error is 2.2-4.0 times its own on sines
 from 0.5 Hz on (p lags by the loop's latency, about a frame plus the motor), 1.2-2.1 times at 0.25 Hz, and
 both settle alike on a step; its cost, on still Middlebury scenes, is a few points of convergence where the
