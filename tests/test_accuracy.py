@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 
+import cv2
 import numpy as np
 import pytest
 
@@ -124,3 +125,21 @@ def test_accuracy_holds_on_every_seed(name, gain, capsys):
               + " ".join(f"{100 * c:.1f}/{100 * r:.1f}" for c, r in zip(cov, right)))
     assert min(cov) >= cov_floor, f"coverage {[round(100 * c, 1) for c in cov]} %"
     assert min(right) >= right_floor, f"right among confident {[round(100 * r, 1) for r in right]} %"
+
+
+def test_halves_check_ignores_what_the_slave_clipped():
+    """A fovea centred 4 px left of where a dark but textured part of the master (levels 2-20) meets a bright
+    one: the slave at gain 0.7, -15 clips the dark part to black. The halves check leaves the clipped pixels out
+    (a half mostly on them is not asked) and the network answers, right; before, the black halves found their
+    best offsets anywhere and it abstained. The same fovea with the slave at equal gain: right as before."""
+    rng = np.random.default_rng(7)
+    master = cv2.GaussianBlur(rng.integers(40, 220, (120, 200)).astype(np.uint8), (3, 3), 0)
+    master[:, :100] = cv2.GaussianBlur(rng.integers(2, 21, (120, 100)).astype(np.uint8), (3, 3), 0)
+    d = 7
+    slave = np.roll(master, -d, axis=1)  # content at master column x lies at slave column x - d
+    dim = np.clip(slave.astype(np.float32) * np.float32(0.7) - np.float32(15), 0, 255).astype(np.uint8)
+    assert (dim[:, : 100 - d] == 0).all()
+    params = vergence.Params(max_window=0)
+    for img in (slave, dim):
+        m = vergence.match(master, img, (96, 60), params)
+        assert m.confident and abs(m.offset_px + d) <= 0.5, m.decision
