@@ -38,10 +38,10 @@ class Match:
 
 
 def _one(master, slave, x, y, w, p: Params) -> Match:
-    fovea, band = retina.features(master, slave, (x, y), w, p.vsearch, p.photometric)
+    fstrip, bstrip, mrows = retina.mapped_strips(master, slave, x, y, w, p.vsearch, p.photometric, p.lr_check)
+    fovea, band = retina.planes(fstrip), retina.planes(bstrip)
     weights = kernel.support_weights(fovea, p.support_gamma, p.support_radius) if p.support else None
     scores = kernel.correlate(fovea, band, circular=p.circular, weights=weights)
-    mrows = retina.band_strip(master, y, w) if p.lr_check else None
     return Match(x, y, w, decide_scores(scores, fovea, x, p, mrows, band), scores)
 
 
