@@ -48,7 +48,7 @@ def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, p
     w = params.window if window is None else window
     retina.check_point(master.shape, x, y, w, params.vsearch)
     fovea, band, mband = retina.mapped_strips(master, slave, x, y, w, params.vsearch, params.photometric,
-                                              params.lr_check)
+                                              params.lr_check, params.clip_master)
     return Frame(rig=rig, frame=frame, t_capture_ns=t_capture_ns, pan_rad=float(pan_rad), width=wd, height=h,
                  x=x, y=y, window=w, vsearch=params.vsearch, focal_px=float(focal_px), fovea=fovea.tobytes(),
                  band=band.tobytes(), plan=plan, circular=params.circular, support=params.support,

@@ -33,7 +33,10 @@ class Params:
     max_window: dynamic window; when not confident, grow w by WINDOW_STEP (8) px per try up to this size (0: off).
     photometric: before layer 1, map the slave band's intensities onto the master's over the same rows
     ("affine": mean and standard deviation, "histogram": quantiles, "none"; retina.photometric): two cameras
-    never have the same gain and offset."""
+    never have the same gain and offset.
+    clip_master: with a photometric mapping, where the slave's gain clipped (black or saturated over at least 1 %
+    of the band), clip the master's fovea and rows to the same levels (retina.mapped_strips): those areas are
+    then flat in both views instead of textured in one and flat in the other."""
 
     window: int = 15
     vsearch: int = 6
@@ -52,6 +55,7 @@ class Params:
     halves_range: int = 12
     max_window: int = 47
     photometric: str = "affine"
+    clip_master: bool = False
 
     def __post_init__(self):
         if self.photometric not in retina.PHOTOMETRIC:
@@ -62,7 +66,7 @@ class Params:
         """The paper's network: no extension (vertical search, circular D, sub-pixel, abstention...)."""
         base = dict(vsearch=0, vshift_cost=0.0, circular=False, subpixel=False, min_margin=0.0, min_texture=0.0,
                     min_correlation=0.0, lr_check=False, support=False, halves_check=False, max_window=0,
-                    photometric="none")
+                    photometric="none", clip_master=False)
         base.update(overrides)
         return cls(**base)
 

@@ -179,20 +179,21 @@ def photometric(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "
     so that layers 1-4 stay exact integers."""
     if mode == "none":
         return slave_strip
-    lut, _ = photometric_map(slave_strip, master_strip, mode)
+    lut, _ = photometric_map(slave_strip, master_strip, mode, clip=False)
     return slave_strip if lut is None else cv2.LUT(np.ascontiguousarray(slave_strip), lut)
 
 
 CLAMP_MIN_SHARE = 0.01  # the share of a strip its gain must clip before the master is clipped alike
 
 
-def photometric_map(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "affine"
+def photometric_map(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "affine", clip: bool = True
                     ) -> tuple[np.ndarray | None, tuple[int, int] | None]:
     """photometric()'s lookup table for the slave's 256 levels (None: leave the slave as it is), and the master
     levels (lo, hi) that the slave's gain clipped (None when it clipped under CLAMP_MIN_SHARE of the strip at
     either end): the master pixels under lo (over hi) are black (saturated) in the slave, their texture gone.
     The table then maps the slave's clipped levels to lo and hi, and mapped_strips clips the master's strips to
-    lo..hi: clipped areas are flat and equal in both views instead of textured in one and flat in the other."""
+    lo..hi: clipped areas are flat and equal in both views instead of textured in one and flat in the other.
+    clip=False: no such levels, the table alone (as photometric() maps a strip)."""
     if mode not in PHOTOMETRIC:
         raise ValueError(f"photometric must be one of {', '.join(PHOTOMETRIC)}, got {mode!r}")
     s = np.ascontiguousarray(slave_strip)
@@ -250,14 +251,14 @@ def photometric_map(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str
     if cut_hi <= 0:
         lut[hi_s] = hi_m
     lims = None
-    if max(cut_lo, cut_hi) >= CLAMP_MIN_SHARE:
+    if clip and max(cut_lo, cut_hi) >= CLAMP_MIN_SHARE:
         t_lo = int(np.rint(np.interp(f_lo, qm_in, lm))) if cut_lo >= CLAMP_MIN_SHARE else 0
         t_hi = int(np.rint(np.interp(1.0 - f_hi, qm_in, lm))) if cut_hi >= CLAMP_MIN_SHARE else 255
         if t_lo < t_hi:
             lims = (t_lo, t_hi)
-            if cut_lo >= CLAMP_MIN_SHARE:
+            if t_lo > 0:
                 lut[lo_s] = t_lo
-            if cut_hi >= CLAMP_MIN_SHARE:
+            if t_hi < 255:
                 lut[hi_s] = t_hi
             lut = np.clip(lut, t_lo, t_hi)
     lut = np.clip(np.rint(lut), 0, 255).astype(np.uint8)
@@ -265,17 +266,17 @@ def photometric_map(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str
 
 
 def mapped_strips(master: np.ndarray, slave: np.ndarray, x: int, y: int, window: int, vsearch: int = 0,
-                  mode: str = "none", master_rows: bool = False
+                  mode: str = "none", master_rows: bool = False, clip_master: bool = False
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """The gray strips layer 1 reads, photometric `mode` applied: (the master's fovea strip, the slave's band strip
     mapped onto the master's same rows, the master's own rows of the fovea (band_strip without vertical search)
-    when master_rows, for the left-right check). Where the slave's gain clipped (photometric_map), the master's
-    strips are clipped to the same levels."""
+    when master_rows, for the left-right check). With clip_master, where the slave's gain clipped
+    (photometric_map), the master's strips are clipped to the same levels."""
     fovea = fovea_strip(master, x, y, window)
     band = band_strip(slave, y, window, vsearch)
     mrows = band_strip(master, y, window) if master_rows else None
     if mode != "none":
-        lut, lims = photometric_map(band, band_strip(master, y, window, vsearch), mode)
+        lut, lims = photometric_map(band, band_strip(master, y, window, vsearch), mode, clip=clip_master)
         if lut is not None:
             band = cv2.LUT(band, lut)
         if lims is not None:
