@@ -186,7 +186,7 @@ def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, pa
     kk = slave_band.shape[2] - w + 1
     k0, k1 = max(0, d.k - params.halves_range), min(kk, d.k + params.halves_range + 1)
     rows = slave_band[:, r + d.v : r + d.v + w, :]
-    wts = kernel.support_weights(fovea, params.support_gamma, params.support_radius) if params.support \
+    wts = kernel.support_weights(fovea, params.support_gamma, params.support_radius_at(w)) if params.support \
         else np.ones((w, w), np.uint8)
     # Pixels the slave camera clipped (its band's darkest or brightest level, in the winning window) carry no
     # texture: a half mostly on them would find its best offset anywhere. They are left out of the halves, and

@@ -41,7 +41,7 @@ def _one(master, slave, x, y, w, p: Params) -> Match:
     fstrip, bstrip, mrows = retina.mapped_strips(master, slave, x, y, w, p.vsearch, p.photometric, p.lr_check,
                                                  p.clip_master)
     fovea, band = retina.planes(fstrip), retina.planes(bstrip)
-    weights = kernel.support_weights(fovea, p.support_gamma, p.support_radius) if p.support else None
+    weights = kernel.support_weights(fovea, p.support_gamma, p.support_radius_at(w)) if p.support else None
     scores = kernel.correlate(fovea, band, circular=p.circular, weights=weights)
     return Match(x, y, w, decide_scores(scores, fovea, x, p, mrows, band), scores)
 

@@ -8,6 +8,7 @@ from . import retina
 
 __all__ = ["Params", "FAITHFUL", "WINDOW_STEP"]
 
+SCALE_RADIUS = True
 WINDOW_STEP = 8  # px: the dynamic window grows (and shrinks back) by this much per step
 
 
@@ -49,13 +50,13 @@ class Params:
     lr_check: bool = True
     lr_tolerance: float = 0.75
     support: bool = True
-    support_gamma: float = 8.0
-    support_radius: float = 7.0
+    support_gamma: float = 12.0
+    support_radius: float = 5.0
     halves_check: bool = True
     halves_range: int = 12
     max_window: int = 47
     photometric: str = "affine"
-    clip_master: bool = False
+    clip_master: bool = True
 
     def __post_init__(self):
         if self.photometric not in retina.PHOTOMETRIC:
@@ -84,6 +85,11 @@ class Params:
         if bad:
             raise TypeError(f"unknown parameter(s) {', '.join(bad)}; known: {', '.join(sorted(names))}")
         return replace(self, **{k: v for k, v in changes.items() if v is not None})
+
+    def support_radius_at(self, window: int) -> float:
+        """The support weights' distance scale for a window of this size: support_radius at the base window,
+        growing in proportion with the dynamic window (a grown window is there for its outer pixels)."""
+        return self.support_radius * window / self.window if SCALE_RADIUS else self.support_radius
 
     def windows(self) -> list[int]:
         """The dynamic window's sizes, smallest first: window, window + WINDOW_STEP, ... up to max_window (just
