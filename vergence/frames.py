@@ -53,7 +53,7 @@ def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, p
                  x=x, y=y, window=w, vsearch=params.vsearch, focal_px=float(focal_px), fovea=fovea.tobytes(),
                  band=band.tobytes(), plan=plan, circular=params.circular, support=params.support,
                  master_band=b"" if mband is None else mband.tobytes(), support_gamma=params.support_gamma,
-                 support_radius=params.support_radius)
+                 support_radius=params.support_radius_at(w))
 
 
 def frame_cost(frame: Frame) -> int:

@@ -8,7 +8,6 @@ from . import retina
 
 __all__ = ["Params", "FAITHFUL", "WINDOW_STEP"]
 
-SCALE_RADIUS = True
 WINDOW_STEP = 8  # px: the dynamic window grows (and shrinks back) by this much per step
 
 
@@ -27,7 +26,8 @@ class Params:
     by 0.31), a real match mostly by 0.6 to 1.
     lr_check: match the winning slave window back into the master band; abstain unless it lands within
     lr_tolerance px of the fovea. support: adaptive support weights (Yoon & Kweon) on the fovea, with
-    support_gamma (intensity) and support_radius (distance, px) as their two scales.
+    support_gamma (intensity) and support_radius (distance, px, at the base window; it grows in proportion with
+    the dynamic window, support_radius_at) as their two scales.
     halves_check: each half of the fovea (left, right, top, bottom; weighed by the support weights when they
     are on) must find its own best match, searched within halves_range px of the winner, within 2 px of it
     (halves_consistent): abstain at depth edges where one half of the window sees another surface.
@@ -44,7 +44,7 @@ class Params:
     vshift_cost: float = 0.5
     circular: bool = True
     subpixel: bool = True
-    min_margin: float = 0.03
+    min_margin: float = 0.25
     min_texture: float = 1.5
     min_correlation: float = 0.35
     lr_check: bool = True
@@ -89,7 +89,7 @@ class Params:
     def support_radius_at(self, window: int) -> float:
         """The support weights' distance scale for a window of this size: support_radius at the base window,
         growing in proportion with the dynamic window (a grown window is there for its outer pixels)."""
-        return self.support_radius * window / self.window if SCALE_RADIUS else self.support_radius
+        return self.support_radius * window / self.window
 
     def windows(self) -> list[int]:
         """The dynamic window's sizes, smallest first: window, window + WINDOW_STEP, ... up to max_window (just
