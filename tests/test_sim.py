@@ -223,8 +223,9 @@ def _loop_outcomes(name, seed, n, gain=1.0, offset=0.0):
 @pytest.mark.parametrize("name,floor", [("cones", 0.88), ("teddy", 0.905), ("tsukuba", 0.825), ("venus", 0.905)])
 def test_loop_convergence_rate_over_300_points(name, floor, capsys):
     """The same loop at 300 points per scene (seeds 3-5, 100 each; starts 10-40 px off): 20 points are too few
-    to see a change of a few percent. Measured: cones 90.3, teddy 92.7, tsukuba 84.7, venus 93.0 % (before the
-    photometric mapping: 90.7, 93.7, 86.3, 93.7 %); the floors sit 2-2.5 points below."""
+    to see a change of a few percent. Measured: cones 90.0, teddy 93.0, tsukuba 85.0, venus 92.3 % (before min_margin
+    0.25, the support weights' new scales and clip_master: 90.3, 92.7, 84.7, 93.0 %; before the photometric mapping:
+    90.7, 93.7, 86.3, 93.7 %); the floors sit 1.5-2.5 points below."""
     ok = sum(sum(_loop_outcomes(name, seed, 100)) for seed in (3, 4, 5))
     with capsys.disabled():
         print(f"\n{name}: converged at {ok / 3:.1f} % of 300 points")
@@ -233,10 +234,11 @@ def test_loop_convergence_rate_over_300_points(name, floor, capsys):
 
 GAIN_POINTS = 60  # per seed (3 and 4): 120 points per scene and gain, each against its own equal-gain run
 # Measured (this commit), converged at equal gain / 1.3, +20 / 0.7, -15 on these 120 points: cones 90.0 / 90.0 /
-# 89.2 %, teddy 95.0 / 90.0 / 95.0 %, tsukuba 81.7 / 75.8 / 75.8 %, venus 88.3 / 88.3 / 87.5 %. The issue asks for
-# at most 3 points of drop: met on cones and venus (and teddy at 0.7); teddy at 1.3 (a sixth of its pixels
-# saturate) and tsukuba (dark: a fifth of its pixels clip to black at 0.7) lose 5-6 points. The floors say so.
-GAIN_DROP = {"cones": 0.03, "teddy": 0.07, "tsukuba": 0.07, "venus": 0.03}
+# 90.0 %, teddy 95.8 / 92.5 / 96.7 %, tsukuba 83.3 / 84.2 / 80.8 %, venus 89.2 / 87.5 / 86.7 % (main before: cones
+# 90.0 / 90.0 / 89.2, teddy 95.0 / 90.0 / 95.0, tsukuba 81.7 / 75.8 / 75.8, venus 88.3 / 88.3 / 87.5 %). The issue
+# asks for at most 3 points of drop: met everywhere but teddy at 1.3, +20 (3.3 points: a sixth of its pixels
+# saturate). The floors say so.
+GAIN_DROP = {"cones": 0.03, "teddy": 0.04, "tsukuba": 0.03, "venus": 0.03}
 
 
 @pytest.mark.slow
