@@ -50,7 +50,7 @@ class Params:
     lr_check: bool = True
     lr_tolerance: float = 0.75
     support: bool = True
-    support_gamma: float = 12.0
+    support_gamma: float = 10.0
     support_radius: float = 5.0
     halves_check: bool = True
     halves_range: int = 12
