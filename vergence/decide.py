@@ -172,6 +172,7 @@ def lr_consistent(master_rows: np.ndarray, slave_band: np.ndarray, x: int, d: De
     return abs((bd.k_sub + half) - expected) <= params.lr_tolerance
 
 
+CLIPPED_HALF = 0.5  # a half with less of its weight on pixels the slave did not clip is not asked
 HALVES_TOLERANCE = 2  # px: how far a half's own best offset may lie from the winner (1 abstains at too many points)
 
 
@@ -181,6 +182,9 @@ def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, pa
     row v at offsets within params.halves_range of the winner k, must each find their best offset within
     HALVES_TOLERANCE (2) px of k. At a depth edge the half on the other surface finds that surface's offset:
     the fovea straddles two surfaces and the winner may be the wrong one's (foreground fattening), so abstain.
+    The pixels the slave camera clipped (in the winning window, at the band's darkest or brightest level) are
+    left out of every half, and a half left with under CLIPPED_HALF (half) of its weight is not asked: with the
+    slave at gain 0.7, -15, a fifth of tsukuba's pixels go black, and a half on them found its best anywhere.
     Exact integers (kernel.half_sads, the four halves in one pass); reads the band's columns
     k - halves_range .. k + halves_range + w - 1 of the winning rows only."""
     w = fovea.shape[1]
@@ -188,6 +192,21 @@ def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, pa
     kk = slave_band.shape[2] - w + 1
     k0, k1 = max(0, d.k - params.halves_range), min(kk, d.k + params.halves_range + 1)
     rows = slave_band[:, r + d.v : r + d.v + w, :]
-    wts = kernel.support_weights(fovea, params.support_gamma, params.support_radius) if params.support else None
+    wts = kernel.support_weights(fovea, params.support_gamma, params.support_radius_at(w)) if params.support \
+        else np.ones((w, w), np.uint8)
+    # Pixels the slave camera clipped (its band's darkest or brightest level, in the winning window) carry no
+    # texture: a half mostly on them would find its best offset anywhere. They are left out of the halves, and
+    # a half left with under CLIPPED_HALF of its weight is not asked.
+    band_i = slave_band[0]
+    win = band_i[r + d.v : r + d.v + w, d.k : d.k + w]
+    clipped = (win == band_i.min()) | (win == band_i.max())
+    asked = np.ones(4, bool)
+    if clipped.any():
+        kept = np.where(clipped, 0, wts).astype(np.uint8)
+        c = w // 2
+        full = [wts[:, : c + 1].sum(), wts[:, c:].sum(), wts[: c + 1].sum(), wts[c:].sum()]
+        left = [kept[:, : c + 1].sum(), kept[:, c:].sum(), kept[: c + 1].sum(), kept[c:].sum()]
+        asked = np.array([lf >= CLIPPED_HALF * fu for lf, fu in zip(left, full)])
+        wts = kept
     s = kernel.half_sads(fovea, rows, k0, k1, circular=params.circular, weights=wts)
-    return bool(np.all(np.abs(k0 + np.argmin(s, axis=1) - d.k) <= HALVES_TOLERANCE))
+    return bool(np.all((np.abs(k0 + np.argmin(s, axis=1) - d.k) <= HALVES_TOLERANCE) | ~asked))

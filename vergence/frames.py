@@ -47,14 +47,13 @@ def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, p
     x, y = at if at is not None else (wd // 2, h // 2)
     w = params.window if window is None else window
     retina.check_point(master.shape, x, y, w, params.vsearch)
-    fovea = retina.fovea_strip(master, x, y, w)
-    band = retina.slave_band_strip(master, slave, y, w, params.vsearch, params.photometric)
-    mband = retina.band_strip(master, y, w) if params.lr_check else None
+    fovea, band, mband = retina.mapped_strips(master, slave, x, y, w, params.vsearch, params.photometric,
+                                              params.lr_check, params.clip_master)
     return Frame(rig=rig, frame=frame, t_capture_ns=t_capture_ns, pan_rad=float(pan_rad), width=wd, height=h,
                  x=x, y=y, window=w, vsearch=params.vsearch, focal_px=float(focal_px), fovea=fovea.tobytes(),
                  band=band.tobytes(), plan=plan, circular=params.circular, support=params.support,
                  master_band=b"" if mband is None else mband.tobytes(), support_gamma=params.support_gamma,
-                 support_radius=params.support_radius)
+                 support_radius=params.support_radius_at(w))
 
 
 def frame_cost(frame: Frame) -> int:

@@ -43,10 +43,11 @@ class Match:
 
 
 def _one(master, slave, x, y, w, p: Params) -> Match:
-    fovea, band = retina.features(master, slave, (x, y), w, p.vsearch, p.photometric)
-    weights = kernel.support_weights(fovea, p.support_gamma, p.support_radius) if p.support else None
+    fstrip, bstrip, mrows = retina.mapped_strips(master, slave, x, y, w, p.vsearch, p.photometric, p.lr_check,
+                                                 p.clip_master)
+    fovea, band = retina.planes(fstrip), retina.planes(bstrip)
+    weights = kernel.support_weights(fovea, p.support_gamma, p.support_radius_at(w)) if p.support else None
     scores = kernel.correlate(fovea, band, circular=p.circular, weights=weights)
-    mrows = retina.band_strip(master, y, w) if p.lr_check else None
     return Match(x, y, w, decide_scores(scores, fovea, x, p, mrows, band), scores)
 
 

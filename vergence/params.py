@@ -26,32 +26,37 @@ class Params:
     by 0.31), a real match mostly by 0.6 to 1.
     lr_check: match the winning slave window back into the master band; abstain unless it lands within
     lr_tolerance px of the fovea. support: adaptive support weights (Yoon & Kweon) on the fovea, with
-    support_gamma (intensity) and support_radius (distance, px) as their two scales.
+    support_gamma (intensity) and support_radius (distance, px, at the base window; it grows in proportion with
+    the dynamic window, support_radius_at) as their two scales.
     halves_check: each half of the fovea (left, right, top, bottom; weighed by the support weights when they
     are on) must find its own best match, searched within halves_range px of the winner, within 2 px of it
     (halves_consistent): abstain at depth edges where one half of the window sees another surface.
     max_window: dynamic window; when not confident, grow w by WINDOW_STEP (8) px per try up to this size (0: off).
     photometric: before layer 1, map the slave band's intensities onto the master's over the same rows
     ("affine": mean and standard deviation, "histogram": quantiles, "none"; retina.photometric): two cameras
-    never have the same gain and offset."""
+    never have the same gain and offset.
+    clip_master: with a photometric mapping, where the slave's gain clipped (black or saturated over at least 1 %
+    of the band), clip the master's fovea and rows to the same levels (retina.mapped_strips): those areas are
+    then flat in both views instead of textured in one and flat in the other."""
 
     window: int = 15
     vsearch: int = 6
     vshift_cost: float = 0.5
     circular: bool = True
     subpixel: bool = True
-    min_margin: float = 0.03
+    min_margin: float = 0.25
     min_texture: float = 1.5
     min_correlation: float = 0.35
     lr_check: bool = True
     lr_tolerance: float = 0.75
     support: bool = True
-    support_gamma: float = 8.0
-    support_radius: float = 7.0
+    support_gamma: float = 10.0
+    support_radius: float = 5.0
     halves_check: bool = True
     halves_range: int = 12
     max_window: int = 47
     photometric: str = "affine"
+    clip_master: bool = True
 
     def __post_init__(self):
         if self.photometric not in retina.PHOTOMETRIC:
@@ -62,7 +67,7 @@ class Params:
         """The paper's network: no extension (vertical search, circular D, sub-pixel, abstention...)."""
         base = dict(vsearch=0, vshift_cost=0.0, circular=False, subpixel=False, min_margin=0.0, min_texture=0.0,
                     min_correlation=0.0, lr_check=False, support=False, halves_check=False, max_window=0,
-                    photometric="none")
+                    photometric="none", clip_master=False)
         base.update(overrides)
         return cls(**base)
 
@@ -80,6 +85,11 @@ class Params:
         if bad:
             raise TypeError(f"unknown parameter(s) {', '.join(bad)}; known: {', '.join(sorted(names))}")
         return replace(self, **{k: v for k, v in changes.items() if v is not None})
+
+    def support_radius_at(self, window: int) -> float:
+        """The support weights' distance scale for a window of this size: support_radius at the base window,
+        growing in proportion with the dynamic window (a grown window is there for its outer pixels)."""
+        return self.support_radius * window / self.window
 
     def windows(self) -> list[int]:
         """The dynamic window's sizes, smallest first: window, window + WINDOW_STEP, ... up to max_window (just

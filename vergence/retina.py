@@ -15,7 +15,7 @@ import numba
 import numpy as np
 
 __all__ = ["BorderError", "gray", "strip", "fovea_strip", "band_strip", "planes", "features", "check_point",
-           "PHOTOMETRIC", "photometric", "slave_band_strip"]
+           "PHOTOMETRIC", "photometric", "photometric_map", "slave_band_strip", "mapped_strips"]
 
 
 class BorderError(ValueError):
@@ -154,6 +154,20 @@ PHOTOMETRIC = ("none", "affine", "histogram")
 AFFINE_QUANTILES = (0.3, 0.5, 0.7)
 
 
+BORDER_MIN_COLUMNS = 3  # a shorter run of dark columns at a strip's end is taken as the scene's
+
+
+def _border_columns(s: np.ndarray) -> tuple[int, int]:
+    """How many whole columns at the left and at the right end of a gray strip are at the strip's darkest
+    level: (left, right), each 0 when fewer than BORDER_MIN_COLUMNS; (0, 0) when little else would be left."""
+    dark = np.all(s == s.min(), axis=0)
+    if dark.all():
+        return 0, 0
+    a, b = int(np.argmin(dark)), int(np.argmin(dark[::-1]))
+    a, b = (a if a >= BORDER_MIN_COLUMNS else 0), (b if b >= BORDER_MIN_COLUMNS else 0)
+    return (0, 0) if a + b >= dark.size - 2 else (a, b)
+
+
 def photometric(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "affine") -> np.ndarray:
     """The slave's gray strip with its intensities mapped onto the master's over the same rows (ours: two
     cameras never have the same gain and offset, and layers 2-4 compare raw I and G).
@@ -165,6 +179,21 @@ def photometric(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "
     so that layers 1-4 stay exact integers."""
     if mode == "none":
         return slave_strip
+    lut, _ = photometric_map(slave_strip, master_strip, mode, clip=False)
+    return slave_strip if lut is None else cv2.LUT(np.ascontiguousarray(slave_strip), lut)
+
+
+CLAMP_MIN_SHARE = 0.01  # the share of a strip its gain must clip before the master is clipped alike
+
+
+def photometric_map(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "affine", clip: bool = True
+                    ) -> tuple[np.ndarray | None, tuple[int, int] | None]:
+    """photometric()'s lookup table for the slave's 256 levels (None: leave the slave as it is), and the master
+    levels (lo, hi) that the slave's gain clipped (None when it clipped under CLAMP_MIN_SHARE of the strip at
+    either end): the master pixels under lo (over hi) are black (saturated) in the slave, their texture gone.
+    The table then maps the slave's clipped levels to lo and hi, and mapped_strips clips the master's strips to
+    lo..hi: clipped areas are flat and equal in both views instead of textured in one and flat in the other.
+    clip=False: no such levels, the table alone (as photometric() maps a strip)."""
     if mode not in PHOTOMETRIC:
         raise ValueError(f"photometric must be one of {', '.join(PHOTOMETRIC)}, got {mode!r}")
     s = np.ascontiguousarray(slave_strip)
@@ -172,7 +201,14 @@ def photometric(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "
     if s.dtype != np.uint8 or m.dtype != np.uint8 or s.ndim != 2 or m.ndim != 2:
         raise ValueError(f"photometric maps 2-D uint8 strips, got {s.dtype} {s.shape} and {m.dtype} {m.shape}")
     levels = np.arange(256, dtype=np.float64)
-    hs, hm = (cv2.calcHist([a], [0], None, [256], [0, 256]).ravel().astype(np.float64) for a in (s, m))
+    # A turned camera sees past the scene: whole columns at one end of the slave strip at its darkest level (the
+    # simulator's black border, at the slave's offset; up to 40 % of the band on Middlebury). They are no part of
+    # the scene the master sees, so they are left out of the slave's statistics, and as many columns at the same
+    # end of the master's (about the scene the slave does not see there).
+    a, b = _border_columns(s)
+    s_stat, m_stat = (s, m) if not (a or b) else (s[:, a : s.shape[1] - b], m[:, a : m.shape[1] - b])
+    hs, hm = (cv2.calcHist([np.ascontiguousarray(x)], [0], None, [256], [0, 256]).ravel().astype(np.float64)
+              for x in (s_stat, m_stat))
     # Each strip's darkest and brightest level is taken as clipped (black or saturated: 0 and 255 when the camera
     # clips; a black border, a turned camera seeing past the scene in the simulator, is such a level too, at the
     # slave's offset): those pixels say nothing of the gain and would drag any statistic. They are left out of
@@ -184,11 +220,11 @@ def photometric(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "
     cut_hi = max(0.0, hs[hi_s] / ns - hm[hi_m] / nm)
     hs[[lo_s, hi_s]] = 0.0
     hm[[lo_m, hi_m]] = 0.0
-    if hs.sum() < 2 or hm.sum() < 2:
-        return slave_strip
+    if mode == "none" or hs.sum() < 2 or hm.sum() < 2:
+        return None, None
     f_lo, f_hi = cut_lo * nm / hm.sum(), cut_hi * nm / hm.sum()
     if f_lo + f_hi >= 0.9:
-        return slave_strip
+        return None, None
     # the mid-quantile of each level on each strip's cumulative histogram; a slave quantile q lies at the
     # master's f_lo + q (1 - f_lo - f_hi)
     qs = (np.cumsum(hs) - 0.5 * hs) / hs.sum()
@@ -214,8 +250,39 @@ def photometric(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "
         lut[lo_s] = lo_m
     if cut_hi <= 0:
         lut[hi_s] = hi_m
+    lims = None
+    if clip and max(cut_lo, cut_hi) >= CLAMP_MIN_SHARE:
+        t_lo = int(np.rint(np.interp(f_lo, qm_in, lm))) if cut_lo >= CLAMP_MIN_SHARE else 0
+        t_hi = int(np.rint(np.interp(1.0 - f_hi, qm_in, lm))) if cut_hi >= CLAMP_MIN_SHARE else 255
+        if t_lo < t_hi:
+            lims = (t_lo, t_hi)
+            if t_lo > 0:
+                lut[lo_s] = t_lo
+            if t_hi < 255:
+                lut[hi_s] = t_hi
+            lut = np.clip(lut, t_lo, t_hi)
     lut = np.clip(np.rint(lut), 0, 255).astype(np.uint8)
-    return cv2.LUT(s, lut)
+    return lut, lims
+
+
+def mapped_strips(master: np.ndarray, slave: np.ndarray, x: int, y: int, window: int, vsearch: int = 0,
+                  mode: str = "none", master_rows: bool = False, clip_master: bool = False
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The gray strips layer 1 reads, photometric `mode` applied: (the master's fovea strip, the slave's band strip
+    mapped onto the master's same rows, the master's own rows of the fovea (band_strip without vertical search)
+    when master_rows, for the left-right check). With clip_master, where the slave's gain clipped
+    (photometric_map), the master's strips are clipped to the same levels."""
+    fovea = fovea_strip(master, x, y, window)
+    band = band_strip(slave, y, window, vsearch)
+    mrows = band_strip(master, y, window) if master_rows else None
+    if mode != "none":
+        lut, lims = photometric_map(band, band_strip(master, y, window, vsearch), mode, clip=clip_master)
+        if lut is not None:
+            band = cv2.LUT(band, lut)
+        if lims is not None:
+            fovea = np.clip(fovea, *lims).astype(np.uint8)
+            mrows = None if mrows is None else np.clip(mrows, *lims).astype(np.uint8)
+    return fovea, band, mrows
 
 
 def slave_band_strip(master: np.ndarray, slave: np.ndarray, y: int, window: int, vsearch: int = 0,
@@ -238,5 +305,5 @@ def features(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None =
                          f"{slave.shape[1]} x {slave.shape[0]}")
     x, y = at if at is not None else (master.shape[1] // 2, master.shape[0] // 2)
     check_point(master.shape, x, y, window, vsearch)
-    return (planes(fovea_strip(master, x, y, window)),
-            planes(slave_band_strip(master, slave, y, window, vsearch, photometric)))
+    fovea, band, _ = mapped_strips(master, slave, x, y, window, vsearch, photometric)
+    return planes(fovea), planes(band)
