@@ -81,7 +81,7 @@ def test_limit_settings_are_checked():
     with pytest.raises(ConfigError, match="limits.miss"):
         from_dict({"limits": {"miss": 3}})
     from pathlib import Path
-    assert load(Path(__file__).parent.parent / "deploy" / "vergence.toml").limits.probation_s == 4.0
+    assert load(Path(__file__).resolve().parents[2] / "deploy" / "vergence.toml").limits.probation_s == 4.0
 
 
 # -- the gatherer --------------------------------------------------------------------------------------------

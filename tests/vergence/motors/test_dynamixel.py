@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from emulators.dynamixel import DynamixelEmulator, add_stuffing, crc16_bitwise, remove_stuffing
 from emulators.pty import PtyDevice
+from samples import cmd
 from vergence.motors import Disconnected, MotorSettings, PortError, TransientError
 from vergence.motors.dynamixel import (CRC_TABLE, XSERIES, DynamixelDriver, Inst, PacketError, crc16,
                                        instruction_packet, parse_status, status_packet, stuff, unstuff)
@@ -198,7 +199,6 @@ def test_loop_survives_unplug_and_replug(dxl):
     ms = MotorSettings(timeout_s=0.03, watchdog_s=0)
     loop = MotorLoop(DynamixelDriver(ms, dev.link), ms, backoff_s=(0.02, 0.1))
     assert loop.start().status == "ok"
-    from test_motors import cmd
     loop.command(cmd(0.05, frame=1))
     dev.unplug()
     assert loop.tick().status == "disconnected"

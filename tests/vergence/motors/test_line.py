@@ -8,6 +8,7 @@ import time
 import pytest
 from emulators.line import LineEmulator
 from emulators.pty import PtyDevice
+from samples import cmd
 
 from vergence.motors import MotorSettings, PortError, TransientError
 from vergence.motors.line import LineDriver
@@ -87,7 +88,6 @@ def test_unplug_replug(dev):
     while loop.tick().status != "ok":
         assert time.monotonic() < deadline
         time.sleep(0.01)
-    from test_motors import cmd
     loop.command(cmd(0.1, frame=1))
     assert emu.goals[-1] == round(0.1 * 3200 / (2 * math.pi))
     loop.stop()
