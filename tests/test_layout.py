@@ -12,6 +12,8 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import pytest
+
 import vergence
 
 ROOT = Path(vergence.__file__).resolve().parent
@@ -37,6 +39,7 @@ def _probe(name: str) -> tuple[str, int, str, str]:
     return name, r.returncode, r.stdout, r.stderr
 
 
+@pytest.mark.slow
 def test_every_module_imports_first_in_a_fresh_interpreter_without_zenoh_or_services():
     """Each module imported first, alone, in its own interpreter: an import cycle (a module importing a
     partly initialised one) fails here, whichever module the cycle is entered by."""

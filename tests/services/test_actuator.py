@@ -20,6 +20,8 @@ from procs import VERGENCE, Procs, wait_for
 from vergence.messages import Command, MotorState
 from vergence.motors.dynamixel import Inst, instruction_packet
 
+pytestmark = pytest.mark.slow  # every test here runs real processes
+
 
 def command(rig: str, pan: float, frame: int) -> bytes:
     return Command(rig=rig, frame=frame, t_capture_ns=time.time_ns(), pan_rad=pan, correction_rad=0.0,

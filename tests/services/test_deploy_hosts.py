@@ -29,6 +29,8 @@ from procs import VERGENCE, Procs, wait_for
 from vergence import kernel, retina
 from vergence.messages import Frame, Profile
 
+pytestmark = pytest.mark.slow  # every test here runs real processes
+
 SUBNET = "10.77.0"
 HOSTS = {"r": 1, "a": 2, "b": 3}
 

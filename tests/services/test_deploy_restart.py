@@ -22,6 +22,8 @@ from procs import VERGENCE, Procs, free_port, wait_for
 
 from vergence.messages import Command, MotorState
 
+pytestmark = pytest.mark.slow  # every test here runs real processes
+
 RATE = 30
 TARGET_S = 2.0
 ROLES = ("capture", "worker", "reducer", "actuator")

@@ -78,6 +78,7 @@ def test_router_configs_share_one_acl():
     assert not any("**" in k for keys in can.values() for k in keys)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", ["tcp", "tls"])
 def test_no_credentials_or_wrong_password_cannot_connect(tmp_path, secrets, variant):
     conf, endpoint = router_config(variant, secrets, tmp_path / "router.json5")
@@ -107,6 +108,7 @@ def test_no_credentials_or_wrong_password_cannot_connect(tmp_path, secrets, vari
             zenoh.open(conf0).close()
 
 
+@pytest.mark.slow
 def test_wrong_ca_fails_tls(tmp_path, secrets, other_ca):
     conf, endpoint = router_config("tls", secrets, tmp_path / "router.json5")
     with Procs(tmp_path) as P:
@@ -126,6 +128,7 @@ def test_wrong_ca_fails_tls(tmp_path, secrets, other_ca):
         assert not connects(secrets, "reducer", "tcp", endpoint.replace("tls/", "tcp/"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", ["tcp", "tls"])
 def test_only_the_reducer_commands_and_only_the_actuator_reports(tmp_path, secrets, variant):
     conf, endpoint = router_config(variant, secrets, tmp_path / "router.json5")
@@ -159,6 +162,7 @@ def test_only_the_reducer_commands_and_only_the_actuator_reports(tmp_path, secre
     ])
 
 
+@pytest.mark.slow
 def test_forged_command_never_reaches_the_real_actuator(tmp_path, secrets):
     conf, endpoint = router_config("tls", secrets, tmp_path / "router.json5")
     with Procs(tmp_path) as P:
@@ -201,6 +205,7 @@ def test_forged_command_never_reaches_the_real_actuator(tmp_path, secrets):
             watch.close()
 
 
+@pytest.mark.slow
 def test_services_run_under_the_acl(tmp_path, secrets):
     """capture, worker, reducer and actuator, each with its own identity over mutual TLS: the pipeline runs,
     commands reach the actuator and its state comes back. The fixation's centre 17 px are flat, so the

@@ -51,6 +51,7 @@ def test_fovea_moves_on_a_valid_request_and_nothing_else():
     assert health.counters["fixations"] == 3
 
 
+@pytest.mark.slow
 def test_fixate_command_checks_its_point():
     for arg, says in (("12", "want X,Y"), ("nan,3", "finite"), ("a,b", "want X,Y")):
         r = subprocess.run([VERGENCE, "fixate", arg], capture_output=True, text=True, timeout=60)

@@ -13,6 +13,8 @@ import pytest
 from middlebury import ROOT, SCENES, load, needs_data, points
 from references import ref_winner
 
+pytestmark = pytest.mark.slow  # every test here runs real processes
+
 
 def vergence(*args, timeout=60):
     return subprocess.run([sys.executable, "-m", "vergence_services.cli", *args], capture_output=True, text=True,

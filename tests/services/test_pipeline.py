@@ -23,6 +23,8 @@ from vergence.config import load
 from vergence.gather import decide_frame
 from vergence.messages import Command, Frame, MessageError, Partial, Preview, Profile, Verdict
 
+pytestmark = pytest.mark.slow  # every test here runs real processes
+
 RATE = 40  # frames per second in these tests: light on a shared 2-core machine
 
 

@@ -1,6 +1,6 @@
 """`vergence up` and `vergence router` on a port that is already taken: a clear error, nothing started; and
 up's supervision of its children (back-off, counts, shutdown) on small real processes. The SIGKILL of each
-child of a real `vergence up` is in tests/test_supervise.py."""
+child of a real `vergence up` is in tests/services/test_supervise.py."""
 
 from __future__ import annotations
 
@@ -11,7 +11,11 @@ import sys
 import threading
 import time
 
+import pytest
+
 from procs import Procs
+
+pytestmark = pytest.mark.slow  # every test here runs real processes
 
 
 def test_busy_port_is_refused_with_a_hint(tmp_path):

@@ -249,6 +249,7 @@ def vsim(*args, timeout=240):
                           timeout=timeout)
 
 
+@pytest.mark.slow
 def test_cli_motion_json_and_plot(tmp_path):
     png = tmp_path / "t.png"
     r = vsim("--motion", "sine:z=0.8,amp=0.3,hz=1", "--focal", "500", "--rate", "60", "--frames", "12", "--json",
@@ -268,6 +269,7 @@ def test_cli_motion_json_and_plot(tmp_path):
     assert (img < 200).any(axis=2).mean() > 0.01 and len(np.unique(img.reshape(-1, 3) // 32, axis=0)) >= 6
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args,says", [(["--motion", "sine:z=1"], "missing amp"),
                                        (["--motion", "still:z=1", "--gain", "2"], "--gain does not go"),
                                        (["--texture", "flat"], "--texture goes with --motion"),
@@ -278,6 +280,7 @@ def test_cli_motion_errors(args, says):
     assert r.returncode == 2 and says in r.stderr
 
 
+@pytest.mark.slow
 def test_bench_tracking_rows():
     from vergence.bench import bench_tracking
 

@@ -265,6 +265,7 @@ def test_faithful_converges_on_real_scenes_where_the_paper_network_is_right(name
 
 # ---- the command line ----------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_cli_json_and_plot(tmp_path):
     png = tmp_path / "run.png"
     r = subprocess.run([sys.executable, "-m", "vergence_services.cli", "sim", "--start-pan", "2", "--frames", "6",
@@ -279,12 +280,14 @@ def test_cli_json_and_plot(tmp_path):
     assert (img < 250).mean() > 0.02 and len(np.unique(img.reshape(-1, 3), axis=0)) > 20  # drawn, not blank
 
 
+@pytest.mark.slow
 def test_cli_bad_option_says_which(tmp_path):
     r = subprocess.run([sys.executable, "-m", "vergence_services.cli", "sim", "--noise", "lots"], capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 2 and "noise='lots'" in r.stderr
 
 
+@pytest.mark.slow
 def test_cli_pair_without_truth_and_start_off(tmp_path, scene):
     cv2.imwrite(str(tmp_path / "l.png"), scene.left)
     cv2.imwrite(str(tmp_path / "r.png"), scene.right)
@@ -310,6 +313,7 @@ def test_cli_pair_without_truth_and_start_off(tmp_path, scene):
 
 # ---- the same loop through the Zenoh pipeline -------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_up_with_the_simulated_rig_converges(tmp_path):
     """`vergence up --source sim` (router, sim actuator, 2 workers, reducer, capture as real processes): the
     slave pan published on motor/state reaches the converged pan within 1 px and stays there."""
