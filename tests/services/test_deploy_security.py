@@ -20,6 +20,7 @@ from deploy_helpers import (
     client_session,
     make_secrets,
     passwords,
+    round_trip,
     router_config,
     start_router,
 )
@@ -142,16 +143,16 @@ def test_only_the_reducer_commands_and_only_the_actuator_reports(tmp_path, secre
             for role in ("capture", "worker", "monitor", "replay", "reducer", "actuator"):
                 s = client_session(secrets, role, variant, endpoint)
                 try:
-                    time.sleep(0.2)  # the router has told this client about the subscriber
+                    round_trip(s)  # the router has told this client about the subscriber
                     for key in ("vergence/r/command", "vergence/r/motor/state", "vergence/r/frame",
                                 "vergence/**", "vergence/*/command", "vergence/r/*", "vergence/*/motor/*",
                                 "vergence/replay/frame", "vergence/r/workers"):
                         s.put(key, role.encode())
-                    time.sleep(0.2)
+                    round_trip(s)  # the router has taken (or refused) every put
                 finally:
                     s.close()
             wait_for(lambda: ("vergence/r/motor/state", b"actuator") in got, 5, "the actuator's state")
-            time.sleep(0.3)
+            round_trip(watch)  # whatever the router forwarded has arrived
             sub.undeclare()
         finally:
             watch.close()
@@ -177,11 +178,10 @@ def test_forged_command_never_reaches_the_real_actuator(tmp_path, secrets):
             for role in ("worker", "capture", "monitor", "replay"):
                 s = client_session(secrets, role, "tls", endpoint)
                 try:
-                    time.sleep(0.2)
+                    round_trip(s)  # the router has told this client about the actuator's subscriber
                     for i in range(5):
                         s.put("vergence/r/command", command("r", 0.3, frame=i + 1))
-                        time.sleep(0.02)
-                    time.sleep(0.3)
+                        round_trip(s)  # one at a time, each taken (or refused) by the router
                 finally:
                     s.close()
             n = len(states)
@@ -191,7 +191,7 @@ def test_forged_command_never_reaches_the_real_actuator(tmp_path, secrets):
             # the reducer's identity does move it
             s = client_session(secrets, "reducer", "tls", endpoint)
             try:
-                time.sleep(0.2)
+                round_trip(s)
                 s.put("vergence/r/command", command("r", 0.05, frame=100))
                 def reached():
                     got = [MotorState.from_bytes(b) for _, b, _ in states.snapshot()]
