@@ -1,4 +1,4 @@
-"""Helpers for the cluster deployment tests (tests/test_deploy_*.py): the deploy/ configs made runnable on
+"""Helpers for the cluster deployment tests (tests/services/test_deploy_*.py): the deploy/ configs made runnable on
 127.0.0.1 with secrets from deploy/make-certs.sh in a temporary directory, and a router started from them.
 
 The deploy/ files name /etc/vergence/secrets and listen on 0.0.0.0:7447 (their place in a container); the

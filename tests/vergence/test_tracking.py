@@ -264,7 +264,7 @@ def test_cli_motion_json_and_plot(tmp_path):
         assert x["error_px"] == pytest.approx(F * math.tan(math.radians(x["pan_deg"] - x["truth_pan_deg"])))
         assert {"offset_px", "confident"} <= set(x)
     assert rows[0]["pan_deg"] == 0.0 and abs(rows[-1]["error_px"]) < 2
-    img = cv2.imread(str(png))  # the figure's values: tests/test_plots.py
+    img = cv2.imread(str(png))  # the figure's values: tests/vergence/test_plots.py
     assert img is not None and img.shape == (700, 900, 3)
     assert (img < 200).any(axis=2).mean() > 0.01 and len(np.unique(img.reshape(-1, 3) // 32, axis=0)) >= 6
 
