@@ -126,7 +126,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
     warm_up(settings)
     deadline = (deadline_ms if deadline_ms is not None else settings.reducer.deadline_ms) / 1000.0
     limits = settings.limits
-    gatherer = Gatherer(settings.network, settings.control, deadline, limits)
+    gatherer = Gatherer(settings.network, settings.control, deadline, limits, motor=settings.actuator.motor)
     alive = session.alive_key(rig, "reducer")
     rid = keys.parse(alive).ident
     health = Health("reducer", rid, log)

@@ -3,14 +3,19 @@
 The settings are frozen dataclasses (vergence.params.Params, vergence.control.ControlSettings and
 vergence.motors.MotorSettings among them); msgspec checks a parsed file against them (types, unknown keys,
 each class's __post_init__), its errors giving the path (network.window: expected `int`, got `str`).
+A setting that moved is an error naming where it lives now (MOVED): [control] min_deg, max_deg and
+max_step_deg are [actuator.motor]'s since the motor's limits got one home (no deprecation period: two
+values for one limit would leave the reader guessing which one holds).
 
     rig = "head"          # the rig's name (the key prefix vergence/<rig>/), or name = "head" in [rig]
     [rig]       # the rig's geometry: baseline_m, focal_px, master, gimbal (vergence.depth)
     [network]   # vergence.params.Params: window, vsearch, circular, subpixel, min_margin, ...
     [capture]   # source, rate_hz, preview_hz, focal_px, master
     [reducer]   # deadline_ms
-    [control]   # gain, dead_band_px, max_step_deg, min_deg, max_deg
-    [actuator]  # driver, port, and the motor (see vergence.motors)
+    [control]   # mode, gain, dead_band_px, the predictive filter (vergence.control.ControlSettings)
+    [actuator]  # driver, port, and the motor (see vergence.motors): [actuator.motor] min_deg, max_deg,
+                # max_step_deg, dead_band_deg are the one home of the pan limits (the reducer's controller
+                # and the actuator both read them there)
     [limits]    # what a message may claim before it is believed (clock skew, frame window, sizes, membership)
 """
 
@@ -29,8 +34,8 @@ from .control import ControlSettings
 from .params import Params
 from .motors.base import MotorSettings
 
-__all__ = ["ConfigError", "RigSettings", "CaptureSettings", "ReducerSettings", "ActuatorSettings", "LimitSettings",
-           "Settings", "load", "from_dict"]
+__all__ = ["ConfigError", "MOVED", "RigSettings", "CaptureSettings", "ReducerSettings", "ActuatorSettings",
+           "LimitSettings", "Settings", "load", "from_dict"]
 
 
 class ConfigError(ValueError):
@@ -173,11 +178,24 @@ def _rig_table(data: dict) -> dict:
     return data
 
 
-def _known(cls, path: list[str]) -> list[str]:
-    """The setting names of the table at path (the dataclass fields there)."""
+# settings that moved: (the class of the table they were in, their name) -> where they are now
+MOVED: dict[tuple[type, str], str] = {
+    (ControlSettings, "min_deg"): "[actuator.motor] min_deg",
+    (ControlSettings, "max_deg"): "[actuator.motor] max_deg",
+    (ControlSettings, "max_step_deg"): "[actuator.motor] max_step_deg",
+}
+
+
+def _table(cls, path: list[str]):
+    """The settings class of the table at path."""
     for part in path:
         cls = typing.get_type_hints(cls)[part]
-    return sorted(f.name for f in dataclasses.fields(cls) if f.init)
+    return cls
+
+
+def _known(cls, path: list[str]) -> list[str]:
+    """The setting names of the table at path (the dataclass fields there)."""
+    return sorted(f.name for f in dataclasses.fields(_table(cls, path)) if f.init)
 
 
 def _error(e: msgspec.ValidationError, cls) -> ConfigError:
@@ -188,7 +206,12 @@ def _error(e: msgspec.ValidationError, cls) -> ConfigError:
         path[0] = "rig"
     unknown = re.fullmatch(r"Object contains unknown field `(.*)`", what)
     if unknown:
-        names = _known(cls, ["geometry" if p == "rig" and cls is Settings else p for p in path])
+        where = ["geometry" if p == "rig" and cls is Settings else p for p in path]
+        moved = MOVED.get((_table(cls, where), unknown[1]))
+        if moved:
+            return ConfigError(f"{'.'.join(path + [unknown[1]])}: moved to {moved} (the motor's limits have one "
+                               "home, which the reducer's controller and the actuator both read)")
+        names = _known(cls, where)
         return ConfigError(f"{'.'.join(path + [unknown[1]])}: unknown setting; known here: {', '.join(names)}")
     what = what.replace("Expected `object`", "expected a table").replace("Expected", "expected")
     return ConfigError(f"{'.'.join(path) or 'settings'}: {what}")

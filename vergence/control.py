@@ -1,4 +1,4 @@
-"""From the network's decision to a pan set-point: pixels -> angle, gain, dead band, rate limit, limits.
+"""From the network's decision to a pan set-point: pixels -> angle, gain, dead band, then the motor's limits.
 
 Two modes ([control] mode):
 - "p": each confident decision sets the target pan at capture + gain x the measured correction; an
@@ -10,8 +10,15 @@ Two modes ([control] mode):
   off the prediction (gate_px) restarts the filter (a jump, not a motion). An abstention coasts on the
   estimate (its rate fading with the time constant coast_s / 2) for at most coast_s, then the slave
   holds. No command within dead_band_px of the present pan, nor of the last set-point while the motor is
-  there (within 1 px or 0.1 degree: a motor settles on its nearest tick); the step and pan limits as in
-  "p".
+  there (within 1 px or 0.1 degree: a motor settles on its nearest tick).
+
+The pan limits and the step limit are the motor's ([actuator.motor] min_deg, max_deg, max_step_deg): the
+Controller holds no copy of them, it asks the motor's safety layer (vergence.motors.base.Safety.limit_step)
+to bound every set-point, so a set-point never leaves them; the actuator's own Safety bounds whatever
+arrives again (the last line). Its dead band is the larger of [control] dead_band_px (the measurement's: at
+the focal length, a correction smaller than this many pixels is noise) and the motor's dead_band_deg (a goal
+change the actuator would hold anyway).
+
 The default is "predictive": in `vergence bench tracking` p's error is 2.2-4.0 times its own on sines
 from 0.5 Hz on (p lags by the loop's latency, about a frame plus the motor), 1.2-2.1 times at 0.25 Hz, and
 both settle alike on a step; its cost, on still Middlebury scenes, is a few points of convergence where the
@@ -24,6 +31,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+from .motors.base import MotorSettings, Safety
 
 __all__ = ["pixels_to_angle", "ControlSettings", "Controller", "Predictor", "MODES"]
 
@@ -41,8 +50,9 @@ def pixels_to_angle(offset_px: float, focal_px: float, centre_px: float = 0.0) -
 @dataclass(frozen=True)
 class ControlSettings:
     """mode: "p" or "predictive" (see the module's docstring). gain: fraction of the measured correction
-    applied per decision (p); dead_band_px: no move below it; max_step_deg: the largest change of the
-    set-point per decision; min_deg/max_deg: the head's pan limits.
+    applied per decision (p); dead_band_px: no move for a correction below it (pixels at the focal length:
+    the measurement's dead band; the motor's, in degrees, is [actuator.motor] dead_band_deg). The pan limits
+    and the step limit are not here: they are the motor's ([actuator.motor], vergence.motors.base.Safety).
     predictive: lead_s: how far past the capture the command aims, besides half the interval between
     decisions (capture-to-command latency + motor latency + the motor's time constant); accel_deg_s2: the
     standard deviation of the target's acceleration (the filter's process noise); noise_px: the
@@ -53,9 +63,6 @@ class ControlSettings:
     mode: str = "predictive"
     gain: float = 1.0
     dead_band_px: float = 0.25
-    max_step_deg: float = 10.0
-    min_deg: float = -45.0
-    max_deg: float = 45.0
     lead_s: float = 0.02
     accel_deg_s2: float = 700.0
     noise_px: float = 1.0
@@ -127,10 +134,15 @@ class Predictor:
 
 
 class Controller:
-    """Turns decisions into absolute pan targets for the slave."""
+    """Turns decisions into absolute pan targets for the slave, each bounded by the motor's limits.
 
-    def __init__(self, settings: ControlSettings | None = None):
+    limits: the motor's safety layer (a Safety, whose inside / limit_step / dead_band_rad it asks; only
+    those, never its state), or the MotorSettings to build one from ([actuator.motor]); default
+    MotorSettings()."""
+
+    def __init__(self, settings: ControlSettings | None = None, limits: Safety | MotorSettings | None = None):
         self.s = settings or ControlSettings()
+        self.limits = limits if isinstance(limits, Safety) else Safety(limits or MotorSettings())
         self.predictor: Predictor | None = None
         self.t_confident: float | None = None  # capture time of the last confident decision
         self.coasting = 0  # abstentions answered from the estimate
@@ -139,9 +151,8 @@ class Controller:
         self.period: float | None = None  # the decisions' interval, smoothed
 
     def _bounded(self, pan_at_capture: float, step: float) -> float:
-        lim = math.radians(self.s.max_step_deg)
-        step = max(-lim, min(lim, step))
-        return max(math.radians(self.s.min_deg), min(math.radians(self.s.max_deg), pan_at_capture + step))
+        """The set-point pan_at_capture + step, as the motor's Safety bounds it (limits, step)."""
+        return self.limits.limit_step(pan_at_capture, pan_at_capture + step)
 
     def target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool = True,
                centre_px: float = 0.0, t_s: float | None = None) -> float | None:
@@ -154,7 +165,10 @@ class Controller:
             return None
         if focal_px <= 0 or abs(offset_px) < self.s.dead_band_px:
             return None
-        return self._bounded(pan_at_capture, self.s.gain * pixels_to_angle(offset_px, focal_px, centre_px))
+        step = self.s.gain * pixels_to_angle(offset_px, focal_px, centre_px)
+        if abs(step) < self.limits.dead_band_rad:
+            return None
+        return self._bounded(pan_at_capture, step)
 
     def _predictive(self, pan: float, offset_px: float, focal_px: float, confident: bool, centre_px: float,
                     t: float) -> float | None:
@@ -194,7 +208,7 @@ class Controller:
         # there (re-sending about the same goal would only pass the estimate's noise, and the encoder's
         # whole ticks, to the motor); a set-point the motor is not at (lost, or no motor listening) is sent
         # again
-        db = math.atan(self.s.dead_band_px / focal_px)
+        db = max(math.atan(self.s.dead_band_px / focal_px), self.limits.dead_band_rad)
         if abs(goal - pan) < db:
             return None
         if self.last_goal is not None and abs(goal - self.last_goal) < db \

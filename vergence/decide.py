@@ -1,5 +1,10 @@
 """Winner-takes-all, layer 5 (direction and magnitude), the sub-pixel winner and the confidence, and every
-check on a decision (correlation, left-right, halves: decide_scores, apply_checks)."""
+check on a decision (correlation, left-right, halves: decide_scores, apply_checks).
+
+Decision is the network's decision for one fovea, the one concept the others carry: vergence.match.Match
+(one point, in one process), vergence.gather.FrameDecision (one distributed frame, in the reducer),
+messages.Verdict (that on the wire, where Decision.v is called v_shift: `v` is the schema version) and
+vergence.sim.loop.Step (one frame of the simulated loop). See docs/SERVICE.md, "One decision, five names"."""
 
 from __future__ import annotations
 
@@ -19,7 +24,8 @@ class Decision:
     """One decision of the network for one fovea.
 
     k is the winning offset (integer, layer 4), k_sub the sub-pixel winner (k when sub-pixel is off),
-    v the vertical shift of the winning window (0 without vertical search), k_centre the centre neuron,
+    v the vertical shift of the winning window (0 without vertical search; v_shift in messages.Verdict), k_centre
+    the centre neuron,
     direction and magnitude the two layer-5 neurons: sign(k - k_centre) and |k - k_centre| pixels.
     offset_px = k_sub - k_centre: how far right of the fovea's column its match lies in the slave.
     confidence is the peak-to-rival margin in 0..1, confident says whether the camera may move."""

@@ -1,6 +1,13 @@
 """Reducer side: workers' Partials -> a complete profile (Gatherer, with the plausibility rules every message
-must pass), a complete profile -> its decision (decide_frame: the very decision of vergence.match()) -> Result,
-the Verdict and Profile messages and the Command (through vergence.control.Controller)."""
+must pass), a complete profile -> its decision (decide_frame: the very decision of vergence.match()) ->
+FrameDecision, the Verdict and Profile messages and the Command (through vergence.control.Controller).
+
+The decision's names (docs/SERVICE.md, "One decision, five names"): vergence.decide.Decision is the network's
+decision for one fovea (winner, confidence); vergence.match.Match is one point's Decision in one process
+(with its x, y, window and scores); FrameDecision (here) is one distributed frame's Decision in the reducer
+(with its Frame, its Command and its scores); messages.Verdict is a FrameDecision on the wire
+(vergence/<rig>/decision: the Decision's fields, Decision.v as v_shift since `v` is the schema version);
+vergence.sim.loop.Step is one frame of the simulated loop (the state, and its Match's Decision, flattened)."""
 
 from __future__ import annotations
 
@@ -14,11 +21,12 @@ import numpy as np
 from . import retina
 from .config import LimitSettings
 from .control import ControlSettings, Controller
+from .motors.base import MotorSettings, Safety
 from .decide import Decision, apply_checks, decide_scores
 from .messages import Command, Frame, Partial, Profile, Verdict
 from .params import Params
 
-__all__ = ["frame_params", "decide_frame", "reduce", "make_profile", "make_verdict", "Gatherer", "Result"]
+__all__ = ["frame_params", "decide_frame", "reduce", "make_profile", "make_verdict", "Gatherer", "FrameDecision"]
 
 
 def frame_params(frame: Frame, params: Params) -> Params:
@@ -82,15 +90,15 @@ def _command(frame: Frame, d: Decision, controller: Controller) -> Command | Non
 def reduce(frame: Frame, scores: np.ndarray, params: Params, controller: Controller,
            t_reduced_ns: int | None = None) -> tuple[Profile, Command | None]:
     """A complete profile -> (Profile, Command or None when the controller says not to move)."""
-    r = Result.of(frame, scores, params, controller, t_reduced_ns)
+    r = FrameDecision.of(frame, scores, params, controller, t_reduced_ns)
     return r.profile, r.command
 
 
 @dataclass
-class Result:
-    """A complete frame, reduced: its decision (and its Verdict message), its command (None: do not move)
-    and, built when first asked for (a 65 KB message at 640 px with vertical search: only when someone
-    subscribes to it), its profile."""
+class FrameDecision:
+    """A complete frame, reduced: its decision (a vergence.decide.Decision; its Verdict message), its command
+    (None: do not move) and, built when first asked for (a 65 KB message at 640 px with vertical search: only
+    when someone subscribes to it), its profile. The distributed counterpart of vergence.match.Match."""
 
     frame: Frame
     decision: Decision
@@ -101,7 +109,7 @@ class Result:
 
     @classmethod
     def of(cls, frame: Frame, scores: np.ndarray, params: Params, controller: Controller,
-           t_reduced_ns: int | None = None) -> "Result":
+           t_reduced_ns: int | None = None) -> "FrameDecision":
         d = decide_frame(frame, scores, params)
         now = time.time_ns() if t_reduced_ns is None else t_reduced_ns
         return cls(frame, d, _command(frame, d, controller), scores, now)
@@ -115,6 +123,9 @@ class Result:
         if self._profile is None:
             self._profile = make_profile(self.frame, self.scores, self.decision, self.t_reduced_ns)
         return self._profile
+
+
+Result = FrameDecision  # its name before #16, kept while services/reducer.py still says it
 
 
 @dataclass
@@ -156,9 +167,10 @@ class Gatherer:
     MAX_FINISHED = 1024
 
     def __init__(self, params: Params, control: ControlSettings | None = None, deadline_s: float = 0.05,
-                 limits: LimitSettings | None = None, wall_ns=time.time_ns):
+                 limits: LimitSettings | None = None, wall_ns=time.time_ns,
+                 motor: MotorSettings | Safety | None = None):
         self.params = params
-        self.controller = Controller(control)
+        self.controller = Controller(control, motor)  # motor: [actuator.motor], whose limits bound each command
         self.deadline_s = deadline_s
         self.limits = limits or LimitSettings()
         self.wall_ns = wall_ns
@@ -215,7 +227,7 @@ class Gatherer:
         return e
 
     # -- inputs --------------------------------------------------------------------------------------------
-    def add_frame(self, frame: Frame, now: float | None = None) -> list[Result]:
+    def add_frame(self, frame: Frame, now: float | None = None) -> list[FrameDecision]:
         now = time.monotonic() if now is None else now
         if not frame.plan:
             self.counters["no_plan"] += 1
@@ -238,7 +250,7 @@ class Gatherer:
                 self._answer(wid, frame.frame, now)
         return self._try(frame.frame, e, now)
 
-    def add_partial(self, partial: Partial, now: float | None = None) -> list[Result]:
+    def add_partial(self, partial: Partial, now: float | None = None) -> list[FrameDecision]:
         now = time.monotonic() if now is None else now
         e = self._entry(partial.frame, partial.t_capture_ns, now, False)
         if e is None:
@@ -259,7 +271,7 @@ class Gatherer:
         self.misses[wid] = 0
 
     # -- assembling ----------------------------------------------------------------------------------------
-    def _try(self, fid: int, e: _Pending, now: float) -> list[Result]:
+    def _try(self, fid: int, e: _Pending, now: float) -> list[FrameDecision]:
         out = self.expire(now)
         f = e.frame
         if f is None or len(e.partials) != len(f.plan) or fid not in self.pending:
@@ -277,7 +289,7 @@ class Gatherer:
         scores = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
         self._finish(fid, now)
         self.counters["complete"] += 1
-        out.append(Result.of(f, scores, self.params, self.controller))
+        out.append(FrameDecision.of(f, scores, self.params, self.controller))
         return out
 
     def _expired(self, fid: int, e: _Pending) -> None:
@@ -306,7 +318,7 @@ class Gatherer:
             o = self.pending.pop(old)
             self.counters["superseded" if o.frame is not None else "orphaned"] += 1
 
-    def expire(self, now: float | None = None) -> list[Result]:
+    def expire(self, now: float | None = None) -> list[FrameDecision]:
         """Drop the frames whose deadline has passed; returns [] (a uniform return for the callers)."""
         now = time.monotonic() if now is None else now
         limit = now - self.deadline_s

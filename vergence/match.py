@@ -1,4 +1,8 @@
-"""The whole network for one fixation point of an image pair: retina -> kernel -> decision."""
+"""The whole network for one fixation point of an image pair: retina -> kernel -> decision.
+
+Match is one point's vergence.decide.Decision in one process, with where (x, y), the window that made it
+and its scores; its distributed counterpart, one frame's Decision in the reducer, is
+vergence.gather.FrameDecision (docs/SERVICE.md, "One decision, five names")."""
 
 from __future__ import annotations
 
@@ -15,7 +19,8 @@ __all__ = ["Match", "match", "Params", "FAITHFUL"]
 
 @dataclass(frozen=True)
 class Match:
-    """A decision for the fovea at (x, y) of the master, with the window that produced it."""
+    """A decision (vergence.decide.Decision) for the fovea at (x, y) of the master, with the window that
+    produced it and its layer-4 scores."""
 
     x: int
     y: int

@@ -19,7 +19,7 @@ from vergence_services.health import Health
 from vergence import monitor, plots
 from vergence.control import Controller
 from vergence.frames import make_frame
-from vergence.gather import Result
+from vergence.gather import FrameDecision
 from vergence.params import Params
 from vergence.shards import compute_partial
 from vergence.messages import SCHEMA, Fixate, MotorState, Verdict, replace as replace_message
@@ -167,7 +167,7 @@ def test_monitor_shows_the_fovea_and_the_depth():
     p = Params(max_window=0)
     f = make_frame(img, img, rig="head", frame=3, pan_rad=0.0, focal_px=100.0, params=p,
                    plan=[["w", 0, 186]], at=(80, 60))
-    r = Result.of(f, compute_partial(f, "w").array(), p, Controller())
+    r = FrameDecision.of(f, compute_partial(f, "w").array(), p, Controller())
     mon = monitor.Monitor("head")
     mon.feed("vergence/head/frame", f.to_bytes())
     mon.feed("vergence/head/profile", replace_message(r.profile, x=80, y=60, converged=True, depth_m=1.234,

@@ -11,10 +11,12 @@ import sys
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import vergence
 from vergence.control import ControlSettings, Controller, Predictor
-from vergence.motors import MotorSettings
+from vergence.motors import MotorSettings, Safety
 from vergence.motors.simulated import SimMotor
 from vergence.sim import Rig
 from vergence.sim.loop import closed_loop, tracking_error
@@ -167,6 +169,79 @@ def test_predictive_controller_coasts_then_holds():
     assert len(sent) >= 1 and c.coasting >= 5
     assert all(g == pytest.approx(w, abs=1e-9) and g < 0.1 * a for g, w, a in sent)
     assert all(g is None for g in coast[6:])
+
+
+# -- the motor's limits: the controller asks the Safety ---------------------------------------------------------
+
+DEG = math.pi / 180
+
+
+def test_controller_set_points_are_the_safetys_values():
+    """p mode, gain 1: the set-point is the pan plus the measured correction, bounded by [actuator.motor]'s
+    limits exactly as the Safety bounds them (the controller has no copy of its own)."""
+    ms = MotorSettings(min_deg=-5, max_deg=5, max_step_deg=2)
+    c = Controller(ControlSettings(mode="p"), ms)
+    one = F * math.tan(1 * DEG)  # the offset of a 1 degree correction
+    assert c.target(0.0, one, F) == pytest.approx(1 * DEG)
+    assert c.target(0.0, 10 * one, F) == pytest.approx(2 * DEG)  # the step limit
+    assert c.target(4 * DEG, 10 * one, F) == pytest.approx(5 * DEG)  # the pan limit
+    assert c.target(-4.5 * DEG, -F * math.tan(3 * DEG), F) == pytest.approx(-5 * DEG)
+    assert c.target(20 * DEG, one, F) == pytest.approx(5 * DEG)  # found outside: back to the limit
+    # the same Safety object is asked, not copied: its limits are the ones in force
+    s = Safety(MotorSettings(min_deg=-1, max_deg=1))
+    assert Controller(ControlSettings(mode="p"), s).limits is s
+    assert Controller(ControlSettings(mode="p"), s).target(0.0, 10 * one, F) == pytest.approx(1 * DEG)
+    # the motor's dead band (degrees) holds a correction the actuator would hold anyway
+    held = Controller(ControlSettings(mode="p"), MotorSettings(dead_band_deg=1.5))
+    assert held.target(0.0, one, F) is None and held.target(0.0, F * math.tan(2 * DEG), F) == pytest.approx(2 * DEG)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.builds(MotorSettings, min_deg=st.floats(-60, 0), max_deg=st.floats(0, 60),
+                 max_step_deg=st.floats(0.01, 20), dead_band_deg=st.floats(0, 0.5)),
+       st.sampled_from(["p", "predictive"]), st.floats(0.1, 3.0),
+       st.lists(st.tuples(st.one_of(st.floats(-1e4, 1e4), st.sampled_from([math.nan, math.inf, -math.inf])),
+                          st.booleans(),
+                          st.floats(0.001, 0.2)), max_size=60))
+def test_controller_set_point_never_leaves_the_safetys_limits(ms, mode, gain, stream):
+    """Whatever the network says (huge, NaN, infinite offsets; abstentions), every set-point is inside the
+    motor's soft limits, and at most max_step_deg from the pan it was made from when that pan was inside."""
+    c = Controller(ControlSettings(mode=mode, gain=gain), ms)
+    lo, hi, step = ms.min_rad, ms.max_rad, math.radians(ms.max_step_deg)
+    pan, t = 0.3 * (lo + hi), 5.0
+    for offset, confident, dt in stream:
+        t += dt
+        g = c.target(pan, offset, F, confident, t_s=t)
+        if g is None:
+            continue
+        assert math.isfinite(g) and lo <= g <= hi
+        assert abs(g - pan) <= step * (1 + 1e-9)
+        pan = pan + 0.5 * (g - pan)  # the motor gets half way by the next frame
+
+
+def test_the_reducer_bounds_its_commands_by_the_motor_settings():
+    """The reducer's gatherer takes [actuator.motor] (the settings file's, as services/reducer.py passes it):
+    a 12 px correction at f = 100 px (6.8 degrees) is commanded as max_step_deg, then min/max_deg."""
+    from vergence.config import from_dict
+    from vergence.frames import make_frame, plan_shards
+    from vergence.gather import Gatherer
+    from vergence.shards import compute_partial
+
+    rng = np.random.default_rng(1)
+    base = cv2.GaussianBlur(rng.integers(0, 256, (120, 240), np.uint8), (5, 5), 1.5)
+    master, slave = np.ascontiguousarray(base[:, 20:220]), np.ascontiguousarray(base[:, 8:208])
+    s = from_dict({"control": {"mode": "p"}, "actuator": {"motor": {"max_step_deg": 1.0, "max_deg": 3.0}}})
+    g = Gatherer(s.network, s.control, 600.0, motor=s.actuator.motor)  # no deadline while numba compiles
+    got = []
+    for fid, pan in ((1, 0.0), (2, 2.5 * DEG)):
+        f = make_frame(master, slave, rig="r", frame=fid, pan_rad=pan, focal_px=100.0, params=s.network,
+                       plan=plan_shards(["a"], 200 - s.network.window + 1))
+        part = compute_partial(f, "a")
+        g.add_frame(f)
+        (r,) = g.add_partial(part)
+        assert r.decision.confident and r.decision.offset_px == pytest.approx(12, abs=0.5)
+        got.append(r.command.pan_rad)
+    assert got == [pytest.approx(1 * DEG), pytest.approx(3 * DEG)]
 
 
 # -- the Musts, in `vergence sim`'s loop -------------------------------------------------------------------------

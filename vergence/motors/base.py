@@ -3,7 +3,13 @@
 A driver moves one motor to an absolute pan (radians, positive toward increasing image x) and reports where
 the motor is. Drivers know their wire protocol and nothing about commands; the safety layer (Safety) is the
 only way a command becomes a goal: it drops what is not a number or is stale, and bounds what is left by
-the soft limits and the step limit, counting what it clamped or ignored. Nothing here imports zenoh.
+the soft limits and the step limit, counting what it clamped or ignored; its Ruling says what it made of
+one command. Nothing here imports zenoh.
+
+Safety is the one home of the motor's limits ([actuator.motor] min_deg, max_deg, max_step_deg,
+dead_band_deg): the reducer's controller (vergence.control.Controller) asks a Safety built from the same
+settings to bound each set-point it makes (inside, limit_step, dead_band_rad), and the actuator's own
+Safety bounds whatever arrives (the last line: a message is a claim).
 """
 
 from __future__ import annotations
@@ -14,7 +20,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 __all__ = ["MotorSettings", "Driver", "SerialDriver", "MotorError", "PortError", "Disconnected", "TransientError",
-           "Safety", "Verdict"]
+           "Safety", "Ruling"]
 
 log = logging.getLogger("vergence.motors")
 
@@ -25,7 +31,9 @@ class MotorSettings:
 
     id: bus id (Dynamixel). baud: serial speed. ticks_per_rev: encoder ticks per turn (Dynamixel X: 4096).
     zero: the tick count at pan 0 (2048, the centre of an X-series). direction: +1, or -1 when the motor
-    turns the camera toward decreasing image x for increasing ticks. min_deg/max_deg: soft limits of the pan.
+    turns the camera toward decreasing image x for increasing ticks. min_deg/max_deg: soft limits of the pan
+    (the one home of the pan limits, max_step_deg and dead_band_deg: the reducer's controller reads them
+    here too, through a Safety; [control] has none).
     max_speed_deg_s: the motor's top speed (the simulator's, and Dynamixel Profile Velocity when
     set_profile_velocity is true; 0 = the motor's own maximum). max_step_deg: the largest change of the goal
     per command. dead_band_deg: a target closer than this to the goal does not move the motor.
@@ -202,8 +210,10 @@ class SerialDriver(Driver):
 
 
 @dataclass
-class Verdict:
-    """What the safety layer made of one command: goal is None when the motor must not move."""
+class Ruling:
+    """What the safety layer ruled on one command: goal is the motor's new goal (radians), None when the motor
+    must not move (ignored, or inside the dead band); clamped, whether the target was bounded; reason, why it
+    was ignored or clamped. (Not messages.Verdict, the network's decision on a frame.)"""
 
     goal: float | None
     clamped: bool = False
@@ -226,31 +236,45 @@ class Safety:
         self.lo, self.hi = settings.min_rad, settings.max_rad
         self.step = math.radians(settings.max_step_deg)
         self.dead = math.radians(settings.dead_band_deg)
-        self.goal = self._inside(start_rad if math.isfinite(start_rad) else 0.0)
+        self.goal = self.inside(start_rad if math.isfinite(start_rad) else 0.0)
         self.last_t_capture = -1
         self.last_frame = -1
         self.accepted = self.clamped = self.ignored = self.held = 0
         self.last_reason = ""
 
-    def _inside(self, x: float) -> float:
+    def inside(self, x: float) -> float:
+        """x (radians) clamped into the soft limits [min_deg, max_deg]."""
         return min(self.hi, max(self.lo, x))
+
+    def limit_step(self, start: float, x: float) -> float:
+        """The pan nearest x (radians) that is inside the soft limits and at most max_step_deg from start
+        (a goal, or the pan a set-point is made from); stateless, the same bounds as command()'s."""
+        x = self.inside(x)
+        if abs(x - start) > self.step:
+            x = self.inside(start + math.copysign(self.step, x - start))
+        return x
+
+    @property
+    def dead_band_rad(self) -> float:
+        """dead_band_deg in radians: a target closer than this to the goal does not move the motor."""
+        return self.dead
 
     def reset(self, present_rad: float) -> float:
         """At (re)connection, or when the watchdog fires: the goal becomes the present position clamped into
         the limits, so the motor stays where it is (or, found outside the limits, comes back to the nearest
         one at the motor's own speed). The only goal change not bounded by max_step."""
         if math.isfinite(present_rad):
-            self.goal = self._inside(present_rad)
+            self.goal = self.inside(present_rad)
         return self.goal
 
-    def _ignore(self, reason: str) -> Verdict:
+    def _ignore(self, reason: str) -> Ruling:
         self.ignored += 1
         self.last_reason = reason
-        return Verdict(None, reason=reason)
+        return Ruling(None, reason=reason)
 
     def command(self, pan_rad: object, frame: int = -1, t_capture_ns: int = 0, now_ns: int | None = None
-                ) -> Verdict:
-        """The goal for one target, or Verdict(None) when the motor keeps its goal."""
+                ) -> Ruling:
+        """The goal for one target, or Ruling(None) when the motor keeps its goal."""
         if isinstance(pan_rad, bool) or not isinstance(pan_rad, (int, float)):
             return self._ignore(f"target {pan_rad!r} is not a number")
         try:
@@ -273,17 +297,16 @@ class Safety:
         if x < self.lo or x > self.hi:
             reasons.append(f"target {math.degrees(x):.3g} deg outside "
                            f"[{self.s.min_deg:g}, {self.s.max_deg:g}]")
-            x = self._inside(x)
+            x = self.inside(x)
         if abs(x - self.goal) > self.step:
             reasons.append(f"step {math.degrees(x - self.goal):+.3g} deg beyond {self.s.max_step_deg:g}")
-            x = self.goal + math.copysign(self.step, x - self.goal)
-            x = self._inside(x)
+            x = self.limit_step(self.goal, x)
         if abs(x - self.goal) < self.dead and not reasons:
             self.held += 1
-            return Verdict(None, reason="dead band")
+            return Ruling(None, reason="dead band")
         self.accepted += 1
         if reasons:
             self.clamped += 1
             self.last_reason = "; ".join(reasons)
         self.goal = x
-        return Verdict(x, clamped=bool(reasons), reason="; ".join(reasons))
+        return Ruling(x, clamped=bool(reasons), reason="; ".join(reasons))

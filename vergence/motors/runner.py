@@ -128,7 +128,8 @@ class MotorLoop:
             self._held = True
             self.status = "hold"
             self.note = f"watchdog: no command for {wd:g} s, holding {math.degrees(goal):.2f} deg"
-            self._once("watchdog", self.note)
+            # normal once the gaze has converged (the reducer sends nothing inside its dead band): not a warning
+            log.info("%s", self.note)
         self._read()
         return self.state()
 

@@ -29,7 +29,8 @@ DELAY_S = 0.005  # capture to command, about what the distributed loop takes (ve
 
 @dataclass(frozen=True)
 class Step:
-    """One frame of the loop: the slave pan at capture and what the network made of that view.
+    """One frame of the loop: the slave pan at capture and what the network made of that view (its Match's
+    Decision, flattened: k, v, offset_px, confident, confidence; not a decision of its own).
 
     pan_deg / truth_pan_deg: the slave's pan and the converged pan; error_px: f tan(pan - truth), how far
     the slave is from converged, in pixels at the view centre (NaN when the truth is unknown). offset_px,
@@ -69,18 +70,19 @@ def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: Co
     """Yield frames + 1 Steps: the starting state (frame 0), then the state at each following capture.
 
     rig: a Rig (a still scene) or a MovingRig (render(pan, t), truth_pan(t)). motor: the simulated motor's
-    settings (its start pan is the rig's; default: MotorSettings(), a Dynamixel X-series); control: the
-    controller's (mode, gain, dead band, step and pan limits). delay_s: from capture to the command.
+    settings (its start pan is the rig's; default: MotorSettings(), a Dynamixel X-series), whose pan and step
+    limits bound the controller's set-points too; control: the controller's (mode, gain, dead band).
+    delay_s: from capture to the command.
     fixations: {frame: (x, y)}, the fovea at (x, y) of the master view from that frame on (default: the view
     centre); a Step's truth and error stay the centre's (vergence.sim.fixation.truth_at gives the fovea's)."""
     if not (0 <= delay_s < 1 / rate_hz):
         raise ValueError(f"delay {delay_s} s must be >= 0 and shorter than a frame (1 / {rate_hz:g} Hz)")
     params = params or Params()
-    controller = Controller(control)
     ms = replace(motor or MotorSettings(), start_deg=math.degrees(rig.start_pan_rad))
     clock = [0.0]
     drive = SimMotor(ms, clock=lambda: clock[0])
     safety = Safety(ms, drive.open())
+    controller = Controller(control, safety)  # asks the motor's limits of the Safety (as the reducer does)
     at = None
     for i in range(frames + 1):
         t = i / rate_hz
@@ -95,8 +97,7 @@ def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: Co
                                    centre_px=0.0 if at is None else at[0] - master.shape[1] // 2)
         clock[0] = t + delay_s
         if target is not None:
-            verdict = safety.command(target)
-            target = verdict.goal
+            target = safety.command(target).goal
             if target is not None:
                 drive.write_goal(target)
         yield Step(frame=i, t_s=t, pan_deg=math.degrees(pan), truth_pan_deg=math.degrees(rig.truth_pan(t)),

@@ -119,11 +119,24 @@ def test_safety_property(ms, start, stream):
         assert abs(s.goal - prev) <= step * (1 + 1e-12)
         if v.goal is not None:
             assert v.goal == s.goal and math.isfinite(v.goal)
+            assert v.goal == s.limit_step(prev, float(pan))  # the bound the reducer's controller asks for
         else:
             assert s.goal == prev
         prev = s.goal
     assert s.accepted + s.ignored + s.held == n
     assert s.clamped <= s.accepted
+
+
+def test_safety_inside_and_limit_step_values():
+    """The stateless bounds the controller asks for: inside the limits, then at most max_step from start."""
+    s = Safety(MotorSettings(min_deg=-10, max_deg=20, max_step_deg=5, dead_band_deg=0.25))
+    assert [s.inside(x * DEG) / DEG for x in (-30, 0, 15, 25)] == pytest.approx([-10, 0, 15, 20])
+    assert s.limit_step(0.0, 3 * DEG) / DEG == pytest.approx(3)
+    assert s.limit_step(0.0, 30 * DEG) / DEG == pytest.approx(5)
+    assert s.limit_step(18 * DEG, 30 * DEG) / DEG == pytest.approx(20)
+    assert s.limit_step(-8 * DEG, -90 * DEG) / DEG == pytest.approx(-10)
+    assert s.limit_step(40 * DEG, 50 * DEG) / DEG == pytest.approx(20)  # from outside: to the nearest limit
+    assert s.dead_band_rad == pytest.approx(0.25 * DEG) and s.goal == 0.0  # stateless: the goal is unmoved
 
 
 @settings(max_examples=100, deadline=None)
