@@ -55,7 +55,7 @@ def zenoh_config(mode: str = "client", connect: list[str] | None = None, listen:
     if os.environ.get("VERGENCE_ZENOH_SHM") != "1" and not (config_file and _sets_shared_memory(config_file)):
         # no shared memory: with it (zenoh's default since 1.x), every subscriber kept the 16 MB pool of each
         # publisher it ever heard from mapped, so the workers and the reducer grew ~19 MB per capture restart
-        # (tests/test_supervise.py); frames are small enough that tcp on 127.0.0.1 costs little (README).
+        # (tests/services/test_supervise.py); frames are small enough that tcp on 127.0.0.1 costs little (README).
         # VERGENCE_ZENOH_SHM=1 leaves zenoh's default (to measure it), as does a config file that sets it.
         conf.insert_json5("transport/shared_memory/enabled", "false")
     if not config_file:
@@ -66,7 +66,7 @@ def zenoh_config(mode: str = "client", connect: list[str] | None = None, listen:
             # keep trying to reach the router: at start and after it restarts (the peers of `vergence up` too)
             conf.insert_json5("connect/timeout_ms", "-1")
             # retry every 0.1-0.5 s (zenoh's default backs off to seconds): back within 0.5 s of a router
-            # restart however long it was down (tests/test_deploy_restart.py, tests/test_supervise.py)
+            # restart however long it was down (tests/services/test_deploy_restart.py, tests/services/test_supervise.py)
             conf.insert_json5("connect/retry",
                               '{"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}')
     return conf

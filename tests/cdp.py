@@ -18,6 +18,8 @@ import subprocess
 import time
 import urllib.request
 
+from procs import wait_for
+
 BROWSERS = ("chromium-headless-shell", "chromium", "chromium-browser")
 # software rendering (no GPU on a head or in CI): SwiftShader through ANGLE gives the viewer its WebGL
 FLAGS = ("--headless", "--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swiftshader",
@@ -111,19 +113,18 @@ class Browser:
         self.blocked: dict[str, str] = {}  # request id -> why the browser did not send it (csp, ...)
 
     def connect(self, timeout: float = 30.0) -> None:
-        end = time.monotonic() + timeout
-        while True:
+        def page():
+            if self.p.poll() is not None:
+                raise TimeoutError(f"no DevTools page on port {self.port} (browser rc {self.p.poll()})")
             try:
                 with urllib.request.urlopen(f"http://127.0.0.1:{self.port}/json/list", timeout=2) as r:
                     pages = [t for t in json.load(r) if t.get("type") == "page"]
-                if pages:
-                    self.ws = WebSocket(pages[0]["webSocketDebuggerUrl"])
-                    return
             except OSError:
-                pass
-            if time.monotonic() > end or self.p.poll() is not None:
-                raise TimeoutError(f"no DevTools page on port {self.port} (browser rc {self.p.poll()})")
-            time.sleep(0.3)
+                return None
+            return pages[0] if pages else None
+
+        first = wait_for(page, timeout, f"a DevTools page on port {self.port}", interval=0.3)
+        self.ws = WebSocket(first["webSocketDebuggerUrl"])
 
     def call(self, method: str, timeout: float = 180.0, **params) -> dict:
         """The result of a DevTools command; TimeoutError after `timeout` s (events keep the socket busy, so

@@ -1,4 +1,4 @@
-"""Helpers for the cluster deployment tests (tests/test_deploy_*.py): the deploy/ configs made runnable on
+"""Helpers for the cluster deployment tests (tests/services/test_deploy_*.py): the deploy/ configs made runnable on
 127.0.0.1 with secrets from deploy/make-certs.sh in a temporary directory, and a router started from them.
 
 The deploy/ files name /etc/vergence/secrets and listen on 0.0.0.0:7447 (their place in a container); the
@@ -100,3 +100,11 @@ def start_router(P: Procs, config: Path, endpoint: str, name: str = "router", pr
 
     wait_for(up, timeout, f"the router to listen on {endpoint}", interval=0.1, logs=P.logs)
     return p
+
+
+def round_trip(session, timeout: float = 5.0) -> None:
+    """A barrier, not a sleep: a liveliness query answered by the router. Its answer comes on the same link,
+    after whatever the router sent this session before (the subscribers it declared to a new client, the
+    messages it forwarded), and the router handled whatever this session sent before the query (its puts)."""
+    for _ in session.liveliness().get("vergence/barrier/**", timeout=timeout):
+        pass

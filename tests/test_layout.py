@@ -12,6 +12,8 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import pytest
+
 import vergence
 
 ROOT = Path(vergence.__file__).resolve().parent
@@ -37,6 +39,7 @@ def _probe(name: str) -> tuple[str, int, str, str]:
     return name, r.returncode, r.stdout, r.stderr
 
 
+@pytest.mark.slow
 def test_every_module_imports_first_in_a_fresh_interpreter_without_zenoh_or_services():
     """Each module imported first, alone, in its own interpreter: an import cycle (a module importing a
     partly initialised one) fails here, whichever module the cycle is entered by."""
@@ -125,3 +128,16 @@ def test_module_graph_has_no_cycle_and_stages_stay_apart():
         assert not (edges[s] & stages), f"{s} imports another stage: {sorted(edges[s] & stages)}"
     assert "vergence.params" in edges["vergence.decide"] and not edges["vergence.params"] & {
         "vergence.decide", "vergence.match"}  # Params in one place, below every user of it
+
+
+def test_the_tests_mirror_the_tree():
+    """tests/ holds the project-wide checks and the shared helpers; tests/vergence/ the library's tests, its
+    folders those of vergence/ (motors/, sim/); tests/services/ the services'. No test folder is a package
+    (pytest's importlib mode lets two folders hold a file of the same name), and no test file sits elsewhere."""
+    tests = Path(__file__).resolve().parent
+    assert sorted(p.name for p in tests.glob("test_*.py")) == ["test_install.py", "test_layout.py", "test_lint.py"]
+    places = {p.parent.relative_to(tests).as_posix() for p in tests.rglob("test_*.py")}
+    subpackages = {p.parent.relative_to(ROOT).as_posix() for p in ROOT.glob("*/__init__.py")}
+    assert places <= {".", "vergence", "services"} | {f"vergence/{s}" for s in subpackages}, places
+    assert {"vergence", "services"} <= places
+    assert not [p for p in tests.rglob("__init__.py") if p.parent.name != "emulators"]

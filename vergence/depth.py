@@ -36,7 +36,7 @@ GIMBALS = ("helmholtz", "fick")
 CONVERGED_PX = 1.0  # |offset_px| at or under this: the slave is converged on the fovea (the loop's tolerance)
 # The sub-pixel sigma of a decision, sigma_d = sqrt(FLOOR^2 + (CURVATURE / c)^2) px, c the winning peak's
 # curvature per fovea pixel. Fitted on 560 confident points of the four Middlebury pairs (draw seed 7) so that
-# 92 % of the disparity errors lie within 2 sigma; checked on other draws in tests/test_depth.py.
+# 92 % of the disparity errors lie within 2 sigma; checked on other draws in tests/vergence/test_depth.py.
 SIGMA_FLOOR_PX = 0.14
 SIGMA_CURVATURE = 1.7
 

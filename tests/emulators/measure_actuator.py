@@ -20,7 +20,7 @@ sys.path[:0] = [str(HERE.parent), str(HERE.parent.parent)]
 
 from emulators.dynamixel import DynamixelEmulator  # noqa: E402
 from emulators.pty import PtyDevice  # noqa: E402
-from procs import Procs  # noqa: E402
+from procs import Procs, wait_for  # noqa: E402
 
 from vergence.messages import Command, MotorState  # noqa: E402
 
@@ -41,8 +41,8 @@ def round_trips(tmp: Path, driver_args: list[str], n: int) -> dict:
 
         s.declare_subscriber(P.key("motor/state"), on)
         P.wait_alive(s, "actuator")
-        time.sleep(0.5)
         pub = s.declare_publisher(P.key("command"))
+        wait_for(lambda: pub.matching_status.matching, 10, "the actuator's command subscriber", logs=P.logs)
         rtt = []
         for i in range(n):
             ev.clear()

@@ -22,6 +22,7 @@ def _rows(*args: str, timeout: float) -> list[dict]:
     return [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
 
 
+@pytest.mark.slow
 def test_bench_kernel_reports_both_baselines_and_their_ratios():
     rows = _rows("kernel", "--quick", "--json", "--repeats", "2", timeout=300)
     assert [r["case"] for r in rows] == ["W=640 w=15 V=1", "W=3840 w=31 V=33"]
@@ -31,12 +32,14 @@ def test_bench_kernel_reports_both_baselines_and_their_ratios():
         assert r["ratio_vs_numpy"] == pytest.approx(r["correlate_ms"] / r["numpy_ms"])
 
 
+@pytest.mark.slow
 def test_bench_match_reports_its_parts():
     (r,) = _rows("match", "--json", "--repeats", "20", timeout=300)
     assert set(r) >= {"match_ms", "match_faithful_ms", "features_ms", "kernel_ms"}
     assert all(v > 0 for v in r.values())
 
 
+@pytest.mark.slow
 def test_bench_messages_reports_each_kind_against_a_bare_parse():
     rows = _rows("messages", "--json", "--repeats", "1", timeout=300)
     assert [(r["kind"], r["bytes"]) for r in rows] == [("frame", 30118), ("partial", 32651), ("decision", 261),
@@ -60,6 +63,7 @@ def _ours(rig_part: str) -> list[str]:
     return out
 
 
+@pytest.mark.slow
 def test_bench_pipeline_runs_real_processes_and_leaves_none_behind():
     r = subprocess.Popen(CLI + ["pipeline", "--workers", "1", "--rate", "40", "--seconds", "1.5", "--json"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -80,6 +80,7 @@ def compose():
     return cmd
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("env", [{}, {"VERGENCE_TRANSPORT": "tcp"},
                                  {"VERGENCE_DRIVER": "dynamixel", "VERGENCE_MOTOR_DEVICE": "/dev/ttyUSB0"}],
                          ids=["defaults", "tcp", "serial"])
@@ -89,6 +90,7 @@ def test_compose_config_is_valid(compose, env, profile):
     assert r.returncode == 0, r.stderr
 
 
+@pytest.mark.slow
 def test_compose_services_and_their_files(compose, tmp_path):
     """Every service runs `vergence <role>` with files that exist: a router config of deploy/, the client
     config of its role that make-certs.sh writes, deploy/vergence.toml (loadable); workers scale; the
@@ -126,6 +128,7 @@ def test_compose_services_and_their_files(compose, tmp_path):
     load(DEPLOY / "vergence.toml")
 
 
+@pytest.mark.slow
 def test_worker_node_override(compose):
     """deploy/compose.worker-node.yml: workers alone on another node, "router" resolved to its address."""
     files = ["-f", str(COMPOSE_FILE), "-f", str(DEPLOY / "compose.worker-node.yml")]

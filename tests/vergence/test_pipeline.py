@@ -1,5 +1,5 @@
 """The distributed steps as plain functions, no network: vergence.frames (capture), vergence.shards (worker),
-vergence.gather (reducer), vergence_services.health, and vergence.sources."""
+vergence.gather (reducer) and vergence.sources."""
 
 from __future__ import annotations
 
@@ -16,7 +16,6 @@ from vergence.gather import Gatherer, reduce
 from vergence.messages import Frame, MessageError, Partial
 from vergence.params import Params
 from vergence.shards import compute_partial
-from vergence_services.health import Health
 from vergence.sources import FilesSource, SimSource, SourceError, open_source
 
 SHIFT = 12  # the slave sees the scene 12 px further left: the match lies 12 px right of the centre
@@ -204,19 +203,6 @@ def test_window_control_walks_the_windows_match_tries():
     wc.update(15, False)
     wc.reset()
     assert wc.window == 15 and wc.update(15, False) == 23
-
-
-def test_health_counts_and_logs_once(caplog):
-    import logging
-
-    h = Health("worker", "w-1", logging.getLogger("t"))
-    with caplog.at_level(logging.WARNING):
-        for _ in range(3):
-            h.reject("frame", "garbage")
-    h.count("partials")
-    st = h.status()
-    assert st["bad"] == {"frame": 3} and st["counters"] == {"partials": 1} and st["role"] == "worker"
-    assert sum("bad frame" in r.message for r in caplog.records) == 1
 
 
 def test_files_source(tmp_path):

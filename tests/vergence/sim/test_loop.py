@@ -77,7 +77,7 @@ def test_generated_scene_is_consistent(scene):
 # The motor and the controller these tests were written for: first order (20 ms), no latency, acceleration
 # limit or encoder ticks, and the "p" controller. They measure the network's accuracy in the loop on still
 # scenes; the servo-like default motor (whose whole ticks alone leave up to half a tick, 0.39 px at f = 512)
-# and the predictive default controller are tests/test_tracking.py's (README: what the predictive one costs
+# and the predictive default controller are tests/vergence/test_tracking.py's (README: what the predictive one costs
 # on these still scenes).
 IDEAL_MOTOR = MotorSettings(tau_s=0.02, latency_s=0.0, max_accel_deg_s2=0.0, quantise=False)
 P_CONTROL = ControlSettings(mode="p")
@@ -266,6 +266,7 @@ def test_faithful_converges_on_real_scenes_where_the_paper_network_is_right(name
 
 # ---- the command line ----------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_cli_json_and_plot(tmp_path):
     png = tmp_path / "run.png"
     r = subprocess.run([sys.executable, "-m", "vergence_services.cli", "sim", "--start-pan", "2", "--frames", "6",
@@ -280,12 +281,14 @@ def test_cli_json_and_plot(tmp_path):
     assert (img < 250).mean() > 0.02 and len(np.unique(img.reshape(-1, 3), axis=0)) > 20  # drawn, not blank
 
 
+@pytest.mark.slow
 def test_cli_bad_option_says_which(tmp_path):
     r = subprocess.run([sys.executable, "-m", "vergence_services.cli", "sim", "--noise", "lots"], capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 2 and "noise='lots'" in r.stderr
 
 
+@pytest.mark.slow
 def test_cli_pair_without_truth_and_start_off(tmp_path, scene):
     cv2.imwrite(str(tmp_path / "l.png"), scene.left)
     cv2.imwrite(str(tmp_path / "r.png"), scene.right)
@@ -311,6 +314,7 @@ def test_cli_pair_without_truth_and_start_off(tmp_path, scene):
 
 # ---- the same loop through the Zenoh pipeline -------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_up_with_the_simulated_rig_converges(tmp_path):
     """`vergence up --source sim` (router, sim actuator, 2 workers, reducer, capture as real processes): the
     slave pan published on motor/state reaches the converged pan within 1 px and stays there."""

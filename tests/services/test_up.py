@@ -1,6 +1,6 @@
 """`vergence up` and `vergence router` on a port that is already taken: a clear error, nothing started; and
 up's supervision of its children (back-off, counts, shutdown) on small real processes. The SIGKILL of each
-child of a real `vergence up` is in tests/test_supervise.py."""
+child of a real `vergence up` is in tests/services/test_supervise.py."""
 
 from __future__ import annotations
 
@@ -11,7 +11,11 @@ import sys
 import threading
 import time
 
-from procs import Procs
+import pytest
+
+from procs import Procs, wait_for
+
+pytestmark = pytest.mark.slow  # every test here runs real processes
 
 
 def test_busy_port_is_refused_with_a_hint(tmp_path):
@@ -29,6 +33,9 @@ def test_busy_port_is_refused_with_a_hint(tmp_path):
         assert "Traceback" not in router.stderr
 
 
+RUNS_ON = "import time; time.sleep(60)"  # a child's code, not a wait of the test: a service that runs on
+
+
 def _child(name: str, code: str):
     from vergence_services import up
 
@@ -40,9 +47,10 @@ def _supervise_until(children, stop, cond, timeout: float) -> int:
     from vergence_services import up
 
     def watch():
-        end = time.monotonic() + timeout
-        while not cond() and time.monotonic() < end and not stop.is_set():
-            time.sleep(0.02)
+        try:
+            wait_for(lambda: cond() or stop.is_set(), timeout, "the condition")
+        except TimeoutError:
+            pass
         stop.set()
 
     threading.Thread(target=watch, daemon=True).start()
@@ -94,7 +102,7 @@ def test_the_back_off_caps_and_resets_after_a_stable_run(monkeypatch, caplog):
 
     monkeypatch.setattr(up, "STABLE_S", 0.3)  # a child that ran 0.3 s has been stable
     caplog.clear()
-    steady = _child("steady", "import sys, time; time.sleep(0.4); sys.exit(1)")
+    steady = _child("steady", "import sys, time; time.sleep(0.4); sys.exit(1)")  # time under test: runs 0.4 s
     steady.start()
     steady.backoff = 0.4  # as after several quick deaths
     with caplog.at_level(logging.INFO, logger="vergence.up"):
@@ -106,14 +114,14 @@ def test_the_back_off_caps_and_resets_after_a_stable_run(monkeypatch, caplog):
 def test_no_restart_during_shutdown_and_exit_2_at_first_start_stops_up(caplog):
     from vergence_services import session
 
-    runner = _child("runner", "import time; time.sleep(60)")
+    runner = _child("runner", RUNS_ON)
     runner.start()
     stop = session.Stop(install=False)
     stop.set()  # SIGINT already received: supervise returns, stop_all stops the child, nothing restarted
     assert _supervise_until([runner], stop, lambda: True, 5) == 0
     assert runner.restarts == 0 and runner.p.returncode is not None
     bad = _child("bad", "import sys; sys.exit(2)")
-    other = _child("other", "import time; time.sleep(60)")
+    other = _child("other", RUNS_ON)
     bad.start()
     other.start()
     with caplog.at_level(logging.INFO, logger="vergence.up"):
@@ -127,7 +135,7 @@ def test_a_standby_takes_over_at_once_and_leaves_when_up_stops(monkeypatch, capl
 
     monkeypatch.setattr(up, "STANDBY_DELAY_S", 0.2)
     # a child that, as every service, waits in session.open_session's standby hook before its work
-    c = _child("svc", "from vergence_services import session; session._standby(); import time; time.sleep(60)")
+    c = _child("svc", "from vergence_services import session; session._standby(); " + RUNS_ON)
     c.standby_due = 0.0
     c.start()
     stop = session.Stop(install=False)

@@ -20,6 +20,7 @@ from deploy_helpers import (
     client_session,
     make_secrets,
     passwords,
+    round_trip,
     router_config,
     start_router,
 )
@@ -78,6 +79,7 @@ def test_router_configs_share_one_acl():
     assert not any("**" in k for keys in can.values() for k in keys)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", ["tcp", "tls"])
 def test_no_credentials_or_wrong_password_cannot_connect(tmp_path, secrets, variant):
     conf, endpoint = router_config(variant, secrets, tmp_path / "router.json5")
@@ -107,6 +109,7 @@ def test_no_credentials_or_wrong_password_cannot_connect(tmp_path, secrets, vari
             zenoh.open(conf0).close()
 
 
+@pytest.mark.slow
 def test_wrong_ca_fails_tls(tmp_path, secrets, other_ca):
     conf, endpoint = router_config("tls", secrets, tmp_path / "router.json5")
     with Procs(tmp_path) as P:
@@ -126,6 +129,7 @@ def test_wrong_ca_fails_tls(tmp_path, secrets, other_ca):
         assert not connects(secrets, "reducer", "tcp", endpoint.replace("tls/", "tcp/"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", ["tcp", "tls"])
 def test_only_the_reducer_commands_and_only_the_actuator_reports(tmp_path, secrets, variant):
     conf, endpoint = router_config(variant, secrets, tmp_path / "router.json5")
@@ -139,16 +143,16 @@ def test_only_the_reducer_commands_and_only_the_actuator_reports(tmp_path, secre
             for role in ("capture", "worker", "monitor", "replay", "reducer", "actuator"):
                 s = client_session(secrets, role, variant, endpoint)
                 try:
-                    time.sleep(0.2)  # the router has told this client about the subscriber
+                    round_trip(s)  # the router has told this client about the subscriber
                     for key in ("vergence/r/command", "vergence/r/motor/state", "vergence/r/frame",
                                 "vergence/**", "vergence/*/command", "vergence/r/*", "vergence/*/motor/*",
                                 "vergence/replay/frame", "vergence/r/workers"):
                         s.put(key, role.encode())
-                    time.sleep(0.2)
+                    round_trip(s)  # the router has taken (or refused) every put
                 finally:
                     s.close()
             wait_for(lambda: ("vergence/r/motor/state", b"actuator") in got, 5, "the actuator's state")
-            time.sleep(0.3)
+            round_trip(watch)  # whatever the router forwarded has arrived
             sub.undeclare()
         finally:
             watch.close()
@@ -159,6 +163,7 @@ def test_only_the_reducer_commands_and_only_the_actuator_reports(tmp_path, secre
     ])
 
 
+@pytest.mark.slow
 def test_forged_command_never_reaches_the_real_actuator(tmp_path, secrets):
     conf, endpoint = router_config("tls", secrets, tmp_path / "router.json5")
     with Procs(tmp_path) as P:
@@ -173,11 +178,10 @@ def test_forged_command_never_reaches_the_real_actuator(tmp_path, secrets):
             for role in ("worker", "capture", "monitor", "replay"):
                 s = client_session(secrets, role, "tls", endpoint)
                 try:
-                    time.sleep(0.2)
+                    round_trip(s)  # the router has told this client about the actuator's subscriber
                     for i in range(5):
                         s.put("vergence/r/command", command("r", 0.3, frame=i + 1))
-                        time.sleep(0.02)
-                    time.sleep(0.3)
+                        round_trip(s)  # one at a time, each taken (or refused) by the router
                 finally:
                     s.close()
             n = len(states)
@@ -187,7 +191,7 @@ def test_forged_command_never_reaches_the_real_actuator(tmp_path, secrets):
             # the reducer's identity does move it
             s = client_session(secrets, "reducer", "tls", endpoint)
             try:
-                time.sleep(0.2)
+                round_trip(s)
                 s.put("vergence/r/command", command("r", 0.05, frame=100))
                 def reached():
                     got = [MotorState.from_bytes(b) for _, b, _ in states.snapshot()]
@@ -201,6 +205,7 @@ def test_forged_command_never_reaches_the_real_actuator(tmp_path, secrets):
             watch.close()
 
 
+@pytest.mark.slow
 def test_services_run_under_the_acl(tmp_path, secrets):
     """capture, worker, reducer and actuator, each with its own identity over mutual TLS: the pipeline runs,
     commands reach the actuator and its state comes back. The fixation's centre 17 px are flat, so the

@@ -18,29 +18,12 @@ import pytest
 
 import vergence
 from middlebury import SCENES, load, needs_data, points, visible
-from test_library import ref_features
+from references import ref_winner
 
 pytestmark = needs_data
 
 N = 500
 GAINS = {"equal": (1.0, 0.0), "bright": (1.3, 20.0), "dark": (0.7, -15.0)}
-
-
-@functools.lru_cache(maxsize=None)
-def whole_features(name):
-    left, right, _ = load(name)
-    return ref_features(left), ref_features(right)
-
-
-def ref_winner(name: str, x: int, y: int, w: int = 15) -> int:
-    fm, fs = whole_features(name)
-    h = w // 2
-    fov = fm[:, y - h : y + h + 1, x - h : x + h + 1].astype(np.int64)
-    band = fs[:, y - h : y + h + 1, :].astype(np.int64)
-    kk = band.shape[2] - w + 1
-    # y(k) = sum(255 - (|dI| + |dG| + |dD|) / 3); argmax y = argmin of the integer sum of differences
-    s = [np.abs(fov - band[:, :, k : k + w]).sum() for k in range(kk)]
-    return int(np.argmin(s))
 
 
 @pytest.mark.parametrize("name", SCENES)

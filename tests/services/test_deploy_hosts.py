@@ -16,7 +16,6 @@ import shutil
 import subprocess
 import sys
 import textwrap
-import time
 import uuid
 from pathlib import Path
 
@@ -28,6 +27,8 @@ from procs import VERGENCE, Procs, wait_for
 
 from vergence import kernel, retina
 from vergence.messages import Frame, Profile
+
+pytestmark = pytest.mark.slow  # every test here runs real processes
 
 SUBNET = "10.77.0"
 HOSTS = {"r": 1, "a": 2, "b": 3}
@@ -100,9 +101,14 @@ def secrets(tmp_path_factory):
     return make_secrets(tmp_path_factory.mktemp("secrets"), f"{SUBNET}.1")
 
 
+TESTS = str(Path(__file__).resolve().parents[1])  # the children below import procs and deploy_helpers from there
+
 OBSERVER = textwrap.dedent("""
     # records every frame and profile of a rig (the raw bytes) until N profiles from W workers, or a timeout
-    import sys, time, msgpack, zenoh
+    import sys, msgpack, zenoh
+    sys.path.insert(0, @TESTS@)
+    from deploy_helpers import round_trip
+    from procs import wait_for
     conf_file, rig, n, w, out, timeout = sys.argv[1:7]
     from vergence.messages import Profile
     conf = zenoh.Config.from_file(conf_file)
@@ -111,15 +117,15 @@ OBSERVER = textwrap.dedent("""
         s.declare_subscriber(f"vergence/{rig}/frame", lambda x: frames.append(x.payload.to_bytes()))
         s.declare_subscriber(f"vergence/{rig}/profile", lambda x: profiles.append(x.payload.to_bytes()))
         print("observing", flush=True)
-        end = time.monotonic() + float(timeout)
-        while time.monotonic() < end:
-            if sum(len(Profile.from_bytes(p).workers) == int(w) for p in list(profiles)) >= int(n):
-                break
-            time.sleep(0.1)
-        time.sleep(0.2)
+        try:
+            wait_for(lambda: sum(len(Profile.from_bytes(p).workers) == int(w) for p in list(profiles)) >= int(n),
+                     float(timeout), "the profiles", interval=0.1)
+        except TimeoutError:
+            pass  # the test says what is missing
+        round_trip(s)  # whatever the router forwarded so far has arrived
     with open(out, "wb") as f:
         msgpack.pack({"frames": list(frames), "profiles": list(profiles)}, f)
-""")
+""").replace("@TESTS@", repr(TESTS))
 
 
 def _pair(tmp_path: Path) -> str:
@@ -136,28 +142,31 @@ def test_pub_sub_across_namespaces(tmp_path, hosts, secrets):
     """The plumbing: router on host r, a publisher on host a, a subscriber on host b, over mutual TLS."""
     conf, endpoint = router_config("tls", secrets, tmp_path / "router.json5", host=hosts.addr("r"), port=7447)
     script = textwrap.dedent("""
-        import sys, time, zenoh
+        import sys, zenoh
+        sys.path.insert(0, @TESTS@)
+        from procs import wait_for
         role, conf_file, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
         with zenoh.open(zenoh.Config.from_file(conf_file)) as s:
             if role == "capture":
-                time.sleep(1.0)
+                pub = s.declare_publisher("vergence/x/frame")
+                wait_for(lambda: pub.matching_status.matching, 10, "the subscriber on host b")
                 for i in range(n):
-                    s.put("vergence/x/frame", b"%d" % i); time.sleep(0.05)
+                    pub.put(b"%d" % i)
             else:
                 got = []
                 s.declare_subscriber("vergence/x/frame", lambda x: got.append(x.payload.to_bytes()))
-                end = time.monotonic() + 10
-                while len(got) < n and time.monotonic() < end:
-                    time.sleep(0.05)
+                try:
+                    wait_for(lambda: len(got) >= n, 10, "the frames")
+                except TimeoutError:
+                    pass  # the test says what is missing
                 print(b",".join(got).decode(), flush=True)
-    """)
+    """).replace("@TESTS@", repr(TESTS))
     with Procs(tmp_path) as P:
         start_router(P, conf, endpoint, prefix=hosts.prefix("r"))
         sub_conf = client_config_file(secrets, "monitor", "tls", endpoint, tmp_path / "monitor.json5")
         pub_conf = client_config_file(secrets, "capture", "tls", endpoint, tmp_path / "capture.json5")
         sub = P.spawn("sub", [*hosts.prefix("b"), sys.executable, "-c", script, "monitor", str(sub_conf),
                               "5"])
-        time.sleep(0.5)
         P.spawn("pub", [*hosts.prefix("a"), sys.executable, "-c", script, "capture", str(pub_conf), "20"])
         assert sub.wait(20) == 0, P.logs()
         assert sub.text().strip().split(",")[:5] == ["0", "1", "2", "3", "4"], P.logs()

@@ -5,6 +5,7 @@ every process group it started."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
@@ -23,6 +24,8 @@ from vergence.config import load
 from vergence.gather import decide_frame
 from vergence.messages import Command, Frame, MessageError, Partial, Preview, Profile, Verdict
 
+pytestmark = pytest.mark.slow  # every test here runs real processes
+
 RATE = 40  # frames per second in these tests: light on a shared 2-core machine
 
 
@@ -40,15 +43,19 @@ def config(tmp_path, text: str = "") -> str:
 
 
 def status(P, s, role: str, timeout: float = 5.0) -> dict:
-    """The latest status JSON of each process of a role: {id: status}."""
+    """The latest status JSON of each process of a role: {id: status}, once every live one (its liveliness
+    token) has published a status since this call."""
     c = P.collect(s, P.key(f"status/{role}/*"))
     try:
-        c.wait(1, timeout)
-        time.sleep(1.1)  # every process of the role has published once
-        out = {}
-        for _, b, k in c.snapshot():
-            out[k.rsplit("/", 1)[1]] = json.loads(b)
-        return out
+        n = len(P.wait_alive(s, role, 1, timeout))
+
+        def each():
+            out = {}
+            for _, b, k in c.snapshot():
+                out[k.rsplit("/", 1)[1]] = json.loads(b)
+            return out if len(out) >= n else None
+
+        return wait_for(each, timeout, f"a status of each of the {n} {role}(s)", logs=P.logs)
     finally:
         c.close()
 
@@ -127,10 +134,22 @@ def test_kill_and_add_workers_commands_continue_never_incomplete(tmp_path, pair)
                  20, "a profile from 3 workers", logs=P.logs)
         t_kill = time.time_ns()
         workers[2].signal(signal.SIGKILL)
-        time.sleep(3.0)  # the lease (1 s) expires, the capture re-plans
+
+        def commanded_after(t_ns: int) -> list[bool]:
+            """For each frame captured after t_ns, in the order seen here: whether its command came."""
+            cmd = by_frame(commands.snapshot(), Command)
+            return [fid in cmd for fid, (_, f) in by_frame(frames.snapshot(), Frame).items() if f.t_capture_ns > t_ns]
+
+        # the lease (1 s) expires, the capture re-plans: run on until a second of frames past the 2 s allowed
+        # below for that has been commanded
+        wait_for(lambda: any(commanded_after(t_kill + 3_000_000_000)), 20,
+                 "commands of frames captured 3 s after the SIGKILL", logs=P.logs)
         t_end = time.time_ns()
         capture.stop()
-        time.sleep(0.5)  # everything in flight has arrived
+        # everything in flight has arrived: every late frame but the last two has its command (else the
+        # assertion below says so)
+        with contextlib.suppress(TimeoutError):
+            wait_for(lambda: all(commanded_after(t_kill + 2_000_000_000)[:-2]), 5, "the commands in flight")
         fr = by_frame(frames.snapshot(), Frame)
         cmd = by_frame(commands.snapshot(), Command)
         prof = by_frame(profiles.snapshot(), Profile)
@@ -183,7 +202,7 @@ def test_sigstop_worker_frames_dropped_not_queued(tmp_path, pair):
         dropped0 = next(iter(before.values()))["gatherer"]["dropped"]
         t_stop = time.time_ns()
         w1.signal(signal.SIGSTOP)
-        time.sleep(0.6)  # shorter than the lease: the worker stays in the plan
+        time.sleep(0.6)  # time under test: stopped 0.6 s, shorter than the lease: the worker stays in the plan
         w1.signal(signal.SIGCONT)
         t_cont = time.time_ns()
         n_cmd = len(commands)
@@ -265,11 +284,7 @@ def test_garbage_on_every_key_kills_nothing(tmp_path, pair):
         junk = _garbage(rng, frame, part)
         keys = ["frame", "correlation/" + part.worker, "correlation/intruder", "motor/state", "decision", "profile",
                 "command"]
-        for _ in range(3):
-            for k in keys:
-                for b in junk:
-                    s.put(P.key(k), b, congestion_control=zenoh.CongestionControl.BLOCK)
-                time.sleep(0.05)
+
         def valid():
             out = []
             for _, b, _ in commands.snapshot():
@@ -278,6 +293,14 @@ def test_garbage_on_every_key_kills_nothing(tmp_path, pair):
                 except MessageError:
                     pass
             return out
+
+        for _ in range(3):
+            for k in keys:
+                n = len(valid())
+                for b in junk:
+                    s.put(P.key(k), b, congestion_control=zenoh.CongestionControl.BLOCK)
+                # the bursts spread over real frames: the next one after a real command
+                wait_for(lambda: len(valid()) > n, 10, f"a real command after the garbage on {k}", logs=P.logs)
 
         last_id = frame.frame
         for _, b, _ in frames.snapshot():  # the newest real frame once the garbage is out

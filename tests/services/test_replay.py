@@ -9,6 +9,8 @@ from procs import Procs, textured_pair, wait_for
 from vergence.messages import Frame, Profile
 from vergence.recording import read
 
+pytestmark = pytest.mark.slow  # every test here runs real processes
+
 FRAMES = 20
 
 

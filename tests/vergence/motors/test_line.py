@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import math
-import time
 
 import pytest
 from emulators.line import LineEmulator
 from emulators.pty import PtyDevice
+from procs import wait_for
+from samples import cmd
 
 from vergence.motors import MotorSettings, PortError, TransientError
 from vergence.motors.line import LineDriver
@@ -26,11 +27,11 @@ def test_lines_on_the_wire(dev):
     emu, d = dev
     drv = LineDriver(MotorSettings(), d.link)
     assert drv.open() == pytest.approx(-48 * 2 * math.pi / 4096)
+    goal = round(2048 + 0.25 * 4096 / (2 * math.pi))
     drv.write_goal(0.25)
-    time.sleep(0.03)
+    wait_for(lambda: emu.goals == [2000, goal], 2, "the emulator taking the goal")
     drv.read_position()
     drv.close()
-    goal = round(2048 + 0.25 * 4096 / (2 * math.pi))
     assert bytes(d.rx) == f"Q\nP 2000\nE 1\nP {goal}\nQ\nE 0\n".encode()
     assert emu.goals == [2000, goal] and not emu.enabled
 
@@ -83,11 +84,7 @@ def test_unplug_replug(dev):
     d.unplug()
     assert loop.tick().status == "disconnected"
     d.replug()
-    deadline = time.monotonic() + 3
-    while loop.tick().status != "ok":
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
-    from test_motors import cmd
+    wait_for(lambda: loop.tick().status == "ok", 3, "the loop to reconnect", interval=0.01)
     loop.command(cmd(0.1, frame=1))
     assert emu.goals[-1] == round(0.1 * 3200 / (2 * math.pi))
     loop.stop()

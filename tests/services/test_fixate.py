@@ -51,6 +51,7 @@ def test_fovea_moves_on_a_valid_request_and_nothing_else():
     assert health.counters["fixations"] == 3
 
 
+@pytest.mark.slow
 def test_fixate_command_checks_its_point():
     for arg, says in (("12", "want X,Y"), ("nan,3", "finite"), ("a,b", "want X,Y")):
         r = subprocess.run([VERGENCE, "fixate", arg], capture_output=True, text=True, timeout=60)
@@ -189,7 +190,7 @@ def test_monitor_shows_the_fovea_and_the_depth():
 def test_only_the_fixate_role_may_fixate(tmp_path, variant):
     """Under the deployed ACL (deploy/router-*.json5, secrets from make-certs.sh): a put on
     vergence/<rig>/fixate gets through from the `fixate` role only, and that role puts nothing else."""
-    from deploy_helpers import client_session, make_secrets, router_config, start_router
+    from deploy_helpers import client_session, make_secrets, round_trip, router_config, start_router
 
     secrets = make_secrets(tmp_path / "secrets")
     conf, endpoint = router_config(variant, secrets, tmp_path / "router.json5")
@@ -203,14 +204,14 @@ def test_only_the_fixate_role_may_fixate(tmp_path, variant):
             for role in ("capture", "worker", "reducer", "actuator", "monitor", "replay", "fixate"):
                 s = client_session(secrets, role, variant, endpoint)
                 try:
-                    time.sleep(0.2)  # the router has told this client about the subscriber
+                    round_trip(s)  # the router has told this client about the subscriber
                     for key in ("vergence/r/fixate", "vergence/*/fixate", "vergence/r/command", "vergence/r/frame"):
                         s.put(key, role.encode())
-                    time.sleep(0.2)
+                    round_trip(s)  # the router has taken (or refused) every put
                 finally:
                     s.close()
             wait_for(lambda: ("vergence/r/fixate", b"fixate") in got, 5, "the fixate role's request")
-            time.sleep(0.3)
+            round_trip(watch)  # whatever the router forwarded has arrived
             sub.undeclare()
         finally:
             watch.close()

@@ -10,11 +10,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from vergence.config import ConfigError, from_dict
-from vergence.messages import Command, MotorState
+from vergence.messages import MotorState
 from vergence.motors import Disconnected, MotorSettings, PortError, Safety, TransientError, make_driver
 from vergence.motors.base import Driver
 from vergence.motors.runner import MotorLoop
 from vergence.motors.simulated import SimMotor
+
+from samples import cmd
 
 DEG = math.pi / 180
 
@@ -25,11 +27,6 @@ class Clock:
 
     def __call__(self) -> float:
         return self.t
-
-
-def cmd(pan, frame=1, t=0, **kw) -> Command:
-    return Command(rig="head", frame=frame, t_capture_ns=t, pan_rad=pan, correction_rad=0.0, direction=0,
-                   magnitude_px=0.0, confidence=1.0, **kw)
 
 
 # -- settings ------------------------------------------------------------------------------------------------

@@ -144,6 +144,7 @@ def test_view_save_records_3s_of_up(tmp_path):
 
 # ---- offline: the simulator and recordings ---------------------------------------------------------------
 
+@pytest.mark.slow
 def test_sim_save_logs_the_views_the_network_saw(tmp_path):
     """`vergence sim --save`: per frame the two views, the boxes, the profile, pan against truth; the views
     are the ones the loop decided on (the network on the recorded images gives the recorded offsets)."""
@@ -206,6 +207,7 @@ def _recording(path: Path, rig: str = "rec") -> list[M.Verdict]:
     return out
 
 
+@pytest.mark.slow
 def test_replay_view_turns_a_recording_into_the_cockpit(tmp_path):
     rec = tmp_path / "run.vrec"
     verdicts = _recording(rec)
@@ -226,6 +228,7 @@ def test_replay_view_turns_a_recording_into_the_cockpit(tmp_path):
     assert e["/workers/alive"][0]["Scalars:scalars"] == [1.0]
 
 
+@pytest.mark.slow
 def test_replay_view_rejects_a_bad_target(tmp_path):
     rec = tmp_path / "run.vrec"
     _recording(rec)
@@ -260,6 +263,7 @@ def test_newer_fields_are_logged_when_present(tmp_path):
     assert set(scalar(e["/pan/slave"])) == {3, 4}
 
 
+@pytest.mark.slow
 def test_a_missing_extra_says_how_to_install_it(tmp_path):
     code = ("import sys; sys.modules['rerun_cli'] = None; sys.modules['rerun'] = None\n"
             "from vergence_services.cli import main; sys.exit(main(['view', '--save', 'x.rrd', '--connect', "
@@ -271,6 +275,7 @@ def test_a_missing_extra_says_how_to_install_it(tmp_path):
         "(in a checkout: pip install -e '.[view]')"]
 
 
+@pytest.mark.slow
 def test_analytics_are_off_for_the_user_after_a_project_process_used_rerun(tmp_path):
     """Rerun's one switch (analytics.json under the user's config dir) says disabled after analytics_off, in
     a fresh config dir too."""
@@ -363,6 +368,7 @@ def test_web_viewer_shows_the_image_panel_in_headless_chromium(tmp_path):
     assert all("Content Security Policy" in line for line in calls), calls[:3]
 
 
+@pytest.mark.slow
 def test_view_without_a_router_gives_up_at_its_timeout(tmp_path):
     """A client keeps trying to reach its router; the view still stops (its --timeout here, Ctrl-C the same
     way), saying why, with nothing left behind."""
@@ -374,6 +380,7 @@ def test_view_without_a_router_gives_up_at_its_timeout(tmp_path):
     assert "Traceback" not in out.stderr
 
 
+@pytest.mark.slow
 def test_spawn_without_a_display_says_what_to_do_instead(tmp_path):
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     out = subprocess.run([VERGENCE, "view", "--timeout", "2", "--connect", f"tcp/127.0.0.1:{free_port()}"],

@@ -11,7 +11,7 @@ import zenoh
 
 from vergence import keys
 
-DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
+DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 
 # (built, the key on the wire, kind, rest, role, ident)
 CASES = [

@@ -81,7 +81,7 @@ def test_limit_settings_are_checked():
     with pytest.raises(ConfigError, match="limits.miss"):
         from_dict({"limits": {"miss": 3}})
     from pathlib import Path
-    assert load(Path(__file__).parent.parent / "deploy" / "vergence.toml").limits.probation_s == 4.0
+    assert load(Path(__file__).resolve().parents[2] / "deploy" / "vergence.toml").limits.probation_s == 4.0
 
 
 # -- the gatherer --------------------------------------------------------------------------------------------
@@ -292,7 +292,7 @@ RATE = 30
 
 @pytest.fixture
 def rig(tmp_path):
-    from procs import Procs, textured_pair
+    from procs import Procs, textured_pair, wait_for
 
     source = textured_pair(tmp_path)
     cfg = tmp_path / "settings.toml"
@@ -311,7 +311,8 @@ def rig(tmp_path):
                  state=P.collect(s, P.key("motor/state")), status=P.collect(s, P.key("status/**")))
         P.start("capture", "capture", "--source", source, "--rate", str(RATE), "--config", str(cfg))
         c["decision"].wait(2 * RATE, 60)  # warm: 2 s of decisions
-        time.sleep(0.5)
+        wait_for(lambda: c["state"].snapshot() and MotorState.from_bytes(c["state"].snapshot()[-1][1]).goal_rad
+                 == pytest.approx(math.radians(45)), 20, "the motor at its +45 deg limit", logs=P.logs)
         yield P, s, c
 
 

@@ -20,6 +20,8 @@ from procs import VERGENCE, Procs, textured_pair, wait_for
 from vergence.messages import Command, MotorState
 from vergence.motors.dynamixel import Inst, instruction_packet
 
+pytestmark = pytest.mark.slow  # every test here runs real processes
+
 
 def command(rig: str, pan: float, frame: int) -> bytes:
     return Command(rig=rig, frame=frame, t_capture_ns=time.time_ns(), pan_rad=pan, correction_rad=0.0,
@@ -50,7 +52,7 @@ def test_sim_actuator(tmp_path):
         P.wait_alive(s, "actuator")
         col.wait(1, 10)
         n0, t0 = len(col), time.monotonic()
-        time.sleep(1.0)
+        wait_for(lambda: len(col) >= n0 + 50, 5, "50 more motor states", logs=P.logs)
         rate = (len(col) - n0) / (time.monotonic() - t0)
         assert 40 <= rate <= 60, rate  # state_hz = 50
         pub = s.declare_publisher(P.key("command"))
@@ -59,11 +61,12 @@ def test_sim_actuator(tmp_path):
         assert st.goal_rad == pytest.approx(0.1) and st.driver == "sim" and st.status == "ok"
         at = (ticks(0.1) - 2048) * 2 * math.pi / 4096  # the simulated servo reports whole ticks, as a Dynamixel
         st = wait_state(col, lambda m: abs(m.pan_rad - at) < 1e-9, 5, "the motor at 0.1 (its nearest tick)", P.logs)
+        # one at a time, each counted before the next: a burst would be coalesced (see the flood test)
         for i, bad in enumerate([math.nan, math.inf, 1e300, -1e300]):
             pub.put(command(P.rig, bad, 2 + i))
-            time.sleep(0.05)  # one at a time: a burst would be coalesced (see the flood test)
+            wait_state(col, lambda m, n=2 + i: m.commands >= n, 5, f"{2 + i} commands counted", P.logs)
         pub.put(b"\x00garbage")
-        time.sleep(0.05)
+        wait_state(col, lambda m: m.commands >= 6, 5, "6 commands counted", P.logs)
         pub.put(b"")
         st = wait_state(col, lambda m: m.commands == 7, 5, "7 commands counted", P.logs)
         assert (st.ignored, st.clamped, st.malformed) == (2, 2, 2)
@@ -119,7 +122,7 @@ def test_dynamixel_actuator_bytes_state_and_replug(tmp_path):
             # unplug the adapter, then plug it back: same path, a new pty
             dev.unplug()
             wait_state(col, lambda m: m.status == "disconnected", 5, "status disconnected", P.logs)
-            time.sleep(0.3)
+            time.sleep(0.3)  # time under test: unplugged for a while, through the actuator's reconnect attempts
             n = len(col)
             dev.replug()
             wait_state(col, lambda m: m.status == "ok", 10, "status ok again", P.logs, after=n)

@@ -9,6 +9,8 @@ import pytest
 
 from procs import Procs, free_port, textured_pair
 
+pytestmark = pytest.mark.slow  # every test here runs real processes
+
 
 @pytest.fixture
 def pair(tmp_path):

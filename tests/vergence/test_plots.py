@@ -1,6 +1,6 @@
 """vergence.plots: the figures of `vergence sim --plot` hold the run's values (read back from the returned
 matplotlib Figure, line by line), the PNGs open at their size and are drawn, and importing the module does not
-import matplotlib. The monitor's figure is tested in test_monitor_model.py, with the monitor's model."""
+import matplotlib. The monitor's figure is tested in test_monitor.py, with the monitor's model."""
 
 from __future__ import annotations
 

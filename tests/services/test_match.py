@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 from middlebury import ROOT, SCENES, load, needs_data, points
-from test_accuracy import ref_winner
+from references import ref_winner
+
+pytestmark = pytest.mark.slow  # every test here runs real processes
 
 
 def vergence(*args, timeout=60):
@@ -84,7 +86,7 @@ def test_on_a_real_pair():
 @pytest.mark.parametrize("name", SCENES)
 def test_cli_faithful_is_the_plain_reference(name):
     """`--faithful` on the command line is the paper's network exactly: the winner of a brute-force reference
-    of ALGORITHM.md (test_accuracy.ref_winner), no row searched, at 100 points per pair of a draw (seed 5) the
+    of ALGORITHM.md (references.ref_winner), no row searched, at 100 points per pair of a draw (seed 5) the
     library's own test does not use. It once was not: the CLI's option merge brought vsearch 6 back."""
     pts = points(name, seed=5)
     at = [a for x, y in pts for a in ("--at", f"{x},{y}")]

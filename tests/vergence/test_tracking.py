@@ -324,6 +324,7 @@ def vsim(*args, timeout=240):
                           timeout=timeout)
 
 
+@pytest.mark.slow
 def test_cli_motion_json_and_plot(tmp_path):
     png = tmp_path / "t.png"
     r = vsim("--motion", "sine:z=0.8,amp=0.3,hz=1", "--focal", "500", "--rate", "60", "--frames", "12", "--json",
@@ -338,11 +339,12 @@ def test_cli_motion_json_and_plot(tmp_path):
         assert x["error_px"] == pytest.approx(F * math.tan(math.radians(x["pan_deg"] - x["truth_pan_deg"])))
         assert {"offset_px", "confident"} <= set(x)
     assert rows[0]["pan_deg"] == 0.0 and abs(rows[-1]["error_px"]) < 2
-    img = cv2.imread(str(png))  # the figure's values: tests/test_plots.py
+    img = cv2.imread(str(png))  # the figure's values: tests/vergence/test_plots.py
     assert img is not None and img.shape == (700, 900, 3)
     assert (img < 200).any(axis=2).mean() > 0.01 and len(np.unique(img.reshape(-1, 3) // 32, axis=0)) >= 6
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args,says", [(["--motion", "sine:z=1"], "missing amp"),
                                        (["--motion", "still:z=1", "--gain", "2"], "--gain does not go"),
                                        (["--texture", "flat"], "--texture goes with --motion"),
@@ -353,6 +355,7 @@ def test_cli_motion_errors(args, says):
     assert r.returncode == 2 and says in r.stderr
 
 
+@pytest.mark.slow
 def test_bench_tracking_rows():
     from vergence.bench import bench_tracking
 

@@ -1,0 +1,77 @@
+"""Layer 1 (vergence.retina): the feature planes I, G, D against a plain reference written from ALGORITHM.md
+(tests/references.py), the strips, the border errors, and the photometric mapping of the slave's gray levels."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+import vergence
+from references import ref_features
+from vergence import retina
+
+
+@pytest.mark.parametrize("region", [(0, 60, 0, 50), (5, 20, 0, 50), (0, 10, 3, 9), (50, 60, 40, 50), (10, 25, 10, 20)],
+                         ids=["whole", "band", "top-left", "bottom-right", "inside"])
+def test_strip_features_equal_whole_image_features(region):
+    img = cv2.GaussianBlur(np.random.default_rng(3).integers(0, 256, (60, 50), dtype=np.uint8), (3, 3), 0.8)
+    r0, r1, c0, c1 = region
+    assert np.array_equal(retina.planes(retina.strip(img, r0, r1, c0, c1)), ref_features(img)[:, r0:r1, c0:c1])
+
+
+@pytest.mark.parametrize("grad,expect_d", [("right", 0), ("down", 64), ("left", 128), ("up", 192)])
+def test_direction_feature_is_full_circle(grad, expect_d):
+    ramp = np.tile(np.arange(0, 100, 10, dtype=np.uint8), (10, 1))  # intensity grows to the right
+    img = {"right": ramp, "left": ramp[:, ::-1], "down": ramp.T, "up": ramp.T[::-1]}[grad]
+    p = retina.planes(np.ascontiguousarray(img))
+    assert (p[2, 2:-2, 2:-2] == expect_d).all()
+    assert (p[1, 2:-2, 2:-2] == 20).all()  # Sobel of a 10/px ramp is 4 * 2 * 10 = 80; G = 80 / 4
+    flat = retina.planes(np.full((5, 5), 77, np.uint8))
+    assert flat[0].min() == 77 and not flat[1].any() and not flat[2].any()
+
+
+def test_gradient_magnitude_saturates_at_255():
+    step = np.zeros((5, 5), np.uint8)
+    step[:, 3:] = 255  # Sobel gives 1020, 1020 / 4 = 255 exactly; a diagonal step would exceed it
+    step2 = np.tril(np.full((5, 5), 255, np.uint8))
+    assert retina.planes(step)[1].max() == 255
+    assert retina.planes(step2)[1].max() == 255
+
+
+def test_colour_images_are_converted_for_the_strips_only():
+    rng = np.random.default_rng(0)
+    bgr = rng.integers(0, 256, (40, 60, 3), dtype=np.uint8)
+    gray = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    f1, b1 = vergence.features(bgr, bgr, (30, 20), 9, 2)
+    f2, b2 = vergence.features(gray, gray, (30, 20), 9, 2)
+    assert np.array_equal(f1, f2) and np.array_equal(b1, b2)
+    assert f1.shape == (3, 9, 9) and b1.shape == (3, 13, 60)
+
+
+@pytest.mark.parametrize("x,y,w,r,msg", [(3, 20, 15, 0, "left/right"), (30, 2, 15, 0, "top/bottom"),
+                                         (30, 10, 15, 4, "top/bottom"), (30, 20, 14, 0, "odd"),
+                                         (30, 20, 71, 0, "larger")])
+def test_border_errors_say_why(x, y, w, r, msg):
+    img = np.zeros((40, 60), np.uint8)
+    with pytest.raises(vergence.BorderError, match=msg):
+        vergence.features(img, img, (x, y), w, r)
+
+
+@pytest.mark.parametrize("mode", ["affine", "histogram"])
+def test_photometric_undoes_the_slave_cameras_gain_and_offset(mode):
+    """retina.photometric maps the slave's gray strip onto the master's: a slave seeing the same rows at
+    gain 1.3 / +20 or 0.7 / -15 comes back within a level or two (bar its saturated pixels), the same strip
+    comes back unchanged, and 'none' leaves it alone."""
+    rng = np.random.default_rng(3)
+    master = cv2.GaussianBlur(rng.integers(30, 200, (29, 642), dtype=np.uint8), (5, 5), 1.0)
+    assert np.array_equal(retina.photometric(master, master, mode), master)
+    for gain, off in ((1.3, 20), (0.7, -15)):
+        slave = np.clip(master * gain + off, 0, 255).astype(np.uint8)
+        assert np.abs(slave.astype(int) - master).mean() > 10
+        back = retina.photometric(slave, master, mode).astype(int)
+        unsat = (slave > 0) & (slave < 255)
+        assert np.abs(back - master)[unsat].mean() < 1.0 and np.abs(back - master)[unsat].max() <= 3
+        assert retina.photometric(slave, master, "none") is slave
+    flat = np.full_like(master, 77)
+    assert np.all(retina.photometric(flat, master, mode) == retina.photometric(flat, master, mode)[0, 0])
