@@ -227,15 +227,23 @@ def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: 
 
 def floor_subscriber(endpoint: str) -> int:
     """--floor's subscriber (`vergence bench pipeline --subscriber ENDPOINT`, its own process): a callback
-    that copies each payload of bench/floor, until SIGINT/SIGTERM."""
+    that copies each payload of bench/floor, until SIGINT/SIGTERM. Its session is opened as the services'
+    (session.open_session: what was imported is frozen out of the garbage collector's reach)."""
     from . import session
 
     stop = session.Stop()
-    with _session(endpoint) as s:
+    with session.open_session(session.zenoh_config("client", [endpoint])) as s:
         sub = s.declare_subscriber("bench/floor", lambda smp: smp.payload.to_bytes())
         stop.wait()
         sub.undeclare()
     return 0
+
+
+def _idle(procs: list[Proc], span: float = 0.3) -> bool:
+    """Whether the processes used no CPU tick (10 ms) during the next `span` seconds."""
+    before = [p.cpu_s() for p in procs]
+    time.sleep(span)
+    return [p.cpu_s() for p in procs] == before
 
 
 def messaging_floor(workdir: Path, n: int = 3000, size: int = 27_000) -> dict:
@@ -251,6 +259,7 @@ def messaging_floor(workdir: Path, n: int = 3000, size: int = 27_000) -> dict:
         try:
             pub = s.declare_publisher("bench/floor", express=True)
             wait_for(lambda: pub.matching_status.matching, 60, "the floor's subscriber", interval=0.05)
+            wait_for(lambda: _idle(procs), 30, "the floor's processes to settle", interval=0)
             before = [p.cpu_s() for p in procs]
             payload = bytes(size)
             t0 = time.monotonic()
