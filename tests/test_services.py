@@ -361,6 +361,7 @@ def test_a_client_worker_joins_the_peers_of_up(tmp_path, pair):
         assert all(c.frame > prof.frame for c in got)
 
 
+@pytest.mark.slow
 def test_sigint_token_goes_then_the_exiting_status(tmp_path):
     """services/node.py's end of a service: on SIGINT the liveliness token goes, the loop threads are woken
     (the reducer's two rings: a missed wake costs 5 s per thread), one last status says "exiting": true with
