@@ -10,18 +10,18 @@ t_capture_ns: one more hop than the actuator sees), throughput, frames dropped (
 command), beside the in-process vergence.match time on the same images (overhead = p50 / match).
 Without --rate: 100 Hz, then 250, 500, 1000, 1500, 2000 Hz until a run drops frames
 (the highest rate held without drops is the last clean one). --heavy adds the heavy setting (3840 x 1080,
-w = 31, vertical search +-16) at a few Hz, where sharding pays.
+w = 31, vertical search +-16) at a few Hz, where sharding pays. --floor: the CPU per message (psutil) of a
+router and of a subscriber process (`vergence bench pipeline --subscriber ENDPOINT`). Processes start and
+stop through services/launch.py, each logging into a file of the run's temporary folder (shown on failure).
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import json
 import os
 import signal
-import subprocess
 import sys
 import tempfile
 import threading
@@ -30,6 +30,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+from .launch import Proc, free_port, stop_all, vergence, wait_for, wait_listening
 
 RATES = [100, 250, 500, 1000, 1500, 2000]
 HEAVY_RATES = [10, 25, 50, 100]
@@ -50,6 +52,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--actuator", action="store_true", help="also run the sim actuator (commands close the loop "
                                                            "through motor/state, as in `vergence up`)")
     p.add_argument("--json", action="store_true", help="one JSON object per run")
+    p.add_argument("--subscriber", metavar="ENDPOINT", help=argparse.SUPPRESS)  # --floor's, in its own process
 
 
 SHIFT = 12  # px: the synthetic pair's offset, which every command must carry
@@ -61,54 +64,43 @@ def synthetic_pair(width: int, height: int, shift: int = SHIFT, seed: int = 5) -
     return (np.ascontiguousarray(base[:, shift : shift + width]), np.ascontiguousarray(base[:, :width]))
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 class Cluster:
-    """A router, a reducer and N workers as child processes (own process groups), torn down on exit."""
+    """A router, a reducer and N workers (and the sim actuator) as child processes, stopped on close."""
 
     def __init__(self, workdir: Path, rig: str, config: str, workers: int, client: bool = False,
                  actuator: bool = False):
         self.dir, self.rig, self.config = workdir, rig, config
-        self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
-        self.procs: list[subprocess.Popen] = []
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.procs: list[Proc] = []
         self.extra = [] if client else ["--mode", "peer", "--listen", "tcp/127.0.0.1:0"]  # as `vergence up`
-        self.spawn("router", "router", "--listen", self.endpoint, member=False)
-        time.sleep(0.3)
-        if actuator:
-            self.spawn("actuator", "actuator", "--driver", "sim")
-        for i in range(workers):
-            self.spawn(f"worker{i}", "worker", "--name", f"b{i}")
-        self.spawn("reducer", "reducer")
+        self.members = ["reducer"] + (["actuator"] if actuator else [])  # besides the workers
+        try:
+            router = self.spawn("router", "router", "--listen", self.endpoint, member=False)
+            wait_listening(self.endpoint, 30, router, logs=self.logs)
+            if actuator:
+                self.spawn("actuator", "actuator", "--driver", "sim")
+            for i in range(workers):
+                self.spawn(f"worker{i}", "worker", "--name", f"b{i}")
+            self.spawn("reducer", "reducer")
+        except BaseException:
+            self.close()
+            raise
 
-    def spawn(self, name: str, *args: str, member: bool = True) -> subprocess.Popen:
-        argv = [sys.executable, "-m", "vergence_services.cli", *args]
+    def spawn(self, name: str, *args: str, member: bool = True) -> Proc:
+        argv = vergence(*args)
         if member:
             argv += ["--connect", self.endpoint, "--rig", self.rig, "--config", self.config] + self.extra
-        log = open(self.dir / f"{name}.log", "ab")
-        p = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                             start_new_session=True)
-        log.close()
+        p = Proc(name, argv, log=self.dir / f"{name}.log", append=True)
         self.procs.append(p)
         return p
 
+    def logs(self) -> str:
+        return "\n".join(p.tail(10) for p in self.procs)
+
     def close(self) -> None:
-        for p in reversed(self.procs):
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(p.pid, signal.SIGINT)
-        for p in reversed(self.procs):
-            try:
-                p.wait(5)
-            except subprocess.TimeoutExpired:
-                pass
-            with contextlib.suppress(ProcessLookupError, PermissionError):
-                os.killpg(p.pid, signal.SIGKILL)
-            p.wait()
+        for p in self.procs:  # all at once, then each in turn, the router last
+            p.signal_group(signal.SIGINT)
+        stop_all(self.procs[::-1])
 
 
 def _session(endpoint: str):
@@ -117,15 +109,6 @@ def _session(endpoint: str):
     from . import session
 
     return zenoh.open(session.zenoh_config("client", [endpoint]))
-
-
-def _wait(cond, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def in_process_ms(master, slave, params, n: int = 30) -> float:
@@ -165,10 +148,9 @@ def run_rate(cl: Cluster, s, source: str, rate: float, frames: int) -> dict:
                        str(frames + warm))
         try:
             cap.wait(frames / rate * 3 + 30)
-        except subprocess.TimeoutExpired:
-            os.killpg(cap.pid, signal.SIGKILL)
-            cap.wait()
-        time.sleep(0.3)
+        except TimeoutError:
+            cap.stop()
+        time.sleep(0.3)  # the last frames' commands on their way
     finally:
         sub.undeclare()
         sub_state.undeclare()
@@ -220,11 +202,13 @@ def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: 
         try:
             s = _session(cl.endpoint)
             try:
-                alive = keys.alives(cl.rig, "worker")
-                ok = _wait(lambda: len(list(s.liveliness().get(alive, timeout=0.5))) >= nw, 60)
-                if not ok:
-                    raise RuntimeError(f"the {nw} worker(s) did not come up; see the logs in {workdir}")
-                time.sleep(0.5)
+                for role, n in [("worker", nw)] + [(m, 1) for m in cl.members]:
+                    try:
+                        wait_for(lambda r=role, n=n: len(list(s.liveliness().get(keys.alives(cl.rig, r),
+                                                                                  timeout=0.5))) >= n,
+                                 60, f"{n} {role}(s)", interval=0.05)
+                    except TimeoutError:
+                        raise RuntimeError(f"{n} {role}(s) did not come up; see the logs in {workdir}") from None
                 for rate in rates:
                     frames = max(10, int(rate * args.seconds))
                     r = run_rate(cl, s, f"files:{lp},{rp}", rate, frames)
@@ -241,35 +225,42 @@ def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: 
     return rows
 
 
-_SUB = """
-import sys, time, zenoh
-from vergence_services import session
-s = zenoh.open(session.zenoh_config("client", [sys.argv[1]]))
-s.declare_subscriber("bench/floor", lambda smp: smp.payload.to_bytes())
-time.sleep(60)
-"""
+def floor_subscriber(endpoint: str) -> int:
+    """--floor's subscriber (`vergence bench pipeline --subscriber ENDPOINT`, its own process): a callback
+    that copies each payload of bench/floor, until SIGINT/SIGTERM. Its session is opened as the services'
+    (session.open_session: what was imported is frozen out of the garbage collector's reach)."""
+    from . import session
+
+    stop = session.Stop()
+    with session.open_session(session.zenoh_config("client", [endpoint])) as s:
+        sub = s.declare_subscriber("bench/floor", lambda smp: smp.payload.to_bytes())
+        stop.wait()
+        sub.undeclare()
+    return 0
 
 
-def _cpu_s(pid: int) -> float:
-    with open(f"/proc/{pid}/stat") as fh:
-        f = fh.read().rsplit(")", 1)[1].split()
-    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+def _idle(procs: list[Proc], span: float = 0.3) -> bool:
+    """Whether the processes used no CPU tick (10 ms) during the next `span` seconds."""
+    before = [p.cpu_s() for p in procs]
+    time.sleep(span)
+    return [p.cpu_s() for p in procs] == before
 
 
 def messaging_floor(workdir: Path, n: int = 3000, size: int = 27_000) -> dict:
     """CPU time per message of a router and of one Python subscriber (a callback that copies the payload),
     for `size`-byte messages published at 1 kHz by this process: the cost every hop of the pipeline pays."""
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    procs = [subprocess.Popen([sys.executable, "-m", "vergence_services.cli", "router", "--listen", endpoint],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)]
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs = [Proc("floor-router", vergence("router", "--listen", endpoint), log=workdir / "floor-router.log")]
     try:
-        time.sleep(0.5)
-        procs.append(subprocess.Popen([sys.executable, "-c", _SUB, endpoint], start_new_session=True))
+        wait_listening(endpoint, 30, procs[0])
+        procs.append(Proc("floor-subscriber", vergence("bench", "pipeline", "--subscriber", endpoint),
+                          log=workdir / "floor-subscriber.log"))
         s = _session(endpoint)
         try:
             pub = s.declare_publisher("bench/floor", express=True)
-            time.sleep(1.5)
-            before = [_cpu_s(p.pid) for p in procs]
+            wait_for(lambda: pub.matching_status.matching, 60, "the floor's subscriber", interval=0.05)
+            wait_for(lambda: _idle(procs), 30, "the floor's processes to settle", interval=0)
+            before = [p.cpu_s() for p in procs]
             payload = bytes(size)
             t0 = time.monotonic()
             for i in range(n):
@@ -278,14 +269,11 @@ def messaging_floor(workdir: Path, n: int = 3000, size: int = 27_000) -> dict:
                 if d > 0:
                     time.sleep(d)
             time.sleep(0.3)
-            after = [_cpu_s(p.pid) for p in procs]
+            after = [p.cpu_s() for p in procs]
         finally:
             s.close()
     finally:
-        for p in procs:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(p.pid, signal.SIGKILL)
-            p.wait()
+        stop_all(procs[::-1])
     return dict(setting="floor", size=size, messages=n, router_us=(after[0] - before[0]) / n * 1e6,
                 subscriber_us=(after[1] - before[1]) / n * 1e6)
 
@@ -307,6 +295,8 @@ def summary(rows: list[dict]) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     import logging
 
+    if args.subscriber:
+        return floor_subscriber(args.subscriber)
     logging.basicConfig(level=logging.WARNING)
 
     def emit(r: dict) -> None:
@@ -339,7 +329,7 @@ def run(args: argparse.Namespace) -> int:
             if not args.json:
                 for line in summary(rows):
                     print(line, flush=True)
-        except (RuntimeError, KeyboardInterrupt) as e:
+        except (RuntimeError, TimeoutError, KeyboardInterrupt) as e:
             print(f"vergence bench pipeline: {e}", file=sys.stderr)
             for log in sorted(work.glob("*.log")):
                 print(f"--- {log.name}\n{log.read_text(errors='replace')[-800:]}", file=sys.stderr)

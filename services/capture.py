@@ -21,6 +21,7 @@ holds less than half).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import logging
@@ -40,9 +41,9 @@ from vergence.sources import SourceError, open_source
 from . import session
 from .health import Health
 from .match import point_arg
+from .node import STATUS_S, Node
 
 log = logging.getLogger("vergence.capture")
-STATUS_S = 1.0
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -111,6 +112,30 @@ class Fovea:
         return x, y
 
 
+class Rates:
+    """The rate the pipeline holds, for each status: frames published here against frames the reducer
+    completed (the `complete` of its latest report); one warning when it holds less than half."""
+
+    def __init__(self, period: float = STATUS_S):
+        self.period = period
+        self.published = 0
+        self.decided = 0
+        self._then = (0, 0)  # both at the previous status
+        self._warned = False
+
+    def fields(self) -> dict:
+        sent, done = self.published - self._then[0], self.decided - self._then[1]
+        self._then = (self.published, self.decided)
+        # (the reducer's count lags by up to its report period: never more than was published; a negative
+        # difference is a new reducer)
+        held = min(done, sent) / self.period if done >= 0 else None
+        if held is not None and sent >= 20 and done < 0.5 * sent and not self._warned:
+            self._warned = True
+            log.warning("the pipeline completes %.0f of the %.0f frames/s published: lower the rate (--rate) or "
+                        "add workers", held, sent / self.period)
+        return dict(published_hz=sent / self.period, decided_hz=held)
+
+
 def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
          at: tuple[int, int] | None = None) -> int:
     rig, cs, params, geo = settings.rig, settings.capture, settings.network, settings.geometry
@@ -133,15 +158,21 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         print(f"vergence capture: {e}", file=sys.stderr)
         source.close()
         return 2
-    alive = session.alive_key(rig, "capture")
-    cid = keys.parse(alive).ident
-    health = Health("capture", cid, log)
     windows = WindowControl(params)
     lim = settings.limits
     members = Roster(lim.miss_s, lim.probation_s, lim.miss_frames)
-    fovea = Fovea(x, y, (ht, wd), params, health)
     pan = [source.start_pan_rad]
-    decided = [0, 0]  # the reducer's complete frames: latest report, and at the last status
+    rates = Rates()
+    plan: list = []
+
+    def fields() -> dict:
+        return dict(window=windows.window, workers=len(plan), excluded=members.excluded(), **rates.fields(),
+                    roster=dict(members.counters), fovea=list(fovea.at()))
+
+    node = Node("capture", rig, conf, stop, log=log, fields=fields,
+                final_fields=lambda: dict(window=windows.window, workers=len(plan)))
+    health, cid = node.health, node.ident
+    fovea = Fovea(x, y, (ht, wd), params, health)
 
     def on_motor(sample):
         try:
@@ -170,7 +201,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         for wid in members.on_report(rep):
             log.warning("worker %s left the plan: its shards stopped arriving at the reducer", wid)
         if isinstance(rep.get("complete"), int):
-            decided[0] = rep["complete"]
+            rates.decided = rep["complete"]
 
     def on_decision(sample):
         try:
@@ -184,101 +215,73 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
     preview_period = 1.0 / cs.preview_hz if cs.preview_hz > 0 else 0.0
     pw = min(cs.preview_width, wd) if cs.preview_width > 0 else wd
     ph = max(1, round(ht * pw / wd))
-    with session.open_session(conf) as s:
-        pub_frame = s.declare_publisher(keys.frame(rig), express=True)
-        pub_preview = s.declare_publisher(keys.preview(rig))
-        pub_status = s.declare_publisher(keys.status(rig, "capture", cid))
-        subs = [s.declare_subscriber(keys.motor_state(rig), on_motor),
-                s.declare_subscriber(keys.workers(rig), on_report),
-                s.liveliness().declare_subscriber(keys.alives(rig, "worker"), on_token, history=True)]
+    with contextlib.closing(source), node:
+        pub_frame = node.publisher(keys.frame(rig), express=True)
+        pub_preview = node.publisher(keys.preview(rig))
+        node.subscriber(keys.motor_state(rig), on_motor)
+        node.subscriber(keys.workers(rig), on_report)
+        node.liveliness_subscriber(keys.alives(rig, "worker"), on_token, history=True)
         if params.max_window:
-            subs.append(s.declare_subscriber(keys.decision(rig), on_decision))
-        subs.append(s.declare_subscriber(keys.fixate(rig), lambda sm: fovea.on_fixate(sm.payload.to_bytes())))
-        token = s.liveliness().declare_token(alive)
+            node.subscriber(keys.decision(rig), on_decision)
+        node.subscriber(keys.fixate(rig), lambda sm: fovea.on_fixate(sm.payload.to_bytes()))
+        node.ready()
         log.info("capture %s: %s (%d x %d, f=%.1f px) at %s Hz on %s", cid, cs.source, wd, ht,
                  focal, cs.rate_hz or "max", keys.frame(rig))
-        plan_key, plan = None, []
+        plan_key = None
         fid = 0
-        published = 0
         next_t = time.monotonic()
         next_preview = next_t
-        next_status = next_t + STATUS_S
-        published_at_status = 0
-        slow_logged = False
-        try:
-            while not stop.is_set() and (frames <= 0 or published < frames):
-                if period:
-                    delay = next_t - time.monotonic()
-                    if delay > 0:
-                        stop.wait(delay)
-                        if stop.is_set():
-                            break
-                    # keep the schedule, but never try to catch up more than one period late
-                    next_t = max(next_t + period, time.monotonic() - period)
-                p_now = pan[0]
+        while not stop.is_set() and (frames <= 0 or rates.published < frames):
+            if period:
+                delay = next_t - time.monotonic()
+                if delay > 0:
+                    stop.wait(delay)
+                    if stop.is_set():
+                        break
+                # keep the schedule, but never try to catch up more than one period late
+                next_t = max(next_t + period, time.monotonic() - period)
+            p_now = pan[0]
+            try:
+                master, slave = source.read(p_now)
+            except SourceError as e:
+                print(f"vergence capture: {e}", file=sys.stderr)
+                return 2
+            t_ns = time.time_ns()
+            w = windows.window
+            changes, ids = members.snapshot()
+            if (changes, w) != plan_key:
+                plan_key = (changes, w)
+                plan = plan_shards(ids, wd - w + 1)
+            fid += 1
+            health.count("frames")
+            if plan and not pub_frame.matching_status.matching:
+                # workers are alive but the router has not yet told this session about their
+                # subscriptions (just after start): a frame now would go nowhere
+                health.count("unrouted")
+            elif plan:
                 try:
-                    master, slave = source.read(p_now)
-                except SourceError as e:
-                    print(f"vergence capture: {e}", file=sys.stderr)
-                    return 2
-                t_ns = time.time_ns()
-                w = windows.window
-                changes, ids = members.snapshot()
-                if (changes, w) != plan_key:
-                    plan_key = (changes, w)
-                    plan = plan_shards(ids, wd - w + 1)
-                fid += 1
-                health.count("frames")
-                if plan and not pub_frame.matching_status.matching:
-                    # workers are alive but the router has not yet told this session about their
-                    # subscriptions (just after start): a frame now would go nowhere
-                    health.count("unrouted")
-                elif plan:
-                    try:
-                        frame = make_frame(master, slave, rig=rig, frame=fid, pan_rad=p_now, focal_px=focal,
-                                           params=params, plan=plan, at=fovea.at(), window=w,
-                                           t_capture_ns=t_ns)
-                        frame.master_pan_rad, frame.tilt_rad = master_pan, tilt
-                    except retina.BorderError:  # a grown window that no longer fits: back to the base one
-                        windows.reset()
-                        continue
-                    frame.truth_pan_rad = source.truth_pan_rad  # the simulator's ground truth, else None
-                    pub_frame.put(frame.to_bytes())
-                    published += 1
-                    health.count("published")
-                else:
-                    health.count("no_workers")
-                now = time.monotonic()
-                if preview_period and now >= next_preview:
-                    next_preview = now + preview_period
-                    m = cv2.resize(master, (pw, ph), interpolation=cv2.INTER_AREA)
-                    sl = cv2.resize(slave, (pw, ph), interpolation=cv2.INTER_AREA)
-                    pub_preview.put(Preview(rig=rig, frame=fid, t_capture_ns=t_ns, width=pw, height=ph, scale=pw / wd,
-                                            master=m.tobytes(), slave=sl.tobytes(), pan_rad=p_now,
-                                            truth_pan_rad=source.truth_pan_rad).to_bytes())
-                if now >= next_status:
-                    # the rate the pipeline holds: frames published vs frames the reducer completed
-                    sent, done = published - published_at_status, decided[0] - decided[1]
-                    published_at_status, decided[1] = published, decided[0]
-                    # (the reducer's count lags by up to its report period: never more than was published;
-                    # a negative difference is a new reducer)
-                    held = min(done, sent) / STATUS_S if done >= 0 else None
-                    if held is not None and sent >= 20 and done < 0.5 * sent and not slow_logged:
-                        slow_logged = True
-                        log.warning("the pipeline completes %.0f of the %.0f frames/s published: lower the rate "
-                                    "(--rate) or add workers", held, sent / STATUS_S)
-                    next_status = now + STATUS_S
-                    pub_status.put(json.dumps(health.status(
-                        window=windows.window, workers=len(plan), excluded=members.excluded(),
-                        published_hz=sent / STATUS_S, decided_hz=held, roster=dict(members.counters),
-                        fovea=list(fovea.at()))))
-        finally:
-            for sub in subs:  # no callback may still run while the session closes
-                sub.undeclare()
-            token.undeclare()
-            pub_status.put(json.dumps(health.status(window=windows.window, workers=len(plan), exiting=True)))
-            source.close()
-            log.info("capture %s exits: %s bad %s", cid, health.counters, health.bad)
+                    frame = make_frame(master, slave, rig=rig, frame=fid, pan_rad=p_now, focal_px=focal,
+                                       params=params, plan=plan, at=fovea.at(), window=w,
+                                       t_capture_ns=t_ns)
+                    frame.master_pan_rad, frame.tilt_rad = master_pan, tilt
+                except retina.BorderError:  # a grown window that no longer fits: back to the base one
+                    windows.reset()
+                    continue
+                frame.truth_pan_rad = source.truth_pan_rad  # the simulator's ground truth, else None
+                pub_frame.put(frame.to_bytes())
+                rates.published += 1
+                health.count("published")
+            else:
+                health.count("no_workers")
+            now = time.monotonic()
+            if preview_period and now >= next_preview:
+                next_preview = now + preview_period
+                m = cv2.resize(master, (pw, ph), interpolation=cv2.INTER_AREA)
+                sl = cv2.resize(slave, (pw, ph), interpolation=cv2.INTER_AREA)
+                pub_preview.put(Preview(rig=rig, frame=fid, t_capture_ns=t_ns, width=pw, height=ph,
+                                        scale=pw / wd, master=m.tobytes(), slave=sl.tobytes(), pan_rad=p_now,
+                                        truth_pan_rad=source.truth_pan_rad).to_bytes())
+            node.tick(now)
     return 0
 
 

@@ -33,15 +33,14 @@ import zenoh
 from vergence import depth, kernel, keys
 from vergence.config import load
 from vergence.frames import frame_too_large, make_frame
-from vergence.gather import Gatherer, Result
+from vergence.gather import FrameDecision, Gatherer
 from vergence.messages import Frame, MessageError, Partial, replace as replace_message
 from vergence.shards import compute_partial
 
 from . import session
-from .health import Health
+from .node import Node
 
 log = logging.getLogger("vergence.reducer")
-STATUS_S = 1.0
 SUMMARY_S = 5.0
 EXPIRE_S = 0.05  # the longest sleep between deadline checks (frames also expire as messages arrive)
 REPORT_S = 0.1  # the membership evidence (vergence/<rig>/workers) goes out this often
@@ -74,7 +73,7 @@ def warm_up(settings) -> None:
     g.add_partial(compute_partial(f, "w"))
 
 
-def summary(seconds: float, frames: int, lost: int, commands: int, last: Result) -> str:
+def summary(seconds: float, frames: int, lost: int, commands: int, last: FrameDecision) -> str:
     """The reducer's periodic log line: what came through in the last `seconds`, and the latest decision."""
     d, f = last.decision, last.frame
     return (f"last {seconds:.0f} s: frames {frames} decided, {lost} dropped, commands {commands}; frame {f.frame}: "
@@ -127,19 +126,21 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
     deadline = (deadline_ms if deadline_ms is not None else settings.reducer.deadline_ms) / 1000.0
     limits = settings.limits
     gatherer = Gatherer(settings.network, settings.control, deadline, limits, motor=settings.actuator.motor)
-    alive = session.alive_key(rig, "reducer")
-    rid = keys.parse(alive).ident
-    health = Health("reducer", rid, log)
     lock = threading.Lock()  # the gatherer: the loop thread and the status
     inbox = Inbox()
-    with session.open_session(conf) as s:
-        pub_decision = s.declare_publisher(keys.decision(rig), express=True)
-        pub_profile = s.declare_publisher(keys.profile(rig), express=True)
-        pub_command = s.declare_publisher(keys.command(rig), express=True)
-        pub_status = s.declare_publisher(keys.status(rig, "reducer", rid))
-        pub_workers = s.declare_publisher(keys.workers(rig), express=True)
 
-        last: list[Result] = []
+    def fields() -> dict:
+        with lock:
+            return dict(gatherer=dict(gatherer.counters), pending=len(gatherer.pending), shed=dict(inbox.shed))
+
+    with Node("reducer", rig, conf, stop, log=log, fields=fields) as node:
+        health, rid = node.health, node.ident
+        pub_decision = node.publisher(keys.decision(rig), express=True)
+        pub_profile = node.publisher(keys.profile(rig), express=True)
+        pub_command = node.publisher(keys.command(rig), express=True)
+        pub_workers = node.publisher(keys.workers(rig), express=True)
+
+        last: list[FrameDecision] = []
         geo = settings.geometry
 
         def publish(results) -> None:
@@ -209,74 +210,46 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
         # process, so no queue builds up in the network; the oldest go when a ring is full); one forwarder
         # thread per ring hands the payloads to the inbox; this thread decodes, gathers, decides and
         # publishes, expires deadlines, and publishes the status and the membership evidence
-        subs = {"frame": s.declare_subscriber(keys.frame(rig), zenoh.handlers.RingChannel(FRAME_RING)),
-                "partial": s.declare_subscriber(keys.correlations(rig), zenoh.handlers.RingChannel(PARTIAL_RING))}
-        wake = {"frame": keys.frame(rig), "partial": keys.correlation(rig, WAKE)}
-
-        def forward(kind: str) -> None:
-            sub = subs[kind]
-            while True:
-                smp = sub.recv()
-                if stop.is_set():
-                    return
+        def forward(kind: str, sub) -> None:
+            for smp in node.samples(sub):
                 inbox.put(kind, (str(smp.key_expr), smp.payload.to_bytes()))
 
-        forwarders = [threading.Thread(target=forward, args=(k,), name=f"reducer-{k}", daemon=True) for k in subs]
-        for th in forwarders:
-            th.start()
-        token = s.liveliness().declare_token(alive)
+        node.thread(forward, "frame", node.ring(keys.frame(rig), FRAME_RING), name="reducer-frame")
+        node.thread(forward, "partial", node.ring(keys.correlations(rig), PARTIAL_RING,
+                                                  wake=keys.correlation(rig, WAKE)), name="reducer-partial")
+        node.ready()
         log.info("reducer %s on %s and %s, deadline %.0f ms", rid, keys.frame(rig), keys.correlations(rig),
                  deadline * 1e3)
-
-        def status(**extra) -> bytes:
-            with lock:
-                return json.dumps(health.status(gatherer=dict(gatherer.counters), pending=len(gatherer.pending),
-                                                shed=dict(inbox.shed), **extra)).encode()
 
         def workers_report() -> bytes:
             with lock:
                 return json.dumps(dict(gatherer.report(), rig=rig, id=rid, t_ns=time.time_ns(),
                                        complete=gatherer.counters["complete"])).encode()
 
-        next_status = time.monotonic() + STATUS_S
         next_report = time.monotonic() + REPORT_S
         next_summary, seen = time.monotonic() + SUMMARY_S, (0, 0, 0)
         sleep = EXPIRE_S
-        try:
-            while not stop.is_set():
-                batch = inbox.drain(sleep)
-                if batch:
-                    handle(batch)
+        while not stop.is_set():
+            batch = inbox.drain(sleep)
+            if batch:
+                handle(batch)
+            with lock:
+                gatherer.expire()
+                due = gatherer.next_deadline()
+            now = time.monotonic()
+            # wake at the next deadline (every 5 ms before: 200 wake-ups a second for nothing)
+            sleep = EXPIRE_S if due is None else min(EXPIRE_S, max(0.001, due - now))
+            if now >= next_report:
+                pub_workers.put(workers_report())
+                next_report = now + REPORT_S
+            node.tick(now)
+            if now >= next_summary:
                 with lock:
-                    gatherer.expire()
-                    due = gatherer.next_deadline()
-                now = time.monotonic()
-                # wake at the next deadline (every 5 ms before: 200 wake-ups a second for nothing)
-                sleep = EXPIRE_S if due is None else min(EXPIRE_S, max(0.001, due - now))
-                if now >= next_report:
-                    pub_workers.put(workers_report())
-                    next_report = now + REPORT_S
-                if now >= next_status:
-                    pub_status.put(status())
-                    next_status = now + STATUS_S
-                if now >= next_summary:
-                    with lock:
-                        c = gatherer.counters
-                        counts = (c["complete"], c["dropped"] + c["superseded"], health.counters.get("commands", 0))
-                        if counts[0] > seen[0]:
-                            log.info("%s", summary(SUMMARY_S, *(a - b for a, b in zip(counts, seen)), last[0]))
-                    seen, next_summary = counts, now + SUMMARY_S
-        finally:
-            stop.set()
-            for kind, key in wake.items():  # wake the forwarders: a local, empty sample on their own subscription
-                s.put(key, b"", allowed_destination=zenoh.Locality.SESSION_LOCAL)
-            for th in forwarders:
-                th.join(5.0)
-            for sub in subs.values():
-                sub.undeclare()
-            token.undeclare()
-            pub_status.put(status(exiting=True))
-            log.info("reducer %s exits: %s gatherer %s bad %s", rid, health.counters, gatherer.counters, health.bad)
+                    c = gatherer.counters
+                    counts = (c["complete"], c["dropped"] + c["superseded"], health.counters.get("commands", 0))
+                    if counts[0] > seen[0]:
+                        log.info("%s", summary(SUMMARY_S, *(a - b for a, b in zip(counts, seen)), last[0]))
+                seen, next_summary = counts, now + SUMMARY_S
     return 0
 
 

@@ -13,32 +13,29 @@ warmed up and waits in session.open_session) that takes over the moment its chil
 with 2 at its first start (bad options or settings) stops everything instead.
 
 SIGINT (Ctrl-C) or SIGTERM ends the supervision and stops the standbys, then the children in order (capture
-first, router last), each with SIGINT and then SIGKILL after a grace time; children also get SIGTERM if `up`
-itself dies (Linux parent-death signal), so nothing is left behind.
+first, router last), each with SIGINT, then SIGTERM and SIGKILL after grace times (services/launch.py);
+children also get SIGTERM if `up` itself dies (Linux parent-death signal), so nothing is left behind.
 """
 
 from __future__ import annotations
 
 import argparse
-import ctypes
 import logging
 import os
-import signal
-import socket
-import subprocess
 import sys
 import time
 
 from vergence.config import load
 
 from . import session
+from .launch import GRACE_S, Proc, accepts, vergence, wait_listening
 
 log = logging.getLogger("vergence.up")
-GRACE_S = 5.0
 POLL_S = 0.05  # how often dead children are looked for
 BACKOFF_S = (0.2, 5.0)  # the wait before a restart: first, then doubled up to the second ...
 STABLE_S = 10.0  # ... and back to the first once the child has run this long
 STATUS_S = 60.0  # a line with the restart counts this often
+ROUTER_START_S = 10.0  # the router has this long to listen before anything else starts
 STANDBY_DELAY_S = 5.0  # a standby is started this long after its child (not to slow the child's own start)
 
 
@@ -60,18 +57,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "the first dies; the capture has none with cameras, which one process holds)")
 
 
-def _die_with_parent() -> None:
-    """preexec_fn: SIGTERM this child when its parent dies (Linux), then a session of its own."""
-    try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
-
-
 def commands(args: argparse.Namespace, rig: str) -> list[tuple[str, list[str]]]:
     """(name, argv) of every child, in start order: router, actuator, workers, reducer, capture."""
-    base = [sys.executable, "-m", "vergence_services.cli"]
+    base = vergence()
     common = ["--mode", "peer", "--connect", args.listen, "--listen", "tcp/127.0.0.1:0", "--rig", rig]
     common += ["--config", args.config] if args.config else []
     out = [("router", base + ["router", "--listen", args.listen])]
@@ -94,42 +82,16 @@ def commands(args: argparse.Namespace, rig: str) -> list[tuple[str, list[str]]]:
     return out
 
 
-def _accepts(endpoint: str) -> bool | None:
-    """Whether something accepts TCP connections at a tcp/HOST:PORT endpoint (None: not a tcp endpoint)."""
-    proto, _, addr = endpoint.partition("/")
-    host, _, port = addr.rpartition(":")
-    host = host.strip("[]")
-    if proto != "tcp" or not port.isdigit():
-        return None
-    probe = {"0.0.0.0": "127.0.0.1", "": "127.0.0.1", "::": "::1"}.get(host, host)
-    with socket.socket(socket.AF_INET6 if ":" in probe else socket.AF_INET) as sock:
-        sock.settimeout(0.2)
-        return sock.connect_ex((probe, int(port))) == 0
-
-
-def _router_listening(p: subprocess.Popen, endpoint: str, timeout: float = 10.0) -> bool:
-    """Wait until the router accepts connections on its endpoint (other transports than tcp: until it has
-    run for a moment); False as soon as it exits."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and p.poll() is None:
-        ok = _accepts(endpoint)
-        if ok or ok is None:
-            time.sleep(0.0 if ok else 0.3)
-            return p.poll() is None
-        time.sleep(0.05)
-    return p.poll() is None
-
-
 class Standby:
     """A second copy of a child, started ahead: it has imported and warmed up, and waits in
     session.open_session for a byte on its pipe (then it is the child) or its end (then it leaves)."""
 
-    def __init__(self, argv: list[str]):
+    def __init__(self, name: str, argv: list[str]):
+        self.name = name  # the child's
         ready_r, ready_w = os.pipe()
         go_r, go_w = os.pipe()
         env = dict(os.environ, **{session.STANDBY_ENV: f"{ready_w},{go_r}"})
-        self.p = subprocess.Popen(argv, preexec_fn=_die_with_parent, start_new_session=True,
-                                  stdin=subprocess.DEVNULL, pass_fds=(ready_w, go_r), env=env)
+        self.p = Proc(f"the standby of {name}", argv, env=env, die_with_parent=True, pass_fds=(ready_w, go_r))
         os.close(ready_w)
         os.close(go_r)
         os.set_blocking(ready_r, False)
@@ -149,13 +111,14 @@ class Standby:
         self.ready = bool(got)
         return self.ready
 
-    def go(self) -> subprocess.Popen:
+    def go(self) -> Proc:
         """Let it open its session: from now on it is the child."""
         try:
             os.write(self._go_w, b"g")
         except OSError:
             pass
         self.close()
+        self.p.name = self.name
         return self.p
 
     def close(self) -> None:
@@ -172,7 +135,7 @@ class Child:
 
     def __init__(self, name: str, argv: list[str], standby: bool = False):
         self.name, self.argv = name, argv
-        self.p: subprocess.Popen | None = None
+        self.p: Proc | None = None
         self.started = 0.0  # time.monotonic() of the latest start
         self.restarts = 0
         self.backoff = BACKOFF_S[0]
@@ -183,8 +146,7 @@ class Child:
             self.standby_due = 0.0
 
     def start(self) -> None:
-        self.p = subprocess.Popen(self.argv, preexec_fn=_die_with_parent, start_new_session=True,
-                                  stdin=subprocess.DEVNULL)
+        self.p = Proc(self.name, self.argv, die_with_parent=True)
         self.started, self.due = time.monotonic(), None
         if self.standby_due is not None:
             self.standby_due = max(self.standby_due, self.started + STANDBY_DELAY_S)
@@ -193,36 +155,19 @@ class Child:
         return None if self.p is None else self.p.poll()
 
 
-def _stop(name: str, p: subprocess.Popen) -> None:
-    if p.poll() is None:
-        try:
-            os.killpg(p.pid, signal.SIGINT)
-        except ProcessLookupError:
-            pass
-        try:
-            p.wait(GRACE_S)
-        except subprocess.TimeoutExpired:
-            log.warning("%s (pid %d) did not stop in %.0f s: killed", name, p.pid, GRACE_S)
-    try:
-        os.killpg(p.pid, signal.SIGKILL)
-    except (ProcessLookupError, PermissionError):
-        pass
-    p.wait()
-
-
 def stop_all(children: list[Child]) -> None:
-    """The standbys first (their pipes closed: they leave), then SIGINT each child (latest started first),
-    wait up to GRACE_S, then SIGKILL its group."""
+    """The standbys first (their pipes closed: they leave), then each child (latest started first): SIGINT,
+    SIGTERM after GRACE_S, SIGKILL after launch.TERM_GRACE_S more (launch.Proc.stop)."""
     for c in children:
         if c.standby is not None:
             c.standby.close()
     for c in children:
         if c.standby is not None:
-            _stop(f"the standby of {c.name}", c.standby.p)
+            c.standby.p.stop(GRACE_S, log=log)
             c.standby = None
     for c in reversed(children):
         if c.p is not None:
-            _stop(c.name, c.p)
+            c.p.stop(GRACE_S, log=log)
             log.info("%s stopped (exit %s)", c.name, c.p.returncode)
 
 
@@ -244,7 +189,7 @@ def _tend_standby(c: Child, now: float) -> None:
             sb.close()
             c.standby, c.standby_due = None, now + BACKOFF_S[1]
     elif c.standby_due is not None and now >= c.standby_due and c.exited() is None:
-        c.standby = Standby(c.argv)
+        c.standby = Standby(c.name, c.argv)
         log.info("started a standby of %s (pid %d)", c.name, c.standby.p.pid)
 
 
@@ -297,7 +242,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     settings = load(args.config)
     rig = args.rig or settings.rig
-    if _accepts(args.listen):
+    if accepts(args.listen):
         print(f"vergence up: {args.listen} is already in use (another `vergence up` or router?): stop it, or "
               "give this one another port with --listen", file=sys.stderr)
         return 2
@@ -313,9 +258,14 @@ def run(args: argparse.Namespace) -> int:
             children.append(Child(name, argv, standby=name in standby))
             children[-1].start()
             log.info("started %s (pid %d): %s", name, children[-1].p.pid, " ".join(argv[3:]))
-            if name == "router" and not _router_listening(children[-1].p, args.listen):
-                log.error("the router did not start (exit %s): nothing else started", children[-1].p.poll())
-                return 1
+            if name == "router":
+                try:
+                    wait_listening(args.listen, ROUTER_START_S, children[-1].p)
+                except RuntimeError:
+                    log.error("the router did not start (exit %s): nothing else started", children[-1].p.poll())
+                    return 1
+                except TimeoutError:  # a slow machine: the others keep trying to connect until it listens
+                    log.warning("the router does not listen on %s after %.0f s yet", args.listen, ROUTER_START_S)
         code = supervise(children, stop)
     finally:
         stop_all(children)

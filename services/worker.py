@@ -13,9 +13,7 @@ vergence/<rig>/status/worker/<id> every second and at exit.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import threading
 import time
 
 import numpy as np
@@ -29,10 +27,9 @@ from vergence.params import Params
 from vergence.shards import compute_partial
 
 from . import session
-from .health import Health
+from .node import Node
 
 log = logging.getLogger("vergence.worker")
-STATUS_S = 1.0
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -82,22 +79,15 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, name: str | None = No
          params: Params | None = None, limits: LimitSettings | None = None) -> int:
     limits = limits or LimitSettings()
     warm_up(params or Params())
-    alive = session.alive_key(rig, "worker", name)
-    wid = keys.parse(alive).ident
-    health = Health("worker", wid, log)
-    frame_key = keys.frame(rig)
-    with session.open_session(conf) as s:
-        sub = s.declare_subscriber(frame_key, zenoh.handlers.RingChannel(1))
-        pub = s.declare_publisher(keys.correlation(rig, wid), express=True)
-        status_pub = s.declare_publisher(keys.status(rig, "worker", wid))
-        busy_ns = [0]
-        gaps = Gaps(limits.frame_window)
+    busy_ns = [0]
+    gaps = Gaps(limits.frame_window)
+    with Node("worker", rig, conf, stop, name=name, log=log, fields=lambda: {"busy_s": busy_ns[0] / 1e9}) as node:
+        health, wid = node.health, node.ident
+        sub = node.ring(keys.frame(rig), 1)
+        pub = node.publisher(keys.correlation(rig, wid), express=True)
 
         def loop():
-            while True:
-                sample = sub.recv()
-                if stop.is_set():
-                    return
+            for sample in node.samples(sub):
                 t0 = time.perf_counter_ns()
                 try:
                     frame = check_frame(sample.payload.to_bytes(), limits, time.time_ns())
@@ -119,21 +109,10 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, name: str | None = No
                 health.count("partials")
                 busy_ns[0] += time.perf_counter_ns() - t0
 
-        th = threading.Thread(target=loop, name="worker-loop", daemon=True)
-        th.start()
-        token = s.liveliness().declare_token(alive)  # only now: the subscriber is up and the kernel warm
-        log.info("worker %s on %s", wid, frame_key)
-        try:
-            while not stop.wait(STATUS_S) and th.is_alive():
-                status_pub.put(json.dumps(health.status(busy_s=busy_ns[0] / 1e9)))
-        finally:
-            token.undeclare()
-            stop.set()
-            # wake the loop thread: a local, empty sample on its own subscription
-            s.put(frame_key, b"", allowed_destination=zenoh.Locality.SESSION_LOCAL)
-            th.join(5.0)
-            status_pub.put(json.dumps(health.status(busy_s=busy_ns[0] / 1e9, exiting=True)))
-            log.info("worker %s exits: %s bad %s", wid, health.counters, health.bad)
+        node.thread(loop, name="worker-loop")
+        node.ready()  # only now: the subscriber is up and the kernel warm
+        log.info("worker %s on %s", wid, keys.frame(rig))
+        node.run_status()
     return 0
 
 

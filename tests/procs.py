@@ -12,16 +12,13 @@ own process groups with their output in log files, bounded waits, and a teardown
         # leaving the block kills every process group started (SIGINT, then SIGKILL after a grace time)
 
 Every wait has a timeout and raises TimeoutError (with the tail of the process logs) when it expires.
+Processes, ports and waits are services/launch.py's, the same as `vergence up`'s and the benchmark's.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import queue
-import signal
-import socket
-import subprocess
 import sys
 import threading
 import time
@@ -29,86 +26,11 @@ import uuid
 from pathlib import Path
 
 from vergence import keys
+from vergence_services.launch import Proc, free_port, wait_for, wait_listening
 
-VERGENCE = str(Path(sys.executable).with_name("vergence"))
+VERGENCE = str(Path(sys.executable).with_name("vergence"))  # the installed command itself
 
 __all__ = ["free_port", "Proc", "Procs", "wait_for", "VERGENCE"]
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nobody listens on right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_for(cond, timeout: float, what: str = "condition", interval: float = 0.02, logs=None):
-    """Poll cond() until it returns a true value (returned); TimeoutError after `timeout` seconds."""
-    end = time.monotonic() + timeout
-    while True:
-        v = cond()
-        if v:
-            return v
-        if time.monotonic() > end:
-            raise TimeoutError(f"timed out after {timeout} s waiting for {what}" + (f"\n{logs()}" if logs else ""))
-        time.sleep(interval)
-
-
-class Proc:
-    """One child process in its own process group, stdout and stderr in `log`."""
-
-    def __init__(self, name: str, argv: list[str], log: Path, env: dict | None = None):
-        self.name, self.argv, self.log = name, argv, log
-        self._fh = open(log, "wb")
-        self.p = subprocess.Popen(argv, stdout=self._fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                  start_new_session=True, env=env)
-        self.pid = self.p.pid
-
-    def signal(self, sig: int) -> None:
-        """Send sig to the process only (not its group)."""
-        if self.p.poll() is None:
-            os.kill(self.pid, sig)
-
-    def signal_group(self, sig: int) -> None:
-        with contextlib.suppress(ProcessLookupError, PermissionError):
-            os.killpg(self.pid, sig)
-
-    def alive(self) -> bool:
-        return self.p.poll() is None
-
-    def wait(self, timeout: float) -> int:
-        """The exit code; TimeoutError when still running after `timeout` s."""
-        try:
-            return self.p.wait(timeout)
-        except subprocess.TimeoutExpired:
-            raise TimeoutError(f"{self.name} (pid {self.pid}) still running after {timeout} s\n{self.tail()}") \
-                from None
-
-    def text(self) -> str:
-        if not self._fh.closed:
-            self._fh.flush()
-        try:
-            return self.log.read_text(errors="replace")
-        except OSError:
-            return ""
-
-    def tail(self, n: int = 30) -> str:
-        lines = self.text().splitlines()[-n:]
-        return f"--- {self.name} (pid {self.pid}, rc {self.p.poll()}) {self.log}\n" + "\n".join(lines)
-
-    def stop(self, grace: float = 5.0) -> int | None:
-        """SIGINT to the group, SIGKILL after `grace` s; always reaps. Returns the exit code."""
-        if self.p.poll() is None:
-            self.signal_group(signal.SIGINT)
-            try:
-                self.p.wait(grace)
-            except subprocess.TimeoutExpired:
-                pass
-        self.signal_group(signal.SIGKILL)  # leftovers of the group, even after the leader exited
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            self.p.wait(5)
-        self._fh.close()
-        return self.p.poll()
 
 
 class Procs:
@@ -148,15 +70,7 @@ class Procs:
         self.port = free_port()
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         p = self.spawn("router", [VERGENCE, "router", "--listen", self.endpoint])
-
-        def up():
-            if not p.alive():
-                raise RuntimeError(f"router exited\n{p.tail()}")
-            with socket.socket() as s:
-                s.settimeout(0.2)
-                return s.connect_ex(("127.0.0.1", self.port)) == 0
-
-        wait_for(up, timeout, "the router to listen", logs=self.logs)
+        wait_listening(self.endpoint, timeout, p, interval=0.02, logs=self.logs)  # RuntimeError if it exits
         return p
 
     def logs(self) -> str:
@@ -167,14 +81,7 @@ class Procs:
     def wait_port(self, timeout: float = 20.0) -> None:
         """Wait until something accepts TCP connections on the endpoint's port (a router started by
         another process, `vergence up` say)."""
-        port = int(self.endpoint.rsplit(":", 1)[1])
-
-        def up():
-            with socket.socket() as s:
-                s.settimeout(0.2)
-                return s.connect_ex(("127.0.0.1", port)) == 0
-
-        wait_for(up, timeout, f"a listener on {self.endpoint}", interval=0.1, logs=self.logs)
+        wait_listening(self.endpoint, timeout, interval=0.1, logs=self.logs)
 
     def session(self, timeout: float = 20.0):
         """A zenoh client session connected to the router (closed at teardown if not before); waits up to
@@ -234,12 +141,12 @@ class Procs:
 
 
 class Collector:
-    """Samples of one key as (arrival time.time_ns(), payload bytes), appended from zenoh's thread."""
+    """Samples of one key as (arrival time.time_ns(), payload bytes, key), appended from zenoh's thread;
+    wait() wakes as they arrive."""
 
     def __init__(self, session, key: str, logs=None):
         self.items: list[tuple[int, bytes, str]] = []
-        self._q: queue.SimpleQueue = queue.SimpleQueue()
-        self._lock = threading.Lock()
+        self._lock = threading.Condition()
         self.logs = logs
         self.sub = session.declare_subscriber(key, self._on)
 
@@ -247,6 +154,7 @@ class Collector:
         item = (time.time_ns(), sample.payload.to_bytes(), str(sample.key_expr))
         with self._lock:
             self.items.append(item)
+            self._lock.notify_all()
 
     def snapshot(self) -> list[tuple[int, bytes, str]]:
         with self._lock:
@@ -256,9 +164,12 @@ class Collector:
         return len(self.items)
 
     def wait(self, n: int, timeout: float) -> list[tuple[int, bytes, str]]:
-        """The first n samples (waiting up to `timeout` s for them)."""
-        wait_for(lambda: len(self.items) >= n, timeout, f"{n} sample(s) on {self.sub.key_expr}", logs=self.logs)
-        return self.snapshot()[:n]
+        """The first n samples (waiting up to `timeout` s for them; TimeoutError with the logs)."""
+        with self._lock:
+            if self._lock.wait_for(lambda: len(self.items) >= n, timeout):
+                return self.items[:n]
+        raise TimeoutError(f"timed out after {timeout} s waiting for {n} sample(s) on {self.sub.key_expr}"
+                           + (f"\n{self.logs()}" if self.logs else ""))
 
     def close(self) -> None:
         with contextlib.suppress(Exception):

@@ -125,7 +125,6 @@ class FrameDecision:
         return self._profile
 
 
-Result = FrameDecision  # its name before #16, kept while services/reducer.py still says it
 
 
 @dataclass

@@ -65,11 +65,14 @@ def _ours(rig_part: str) -> list[str]:
 
 @pytest.mark.slow
 def test_bench_pipeline_runs_real_processes_and_leaves_none_behind():
-    r = subprocess.Popen(CLI + ["pipeline", "--workers", "1", "--rate", "40", "--seconds", "1.5", "--json"],
+    r = subprocess.Popen(CLI + ["pipeline", "--workers", "1", "--rate", "40", "--seconds", "1.5", "--floor", "--json"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     out, err = r.communicate(timeout=180)
     assert r.returncode == 0, err[-2000:]
-    (row,) = [json.loads(line) for line in out.splitlines()]
+    floor, row = [json.loads(line) for line in out.splitlines()]
+    # the messaging floor: CPU per message (psutil) of its router and of its subscriber process
+    assert floor["setting"] == "floor" and floor["messages"] == 3000
+    assert 0 < floor["router_us"] < 1000 and 0 < floor["subscriber_us"] < 1000
     assert row["setting"] == "vga" and row["workers"] == 1 and row["rate_hz"] == 40 and row["frames"] == 60
     assert row["commands"] + row["drops"] == 60 and row["commands"] >= 50
     assert 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]

@@ -382,3 +382,32 @@ def test_a_client_worker_joins_the_peers_of_up(tmp_path, pair):
         cmds = P.collect(s, P.key("command"))
         got = [Command.from_bytes(b) for _, b, _ in cmds.wait(5, 20)]
         assert all(c.frame > prof.frame for c in got)
+
+
+@pytest.mark.slow
+def test_sigint_token_goes_then_the_exiting_status(tmp_path):
+    """services/node.py's end of a service: on SIGINT the liveliness token goes, the loop threads are woken
+    (the reducer's two rings: a missed wake costs 5 s per thread), one last status says "exiting": true with
+    the fields of the periodic ones, and the process exits 0."""
+    with Procs(tmp_path) as P:
+        P.router()
+        s = P.session()
+        gone = []
+        s.liveliness().declare_subscriber(P.key("alive/**"), lambda smp: gone.append(str(smp.key_expr))
+                                          if smp.kind == zenoh.SampleKind.DELETE else None)
+        statuses = P.collect(s, P.key("status/**"))
+        procs = {"worker": P.start("worker", "worker", "--name", "w1"), "reducer": P.start("reducer", "reducer")}
+        for role, proc in procs.items():
+            (ident,) = P.wait_alive(s, role, timeout=60)
+            periodic = json.loads(P.wait_key(s, P.key(f"status/{role}/{ident}"), timeout=20))
+            assert periodic["role"] == role and periodic["id"] == ident and periodic["pid"] == proc.pid
+            t0 = time.monotonic()
+            proc.signal(signal.SIGINT)
+            assert proc.wait(20) == 0
+            assert time.monotonic() - t0 < 5.0, proc.tail()
+            wait_for(lambda k=P.key(f"alive/{role}/{ident}"): k in gone, 10, f"the {role}'s token to go")
+            last = wait_for(lambda i=ident: [json.loads(b) for _, b, k in statuses.snapshot()
+                                             if k.endswith(i) and b"exiting" in b], 10, f"the {role}'s last status")
+            assert len(last) == 1 and last[0]["exiting"] is True
+            assert set(last[0]) == set(periodic) | {"exiting"}
+            assert f"{role} {ident} exits:" in proc.text()

@@ -11,10 +11,9 @@ import re
 import signal
 import time
 
+import psutil
 import pytest
 from procs import Procs, free_port, textured_pair, wait_for
-
-psutil = pytest.importorskip("psutil")
 
 RESUME_S = 3.0  # the longest pause in the decisions that a SIGKILLed child may cause
 
