@@ -208,7 +208,7 @@ def test_workers_on_two_hosts_give_the_single_host_profile(tmp_path, hosts, secr
         f = frames[prof.frame]
         assert len(f.plan) == 2 and f.plan[0][2] == f.plan[1][1]  # two shards that tile the offsets
         fovea, band = retina.planes(f.fovea_strip()), retina.planes(f.band_strip())
-        w = kernel.support_weights(fovea, f.support_gamma) if f.support else None
+        w = kernel.support_weights(fovea, f.support_gamma, f.support_radius) if f.support else None
         want = np.atleast_2d(kernel.correlate(fovea, band, circular=f.circular, weights=w))
         assert np.array_equal(prof.array(), want)  # bit-identical to one host, in-process
         assert prof.k - prof.k_centre == 12 and prof.confident

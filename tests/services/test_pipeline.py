@@ -71,7 +71,7 @@ def by_frame(items, cls):
 def expected(frame: Frame) -> np.ndarray:
     fovea = retina.planes(frame.fovea_strip())
     band = retina.planes(frame.band_strip())
-    w = kernel.support_weights(fovea, frame.support_gamma) if frame.support else None
+    w = kernel.support_weights(fovea, frame.support_gamma, frame.support_radius) if frame.support else None
     return np.atleast_2d(kernel.correlate(fovea, band, circular=frame.circular, weights=w))
 
 
