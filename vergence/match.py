@@ -56,7 +56,9 @@ def match(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = No
     """Decide where the master fovea at `at` = (x, y) (default: the image centre) lies in the slave band.
 
     Images: uint8 gray or BGR of the same size. Keyword overrides are Params fields (faithful=True for the
-    paper's network). Raises retina.BorderError when the window does not fit, ValueError on bad images."""
+    paper's network). With params.clip_fallback, where every window abstains with the master clipped like the
+    slave (clip_master), every window is tried again with the master as it is. Raises retina.BorderError when
+    the window does not fit, ValueError on bad images."""
     if params is None:
         params = Params.build(**overrides)
     elif overrides:
@@ -76,4 +78,10 @@ def match(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = No
         first = first or m
         if m.confident:
             return m
+    if params.clip_master and params.clip_fallback and first is not None:
+        # where the slave's gain clipped, the master clipped alike can leave too little texture (a bright fovea
+        # just under the estimated clip level, flattened): the master as it is, every window again
+        second = match(master, slave, at, params.override(clip_master=False))
+        if second.confident:
+            return second
     return first
