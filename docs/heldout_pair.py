@@ -2,6 +2,7 @@
 tests/test_sim.py draw Middlebury's (README, "Held out: a real pair never used for tuning").
 
     python docs/heldout_pair.py static LEFT RIGHT DISP [--dscale S] [--seeds 0,1,2,3,4] [--n 500] [--faithful]
+                                       [--set clip_fallback=true]
     python docs/heldout_pair.py loop LEFT RIGHT DISP [--dscale S] [--seeds 3,4,5] [--n 100] [--faithful]
 
 DISP: the left image's disparity in px, a .npz (arr_0; inf, NaN or <= 0 = unknown) or an image (value / S).
@@ -78,12 +79,15 @@ def main() -> None:
     ap.add_argument("--n", type=int)
     ap.add_argument("--faithful", action="store_true")
     ap.add_argument("--gains", default="equal,bright,dark")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a Params field (repeatable)")
     a = ap.parse_args()
     left = cv2.imread(a.left, cv2.IMREAD_GRAYSCALE)
     right = cv2.imread(a.right, cv2.IMREAD_GRAYSCALE)
     disp = load_disparity(a.disp, a.dscale)
     vis = visible(disp)
     params = vergence.FAITHFUL if a.faithful else vergence.Params()
+    if a.set:
+        params = params.override(**dict(kv.split("=", 1) for kv in a.set))
     seeds = [int(s) for s in (a.seeds or ("0,1,2,3,4" if a.mode == "static" else "3,4,5")).split(",")]
     n = a.n or (500 if a.mode == "static" else 100)
     equal = None
