@@ -345,3 +345,27 @@ def test_up_with_the_simulated_rig_converges(tmp_path):
             return None
 
         wait_for(converged_line, 12, "the reducer's log line after convergence", logs=P.logs)
+
+
+@pytest.mark.slow
+@needs_data
+@pytest.mark.parametrize("name,gain,offset", [("teddy", 1.3, 20.0), ("tsukuba", 0.7, -15.0)], ids=["teddy-bright",
+                                                                                                     "tsukuba-dark"])
+def test_clip_fallback_keeps_the_loop_within_3_points_under_gain(name, gain, offset, capsys):
+    """Params.clip_fallback (a library option, off by default): the two conditions short of the issue's 3 points
+    at the default, over 300 points (seeds 3-5, 100 each, the same points and starts at both gains; a 3-point
+    difference is then about two standard errors). Measured, converged at equal gain -> under gain, paired drop:
+    teddy 92.7 -> 90.7 % (-2.0, s.e. 0.9; default -2.3), tsukuba 83.7 -> 82.0 % (-1.7, s.e. 1.5; default -3.3);
+    the held-out motorcycle pair at 1.3, +20: -1.7 (default -4.0; README)."""
+    params = vergence.Params(clip_fallback=True)
+    same, other = [], []
+    for seed in (3, 4, 5):
+        for g, o, out in ((1.0, 0.0, same), (gain, offset, other)):
+            rng = np.random.default_rng(seed + 1000)
+            for x, y in points(name, n=100, seed=seed, margin=60, mask=visible(name)):
+                n_conv = frames_to_converge(run(_started_off(name, x, y, rng, gain=g, offset=o), params=params))
+                out.append(n_conv is not None and n_conv <= 5)
+    with capsys.disabled():
+        print(f"\n{name} gain {gain} offset {offset:+.0f}, clip_fallback: converged {100 * np.mean(other):.1f} % of "
+              f"300 points, at equal gain {100 * np.mean(same):.1f} %")
+    assert np.mean(other) >= np.mean(same) - 0.03
