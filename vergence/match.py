@@ -51,12 +51,23 @@ def _one(master, slave, x, y, w, p: Params) -> Match:
     return Match(x, y, w, decide_scores(scores, fovea, x, p, mrows, band), scores)
 
 
+def _clipped(master: np.ndarray, slave: np.ndarray, y: int, windows: list[int], p: Params) -> bool:
+    """Whether clip_master clipped the master at any of these windows (retina.photometric_map's levels)."""
+    if p.photometric == "none":
+        return False
+    return any(retina.photometric_map(retina.band_strip(slave, y, w, p.vsearch),
+                                      retina.band_strip(master, y, w, p.vsearch), p.photometric)[1] is not None
+               for w in windows)
+
+
 def match(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = None,
           params: Params | None = None, **overrides) -> Match:
     """Decide where the master fovea at `at` = (x, y) (default: the image centre) lies in the slave band.
 
     Images: uint8 gray or BGR of the same size. Keyword overrides are Params fields (faithful=True for the
-    paper's network). Raises retina.BorderError when the window does not fit, ValueError on bad images."""
+    paper's network). With params.clip_fallback, where every window abstains with the master clipped like the
+    slave (clip_master), every window is tried again with the master as it is. Raises retina.BorderError when
+    the window does not fit, ValueError on bad images."""
     if params is None:
         params = Params.build(**overrides)
     elif overrides:
@@ -67,13 +78,21 @@ def match(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = No
     x, y = at if at is not None else (master.shape[1] // 2, master.shape[0] // 2)
     retina.check_point(master.shape, x, y, params.window, params.vsearch)
     first = None
+    tried = []
     for w in params.windows():
         try:
             retina.check_point(master.shape, x, y, w, params.vsearch)
         except retina.BorderError:
             break
         m = _one(master, slave, x, y, w, params)
+        tried.append(w)
         first = first or m
         if m.confident:
             return m
+    if params.clip_master and params.clip_fallback and _clipped(master, slave, y, tried, params):
+        # where the slave's gain clipped, the master clipped alike can leave too little texture (a bright fovea
+        # just under the estimated clip level, flattened): the master as it is, every window again
+        second = match(master, slave, at, params.override(clip_master=False))
+        if second.confident:
+            return second
     return first

@@ -37,7 +37,10 @@ class Params:
     never have the same gain and offset.
     clip_master: with a photometric mapping, where the slave's gain clipped (black or saturated over at least 1 %
     of the band), clip the master's fovea and rows to the same levels (retina.mapped_strips): those areas are
-    then flat in both views instead of textured in one and flat in the other."""
+    then flat in both views instead of textured in one and flat in the other.
+    clip_fallback: with clip_master, when every window abstains, match() tries them all again with the master as
+    it is (clip_master off) and takes the first confident answer. A library option only: the service's dynamic
+    window (frames.WindowControl and the capture) does not step through the unclipped windows yet."""
 
     window: int = 15
     vsearch: int = 6
@@ -57,6 +60,7 @@ class Params:
     max_window: int = 47
     photometric: str = "affine"
     clip_master: bool = True
+    clip_fallback: bool = False
 
     def __post_init__(self):
         if self.photometric not in retina.PHOTOMETRIC:

@@ -131,3 +131,19 @@ def test_halves_check_ignores_what_the_slave_clipped():
     for img in (slave, dim):
         m = vergence.match(master, img, (96, 60), params)
         assert m.confident and abs(m.offset_px + d) <= 0.5, m.decision
+
+
+def test_clip_fallback_answers_where_the_clipped_master_leaves_too_little():
+    """Teddy, the slave at 1.3, +20: at (41, 164) every window abstains with the master clipped like the slave
+    (its fovea flattened at the estimated clip level); with clip_fallback the unclipped master answers, within
+    1 px of the truth. A confident answer of the clipped master is never replaced (the first tries are the same)."""
+    left, _, disp = load("teddy")
+    slave = slave_image("teddy", 1.3, 20.0)
+    clipped = vergence.match(left, slave, (41, 164))
+    fallback = vergence.match(left, slave, (41, 164), clip_fallback=True)
+    assert not clipped.confident
+    assert fallback.confident and abs(fallback.offset_px + disp[164, 41]) <= 1.0
+    for p in points("teddy", n=20, seed=0, mask=visible("teddy")):
+        a = vergence.match(left, slave, p)
+        if a.confident:
+            assert vergence.match(left, slave, p, clip_fallback=True).decision == a.decision

@@ -236,7 +236,8 @@ GAIN_POINTS = 60  # per seed (3 and 4): 120 points per scene and gain, each agai
 # 90.0 / 90.0 / 89.2, teddy 95.0 / 90.0 / 95.0, tsukuba 81.7 / 75.8 / 75.8, venus 88.3 / 88.3 / 87.5 %). The issue
 # asks for at most 3 points of drop: met on cones and venus, teddy at 0.7 and tsukuba at 1.3; teddy at 1.3, +20
 # (4.2 points: a sixth of its pixels saturate) and tsukuba at 0.7, -15 (3.3 points: a fifth clip to black) are
-# short. One point of the 120 is 0.8 of them. The floors say so.
+# short. One point of the 120 is 0.8 of them. The floors say so. Over 300 points (seeds 3-5, docs/heldout_pair.py loop)
+# the drops read teddy 2.3 (s.e. 1.0) and tsukuba 3.3 (s.e. 1.6); Params.clip_fallback: 2.0 and 1.7 (test below).
 GAIN_DROP = {"cones": 0.03, "teddy": 0.05, "tsukuba": 0.04, "venus": 0.03}
 
 
@@ -349,3 +350,27 @@ def test_up_with_the_simulated_rig_converges(tmp_path):
             return None
 
         wait_for(converged_line, 12, "the reducer's log line after convergence", logs=P.logs)
+
+
+@pytest.mark.slow
+@needs_data
+@pytest.mark.parametrize("name,gain,offset", [("teddy", 1.3, 20.0), ("tsukuba", 0.7, -15.0)], ids=["teddy-bright",
+                                                                                                     "tsukuba-dark"])
+def test_clip_fallback_keeps_the_loop_within_3_points_under_gain(name, gain, offset, capsys):
+    """Params.clip_fallback (a library option, off by default): the two conditions short of the issue's 3 points
+    at the default, over 300 points (seeds 3-5, 100 each, the same points and starts at both gains; a 3-point
+    difference is then about two standard errors). Measured, converged at equal gain -> under gain, paired drop:
+    teddy 92.7 -> 90.7 % (-2.0, s.e. 0.9; default -2.3), tsukuba 83.7 -> 82.0 % (-1.7, s.e. 1.5; default -3.3);
+    the held-out motorcycle pair at 1.3, +20: -1.7 (default -4.0; README)."""
+    params = vergence.Params(clip_fallback=True)
+    same, other = [], []
+    for seed in (3, 4, 5):
+        for g, o, out in ((1.0, 0.0, same), (gain, offset, other)):
+            rng = np.random.default_rng(seed + 1000)
+            for x, y in points(name, n=100, seed=seed, margin=60, mask=visible(name)):
+                n_conv = frames_to_converge(run(_started_off(name, x, y, rng, gain=g, offset=o), params=params))
+                out.append(n_conv is not None and n_conv <= 5)
+    with capsys.disabled():
+        print(f"\n{name} gain {gain} offset {offset:+.0f}, clip_fallback: converged {100 * np.mean(other):.1f} % of "
+              f"300 points, at equal gain {100 * np.mean(same):.1f} %")
+    assert np.mean(other) >= np.mean(same) - 0.03
