@@ -152,11 +152,15 @@ class Browser:
 
     def screenshot(self, timeout: float = 60.0) -> bytes | None:
         """A PNG of the page, or None when the browser did not give one within `timeout` s (a busy renderer:
-        ask again later; the late answer is skipped by id)."""
+        ask again later; the late answer is skipped by id), or while a reload detaches the page for a moment."""
         try:
             return base64.b64decode(self.call("Page.captureScreenshot", timeout=timeout, format="png")["data"])
         except TimeoutError:
             return None
+        except RuntimeError as e:
+            if "Not attached to an active page" in str(e):
+                return None
+            raise
 
     def close(self) -> None:
         if self.ws:
