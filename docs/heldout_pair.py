@@ -9,9 +9,8 @@ DISP: the left image's disparity in px, a .npz (arr_0; inf, NaN or <= 0 = unknow
 static: per gain (the slave as is, 1.3 * I + 20 and 0.7 * I - 15, clipped) and seed, n visible points 40 px from
 the border: the share answered confidently and the share of those within 1 px. loop: the closed loop of
 tests/vergence/sim/test_loop.py (ideal motor, "p" controller, starts 10-40 px off drawn from seed + 1000, 8 frames;
-converged =
-within 1 px by frame 5 and staying there) at n points per seed 60 px from the border, the same points and starts
-at every gain, with each gain's paired difference to equal gain and its standard error. The draws are
+converged = within 1 px by frame 5 and staying there) at n points per seed 60 px from the border, the same
+points and starts at every gain, with each gain's paired difference to equal gain and its standard error. The draws are
 tests/middlebury.py's points() and visible() on this pair's own disparity."""
 
 from __future__ import annotations
