@@ -35,6 +35,7 @@ import zenoh
 from vergence import keys, retina
 from vergence.config import load
 from vergence.frames import Roster, WindowControl, make_frame, plan_shards
+from vergence.match import master_clipped
 from vergence.messages import Fixate, MessageError, MotorState, Preview, Verdict
 from vergence.sources import SourceError, open_source
 
@@ -164,6 +165,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
     pan = [source.start_pan_rad]
     rates = Rates()
     plan: list = []
+    unclipped: dict[int, None] = {}  # the recent frames published with the master unclipped (clip_fallback)
 
     def fields() -> dict:
         return dict(window=windows.window, workers=len(plan), excluded=members.excluded(), **rates.fields(),
@@ -209,7 +211,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         except MessageError as e:
             health.reject("decision", e)
             return
-        windows.update(v.window, v.confident)
+        windows.update(v.window, v.confident, v.frame not in unclipped)
 
     period = 1.0 / cs.rate_hz if cs.rate_hz > 0 else 0.0
     preview_period = 1.0 / cs.preview_hz if cs.preview_hz > 0 else 0.0
@@ -247,7 +249,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                 print(f"vergence capture: {e}", file=sys.stderr)
                 return 2
             t_ns = time.time_ns()
-            w = windows.window
+            w, clip = windows.state
             changes, ids = members.snapshot()
             if (changes, w) != plan_key:
                 plan_key = (changes, w)
@@ -262,11 +264,18 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                 try:
                     frame = make_frame(master, slave, rig=rig, frame=fid, pan_rad=p_now, focal_px=focal,
                                        params=params, plan=plan, at=fovea.at(), window=w,
-                                       t_capture_ns=t_ns)
+                                       t_capture_ns=t_ns, clip=clip)
                     frame.master_pan_rad, frame.tilt_rad = master_pan, tilt
                 except retina.BorderError:  # a grown window that no longer fits: back to the base one
                     windows.reset()
                     continue
+                if len(windows.states) > len(windows.sizes):  # clip_fallback: the decision's state is ours
+                    if clip:
+                        windows.clipped(master_clipped(master, slave, frame.y, w, params))
+                    else:
+                        unclipped[fid] = None
+                        while len(unclipped) > 1024:
+                            del unclipped[next(iter(unclipped))]
                 frame.truth_pan_rad = source.truth_pan_rad  # the simulator's ground truth, else None
                 pub_frame.put(frame.to_bytes())
                 rates.published += 1

@@ -147,3 +147,45 @@ def test_clip_fallback_answers_where_the_clipped_master_leaves_too_little():
         a = vergence.match(left, slave, p)
         if a.confident:
             assert vergence.match(left, slave, p, clip_fallback=True).decision == a.decision
+
+
+def test_the_service_dynamic_window_falls_back_as_match_does():
+    """The same fovea through the service's steps in process (WindowControl's states, make_frame, a worker's
+    partial, the reducer), one frame per state as the capture publishes them: the clipped windows abstain, the
+    master was clipped, the unclipped windows follow and the first confident decision is match()'s with
+    clip_fallback, field for field, reached after as many frames as match() tried windows."""
+    from vergence.control import Controller
+    from vergence.frames import WindowControl, make_frame, plan_shards
+    from vergence.gather import reduce
+    from vergence.match import master_clipped
+    from vergence.messages import Frame
+    from vergence.shards import compute_partial
+
+    left, _, _ = load("teddy")
+    slave = slave_image("teddy", 1.3, 20.0)
+    x, y = 41, 164
+    params = vergence.Params(clip_fallback=True)
+    want = vergence.match(left, slave, (x, y), params)
+    wc, seen = WindowControl(params), []
+    for fid in range(1, 3 * len(wc.states)):
+        w, clip = wc.state
+        try:
+            f = make_frame(left, slave, rig="r", frame=fid, pan_rad=0.0, focal_px=500.0, params=params,
+                           plan=plan_shards(["a"], left.shape[1] - w + 1), at=(x, y), window=w, clip=clip)
+        except vergence.BorderError:
+            wc.reset()
+            continue
+        if clip:
+            wc.clipped(master_clipped(left, slave, y, w, params))
+        f = Frame.from_bytes(f.to_bytes())
+        prof, _ = reduce(f, np.atleast_2d(compute_partial(f, "a").array()), params, Controller())
+        seen.append((w, clip, prof.confident))
+        if prof.confident:
+            break
+        wc.update(w, prof.confident, clip)
+    assert want.confident and seen[-1] == (want.window, False, True)
+    assert seen == [(w, True, False) for w in params.windows()] + \
+        [(w, False, w == want.window) for w in params.windows() if w <= want.window]
+    d = want.decision
+    assert (prof.k, prof.k_sub, prof.v_shift, prof.confident, prof.offset_px) == \
+        (d.k, d.k_sub, d.v, d.confident, d.offset_px)
