@@ -139,14 +139,14 @@ def test_clip_fallback_answers_where_the_clipped_master_leaves_too_little():
     1 px of the truth. A confident answer of the clipped master is never replaced (the first tries are the same)."""
     left, _, disp = load("teddy")
     slave = slave_image("teddy", 1.3, 20.0)
-    clipped = vergence.match(left, slave, (41, 164))
-    fallback = vergence.match(left, slave, (41, 164), clip_fallback=True)
+    clipped = vergence.match(left, slave, (41, 164), clip_fallback=False)
+    fallback = vergence.match(left, slave, (41, 164))  # clip_fallback is the default
     assert not clipped.confident
     assert fallback.confident and abs(fallback.offset_px + disp[164, 41]) <= 1.0
     for p in points("teddy", n=20, seed=0, mask=visible("teddy")):
-        a = vergence.match(left, slave, p)
+        a = vergence.match(left, slave, p, clip_fallback=False)
         if a.confident:
-            assert vergence.match(left, slave, p, clip_fallback=True).decision == a.decision
+            assert vergence.match(left, slave, p).decision == a.decision
 
 
 def test_the_service_dynamic_window_falls_back_as_match_does():
@@ -164,7 +164,7 @@ def test_the_service_dynamic_window_falls_back_as_match_does():
     left, _, _ = load("teddy")
     slave = slave_image("teddy", 1.3, 20.0)
     x, y = 41, 164
-    params = vergence.Params(clip_fallback=True)
+    params = vergence.Params()
     want = vergence.match(left, slave, (x, y), params)
     wc, seen = WindowControl(params), []
     for fid in range(1, 3 * len(wc.states)):

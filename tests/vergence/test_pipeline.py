@@ -255,9 +255,10 @@ def test_window_control_with_clip_fallback_then_the_unclipped_windows():
     assert wc.state == (15, False)
     wc.reset()
     assert wc.state == (15, True)
-    for params in (Params(window=15, max_window=31), Params(max_window=31, clip_fallback=True, photometric="none"),
-                   Params(max_window=31, clip_fallback=True, clip_master=False)):
+    for params in (Params(max_window=31, clip_fallback=False), Params(max_window=31, photometric="none"),
+                   Params(max_window=31, clip_master=False)):
         assert WindowControl(params).states == [(15, True), (23, True), (31, True)]
+    assert Params.paper().clip_fallback is False and WindowControl(Params.paper()).states == [(15, True)]
 
 
 def test_files_source(tmp_path):
