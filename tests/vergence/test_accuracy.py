@@ -89,7 +89,10 @@ def test_default_mode_beats_the_paper_where_confident(name):
 # gain; tsukuba's coverage 83.2 and 81.8 % under the two gains.) The targets (coverage >= 85 %, >= 97 %
 # right on every seed) hold at equal gain on all four (tsukuba and teddy at 97.0 % on their worst seed); under the
 # gains cones and venus meet them, teddy (95.5 % at 1.3, +20) and tsukuba (96.0 and 93.8 %) are short of 97 %
-# right (coverage is met). The floors sit about a point under the worst.
+# right (coverage is met). The floors sit about a point under the worst. With clip_fallback (the default since the
+# service does it too; the figures above are without): equal gain the same on every seed; under gain coverage up by
+# 0-0.4 points and right among confident within 0.2 points on every seed (worst seeds: cones 88.6 / 98.2 % at 1.3,
+# +20, teddy 91.6 / 95.5 %, tsukuba 90.6 / 93.8 % at 0.7, -15; the rest unchanged).
 FLOORS = {
     "cones": (0.85, 0.97),
     "teddy": (0.90, 0.945),
