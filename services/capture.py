@@ -9,7 +9,8 @@ a token is an invitation, not a guarantee). A motor/state whose pan is outside t
 time is off our clock by more than [limits] max_skew_s is counted and ignored. With no worker alive, frames
 are counted (no_workers) and not published. A downscaled
 messages.Preview goes on vergence/<rig>/preview at [capture] preview_hz. With [network] max_window > 0 the
-window grows by 8 px while the decisions (vergence/<rig>/decision) are not confident (the dynamic window).
+window grows by 8 px while the decisions (vergence/<rig>/decision) are not confident (the dynamic window), and
+with clip_fallback, where the master was clipped, the same windows follow with it unclipped (WindowControl).
 A messages.Fixate on vergence/<rig>/fixate moves the fovea to its (x, y) from the next frame on; a request
 that is not a valid Fixate, or where the fovea would not fit the image, is rejected (counted under bad.fixate
 and in the fixate_rejected counter, its reason logged) and nothing moves.
@@ -223,7 +224,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         node.subscriber(keys.motor_state(rig), on_motor)
         node.subscriber(keys.workers(rig), on_report)
         node.liveliness_subscriber(keys.alives(rig, "worker"), on_token, history=True)
-        if params.max_window:
+        if len(windows.states) > 1:  # a dynamic window (max_window, clip_fallback): the decisions drive it
             node.subscriber(keys.decision(rig), on_decision)
         node.subscriber(keys.fixate(rig), lambda sm: fovea.on_fixate(sm.payload.to_bytes()))
         node.ready()

@@ -258,6 +258,7 @@ def test_window_control_with_clip_fallback_then_the_unclipped_windows():
     for params in (Params(max_window=31, clip_fallback=False), Params(max_window=31, photometric="none"),
                    Params(max_window=31, clip_master=False)):
         assert WindowControl(params).states == [(15, True), (23, True), (31, True)]
+    assert WindowControl(Params(max_window=0)).states == [(15, True), (15, False)]  # as match() then tries
     assert Params.paper().clip_fallback is False and WindowControl(Params.paper()).states == [(15, True)]
 
 
