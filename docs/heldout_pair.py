@@ -2,7 +2,7 @@
 tests/vergence/sim/test_loop.py draw Middlebury's (README, "Held out: a real pair never used for tuning").
 
     python docs/heldout_pair.py static LEFT RIGHT DISP [--dscale S] [--seeds 0,1,2,3,4] [--n 500] [--faithful]
-                                       [--set clip_fallback=true]
+                                       [--set clip_fallback=false]
     python docs/heldout_pair.py loop LEFT RIGHT DISP [--dscale S] [--seeds 3,4,5] [--n 100] [--faithful]
 
 DISP: the left image's disparity in px, a .npz (arr_0; inf, NaN or <= 0 = unknown) or an image (value / S).

@@ -9,7 +9,8 @@ a token is an invitation, not a guarantee). A motor/state whose pan is outside t
 time is off our clock by more than [limits] max_skew_s is counted and ignored. With no worker alive, frames
 are counted (no_workers) and not published. A downscaled
 messages.Preview goes on vergence/<rig>/preview at [capture] preview_hz. With [network] max_window > 0 the
-window grows by 8 px while the decisions (vergence/<rig>/decision) are not confident (the dynamic window).
+window grows by 8 px while the decisions (vergence/<rig>/decision) are not confident (the dynamic window), and
+with clip_fallback, where the master was clipped, the same windows follow with it unclipped (WindowControl).
 A messages.Fixate on vergence/<rig>/fixate moves the fovea to its (x, y) from the next frame on; a request
 that is not a valid Fixate, or where the fovea would not fit the image, is rejected (counted under bad.fixate
 and in the fixate_rejected counter, its reason logged) and nothing moves.
@@ -35,6 +36,7 @@ import zenoh
 from vergence import keys, retina
 from vergence.config import load
 from vergence.frames import Roster, WindowControl, make_frame, plan_shards
+from vergence.match import master_clipped
 from vergence.messages import Fixate, MessageError, MotorState, Preview, Verdict
 from vergence.sources import SourceError, open_source
 
@@ -164,6 +166,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
     pan = [source.start_pan_rad]
     rates = Rates()
     plan: list = []
+    unclipped: dict[int, None] = {}  # the recent frames published with the master unclipped (clip_fallback)
 
     def fields() -> dict:
         return dict(window=windows.window, workers=len(plan), excluded=members.excluded(), **rates.fields(),
@@ -209,7 +212,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         except MessageError as e:
             health.reject("decision", e)
             return
-        windows.update(v.window, v.confident)
+        windows.update(v.window, v.confident, v.frame not in unclipped)
 
     period = 1.0 / cs.rate_hz if cs.rate_hz > 0 else 0.0
     preview_period = 1.0 / cs.preview_hz if cs.preview_hz > 0 else 0.0
@@ -221,7 +224,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         node.subscriber(keys.motor_state(rig), on_motor)
         node.subscriber(keys.workers(rig), on_report)
         node.liveliness_subscriber(keys.alives(rig, "worker"), on_token, history=True)
-        if params.max_window:
+        if len(windows.states) > 1:  # a dynamic window (max_window, clip_fallback): the decisions drive it
             node.subscriber(keys.decision(rig), on_decision)
         node.subscriber(keys.fixate(rig), lambda sm: fovea.on_fixate(sm.payload.to_bytes()))
         node.ready()
@@ -247,7 +250,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                 print(f"vergence capture: {e}", file=sys.stderr)
                 return 2
             t_ns = time.time_ns()
-            w = windows.window
+            w, clip = windows.state
             changes, ids = members.snapshot()
             if (changes, w) != plan_key:
                 plan_key = (changes, w)
@@ -262,11 +265,18 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                 try:
                     frame = make_frame(master, slave, rig=rig, frame=fid, pan_rad=p_now, focal_px=focal,
                                        params=params, plan=plan, at=fovea.at(), window=w,
-                                       t_capture_ns=t_ns)
+                                       t_capture_ns=t_ns, clip=clip)
                     frame.master_pan_rad, frame.tilt_rad = master_pan, tilt
                 except retina.BorderError:  # a grown window that no longer fits: back to the base one
                     windows.reset()
                     continue
+                if len(windows.states) > len(windows.sizes):  # clip_fallback: the decision's state is ours
+                    if clip:
+                        windows.clipped(master_clipped(master, slave, frame.y, w, params))
+                    else:
+                        unclipped[fid] = None
+                        while len(unclipped) > 1024:
+                            del unclipped[next(iter(unclipped))]
                 frame.truth_pan_rad = source.truth_pan_rad  # the simulator's ground truth, else None
                 pub_frame.put(frame.to_bytes())
                 rates.published += 1

@@ -11,10 +11,11 @@ import numpy as np
 
 from . import retina
 from .config import LimitSettings
+from .match import master_clipped
 from .messages import Frame
 from .params import Params
 
-__all__ = ["plan_shards", "make_frame", "Roster", "WindowControl", "frame_cost", "frame_too_large"]
+__all__ = ["plan_shards", "make_frame", "master_clipped", "Roster", "WindowControl", "frame_cost", "frame_too_large"]
 
 
 def plan_shards(workers, k_count: int) -> list[list]:
@@ -33,12 +34,13 @@ def plan_shards(workers, k_count: int) -> list[list]:
 
 def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, pan_rad: float, focal_px: float,
                params: Params, plan: list[list], at: tuple[int, int] | None = None, window: int | None = None,
-               t_capture_ns: int | None = None) -> Frame:
+               t_capture_ns: int | None = None, clip: bool = True) -> Frame:
     """A Frame for the fovea at `at` (default: the image centre) of the master, window w (default
     params.window): the fovea and band gray strips with their Sobel margins, and the master band too when
     params.lr_check needs it. The slave band is mapped onto the master's intensities here (params.photometric),
-    so the workers and the reducer see the same band as vergence.match(). Raises retina.BorderError when the
-    window does not fit."""
+    and the master clipped like the slave where its gain clipped (params.clip_master, unless clip is False:
+    the dynamic window's clip_fallback states, WindowControl), so the workers and the reducer see the same
+    strips as vergence.match() with that clip_master. Raises retina.BorderError when the window does not fit."""
     if t_capture_ns is None:
         t_capture_ns = time.time_ns()
     h, wd = master.shape[:2]
@@ -48,7 +50,7 @@ def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, p
     w = params.window if window is None else window
     retina.check_point(master.shape, x, y, w, params.vsearch)
     fovea, band, mband = retina.mapped_strips(master, slave, x, y, w, params.vsearch, params.photometric,
-                                              params.lr_check, params.clip_master)
+                                              params.lr_check, params.clip_master and clip)
     return Frame(rig=rig, frame=frame, t_capture_ns=t_capture_ns, pan_rad=float(pan_rad), width=wd, height=h,
                  x=x, y=y, window=w, vsearch=params.vsearch, focal_px=float(focal_px), fovea=fovea.tobytes(),
                  band=band.tobytes(), plan=plan, circular=params.circular, support=params.support,
@@ -156,36 +158,70 @@ class Roster:
 class WindowControl:
     """The dynamic window of the service, driven by the decisions (Verdicts) coming back to the capture.
 
-    It moves along params.windows() (the one dynamic-window rule, shared with vergence.match()). Only a
-    decision made with the current window counts (frames in flight with an older one are ignored). Not
-    confident: one step up (8 px) to at most params.max_window. Confident `patience` times in a row: one step
-    down toward params.window, so a scene that needs the larger window does not flip every frame.
-    params.max_window = 0 keeps params.window."""
+    It moves along states (window, clip): params.windows() (the one dynamic-window rule, shared with
+    vergence.match()) with the master clipped as params.clip_master says (clip True), then, with
+    params.clip_fallback, the same windows with the master as it is (clip False), which the capture reaches
+    only when the master was clipped (clipped(): make_frame's frames at a clipped state since the last
+    confident decision), as match() tries them. Only a decision made in the current state counts (frames in
+    flight with an older one are ignored). Not confident: one step on, to at most the last state. Confident
+    `patience` times in a row: one step back toward the base, so a scene that needs the larger window does not
+    flip every frame. params.max_window = 0 and no clip_fallback keeps params.window."""
 
     def __init__(self, params: Params, patience: int = 30):
         self.sizes = params.windows()
-        self.step = 0  # index into sizes
+        fallback = params.clip_fallback and params.clip_master and params.photometric != "none"
+        self.states = [(w, True) for w in self.sizes] + ([(w, False) for w in self.sizes] if fallback else [])
+        self.step = 0  # index into states
         self.patience = patience
         self.streak = 0
+        self.was_clipped = False  # the master clipped in a frame of this sweep (since the last confident one)
+        self.lock = threading.Lock()
 
     @property
     def window(self) -> int:
-        return self.sizes[self.step]
+        return self.states[self.step][0]
+
+    @property
+    def clip(self) -> bool:
+        return self.states[self.step][1]
+
+    @property
+    def state(self) -> tuple[int, bool]:
+        with self.lock:
+            return self.states[self.step]
+
+    def clipped(self, clipped: bool = True) -> None:
+        """A frame of the current state went out with the master clipped (master_clipped)."""
+        if clipped:
+            with self.lock:
+                self.was_clipped = True
 
     def reset(self) -> None:
-        """Back to the base window (a grown one that no longer fits the image at the fixation point)."""
-        self.step = 0
-        self.streak = 0
-
-    def update(self, window: int, confident: bool) -> int:
-        if window != self.window:
-            return self.window
-        if not confident:
+        """Back to the base window (a grown one that no longer fits the image at the fixation point). From the
+        clipped windows, where the master was clipped and there are fallback states: to the first of those,
+        as match() tries the unclipped windows after the clipped ones that fit."""
+        with self.lock:
+            last = len(self.sizes)
+            if self.step < last and last < len(self.states) and self.was_clipped:
+                self.step = last
+            else:
+                self.step = 0
+                self.was_clipped = False
             self.streak = 0
-            self.step = min(self.step + 1, len(self.sizes) - 1)
-        else:
-            self.streak += 1
-            if self.streak >= self.patience and self.step > 0:
-                self.step -= 1
+
+    def update(self, window: int, confident: bool, clip: bool = True) -> int:
+        with self.lock:
+            if (window, clip) != self.states[self.step]:
+                return self.window
+            if not confident:
                 self.streak = 0
-        return self.window
+                last = len(self.sizes) - 1
+                if self.step != last or self.was_clipped:  # the unclipped windows only where the master clipped
+                    self.step = min(self.step + 1, len(self.states) - 1)
+            else:
+                self.was_clipped = False
+                self.streak += 1
+                if self.streak >= self.patience and self.step > 0:
+                    self.step -= 1
+                    self.streak = 0
+            return self.window

@@ -38,9 +38,10 @@ class Params:
     clip_master: with a photometric mapping, where the slave's gain clipped (black or saturated over at least 1 %
     of the band), clip the master's fovea and rows to the same levels (retina.mapped_strips): those areas are
     then flat in both views instead of textured in one and flat in the other.
-    clip_fallback: with clip_master, when every window abstains, match() tries them all again with the master as
-    it is (clip_master off) and takes the first confident answer. A library option only: the service's dynamic
-    window (frames.WindowControl and the capture) does not step through the unclipped windows yet."""
+    clip_fallback: with clip_master, when every window abstains and the master was clipped, match() tries them
+    all again with the master as it is (clip_master off) and takes the first confident answer; the service's
+    dynamic window (frames.WindowControl, the capture) steps through the same unclipped windows after the
+    clipped ones."""
 
     window: int = 15
     vsearch: int = 6
@@ -60,7 +61,7 @@ class Params:
     max_window: int = 47
     photometric: str = "affine"
     clip_master: bool = True
-    clip_fallback: bool = False
+    clip_fallback: bool = True
 
     def __post_init__(self):
         if self.photometric not in retina.PHOTOMETRIC:
@@ -71,7 +72,7 @@ class Params:
         """The paper's network: no extension (vertical search, circular D, sub-pixel, abstention...)."""
         base = dict(vsearch=0, vshift_cost=0.0, circular=False, subpixel=False, min_margin=0.0, min_texture=0.0,
                     min_correlation=0.0, lr_check=False, support=False, halves_check=False, max_window=0,
-                    photometric="none", clip_master=False)
+                    photometric="none", clip_master=False, clip_fallback=False)
         base.update(overrides)
         return cls(**base)
 

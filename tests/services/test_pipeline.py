@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from middlebury import needs_data
 from procs import Procs, free_port, textured_pair, wait_for
 from vergence import kernel, retina
 from vergence.config import load
@@ -260,6 +261,51 @@ def test_the_dynamic_window_grows_on_the_decisions_alone(tmp_path):
         assert {v.window for v in verdicts if v.confident} == {23}
         assert not any(v.confident for v in verdicts if v.window == 15)
         assert all(abs(Command.from_bytes(b).magnitude_px - 12) < 0.1 for _, b, _ in commands.snapshot())
+
+
+@needs_data
+def test_the_service_falls_back_to_the_unclipped_master_as_match_does(tmp_path):
+    """[network] clip_fallback = true, teddy with the slave at gain 1.3, +20, the fovea at (41, 164), where
+    every window abstains with the master clipped like the slave (tests/vergence/test_accuracy.py): the capture
+    publishes the clipped windows 15..47, then the unclipped ones (the frames' foveae are make_frame's with
+    clip False), and the reducer's confident decision is vergence.match()'s with clip_fallback, field for field."""
+    import vergence
+    from middlebury import load as load_scene
+    from vergence.frames import make_frame
+
+    left = load_scene("teddy")[0]
+    right = load_scene("teddy")[1]
+    slave = np.clip(right.astype(np.float32) * np.float32(1.3) + np.float32(20.0), 0, 255).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "l.png"), left)
+    cv2.imwrite(str(tmp_path / "r.png"), slave)
+    cfg = tmp_path / "fallback.toml"
+    cfg.write_text("[network]\nclip_fallback = true\n[capture]\npreview_hz = 0\n")
+    params = load(str(cfg)).network
+    want = vergence.match(left, slave, (41, 164), params)
+    assert want.confident and not vergence.match(left, slave, (41, 164), params, clip_fallback=False).confident
+    with Procs(tmp_path) as P:
+        P.router()
+        P.start("reducer", "reducer", "--config", str(cfg))
+        P.start("w1", "worker", "--name", "w1", "--config", str(cfg))
+        s = P.session()
+        P.wait_alive(s, "worker", 1)
+        frames, decisions = P.collect(s, P.key("frame")), P.collect(s, P.key("decision"))
+        P.start("capture", "capture", "--source", f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}", "--at",
+                "41,164", "--rate", str(RATE), "--config", str(cfg))
+        _, v = wait_for(lambda: next(((t, m) for t, m in (
+            (t, Verdict.from_bytes(b)) for t, b, _ in decisions.snapshot()) if m.confident), None), 30,
+            "a confident decision", logs=P.logs)
+        fr = {f.frame: f for f in (Frame.from_bytes(b) for _, b, _ in frames.snapshot())}
+        d = want.decision
+        assert (v.window, v.k, v.k_sub, v.v_shift, v.offset_px) == (want.window, d.k, d.k_sub, d.v, d.offset_px)
+        f = fr[v.frame]
+        for clip in (False, True):
+            g = make_frame(left, slave, rig=f.rig, frame=f.frame, pan_rad=0.0, focal_px=1.0, params=params,
+                           plan=f.plan, at=(41, 164), window=f.window, clip=clip)
+            assert (g.fovea == f.fovea and g.band == f.band) is not clip  # the unclipped master went out
+        verdicts = [Verdict.from_bytes(b) for _, b, _ in decisions.snapshot()]
+        assert not any(m.confident for m in verdicts if m.frame < v.frame)
+        assert set(params.windows()) <= {m.window for m in verdicts if m.frame < v.frame}
 
 
 def test_garbage_on_every_key_kills_nothing(tmp_path, pair):

@@ -89,7 +89,10 @@ def test_default_mode_beats_the_paper_where_confident(name):
 # gain; tsukuba's coverage 83.2 and 81.8 % under the two gains.) The issue's targets (coverage >= 85 %, >= 97 %
 # right on every seed) hold at equal gain on all four (tsukuba and teddy at 97.0 % on their worst seed); under the
 # gains cones and venus meet them, teddy (95.5 % at 1.3, +20) and tsukuba (96.0 and 93.8 %) are short of 97 %
-# right (coverage is met). The floors sit about a point under the worst.
+# right (coverage is met). The floors sit about a point under the worst. With clip_fallback (the default since the
+# service does it too; the figures above are without): equal gain the same on every seed; under gain coverage up by
+# 0-0.4 points and right among confident within 0.2 points on every seed (worst seeds: cones 88.6 / 98.2 % at 1.3,
+# +20, teddy 91.6 / 95.5 %, tsukuba 90.6 / 93.8 % at 0.7, -15; the rest unchanged).
 FLOORS = {
     "cones": (0.85, 0.97),
     "teddy": (0.90, 0.945),
@@ -139,11 +142,53 @@ def test_clip_fallback_answers_where_the_clipped_master_leaves_too_little():
     1 px of the truth. A confident answer of the clipped master is never replaced (the first tries are the same)."""
     left, _, disp = load("teddy")
     slave = slave_image("teddy", 1.3, 20.0)
-    clipped = vergence.match(left, slave, (41, 164))
-    fallback = vergence.match(left, slave, (41, 164), clip_fallback=True)
+    clipped = vergence.match(left, slave, (41, 164), clip_fallback=False)
+    fallback = vergence.match(left, slave, (41, 164))  # clip_fallback is the default
     assert not clipped.confident
     assert fallback.confident and abs(fallback.offset_px + disp[164, 41]) <= 1.0
     for p in points("teddy", n=20, seed=0, mask=visible("teddy")):
-        a = vergence.match(left, slave, p)
+        a = vergence.match(left, slave, p, clip_fallback=False)
         if a.confident:
-            assert vergence.match(left, slave, p, clip_fallback=True).decision == a.decision
+            assert vergence.match(left, slave, p).decision == a.decision
+
+
+def test_the_service_dynamic_window_falls_back_as_match_does():
+    """The same fovea through the service's steps in process (WindowControl's states, make_frame, a worker's
+    partial, the reducer), one frame per state as the capture publishes them: the clipped windows abstain, the
+    master was clipped, the unclipped windows follow and the first confident decision is match()'s with
+    clip_fallback, field for field, reached after as many frames as match() tried windows."""
+    from vergence.control import Controller
+    from vergence.frames import WindowControl, make_frame, plan_shards
+    from vergence.gather import reduce
+    from vergence.match import master_clipped
+    from vergence.messages import Frame
+    from vergence.shards import compute_partial
+
+    left, _, _ = load("teddy")
+    slave = slave_image("teddy", 1.3, 20.0)
+    x, y = 41, 164
+    params = vergence.Params()
+    want = vergence.match(left, slave, (x, y), params)
+    wc, seen = WindowControl(params), []
+    for fid in range(1, 3 * len(wc.states)):
+        w, clip = wc.state
+        try:
+            f = make_frame(left, slave, rig="r", frame=fid, pan_rad=0.0, focal_px=500.0, params=params,
+                           plan=plan_shards(["a"], left.shape[1] - w + 1), at=(x, y), window=w, clip=clip)
+        except vergence.BorderError:
+            wc.reset()
+            continue
+        if clip:
+            wc.clipped(master_clipped(left, slave, y, w, params))
+        f = Frame.from_bytes(f.to_bytes())
+        prof, _ = reduce(f, np.atleast_2d(compute_partial(f, "a").array()), params, Controller())
+        seen.append((w, clip, prof.confident))
+        if prof.confident:
+            break
+        wc.update(w, prof.confident, clip)
+    assert want.confident and seen[-1] == (want.window, False, True)
+    assert seen == [(w, True, False) for w in params.windows()] + \
+        [(w, False, w == want.window) for w in params.windows() if w <= want.window]
+    d = want.decision
+    assert (prof.k, prof.k_sub, prof.v_shift, prof.confident, prof.offset_px) == \
+        (d.k, d.k_sub, d.v, d.confident, d.offset_px)

@@ -13,6 +13,7 @@ from vergence import kernel, match, retina
 from vergence.control import ControlSettings, Controller
 from vergence.frames import WindowControl, make_frame, plan_shards
 from vergence.gather import Gatherer, reduce
+from vergence.match import master_clipped
 from vergence.messages import Frame, MessageError, Partial
 from vergence.params import Params
 from vergence.shards import compute_partial
@@ -84,6 +85,32 @@ def test_reduce_equals_match(params):
     assert cmd.pan_rad == pytest.approx(0.1 + math.atan(d.offset_px / 150.0))
     assert cmd.correction_rad == pytest.approx(math.atan(d.offset_px / 150.0))
     assert cmd.direction == 1 and cmd.magnitude_px == pytest.approx(abs(d.offset_px))
+
+
+def clipping_pair():
+    """A textured pair whose slave is at gain 1.6, +40: a quarter of its band saturates (clip_master clips)."""
+    m, s = textured()
+    return m, np.clip(s * 1.6 + 40, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("clip", [True, False], ids=["clipped", "unclipped"])
+def test_reduce_equals_match_for_either_clip(clip):
+    """make_frame's clip (the dynamic window's clip_fallback states): the workers and the reducer compute what
+    match() computes with that clip_master, layer 4 bit for bit; the two clips differ on this pair."""
+    m, s = clipping_pair()
+    params = Params(max_window=0)
+    assert master_clipped(m, s, 60, 15, params)
+    f = Frame.from_bytes(frame_of(m, s, params).to_bytes()) if clip else \
+        Frame.from_bytes(make_frame(m, s, rig="r", frame=1, pan_rad=0.0, focal_px=100.0, params=params,
+                                    plan=plan_shards(["a"], m.shape[1] - 14), clip=False).to_bytes())
+    scores = np.atleast_2d(compute_partial(f, "a").array())
+    want = match(m, s, params=params, clip_master=clip)
+    other = match(m, s, params=params, clip_master=not clip)
+    assert np.array_equal(scores, np.atleast_2d(want.scores))
+    assert not np.array_equal(scores, np.atleast_2d(other.scores))
+    prof, _ = reduce(f, scores, params, Controller())
+    d = want.decision
+    assert (prof.k, prof.k_sub, prof.v_shift, prof.confident) == (d.k, d.k_sub, d.v, d.confident)
 
 
 def test_reduce_flat_fovea_gives_no_command():
@@ -203,6 +230,36 @@ def test_window_control_walks_the_windows_match_tries():
     wc.update(15, False)
     wc.reset()
     assert wc.window == 15 and wc.update(15, False) == 23
+
+
+def test_window_control_with_clip_fallback_then_the_unclipped_windows():
+    """clip_fallback: the clipped windows, then (only where the master was clipped) the same windows unclipped,
+    as match() tries them; a decision of another state (a frame in flight) does not count, a confident one
+    clears the clipping seen, and a window that no longer fits goes on to the unclipped ones."""
+    p = Params(window=15, max_window=31, clip_fallback=True)
+    wc = WindowControl(p, patience=1)
+    assert wc.states == [(15, True), (23, True), (31, True), (15, False), (23, False), (31, False)]
+    assert wc.update(15, False) == 23 and wc.update(23, False) == 31
+    assert wc.update(31, False) == 31 and wc.state == (31, True)  # the master never clipped: stays
+    wc.clipped(False)
+    assert wc.update(31, False) == 31 and wc.state == (31, True)
+    wc.clipped(True)
+    assert wc.update(31, False) == 15 and wc.state == (15, False)
+    assert wc.update(15, False, clip=True) == 15 and wc.state == (15, False)  # in flight: the clipped 15
+    assert wc.update(15, False, clip=False) == 23 and wc.state == (23, False)
+    assert wc.update(23, True, clip=False) == 15 and wc.state == (15, False)  # patience 1: one step back
+    assert wc.update(15, True, clip=False) == 31 and wc.state == (31, True)
+    assert wc.update(31, False) == 31 and wc.state == (31, True)  # the confident ones cleared the clipping
+    wc.clipped()
+    wc.reset()  # 31 px no longer fits, the master was clipped: on to the unclipped windows
+    assert wc.state == (15, False)
+    wc.reset()
+    assert wc.state == (15, True)
+    for params in (Params(max_window=31, clip_fallback=False), Params(max_window=31, photometric="none"),
+                   Params(max_window=31, clip_master=False)):
+        assert WindowControl(params).states == [(15, True), (23, True), (31, True)]
+    assert WindowControl(Params(max_window=0)).states == [(15, True), (15, False)]  # as match() then tries
+    assert Params.paper().clip_fallback is False and WindowControl(Params.paper()).states == [(15, True)]
 
 
 def test_files_source(tmp_path):
