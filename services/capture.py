@@ -36,7 +36,6 @@ import zenoh
 from vergence import keys, retina
 from vergence.config import load
 from vergence.frames import Roster, WindowControl, make_frame, plan_shards
-from vergence.match import master_clipped
 from vergence.messages import Fixate, MessageError, MotorState, Preview, Verdict
 from vergence.sources import SourceError, open_source
 
@@ -272,7 +271,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                     continue
                 if len(windows.states) > len(windows.sizes):  # clip_fallback: the decision's state is ours
                     if clip:
-                        windows.clipped(master_clipped(master, slave, frame.y, w, params))
+                        windows.clipped(retina.master_clipped(master, slave, frame.y, w, params))
                     else:
                         unclipped[fid] = None
                         while len(unclipped) > 1024:

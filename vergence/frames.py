@@ -11,11 +11,10 @@ import numpy as np
 
 from . import retina
 from .config import LimitSettings
-from .match import master_clipped
 from .messages import Frame
 from .params import Params
 
-__all__ = ["plan_shards", "make_frame", "master_clipped", "Roster", "WindowControl", "frame_cost", "frame_too_large"]
+__all__ = ["plan_shards", "make_frame", "Roster", "WindowControl", "frame_cost", "frame_too_large"]
 
 
 def plan_shards(workers, k_count: int) -> list[list]:

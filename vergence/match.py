@@ -14,7 +14,7 @@ from . import kernel, retina
 from .decide import Decision, decide_scores
 from .params import FAITHFUL, Params
 
-__all__ = ["Match", "match", "master_clipped", "Params", "FAITHFUL"]
+__all__ = ["Match", "match", "Params", "FAITHFUL"]
 
 
 @dataclass(frozen=True)
@@ -51,20 +51,9 @@ def _one(master, slave, x, y, w, p: Params) -> Match:
     return Match(x, y, w, decide_scores(scores, fovea, x, p, mrows, band), scores)
 
 
-def master_clipped(master: np.ndarray, slave: np.ndarray, y: int, window: int, params: Params) -> bool:
-    """Whether params.clip_master clips the master for the fovea at row y, window w: the slave's gain clipped
-    enough of the band (retina.photometric_map's levels). match() and the capture (for frames.WindowControl)
-    ask it alike."""
-    if not params.clip_master or params.photometric == "none":
-        return False
-    return retina.photometric_map(retina.band_strip(slave, y, window, params.vsearch),
-                                  retina.band_strip(master, y, window, params.vsearch), params.photometric)[1] \
-        is not None
-
-
 def _clipped(master: np.ndarray, slave: np.ndarray, y: int, windows: list[int], p: Params) -> bool:
     """Whether clip_master clipped the master at any of these windows."""
-    return any(master_clipped(master, slave, y, w, p) for w in windows)
+    return any(retina.master_clipped(master, slave, y, w, p) for w in windows)
 
 
 def match(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = None,

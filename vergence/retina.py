@@ -15,7 +15,7 @@ import numba
 import numpy as np
 
 __all__ = ["BorderError", "gray", "strip", "fovea_strip", "band_strip", "planes", "features", "check_point",
-           "PHOTOMETRIC", "photometric", "photometric_map", "slave_band_strip", "mapped_strips"]
+           "PHOTOMETRIC", "photometric", "photometric_map", "slave_band_strip", "mapped_strips", "master_clipped"]
 
 
 class BorderError(ValueError):
@@ -307,3 +307,14 @@ def features(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None =
     check_point(master.shape, x, y, window, vsearch)
     fovea, band, _ = mapped_strips(master, slave, x, y, window, vsearch, photometric)
     return planes(fovea), planes(band)
+
+
+def master_clipped(master: np.ndarray, slave: np.ndarray, y: int, window: int, params) -> bool:
+    """Whether params.clip_master clips the master for the fovea at row y, window w: the slave's gain clipped
+    enough of the band (photometric_map's levels). match() and the capture (for frames.WindowControl)
+    ask it alike. params: a vergence.Params (not imported: params imports this module)."""
+    if not params.clip_master or params.photometric == "none":
+        return False
+    levels = photometric_map(band_strip(slave, y, window, params.vsearch),
+                             band_strip(master, y, window, params.vsearch), params.photometric)[1]
+    return levels is not None

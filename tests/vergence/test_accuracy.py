@@ -160,7 +160,7 @@ def test_the_service_dynamic_window_falls_back_as_match_does():
     from vergence.control import Controller
     from vergence.frames import WindowControl, make_frame, plan_shards
     from vergence.gather import reduce
-    from vergence.match import master_clipped
+    from vergence.retina import master_clipped
     from vergence.messages import Frame
     from vergence.shards import compute_partial
 

@@ -13,7 +13,7 @@ from vergence import kernel, match, retina
 from vergence.control import ControlSettings, Controller
 from vergence.frames import WindowControl, make_frame, plan_shards
 from vergence.gather import Gatherer, reduce
-from vergence.match import master_clipped
+from vergence.retina import master_clipped
 from vergence.messages import Frame, MessageError, Partial
 from vergence.params import Params
 from vergence.shards import compute_partial
