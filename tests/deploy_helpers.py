@@ -108,3 +108,29 @@ def round_trip(session, timeout: float = 5.0) -> None:
     messages it forwarded), and the router handled whatever this session sent before the query (its puts)."""
     for _ in session.liveliness().get("vergence/barrier/**", timeout=timeout):
         pass
+
+
+def puts_through_acl(secrets: Path, variant: str, endpoint: str, roles, keys, until: tuple[str, bytes]) \
+        -> list[tuple[str, bytes]]:
+    """Each role (its own credentials) puts its name on each key; what a `monitor` client subscribed to
+    vergence/** receives through the router's ACL, as (key, role). `until`: one (key, role) the ACL lets
+    through, waited for before the last barrier (the router forwards asynchronously)."""
+    got: list[tuple[str, bytes]] = []
+    watch = client_session(secrets, "monitor", variant, endpoint)
+    try:
+        sub = watch.declare_subscriber("vergence/**", lambda s: got.append((str(s.key_expr), s.payload.to_bytes())))
+        for role in roles:
+            s = client_session(secrets, role, variant, endpoint)
+            try:
+                round_trip(s)  # the router has told this client about the subscriber
+                for key in keys:
+                    s.put(key, role.encode())
+                round_trip(s)  # the router has taken (or refused) every put
+            finally:
+                s.close()
+        wait_for(lambda: until in got, 5, f"{until[1].decode()}'s put on {until[0]}")
+        round_trip(watch)  # whatever the router forwarded has arrived
+        sub.undeclare()
+    finally:
+        watch.close()
+    return got

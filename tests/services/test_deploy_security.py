@@ -20,6 +20,7 @@ from deploy_helpers import (
     client_session,
     make_secrets,
     passwords,
+    puts_through_acl,
     round_trip,
     router_config,
     start_router,
@@ -133,29 +134,13 @@ def test_wrong_ca_fails_tls(tmp_path, secrets, other_ca):
 @pytest.mark.parametrize("variant", ["tcp", "tls"])
 def test_only_the_reducer_commands_and_only_the_actuator_reports(tmp_path, secrets, variant):
     conf, endpoint = router_config(variant, secrets, tmp_path / "router.json5")
-    got: list[tuple[str, bytes]] = []
     with Procs(tmp_path) as P:
         start_router(P, conf, endpoint)
-        watch = client_session(secrets, "monitor", variant, endpoint)
-        try:
-            sub = watch.declare_subscriber("vergence/**", lambda s: got.append((str(s.key_expr),
-                                                                               s.payload.to_bytes())))
-            for role in ("capture", "worker", "monitor", "replay", "reducer", "actuator"):
-                s = client_session(secrets, role, variant, endpoint)
-                try:
-                    round_trip(s)  # the router has told this client about the subscriber
-                    for key in ("vergence/r/command", "vergence/r/motor/state", "vergence/r/frame",
-                                "vergence/**", "vergence/*/command", "vergence/r/*", "vergence/*/motor/*",
-                                "vergence/replay/frame", "vergence/r/workers"):
-                        s.put(key, role.encode())
-                    round_trip(s)  # the router has taken (or refused) every put
-                finally:
-                    s.close()
-            wait_for(lambda: ("vergence/r/motor/state", b"actuator") in got, 5, "the actuator's state")
-            round_trip(watch)  # whatever the router forwarded has arrived
-            sub.undeclare()
-        finally:
-            watch.close()
+        got = puts_through_acl(secrets, variant, endpoint,
+                               ("capture", "worker", "monitor", "replay", "reducer", "actuator"),
+                               ("vergence/r/command", "vergence/r/motor/state", "vergence/r/frame", "vergence/**",
+                                "vergence/*/command", "vergence/r/*", "vergence/*/motor/*", "vergence/replay/frame",
+                                "vergence/r/workers"), until=("vergence/r/motor/state", b"actuator"))
     assert sorted(got) == sorted([
         ("vergence/r/frame", b"capture"), ("vergence/replay/frame", b"capture"), ("vergence/replay/frame", b"replay"),
         ("vergence/r/command", b"reducer"), ("vergence/*/command", b"reducer"), ("vergence/r/workers", b"reducer"),

@@ -190,31 +190,16 @@ def test_monitor_shows_the_fovea_and_the_depth():
 def test_only_the_fixate_role_may_fixate(tmp_path, variant):
     """Under the deployed ACL (deploy/router-*.json5, secrets from make-certs.sh): a put on
     vergence/<rig>/fixate gets through from the `fixate` role only, and that role puts nothing else."""
-    from deploy_helpers import client_session, make_secrets, round_trip, router_config, start_router
+    from deploy_helpers import make_secrets, puts_through_acl, router_config, start_router
 
     secrets = make_secrets(tmp_path / "secrets")
     conf, endpoint = router_config(variant, secrets, tmp_path / "router.json5")
-    got: list[tuple[str, bytes]] = []
     with Procs(tmp_path) as P:
         start_router(P, conf, endpoint)
-        watch = client_session(secrets, "monitor", variant, endpoint)
-        try:
-            sub = watch.declare_subscriber("vergence/**", lambda s: got.append((str(s.key_expr),
-                                                                               s.payload.to_bytes())))
-            for role in ("capture", "worker", "reducer", "actuator", "monitor", "replay", "fixate"):
-                s = client_session(secrets, role, variant, endpoint)
-                try:
-                    round_trip(s)  # the router has told this client about the subscriber
-                    for key in ("vergence/r/fixate", "vergence/*/fixate", "vergence/r/command", "vergence/r/frame"):
-                        s.put(key, role.encode())
-                    round_trip(s)  # the router has taken (or refused) every put
-                finally:
-                    s.close()
-            wait_for(lambda: ("vergence/r/fixate", b"fixate") in got, 5, "the fixate role's request")
-            round_trip(watch)  # whatever the router forwarded has arrived
-            sub.undeclare()
-        finally:
-            watch.close()
+        got = puts_through_acl(secrets, variant, endpoint,
+                               ("capture", "worker", "reducer", "actuator", "monitor", "replay", "fixate"),
+                               ("vergence/r/fixate", "vergence/*/fixate", "vergence/r/command", "vergence/r/frame"),
+                               until=("vergence/r/fixate", b"fixate"))
     assert sorted(k for k in got if k[0].endswith("/fixate")) == [("vergence/*/fixate", b"fixate"),
                                                                   ("vergence/r/fixate", b"fixate")]
     assert not any(who == b"fixate" and not key.endswith("/fixate") for key, who in got)
