@@ -87,7 +87,14 @@ def main() -> None:
     vis = visible(disp)
     params = vergence.FAITHFUL if a.faithful else vergence.Params()
     if a.set:
-        params = params.override(**dict(kv.split("=", 1) for kv in a.set))
+        def typed(key: str, text: str):  # as the field's current value: "false" is not a true string
+            cur = getattr(params, key, None)
+            if isinstance(cur, bool):
+                if text.lower() not in ("true", "false", "1", "0"):
+                    ap.error(f"--set {key}: true or false, not {text!r}")
+                return text.lower() in ("true", "1")
+            return type(cur)(text) if isinstance(cur, (int, float)) else text
+        params = params.override(**{k: typed(k, v) for k, v in (kv.split("=", 1) for kv in a.set)})
     seeds = [int(s) for s in (a.seeds or ("0,1,2,3,4" if a.mode == "static" else "3,4,5")).split(",")]
     n = a.n or (500 if a.mode == "static" else 100)
     equal = None
