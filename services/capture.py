@@ -271,7 +271,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                     continue
                 if len(windows.states) > len(windows.sizes):  # clip_fallback: the decision's state is ours
                     if clip:
-                        windows.clipped(retina.master_clipped(master, slave, frame.y, w, params))
+                        if not windows.was_clipped:  # once set, it stays until a confident decision: no re-check
+                            windows.clipped(retina.master_clipped(master, slave, frame.y, w, params))
                     else:
                         unclipped[fid] = None
                         while len(unclipped) > 1024:
