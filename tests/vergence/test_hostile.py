@@ -385,26 +385,28 @@ def test_forged_partials_frames_and_states_stop_nothing(rig):
     after(P, c, t_a, base)
     red = wait_for(lambda: latest_status(c, "reducer").get("gatherer", {}).get("implausible_frame", 0) >= 1 and
                    latest_status(c, "reducer"), 5, "the reducer's status", logs=P.logs)
-    assert red["gatherer"]["implausible_time"] >= 1 and red["bad"].get("frame", 0) >= 1, red
+    assert red["gatherer"]["implausible_time"] >= 1, red
     cap = latest_status(c, "capture")
     assert cap["bad"].get("motor_state", 0) >= 1, cap
     # the frames after the attack carry the real pan, never the forged 80 deg
     pans = [Verdict.from_bytes(b).pan_rad for t, b, _ in c["decision"].snapshot() if t > t_a]
     assert pans and max(abs(p) for p in pans) <= math.radians(45) + 1e-6
 
-    def worker_counted_it() -> bool:
+    def counted_it(role: str) -> bool:
         return any(st.get("bad", {}).get("frame", 0) >= 1 for st in
-                   (json.loads(b) for _, b, k in c["status"].snapshot() if "/status/worker/" in k))
+                   (json.loads(b) for _, b, k in c["status"].snapshot() if f"/status/{role}/" in k))
 
-    # a worker keeps only the newest frame: a real frame may replace the big one before it reads it (then the big
-    # one cost it nothing); offered again until a worker read and refused it
+    # a worker keeps only the newest frame, and the reducer decodes only the newest two of a batch: real frames
+    # may supersede the big one before it is read (then it cost nothing); offered again until both read and
+    # refused it
     for _ in range(4):
         try:
-            wait_for(worker_counted_it, 2, "a worker counting the big frame as bad")
+            wait_for(lambda: counted_it("worker") and counted_it("reducer"), 2, "the big frame counted as bad")
             break
         except TimeoutError:
             s.put(P.key("frame"), big.to_bytes())
-    wait_for(worker_counted_it, 2, "a worker counting the big frame as bad", logs=P.logs)
+    wait_for(lambda: counted_it("worker"), 2, "a worker counting the big frame as bad", logs=P.logs)
+    wait_for(lambda: counted_it("reducer"), 2, "the reducer counting the big frame as bad", logs=P.logs)
 
 
 P_BIG = Params(max_window=0, lr_check=False)
