@@ -16,7 +16,8 @@ that is not a valid Fixate, or where the fovea would not fit the image, is rejec
 and in the fixate_rejected counter, its reason logged) and nothing moves.
 Counters go out as JSON on vergence/<rig>/status/capture/<id> every second and at exit, with the rate
 published and the rate the reducer completed (published_hz, decided_hz; a warning when the pipeline
-holds less than half).
+holds less than half), and what each camera clips of the fovea's rows where the other sees texture (clipped:
+retina.clipped_share of the latest pair; a warning, once per camera, over CLIP_WARN).
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ from .match import point_arg
 from .node import STATUS_S, Node
 
 log = logging.getLogger("vergence.capture")
+CLIP_WARN = 0.05  # the clipped share (retina.clipped_share) over which the capture warns, once per camera
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -167,9 +169,25 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
     plan: list = []
     unclipped: dict[int, None] = {}  # the recent frames published with the master unclipped (clip_fallback)
 
+    pair: list = []  # the latest (master, slave), for the clipped shares of the status
+    warned: set[str] = set()
+
+    def clipped() -> dict:
+        """retina.clipped_share at the fovea's rows; one warning per camera over CLIP_WARN."""
+        if not pair:
+            return {}
+        out = retina.clipped_share(*pair, fovea.at()[1], windows.window, params.vsearch)
+        for cam, share in out.items():
+            if share >= CLIP_WARN and cam not in warned:
+                warned.add(cam)
+                log.warning("the %s camera shows %.0f %% of the fovea's rows black or saturated where the other "
+                            "camera sees texture: that texture is lost to the match; set both cameras' exposure "
+                            "and gain alike (README, Two real cameras)", cam, 100 * share)
+        return {cam: round(share, 3) for cam, share in out.items()}
+
     def fields() -> dict:
         return dict(window=windows.window, workers=len(plan), excluded=members.excluded(), **rates.fields(),
-                    roster=dict(members.counters), fovea=list(fovea.at()))
+                    roster=dict(members.counters), fovea=list(fovea.at()), clipped=clipped())
 
     node = Node("capture", rig, conf, stop, log=log, fields=fields,
                 final_fields=lambda: dict(window=windows.window, workers=len(plan)))
@@ -249,6 +267,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                 print(f"vergence capture: {e}", file=sys.stderr)
                 return 2
             t_ns = time.time_ns()
+            pair[:] = master, slave
             w, clip = windows.state
             changes, ids = members.snapshot()
             if (changes, w) != plan_key:

@@ -15,7 +15,8 @@ import numba
 import numpy as np
 
 __all__ = ["BorderError", "gray", "strip", "fovea_strip", "band_strip", "planes", "features", "check_point",
-           "PHOTOMETRIC", "photometric", "photometric_map", "slave_band_strip", "mapped_strips", "master_clipped"]
+           "PHOTOMETRIC", "photometric", "photometric_map", "slave_band_strip", "mapped_strips", "master_clipped",
+           "clipped_share"]
 
 
 class BorderError(ValueError):
@@ -318,3 +319,16 @@ def master_clipped(master: np.ndarray, slave: np.ndarray, y: int, window: int, p
     levels = photometric_map(band_strip(slave, y, window, params.vsearch),
                              band_strip(master, y, window, params.vsearch), params.photometric)[1]
     return levels is not None
+
+
+def clipped_share(master: np.ndarray, slave: np.ndarray, y: int, window: int, vsearch: int = 0) -> dict[str, float]:
+    """For each camera, the share of the other camera's band (the rows of the fovea at row y, window w) that it
+    clips away: levels it shows black or saturated where the other still has texture, lost to the match whatever
+    the photometric mapping does (photometric_map's levels, affine, either way round; a share under
+    CLAMP_MIN_SHARE counts as 0). The capture reports it so that a user sees a camera's exposure is off."""
+    m, s = band_strip(master, y, window, vsearch), band_strip(slave, y, window, vsearch)
+    out = {}
+    for name, mine, other in (("slave", s, m), ("master", m, s)):
+        levels = photometric_map(mine, other, "affine")[1]
+        out[name] = 0.0 if levels is None else float(np.mean((other < levels[0]) | (other > levels[1])))
+    return out

@@ -290,8 +290,9 @@ def test_the_service_falls_back_to_the_unclipped_master_as_match_does(tmp_path):
         s = P.session()
         P.wait_alive(s, "worker", 1)
         frames, decisions = P.collect(s, P.key("frame")), P.collect(s, P.key("decision"))
-        P.start("capture", "capture", "--source", f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}", "--at",
-                "41,164", "--rate", str(RATE), "--config", str(cfg))
+        statuses = P.collect(s, P.key("status/capture/*"))
+        cap = P.start("capture", "capture", "--source", f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}", "--at",
+                      "41,164", "--rate", str(RATE), "--config", str(cfg))
         _, v = wait_for(lambda: next(((t, m) for t, m in (
             (t, Verdict.from_bytes(b)) for t, b, _ in decisions.snapshot()) if m.confident), None), 30,
             "a confident decision", logs=P.logs)
@@ -306,6 +307,15 @@ def test_the_service_falls_back_to_the_unclipped_master_as_match_does(tmp_path):
         verdicts = [Verdict.from_bytes(b) for _, b, _ in decisions.snapshot()]
         assert not any(m.confident for m in verdicts if m.frame < v.frame)
         assert set(params.windows()) <= {m.window for m in verdicts if m.frame < v.frame}
+        # the status says the slave saturates 16 % of the fovea's rows (retina.clipped_share at one of the
+        # windows the sweep went through), the master nothing, and the log says what to do, once
+        st = wait_for(lambda: next((st for st in (json.loads(b) for _, b, _ in statuses.snapshot())
+                                    if st.get("clipped")), None), 10, "a capture status", logs=P.logs)
+        want_shares = {round(retina.clipped_share(left, slave, 164, w, params.vsearch)["slave"], 3)
+                       for w in params.windows()}
+        assert st["clipped"]["master"] == 0.0 and st["clipped"]["slave"] in want_shares, (st, want_shares)
+        assert min(want_shares) > 0.1
+        assert cap.text().count("the slave camera shows") == 1 and "the master camera" not in cap.text()
 
 
 def test_garbage_on_every_key_kills_nothing(tmp_path, pair):
@@ -366,6 +376,7 @@ def test_garbage_on_every_key_kills_nothing(tmp_path, pair):
         assert r["bad"]["frame"] + r["shed"]["frame"] >= 3 * 10
         assert r["bad"]["partial"] + r["shed"]["partial"] >= 3 * 2 * 10
         assert c["bad"]["motor_state"] >= 3 * len(junk) and c["bad"]["decision"] >= 3 * len(junk)
+        assert c["clipped"] == {"slave": 0.0, "master": 0.0}  # two cameras alike: neither loses texture
         # no garbage frame was ever turned into a command
         assert all(c.magnitude_px < 14 and c.rig == P.rig for c in valid())
 

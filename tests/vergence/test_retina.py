@@ -75,3 +75,22 @@ def test_photometric_undoes_the_slave_cameras_gain_and_offset(mode):
         assert retina.photometric(slave, master, "none") is slave
     flat = np.full_like(master, 77)
     assert np.all(retina.photometric(flat, master, mode) == retina.photometric(flat, master, mode)[0, 0])
+
+
+def test_clipped_share_says_which_camera_lost_what_share():
+    """retina.clipped_share: the share of the fovea's rows (band) one camera shows black or saturated where the
+    other still has texture. A random texture, every level alike: the slave at gain 1.3, +20 saturates the
+    master's levels >= 181 (29 % of the band), at 0.7, -15 it blacks out the levels <= 22 (9 %); the same pair
+    swapped names the master; equal cameras, and a camera that is merely dimmer (0.8, +0: nothing clipped),
+    lose nothing."""
+    master = np.random.default_rng(5).integers(0, 256, (480, 640), dtype=np.uint8)
+    band = retina.band_strip(master, 240, 15, 6)
+    for (gain, off), lost in (((1.3, 20), np.mean(band >= 181)), ((0.7, -15), np.mean(band <= 22))):
+        slave = np.clip(master.astype(np.float32) * np.float32(gain) + np.float32(off), 0, 255).astype(np.uint8)
+        got = retina.clipped_share(master, slave, 240, 15, 6)
+        assert got["master"] == 0.0 and got["slave"] == pytest.approx(lost, abs=0.01), got
+        swapped = retina.clipped_share(slave, master, 240, 15, 6)
+        assert swapped["slave"] == 0.0 and swapped["master"] == pytest.approx(lost, abs=0.01), swapped
+    assert retina.clipped_share(master, master, 240, 15, 6) == {"slave": 0.0, "master": 0.0}
+    dim = (master.astype(np.float32) * np.float32(0.8)).astype(np.uint8)
+    assert retina.clipped_share(master, dim, 240, 15, 6) == {"slave": 0.0, "master": 0.0}
