@@ -17,7 +17,7 @@ and in the fixate_rejected counter, its reason logged) and nothing moves.
 Counters go out as JSON on vergence/<rig>/status/capture/<id> every second and at exit, with the rate
 published and the rate the reducer completed (published_hz, decided_hz; a warning when the pipeline
 holds less than half), and what each camera clips of the fovea's rows where the other sees texture (clipped:
-retina.clipped_share of the latest pair; a warning, once per camera, over CLIP_WARN).
+retina.clipped_share of the latest pair; a warning, once per camera, over retina.CLIP_WARN).
 """
 
 from __future__ import annotations
@@ -46,7 +46,6 @@ from .match import point_arg
 from .node import STATUS_S, Node
 
 log = logging.getLogger("vergence.capture")
-CLIP_WARN = 0.05  # the clipped share (retina.clipped_share) over which the capture warns, once per camera
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -178,7 +177,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
             return {}
         out = retina.clipped_share(*pair, fovea.at()[1], windows.window, params.vsearch)
         for cam, share in out.items():
-            if share >= CLIP_WARN and cam not in warned:
+            if share >= retina.CLIP_WARN and cam not in warned:
                 warned.add(cam)
                 log.warning("the %s camera shows %.0f %% of the fovea's rows black or saturated where the other "
                             "camera sees texture: that texture is lost to the match; set both cameras' exposure "

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import shutil
 import sys
 import threading
@@ -36,6 +37,15 @@ log = logging.getLogger("vergence.monitor")
 # the keys the monitor watches under vergence/<rig>/: not the partials (their shards come from the frames'
 # plans) nor the previews, so a monitor costs the rig little
 WATCHED = (keys.frame, keys.profile, keys.command, keys.motor_state, keys.statuses)
+
+
+def _columns(out) -> int:
+    """The terminal's width now, asked of the terminal itself (it follows a resize; an inherited COLUMNS does
+    not), else shutil's answer (COLUMNS, then 100)."""
+    try:
+        return os.get_terminal_size(out.fileno()).columns
+    except (OSError, ValueError, AttributeError):
+        return shutil.get_terminal_size((100, 40)).columns
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -130,7 +140,7 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, args: argparse.Namesp
                 got = watch.wait_profile(0, t0 + wait, stop)
                 # a second of rates and latencies beyond the first profile (bounded by the timeout)
                 stop.wait(max(0.0, min(1.0, t0 + wait - time.monotonic())))
-                cols = shutil.get_terminal_size((100, 40)).columns if tty else 100
+                cols = _columns(out) if tty else 100
                 print(render_text(model.snapshot(), width=cols, color=color), file=out, flush=True)
                 if not got:
                     print(f"vergence monitor: no profile on {keys.profile(rig)} within {wait:g} s "
@@ -138,7 +148,7 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, args: argparse.Namesp
                 return 0 if got else 1
             end = time.monotonic() + args.timeout if args.timeout is not None else None
             while not stop.wait(args.refresh):
-                cols = shutil.get_terminal_size((100, 40)).columns if tty else 100
+                cols = _columns(out) if tty else 100
                 text = render_text(model.snapshot(), width=cols, color=color)
                 if color:
                     out.write("\x1b[H\x1b[2J" + text + "\n")

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import threading
 import time
 from collections import deque
@@ -26,6 +27,7 @@ import numpy as np
 
 from . import keys
 from . import messages as m
+from .retina import CLIP_WARN
 
 __all__ = ["Monitor", "Snapshot", "Rate", "render_text", "profile_bars", "fixation_line"]
 
@@ -500,6 +502,37 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
             out.append(f"{name}: " + "  ".join(f"{k} {g[k]}" for k in ("frames", "complete", "dropped",
                                                                        "superseded", "late", "unexpected")
                                                if k in g) + f"  pending {d.get('pending', '?')}")
+        if name.startswith("capture/") and isinstance(d.get("clipped"), dict) and d["clipped"]:
+            shares = {cam: v for cam, v in d["clipped"].items() if isinstance(v, (int, float))}
+            line = f"{name}: clipped " + ", ".join(f"{cam} {100 * v:.0f} %" for cam, v in sorted(shares.items()))
+            if any(v >= CLIP_WARN for v in shares.values()):
+                out.append(c(YELLOW, line + " of the fovea's rows: set both cameras' exposure alike"))
+            else:
+                out.append(line)
     for kind, n in sorted(s.malformed.items()):
         out.append(c(RED, f"malformed {kind}: {n} (last: {s.last_error.get(kind, '')[:width - 30]})"))
-    return "\n".join(out)
+    return "\n".join(part for line in out for part in _fit(line, width))
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+FIELD_SEP = "   "  # between the fields of a line: where a line too wide for the terminal is broken
+
+
+def _fit(line: str, width: int) -> list[str]:
+    """A screen line as lines of at most `width` visible characters (ANSI codes do not count), broken between
+    its fields (FIELD_SEP), the continuation indented by 2; a single field wider than that stays whole."""
+    def vis(t: str) -> int:
+        return len(_ANSI.sub("", t))
+
+    if vis(line) <= width:
+        return [line]
+    parts = line.split(FIELD_SEP)
+    out, cur = [], parts[0]
+    for part in parts[1:]:
+        if vis(cur) + len(FIELD_SEP) + vis(part) <= width:
+            cur += FIELD_SEP + part
+        else:
+            out.append(cur)
+            cur = "  " + part.lstrip()
+    out.append(cur)
+    return out

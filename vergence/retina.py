@@ -16,7 +16,7 @@ import numpy as np
 
 __all__ = ["BorderError", "gray", "strip", "fovea_strip", "band_strip", "planes", "features", "check_point",
            "PHOTOMETRIC", "photometric", "photometric_map", "slave_band_strip", "mapped_strips", "master_clipped",
-           "clipped_share"]
+           "clipped_share", "CLIP_WARN"]
 
 
 class BorderError(ValueError):
@@ -319,6 +319,9 @@ def master_clipped(master: np.ndarray, slave: np.ndarray, y: int, window: int, p
     levels = photometric_map(band_strip(slave, y, window, params.vsearch),
                              band_strip(master, y, window, params.vsearch), params.photometric)[1]
     return levels is not None
+
+
+CLIP_WARN = 0.05  # a clipped_share over which the capture's log and the monitor say a camera's exposure is off
 
 
 def clipped_share(master: np.ndarray, slave: np.ndarray, y: int, window: int, vsearch: int = 0) -> dict[str, float]:

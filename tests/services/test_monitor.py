@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import shutil
 
 import cv2
 import pytest
@@ -45,3 +46,59 @@ def test_monitor_once_and_png_against_up(tmp_path, pair):
         img = cv2.imread(str(png))
         assert img.shape == (480, 640, 3) and img.std() > 10
         assert ((img[:, :, 2] > 180) & (img[:, :, 1] < 60)).sum() > 100  # the red winner marker
+
+
+def _tmux(*args: str, check: bool = True) -> str:
+    import subprocess
+
+    r = subprocess.run(["tmux", *args], capture_output=True, text=True, timeout=10)
+    if check and r.returncode != 0:
+        raise RuntimeError(f"tmux {' '.join(args)}: {r.stderr.strip()}")
+    return r.stdout
+
+
+@pytest.mark.skipif(shutil.which("tmux") is None, reason="needs tmux (apt-get install tmux)")
+def test_live_monitor_in_a_terminal(tmp_path, pair):
+    """`vergence monitor` as a person runs it: in a 100 x 40 terminal (tmux), against `vergence up`. The screen
+    is redrawn in place (one header, at the top, not a scroll of screens), no line wraps, it shows the decision,
+    both workers' shards and the pan, moves on (the frame id changes between two looks), and Ctrl-C ends it
+    (the pane's process exits 0)."""
+    from procs import VERGENCE, wait_for
+
+    source, cfg = pair
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    name = f"vergence-monitor-{tmp_path.name}"[:60].replace(".", "-")
+    with Procs(tmp_path) as P:
+        P.endpoint = endpoint
+        P.start("up", "up", "--listen", endpoint, "--source", source, "--workers", "2", "--rate", "20",
+                "--config", cfg, connect=False)
+        P.wait_port(20)
+        # COLUMNS=80: a stale width inherited from the environment; the screen follows the terminal's own (100)
+        cmd = (f"COLUMNS=80 LINES=24 {VERGENCE} monitor --connect {endpoint} --rig {P.rig} --refresh 0.3; "
+               f"echo monitor-exit=$?; sleep 30")
+        _tmux("new-session", "-d", "-s", name, "-x", "100", "-y", "40", cmd)
+        try:
+            def screen() -> str:
+                return _tmux("capture-pane", "-p", "-J", "-t", name)  # -J: a line tmux wrapped comes back whole
+
+            first = wait_for(lambda: (lambda t: t if "workers 2:" in t and "decision k*=" in t else None)(screen()),
+                             40, "the monitor's screen", logs=P.logs)
+            print(first)  # the screen (pytest -s)
+            assert first.count("rate   frames") == 1, first  # redrawn in place
+            assert first.splitlines()[0].startswith("vergence monitor · rig "), first  # from the top
+            assert max(len(ln) for ln in first.splitlines()) <= 100, first  # nothing wrapped
+            axis = next(ln for ln in first.splitlines() if ln.lstrip().startswith("k=0"))
+            assert len(axis) == 100 and axis.endswith("k=305"), first  # the profile spans the terminal's width
+            assert re.search(r"decision k\*=\d+ .* k_c=153 ", first) and "pan " in first, first
+            assert "▲" in first and "┴" in first
+            frame_of = re.compile(r"frame (\d+)")
+            f0 = frame_of.search(first)
+            assert f0, first
+            wait_for(lambda: (m := frame_of.search(screen())) and int(m.group(1)) > int(f0.group(1)), 10,
+                     "the screen to move on", logs=P.logs)
+            _tmux("send-keys", "-t", name, "C-c")
+            end = wait_for(lambda: (lambda t: t if "monitor-exit=" in t else None)(screen()), 10,
+                           "the monitor to exit on Ctrl-C", logs=P.logs)
+            assert "monitor-exit=0" in end, end
+        finally:
+            _tmux("kill-session", "-t", name, check=False)

@@ -244,3 +244,43 @@ def test_drops_from_reducer_status():
     mon.feed("vergence/head/status/reducer/r-9", json.dumps(dict(st, exiting=True)).encode())
     s = mon.snapshot(T0 + 2_000 * MS)
     assert (s.dropped, s.dropped_of, s.dropped_from) == (1, 100, "frames")
+
+
+def test_capture_status_says_what_each_camera_clips():
+    """The capture's `clipped` (retina.clipped_share): a line per capture, in yellow with what to do once a
+    camera clips CLIP_WARN (5 %) or more; a capture whose status has no pair yet ({}) shows nothing."""
+    mon = Monitor("head")
+    run_stream(mon, 1.0, 100.0)
+    st = {"role": "capture", "id": "c-1", "pid": 1, "t_ns": T0, "counters": {}, "bad": {},
+          "clipped": {"slave": 0.159, "master": 0.0}}
+    mon.feed("vergence/head/status/capture/c-1", json.dumps(st).encode())
+    mon.feed("vergence/head/status/capture/c-2", json.dumps(dict(st, id="c-2", clipped={})).encode())
+    s = mon.snapshot(T0 + 2_000 * MS)
+    text = render_text(s, color=False)
+    assert ("capture/c-1: clipped master 0 %, slave 16 % of the fovea's rows: set both cameras' exposure alike"
+            in text)
+    assert "capture/c-2" not in text
+    assert "\x1b[33mcapture/c-1: clipped" in render_text(s, color=True)
+    mon.feed("vergence/head/status/capture/c-1", json.dumps(dict(st, clipped={"slave": 0.01, "master": 0.0}))
+             .encode())
+    text = render_text(mon.snapshot(T0 + 2_000 * MS), color=True)
+    assert "capture/c-1: clipped master 0 %, slave 1 %\n" in text + "\n" and "\x1b[33mcapture/c-1" not in text
+
+
+def test_screen_lines_fit_the_terminal():
+    """Each screen line fits the terminal's width (ANSI codes do not count): a line too wide is broken between
+    its fields, the rest on the next line indented by 2, nothing lost."""
+    import re
+
+    mon = Monitor("head")
+    now = run_stream(mon, 2.0, 100.0)
+    for width in (80, 100, 160):
+        for color in (False, True):
+            text = render_text(mon.snapshot(now), width=width, color=color)
+            assert max(len(re.sub(r"\x1b\[[0-9;]*m", "", ln)) for ln in text.splitlines()) <= width
+    lines = render_text(mon.snapshot(now), width=80, color=False).splitlines()
+    i = next(i for i, ln in enumerate(lines) if ln.startswith("latency capture→command p50 1.00 ms"))
+    assert lines[i + 1] == "  capture→profile p50 2.00 ms  p99 2.00 ms"
+    assert any(ln.startswith("decision k*=300") for ln in lines) and "  confidence 0.500 moves   texture 30.0" in lines
+    wide = render_text(mon.snapshot(now), width=160, color=False).splitlines()
+    assert any("capture→command" in ln and "capture→profile" in ln for ln in wide)  # one line when it fits
