@@ -175,7 +175,13 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         """retina.clipped_share at the fovea's rows; one warning per camera over CLIP_WARN."""
         if not pair:
             return {}
-        out = retina.clipped_share(*pair, fovea.at()[1], windows.window, params.vsearch)
+        try:
+            out = retina.clipped_share(*pair, fovea.at()[1], windows.window, params.vsearch)
+        except ValueError as e:  # a figure of the status never stops the capture
+            if "error" not in warned:
+                warned.add("error")
+                log.warning("no clipped shares in the status: %s", e)
+            return {}
         for cam, share in out.items():
             if share >= retina.CLIP_WARN and cam not in warned:
                 warned.add(cam)
