@@ -301,8 +301,9 @@ class Monitor:
             gatherers = [d["gatherer"] for n, d in self._status.items()
                          if n.startswith("reducer/") and isinstance(d.get("gatherer"), dict)]
             if gatherers:
-                def total(name: str) -> int:
-                    return sum(int(g.get(name, 0)) for g in gatherers if isinstance(g.get(name, 0), int))
+                def total(name: str) -> int:  # a status is a claim: counters are integers 0..2^53
+                    return sum(v for g in gatherers if isinstance(v := g.get(name, 0), int)
+                               and not isinstance(v, bool) and 0 <= v <= 2 ** 53)
                 s.dropped, s.dropped_from = total("dropped") + total("superseded"), "reducer"
                 s.dropped_of = total("frames")
             elif s.frames:
@@ -502,8 +503,12 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
             out.append(f"{name}: " + "  ".join(f"{k} {g[k]}" for k in ("frames", "complete", "dropped",
                                                                        "superseded", "late", "unexpected")
                                                if k in g) + f"  pending {d.get('pending', '?')}")
-        if name.startswith("capture/") and isinstance(d.get("clipped"), dict) and d["clipped"]:
-            shares = {cam: v for cam, v in d["clipped"].items() if isinstance(v, (int, float))}
+        clipped = d.get("clipped") if name.startswith("capture/") and isinstance(d.get("clipped"), dict) else {}
+        # a status is a claim: only the two cameras' shares, numbers in 0..1 (a huge JSON integer would not even
+        # format as a float)
+        shares = {cam: float(v) for cam, v in clipped.items() if cam in ("master", "slave")
+                  and isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v <= 1}
+        if shares:
             line = f"{name}: clipped " + ", ".join(f"{cam} {100 * v:.0f} %" for cam, v in sorted(shares.items()))
             if any(v >= CLIP_WARN for v in shares.values()):
                 out.append(c(YELLOW, line + " of the fovea's rows: set both cameras' exposure alike"))

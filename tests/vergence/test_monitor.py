@@ -265,6 +265,16 @@ def test_capture_status_says_what_each_camera_clips():
              .encode())
     text = render_text(mon.snapshot(T0 + 2_000 * MS), color=True)
     assert "capture/c-1: clipped master 0 %, slave 1 %\n" in text + "\n" and "\x1b[33mcapture/c-1" not in text
+    # a forged status: a number too large for a float, NaN, a share over 1, a third camera: only what is
+    # plausible is shown, and the screen still renders
+    forged = {"slave": 10 ** 400, "master": float("nan"), "left": 0.5, "extra" * 50: 0.9}
+    mon.feed("vergence/head/status/capture/c-1", json.dumps(dict(st, clipped=forged)).encode())
+    text = render_text(mon.snapshot(T0 + 2_000 * MS), color=False)
+    assert "capture/c-1" not in text and "extra" not in text
+    mon.feed("vergence/head/status/capture/c-1", json.dumps(dict(st, clipped={"slave": 2, "master": 0.06}))
+             .encode())
+    assert "capture/c-1: clipped master 6 % of the fovea's rows" in render_text(mon.snapshot(T0 + 2_000 * MS),
+                                                                               color=False)
 
 
 def test_screen_lines_fit_the_terminal():
@@ -284,3 +294,18 @@ def test_screen_lines_fit_the_terminal():
     assert any(ln.startswith("decision k*=300") for ln in lines) and "  confidence 0.500 moves   texture 30.0" in lines
     wide = render_text(mon.snapshot(now), width=160, color=False).splitlines()
     assert any("capture→command" in ln and "capture→profile" in ln for ln in wide)  # one line when it fits
+
+
+def test_forged_reducer_counters_do_not_stop_the_screen():
+    """A reducer status whose counters are no counters (a JSON integer too large for a float, negative, a
+    bool) is shown without them: the drops come from the plausible ones, and the screen renders."""
+    mon = Monitor("head")
+    run_stream(mon, 1.0, 100.0)
+    g = {"frames": 10 ** 400, "dropped": -5, "superseded": True, "complete": 1}
+    st = {"role": "reducer", "id": "r-9", "pid": 9, "t_ns": T0, "counters": {}, "bad": {}, "gatherer": g}
+    mon.feed("vergence/head/status/reducer/r-9", json.dumps(st).encode())
+    mon.feed("vergence/head/status/reducer/r-8", json.dumps(dict(st, id="r-8", gatherer={"frames": 40,
+                                                                                         "dropped": 2})).encode())
+    s = mon.snapshot(T0 + 2_000 * MS)
+    assert (s.dropped, s.dropped_of, s.dropped_from) == (2, 40, "reducer")
+    assert "dropped 2 (5.00 % of 40, reducer counters)" in render_text(s, color=False)
