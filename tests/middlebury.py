@@ -10,6 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
+from vergence import evaluate
+
 ROOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "middlebury"
 SCENES = ["cones", "teddy", "tsukuba", "venus"]
 
@@ -28,32 +30,13 @@ def load(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 @functools.lru_cache(maxsize=None)
 def visible(name: str) -> np.ndarray:
-    """True where the left pixel's disparity is known AND the point is seen by the right camera.
-
-    A left pixel at x with disparity d lands on right column x - d. If some pixel further right lands on or
-    left of that column, it is nearer (larger d) and hides our point from the right camera: the point is
-    occluded, its content absent from the slave image, and no matcher can be right there. Middlebury's own
-    evaluation ("nonocc") excludes such points the same way."""
-    d = load(name)[2]
-    h, w = d.shape
-    vis = d > 0
-    xr = np.arange(w)[None, :] - d
-    xr = np.where(d > 0, xr, np.inf)
-    # running minimum of the right-image column over the pixels to the right of each x
-    right_min = np.minimum.accumulate(xr[:, ::-1], axis=1)[:, ::-1]
-    shifted = np.concatenate([right_min[:, 1:], np.full((h, 1), np.inf)], axis=1)
-    return vis & ~(shifted < xr + 0.5)
+    """True where the left pixel's disparity is known AND the point is seen by the right camera
+    (vergence.evaluate.visible, which says why)."""
+    return evaluate.visible(load(name)[2])
 
 
 def points(name: str, n: int = 100, seed: int = 0, margin: int = 40, mask: np.ndarray | None = None):
-    """n random (x, y) with valid ground truth, fixed seed, at least `margin` px from the border."""
-    left, _, disp = load(name)
-    ok = disp > 0 if mask is None else mask
-    rng = np.random.default_rng(seed)
-    h, w = left.shape
-    out = []
-    while len(out) < n:
-        x, y = int(rng.integers(margin, w - margin)), int(rng.integers(margin, h - margin))
-        if ok[y, x]:
-            out.append((x, y))
-    return out
+    """n random (x, y) with valid ground truth (mask: where, default every known disparity), fixed seed, at least
+    `margin` px from the border: vergence.evaluate.points, the draw `vergence accuracy` makes."""
+    disp = load(name)[2]
+    return evaluate.points(disp > 0 if mask is None else mask, n, seed, margin)
