@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import sys
 import tomllib
 
@@ -14,6 +13,7 @@ import vergence
 from vergence import evaluate
 from vergence.config import ConfigError, from_dict
 from vergence.sources import read_image
+from vergence_services.match import positive
 
 
 def ints(text: str) -> list[int]:
@@ -35,16 +35,15 @@ def gains(text: str) -> list[str]:
     return out
 
 
-def positive(conv):
-    def parse(text: str):
-        try:
-            v = conv(text)
-        except ValueError:
-            v = math.nan
-        if not (math.isfinite(v) and v > 0):
-            raise argparse.ArgumentTypeError(f"want a positive number, got {text!r}")
-        return v
-    return parse
+def count(text: str) -> int:
+    """argparse type for --n: a whole number >= 1."""
+    try:
+        v = int(text)
+    except ValueError:
+        v = 0
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"want a whole number >= 1, got {text!r}")
+    return v
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -56,13 +55,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("right", help="right image (the slave)")
     p.add_argument("disp", help="the left image's disparity in px: a .npz (arr_0; inf, NaN or <= 0 = unknown) "
                    "or an image (its value / --dscale; 0 = unknown)")
-    p.add_argument("--dscale", type=positive(float), default=1.0, metavar="S",
+    p.add_argument("--dscale", type=positive, default=1.0, metavar="S",
                    help="an image disparity's value per pixel of disparity (Middlebury 2003: 4; default 1)")
     p.add_argument("--loop", action="store_true", help="the closed loop instead of the static accuracy")
     p.add_argument("--seeds", type=ints, default=None, metavar="S,...",
                    help=f"draws (default {','.join(map(str, evaluate.STATIC_SEEDS))}; with --loop "
                    f"{','.join(map(str, evaluate.LOOP_SEEDS))})")
-    p.add_argument("--n", type=positive(int), default=None,
+    p.add_argument("--n", type=count, default=None,
                    help=f"points per seed (default {evaluate.STATIC_N}; with --loop {evaluate.LOOP_N})")
     p.add_argument("--gains", type=gains, default=list(evaluate.GAINS), metavar="G,...",
                    help="the slave image as is (equal), 1.3 I + 20 (bright), 0.7 I - 15 (dark); default all three")

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import subprocess
 import sys
 import threading
 import time
@@ -30,7 +31,13 @@ from vergence_services.launch import Proc, free_port, wait_for, wait_listening
 
 VERGENCE = str(Path(sys.executable).with_name("vergence"))  # the installed command itself
 
-__all__ = ["free_port", "Proc", "Procs", "wait_for", "VERGENCE"]
+__all__ = ["free_port", "Proc", "Procs", "wait_for", "VERGENCE", "run"]
+
+
+def run(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    """`vergence ARGS...` run to its end (at most timeout s), its stdout and stderr captured as text."""
+    return subprocess.run([sys.executable, "-m", "vergence_services.cli", *args], capture_output=True, text=True,
+                          timeout=timeout)
 
 
 class Procs:

@@ -4,8 +4,6 @@ figures those of the library (vergence.evaluate), one-line errors with exit stat
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import cv2
 import numpy as np
@@ -14,13 +12,13 @@ import pytest
 import vergence
 from vergence import evaluate
 from middlebury import load, needs_data
+from procs import run
 
 pytestmark = needs_data
 
 
-def vergence_cli(*args, timeout=120):
-    return subprocess.run([sys.executable, "-m", "vergence_services.cli", *args], capture_output=True, text=True,
-                          timeout=timeout)
+def vergence_cli(*args):
+    return run(*args, timeout=120)
 
 
 @pytest.fixture(scope="module")
