@@ -3,22 +3,19 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import cv2
 import numpy as np
 import pytest
 
 from middlebury import ROOT, SCENES, load, needs_data, points
+from procs import run
 from references import ref_winner
 
 pytestmark = pytest.mark.slow  # every test here runs real processes
 
 
-def vergence(*args, timeout=60):
-    return subprocess.run([sys.executable, "-m", "vergence_services.cli", *args], capture_output=True, text=True,
-                          timeout=timeout)
+vergence = run  # `vergence ARGS...`, to its end
 
 
 @pytest.fixture(scope="module")

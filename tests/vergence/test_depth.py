@@ -7,13 +7,12 @@ from __future__ import annotations
 import json
 import math
 import re
-import subprocess
-import sys
 
 import cv2
 import numpy as np
 import pytest
 
+from procs import run
 from middlebury import ROOT, SCENES, load, needs_data, points, visible
 from vergence import depth
 from vergence.config import ConfigError, from_dict, load as load_settings
@@ -24,8 +23,7 @@ from vergence.sim.scene import texture
 
 
 def vergence(*args, timeout=300):
-    return subprocess.run([sys.executable, "-m", "vergence_services.cli", *args], capture_output=True, text=True,
-                          timeout=timeout)
+    return run(*args, timeout=timeout)
 
 
 @pytest.fixture(scope="module")

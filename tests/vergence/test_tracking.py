@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 
 import cv2
 import numpy as np
@@ -15,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import vergence
+from procs import run as cli
 from vergence.control import ControlSettings, Controller, Predictor
 from vergence.motors import MotorSettings, Safety
 from vergence.motors.simulated import SimMotor
@@ -320,8 +319,7 @@ def test_abstention_coasts_then_holds_never_runs_away():
 # -- the CLI -----------------------------------------------------------------------------------------------------
 
 def vsim(*args, timeout=240):
-    return subprocess.run([sys.executable, "-m", "vergence_services.cli", "sim", *args], capture_output=True, text=True,
-                          timeout=timeout)
+    return cli("sim", *args, timeout=timeout)
 
 
 @pytest.mark.slow

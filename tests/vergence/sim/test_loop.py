@@ -7,8 +7,6 @@ import functools
 import json
 import math
 import re
-import subprocess
-import sys
 
 import cv2
 import numpy as np
@@ -16,7 +14,7 @@ import pytest
 
 import vergence
 from middlebury import SCENES, load, needs_data, points, visible
-from procs import Procs, free_port, wait_for
+from procs import Procs, free_port, run as cli, wait_for
 from vergence.control import ControlSettings
 from vergence.messages import MotorState
 from vergence.motors import MotorSettings
@@ -272,8 +270,7 @@ def test_faithful_converges_on_real_scenes_where_the_paper_network_is_right(name
 @pytest.mark.slow
 def test_cli_json_and_plot(tmp_path):
     png = tmp_path / "run.png"
-    r = subprocess.run([sys.executable, "-m", "vergence_services.cli", "sim", "--start-pan", "2", "--frames", "6",
-                        "--json", "--plot", str(png)], capture_output=True, text=True, timeout=120)
+    r = cli("sim", "--start-pan", "2", "--frames", "6", "--json", "--plot", str(png), timeout=120)
     assert r.returncode == 0, r.stderr
     rows = [json.loads(line) for line in r.stdout.splitlines()]
     assert [o["frame"] for o in rows] == list(range(7))
@@ -286,8 +283,7 @@ def test_cli_json_and_plot(tmp_path):
 
 @pytest.mark.slow
 def test_cli_bad_option_says_which(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "vergence_services.cli", "sim", "--noise", "lots"], capture_output=True,
-                       text=True, timeout=60)
+    r = cli("sim", "--noise", "lots")
     assert r.returncode == 2 and "noise='lots'" in r.stderr
 
 
@@ -299,19 +295,18 @@ def test_cli_pair_without_truth_and_start_off(tmp_path, scene):
     cfg = tmp_path / "ideal.toml"  # the motor and controller this test was written for (see IDEAL_MOTOR)
     cfg.write_text('[control]\nmode = "p"\n[actuator.motor]\ntau_s = 0.02\nlatency_s = 0.0\n'
                    'max_accel_deg_s2 = 0.0\nquantise = false\n')
-    cmd = [sys.executable, "-m", "vergence_services.cli", "sim", "--left", str(tmp_path / "l.png"), "--right",
-           str(tmp_path / "r.png"), "--size", "640x480", "--frames", "3", "--json", "--config", str(cfg)]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    cmd = ["sim", "--left", str(tmp_path / "l.png"), "--right", str(tmp_path / "r.png"), "--size", "640x480",
+           "--frames", "3", "--json", "--config", str(cfg)]
+    r = cli(*cmd)
     rows = [json.loads(line) for line in r.stdout.splitlines()]  # strict JSON: no NaN
     assert r.returncode == 0 and len(rows) == 4
     assert rows[0]["truth_pan_deg"] is None and rows[0]["error_px"] is None
     # d = 24 at the centre
     assert rows[-1]["pan_deg"] == pytest.approx(math.degrees(math.atan(-24 / 512)), abs=0.03)
-    r = subprocess.run(cmd + ["--disparity", str(tmp_path / "d.png"), "--start-off", "-30"],
-                       capture_output=True, text=True, timeout=60)
+    r = cli(*cmd, "--disparity", str(tmp_path / "d.png"), "--start-off", "-30")
     rows = [json.loads(line) for line in r.stdout.splitlines()]
     assert rows[0]["error_px"] == pytest.approx(-30) and abs(rows[-1]["error_px"]) < 0.5
-    r = subprocess.run(cmd + ["--start-off", "5"], capture_output=True, text=True, timeout=60)
+    r = cli(*cmd, "--start-off", "5")
     assert r.returncode == 2 and "--start-off needs the ground truth" in r.stderr
 
 
