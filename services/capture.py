@@ -81,10 +81,21 @@ class Fovea:
         self.x, self.y = x, y
         self.shape, self.params, self.health = shape, params, health
         self._last_log = -1e9
+        # the latest well-formed request that was refused, for the status (`vergence fixate` reads it to say why
+        # at once): its t_ns, which the asker knows, and our reason
+        self.rejection: dict | None = None
 
     def at(self) -> tuple[int, int]:
         with self.lock:
             return self.x, self.y
+
+    def fields(self) -> dict:
+        """For the status: the fovea's centre and the latest refused request, if any."""
+        with self.lock:
+            out = {"fovea": [self.x, self.y]}
+            if self.rejection is not None:
+                out["fixate_rejection"] = dict(self.rejection)
+            return out
 
     def _reject(self, why: str) -> None:
         self.health.reject("fixate", why)
@@ -105,7 +116,10 @@ class Fovea:
         try:
             retina.check_point(self.shape, x, y, self.params.window, self.params.vsearch)
         except retina.BorderError as e:
-            self._reject(f"({req.x:g}, {req.y:g}): {e}")
+            why = f"({req.x:g}, {req.y:g}): {e}"
+            self._reject(why)
+            with self.lock:
+                self.rejection = {"t_ns": req.t_ns, "why": why}
             return None
         with self.lock:
             self.x, self.y = x, y
@@ -192,7 +206,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
 
     def fields() -> dict:
         return dict(window=windows.window, workers=len(plan), excluded=members.excluded(), **rates.fields(),
-                    roster=dict(members.counters), fovea=list(fovea.at()), clipped=clipped())
+                    roster=dict(members.counters), clipped=clipped(), **fovea.fields())
 
     node = Node("capture", rig, conf, stop, log=log, fields=fields,
                 final_fields=lambda: dict(window=windows.window, workers=len(plan)))

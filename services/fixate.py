@@ -2,12 +2,14 @@
 
 Puts one messages.Fixate on vergence/<rig>/fixate. With --wait S (default 2), waits up to S seconds for the
 first decision (vergence/<rig>/decision) made for the new point and prints it (x, y, offset, converged,
-depth); exit 1 when none came (no capture running, or the request was rejected: its log and its status
-counters say why). --wait 0 only sends."""
+depth); exit 2 with the capture's reason when its status says it refused this request (the point where the fovea
+does not fit: status field fixate_rejection, matched by the request's t_ns); exit 1 when nothing came (no
+capture running). --wait 0 only sends."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import threading
@@ -45,9 +47,24 @@ def describe(v: Verdict) -> str:
             f"{'converged' if v.converged else 'confident' if v.confident else 'abstains'}, {depth}")
 
 
+def refusal(payload: bytes, t_ns: int) -> str | None:
+    """A capture status's reason for refusing the request sent at t_ns, or None (another request's, none, or
+    not a status we can read: a peer's message is a claim, so anything malformed is only ignored)."""
+    try:
+        st = json.loads(payload)
+    except (ValueError, RecursionError):
+        return None
+    r = st.get("fixate_rejection") if isinstance(st, dict) else None
+    if isinstance(r, dict) and r.get("t_ns") == t_ns and isinstance(r.get("why"), str):
+        return r["why"][:300]
+    return None
+
+
 def main(rig: str, conf, x: float, y: float, source: str, wait: float) -> int:
     target = (int(round(x)), int(round(y)))
+    t_ns = time.time_ns()
     got: list[Verdict] = []
+    refused: list[str] = []
     seen = threading.Event()
 
     def on_decision(sample):
@@ -59,23 +76,33 @@ def main(rig: str, conf, x: float, y: float, source: str, wait: float) -> int:
             got.append(v)
             seen.set()
 
+    def on_status(sample):
+        why = refusal(sample.payload.to_bytes(), t_ns)
+        if why is not None and not seen.is_set():
+            refused.append(why)
+            seen.set()
+
     with session.open_session(conf) as s:
-        sub = s.declare_subscriber(keys.decision(rig), on_decision) if wait > 0 else None
+        subs = [s.declare_subscriber(keys.decision(rig), on_decision),
+                s.declare_subscriber(keys.status(rig, "capture", "*"), on_status)] if wait > 0 else []
         try:
             t0 = time.monotonic()
-            s.put(keys.fixate(rig), Fixate(x=x, y=y, t_ns=time.time_ns(), source=source).to_bytes())
-            if sub is None:
+            s.put(keys.fixate(rig), Fixate(x=x, y=y, t_ns=t_ns, source=source).to_bytes())
+            if not subs:
                 print(f"fixate ({x:g}, {y:g}) sent on {keys.fixate(rig)}")
                 return 0
             if not seen.wait(wait):
                 print(f"vergence fixate: no decision at ({target[0]}, {target[1]}) within {wait:g} s (is a "
-                      "capture running on this rig? a point where the fovea does not fit is rejected: see "
-                      "its log)", file=sys.stderr)
+                      "capture running on this rig?)", file=sys.stderr)
                 return 1
+            if refused:
+                print(f"vergence fixate: the capture refused {refused[0]}; the fovea stays where it was",
+                      file=sys.stderr)
+                return 2
             print(f"{describe(got[0])}  ({(time.monotonic() - t0) * 1e3:.0f} ms after the request)")
             return 0
         finally:
-            if sub is not None:
+            for sub in subs:
                 sub.undeclare()
 
 

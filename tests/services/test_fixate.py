@@ -15,6 +15,7 @@ import pytest
 
 from procs import VERGENCE, Procs, free_port, wait_for
 from vergence_services.capture import Fovea
+from vergence_services.fixate import refusal
 from vergence_services.health import Health
 from vergence import monitor, plots
 from vergence.control import Controller
@@ -49,6 +50,23 @@ def test_fovea_moves_on_a_valid_request_and_nothing_else():
         assert fv.at() == (632, 466)
     assert health.bad == {"fixate": len(bad)} and health.counters["fixate_rejected"] == len(bad)
     assert health.counters["fixations"] == 3
+    # the status names the latest well-formed request refused (by its t_ns), not the undecodable ones after it
+    fv.on_fixate(Fixate(x=1e9, y=10, t_ns=42).to_bytes())
+    fv.on_fixate(b"\xc1 not msgpack")
+    st = fv.fields()
+    assert st["fovea"] == [632, 466] and st["fixate_rejection"]["t_ns"] == 42
+    assert st["fixate_rejection"]["why"].startswith("(1e+09, 10): ")
+
+
+def test_the_command_reads_only_its_own_refusal():
+    ok = json.dumps({"fovea": [1, 2], "fixate_rejection": {"t_ns": 7, "why": "(1, 2): does not fit"}}).encode()
+    assert refusal(ok, 7) == "(1, 2): does not fit"
+    assert refusal(ok, 8) is None  # another request's
+    for bad in (b"", b"\xc1", b"[1, 2]", b"null", b'{"fixate_rejection": [7]}', b'{"fixate_rejection": {"t_ns": 7}}',
+                b'{"fixate_rejection": {"t_ns": 7, "why": 3}}', b"[" * 100000):
+        assert refusal(bad, 7) is None
+    long = json.dumps({"fixate_rejection": {"t_ns": 7, "why": "x" * 10000}}).encode()
+    assert refusal(long, 7) == "x" * 300
 
 
 @pytest.mark.slow
@@ -145,6 +163,14 @@ def test_fixate_through_vergence_up(tmp_path):
                            and v.converged])
         assert d == 8 and 0.01 * 3.84 < sigma < 0.03 * 3.84
         assert np.median(z) == pytest.approx(0.06 * 512 / 8, abs=2 * sigma)
+
+        # a point where the fovea does not fit: the command says the capture refused it, and why, at once
+        t = time.monotonic()
+        r = subprocess.run([VERGENCE, "fixate", "9999,150", "--connect", endpoint, "--rig", P.rig, "--wait", "20"],
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2, (r.stdout, r.stderr)
+        assert "the capture refused (9999, 150): " in r.stderr and "the fovea stays" in r.stderr
+        assert time.monotonic() - t < 15  # the next status (1 s), not the 20 s wait
 
 
 @pytest.mark.slow
