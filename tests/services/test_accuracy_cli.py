@@ -14,7 +14,7 @@ from vergence import evaluate
 from middlebury import load, needs_data
 from procs import run
 
-pytestmark = needs_data
+pytestmark = [needs_data, pytest.mark.slow]  # every test here runs the real command as a process
 
 
 def vergence_cli(*args):
@@ -82,7 +82,6 @@ def test_a_bad_set_names_the_field(pair, kv, says):
     assert len(r.stderr.strip().splitlines()) == 1
 
 
-@pytest.mark.slow
 def test_loop_is_the_library_loop(pair):
     r = vergence_cli("accuracy", *files(pair), "--loop", "--n", "5", "--seeds", "3", "--gains", "equal,bright",
                      "--json")
