@@ -13,7 +13,8 @@ window grows by 8 px while the decisions (vergence/<rig>/decision) are not confi
 with clip_fallback, where the master was clipped, the same windows follow with it unclipped (WindowControl).
 A messages.Fixate on vergence/<rig>/fixate moves the fovea to its (x, y) from the next frame on; a request
 that is not a valid Fixate, or where the fovea would not fit the image, is rejected (counted under bad.fixate
-and in the fixate_rejected counter, its reason logged) and nothing moves.
+and in the fixate_rejected counter, its reason logged and, for a well-formed request, named with its t_ns in the
+status's fixate_rejection) and nothing moves.
 Counters go out as JSON on vergence/<rig>/status/capture/<id> every second and at exit, with the rate
 published and the rate the reducer completed (published_hz, decided_hz; a warning when the pipeline
 holds less than half), and what each camera clips of the fovea's rows where the other sees texture (clipped:
