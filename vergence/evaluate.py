@@ -29,8 +29,8 @@ from .sim.rig import Rig
 from .sources import read_image
 
 __all__ = ["GAINS", "STATIC_MARGIN", "LOOP_MARGIN", "STATIC_SEEDS", "LOOP_SEEDS", "STATIC_N", "LOOP_N",
-           "load_disparity", "visible", "points", "gained", "SeedFigures", "StaticGain", "LoopGain", "static",
-           "loop"]
+           "load_disparity", "visible", "points", "gained", "started_off", "SeedFigures", "StaticGain", "LoopGain",
+           "static", "loop"]
 
 # slave = gain * I + offset, clipped: the slave camera as is, brighter, darker
 GAINS: dict[str, tuple[float, float]] = {"equal": (1.0, 0.0), "bright": (1.3, 20.0), "dark": (0.7, -15.0)}
@@ -199,16 +199,21 @@ class LoopGain:
         return s
 
 
-def _converged(left, right, disp, params, seeds, n, gain, offset) -> np.ndarray:
+def started_off(left: np.ndarray, right: np.ndarray, disp: np.ndarray, x: int, y: int, rng: np.random.Generator,
+                **kw) -> Rig:
+    """A rig fixating (x, y), its slave started 10-40 px (drawn from rng, either side) off the converged pan;
+    kw: more Rig settings (gain, offset...)."""
+    px = float(rng.uniform(10, 40)) * rng.choice([-1, 1])
+    base = Rig(left, right, disparity=disp, fixate=(x, y))
+    return Rig(left, right, disparity=disp, fixate=(x, y), start_pan_deg=math.degrees(base.pan_off_truth(px)), **kw)
+
+
+def _converged(left, right, disp, vis, params, seeds, n, gain, offset) -> np.ndarray:
     out = []
-    vis = visible(disp)
     for seed in seeds:
         rng = np.random.default_rng(seed + 1000)
         for x, y in points(vis, n, seed, LOOP_MARGIN):
-            px = float(rng.uniform(10, 40)) * rng.choice([-1, 1])
-            base = Rig(left, right, disparity=disp, fixate=(x, y))
-            rig = Rig(left, right, disparity=disp, fixate=(x, y),
-                      start_pan_deg=math.degrees(base.pan_off_truth(px)), gain=gain, offset=offset)
+            rig = started_off(left, right, disp, x, y, rng, gain=gain, offset=offset)
             k = frames_to_converge(list(closed_loop(rig, LOOP_FRAMES, params, motor=IDEAL_MOTOR, control=P_CONTROL)))
             out.append(float(k is not None and k <= LOOP_BY))
     return np.array(out)
@@ -222,10 +227,11 @@ def loop(left: np.ndarray, right: np.ndarray, disp: np.ndarray, params: Params |
     params = params or Params()
     _check(left, right, disp, gains, seeds, n)
     order = list(dict.fromkeys(sorted(gains, key=lambda g: g != "equal")))
+    vis = visible(disp)
     equal = None
     out = []
     for gname in order:
-        r = _converged(left, right, disp, params, seeds, n, *GAINS[gname])
+        r = _converged(left, right, disp, vis, params, seeds, n, *GAINS[gname])
         if gname == "equal":
             equal = r
         paired = stderr = None

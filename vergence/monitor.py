@@ -302,8 +302,7 @@ class Monitor:
                          if n.startswith("reducer/") and isinstance(d.get("gatherer"), dict)]
             if gatherers:
                 def total(name: str) -> int:  # a status is a claim: counters are integers 0..2^53
-                    return sum(v for g in gatherers if isinstance(v := g.get(name, 0), int)
-                               and not isinstance(v, bool) and 0 <= v <= 2 ** 53)
+                    return sum(v for g in gatherers if _plausible(v := g.get(name, 0), 0, 2 ** 53, int))
                 s.dropped, s.dropped_from = total("dropped") + total("superseded"), "reducer"
                 s.dropped_of = total("frames")
             elif s.frames:
@@ -506,8 +505,7 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
         clipped = d.get("clipped") if name.startswith("capture/") and isinstance(d.get("clipped"), dict) else {}
         # a status is a claim: only the two cameras' shares, numbers in 0..1 (a huge JSON integer would not even
         # format as a float)
-        shares = {cam: float(v) for cam, v in clipped.items() if cam in ("master", "slave")
-                  and isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v <= 1}
+        shares = {cam: float(v) for cam, v in clipped.items() if cam in ("master", "slave") and _plausible(v, 0, 1)}
         if shares:
             line = f"{name}: clipped " + ", ".join(f"{cam} {100 * v:.0f} %" for cam, v in sorted(shares.items()))
             if any(v >= CLIP_WARN for v in shares.values()):
@@ -517,6 +515,11 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
     for kind, n in sorted(s.malformed.items()):
         out.append(c(RED, f"malformed {kind}: {n} (last: {s.last_error.get(kind, '')[:width - 30]})"))
     return "\n".join(part for line in out for part in _fit(line, width))
+
+
+def _plausible(v, lo: float, hi: float, kinds: type | tuple = (int, float)) -> bool:
+    """Whether a status's value (JSON: a claim) is a number of these kinds within lo..hi (not a bool, not NaN)."""
+    return isinstance(v, kinds) and not isinstance(v, bool) and lo <= v <= hi
 
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")

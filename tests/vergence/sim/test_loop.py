@@ -15,9 +15,8 @@ import pytest
 import vergence
 from middlebury import SCENES, load, needs_data, points, visible
 from procs import Procs, free_port, run as cli, wait_for
-from vergence.control import ControlSettings
+from vergence.evaluate import IDEAL_MOTOR, P_CONTROL, started_off
 from vergence.messages import MotorState
-from vergence.motors import MotorSettings
 from vergence.sim import Rig, generate
 from vergence.sim.loop import closed_loop, frames_to_converge
 
@@ -76,11 +75,7 @@ def test_generated_scene_is_consistent(scene):
 # limit or encoder ticks, and the "p" controller. They measure the network's accuracy in the loop on still
 # scenes; the servo-like default motor (whose whole ticks alone leave up to half a tick, 0.39 px at f = 512)
 # and the predictive default controller are tests/vergence/test_tracking.py's (README: what the predictive one costs
-# on these still scenes).
-IDEAL_MOTOR = MotorSettings(tau_s=0.02, latency_s=0.0, max_accel_deg_s2=0.0, quantise=False)
-P_CONTROL = ControlSettings(mode="p")
-
-
+# on these still scenes). IDEAL_MOTOR and P_CONTROL are vergence.evaluate's: `vergence accuracy --loop` runs this loop.
 def run(rig, frames=8, params=None, **kw):
     kw.setdefault("motor", IDEAL_MOTOR)
     kw.setdefault("control", P_CONTROL)
@@ -149,10 +144,7 @@ def test_faithful_converges_on_textured_points(scene):
 def _started_off(name, x, y, rng, **kw):
     """A rig on a Middlebury scene fixating (x, y), its slave started 10-40 px (drawn from rng, either side)
     off the converged pan; kw: more Rig settings (gain, offset...)."""
-    left, right, disp = load(name)
-    px = float(rng.uniform(10, 40)) * rng.choice([-1, 1])
-    base = Rig(left, right, disparity=disp, fixate=(x, y))
-    return Rig(left, right, disparity=disp, fixate=(x, y), start_pan_deg=math.degrees(base.pan_off_truth(px)), **kw)
+    return started_off(*load(name), x, y, rng, **kw)
 
 
 def _real_scene_runs(name, params):
