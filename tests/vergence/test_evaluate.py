@@ -79,8 +79,29 @@ def test_static_is_a_loop_over_match_on_the_tests_points():
     assert (got.gain, got.n, len(got.seeds), got.seeds[0].seed) == ("equal", 40, 1, 0)
     assert got.seeds[0].coverage == 100 * len(conf) / 40
     assert got.seeds[0].right == 100 * sum(conf) / len(conf)
+    edges = evaluate.depth_edges(disp)
+    near = [abs(m.offset_px + disp[y, x]) <= 1.0 for m, (x, y) in zip(ms, pts) if m.confident and edges[y, x]]
+    away = [abs(m.offset_px + disp[y, x]) <= 1.0 for m, (x, y) in zip(ms, pts) if m.confident and not edges[y, x]]
+    assert len(near) > 0 and len(away) > 0
+    assert got.seeds[0].near == len(near) and got.near_pooled == (len(near), 100 * sum(near) / len(near))
+    assert got.seeds[0].right_near == 100 * sum(near) / len(near)
+    assert got.seeds[0].right_away == got.away_worst == 100 * sum(away) / len(away)
     assert 80 <= got.seeds[0].coverage <= 100 and got.seeds[0].right >= 90  # teddy: 92.5 / 100 at this draw
     assert got.mean == (got.seeds[0].coverage, got.seeds[0].right) == got.worst
+
+
+def test_depth_edges_mark_steps_over_1_px_and_their_surroundings():
+    d = np.tile(np.arange(20) * 0.5 + 10, (12, 1))  # a slanted surface: 0.5 px per column, no edge
+    assert not evaluate.depth_edges(d).any()
+    d[:, 10:] += 2.0  # a step of 2.5 px between columns 9 and 10
+    cols = np.flatnonzero(evaluate.depth_edges(d).all(axis=0))
+    assert cols.tolist() == list(range(6, 14))  # 9 and 10, and 3 px around them
+    assert evaluate.depth_edges(d, radius=0).any(axis=0).nonzero()[0].tolist() == [9, 10]
+    d2 = np.full((12, 20), 30.0)
+    d2[5, 15] = 0.0  # an unknown pixel in a known surface: the border of an occlusion
+    e = evaluate.depth_edges(d2, radius=1)
+    assert np.argwhere(e).min(axis=0).tolist() == [3, 13] and np.argwhere(e).max(axis=0).tolist() == [7, 17]
+    assert e.sum() == 25 - 4  # the five pixels (centre and its four neighbours), 1 px around: a 5 x 5 less its corners
 
 
 def test_sizes_and_names_are_checked():
