@@ -179,7 +179,7 @@ class StaticGain:
     def near_pooled(self) -> tuple[int, float]:
         """The confident answers near a depth edge over every seed, and the % of them right."""
         n = sum(s.near for s in self.seeds)
-        right = sum(s.near * s.right_near / 100 for s in self.seeds)
+        right = sum(round(s.near * s.right_near / 100) for s in self.seeds)  # whole answers
         return n, 100 * right / max(1, n)
 
     def to_dict(self) -> dict:
