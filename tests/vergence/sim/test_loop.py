@@ -193,6 +193,31 @@ def test_loop_converges_on_real_scenes(name, capsys):
                      f"{sum(r for _, r in runs)}/20 of these points")
 
 
+VMIS_FLOORS = {"cones": 16, "teddy": 14, "tsukuba": 13, "venus": 13}  # measured 18, 16, 15, 15 of 20
+
+
+@needs_data
+@pytest.mark.parametrize("name", SCENES)
+def test_loop_converges_with_6_px_of_vertical_misalignment(name, capsys):
+    """The 20 points of test_loop_converges_on_real_scenes (and their starts) with the slave camera 6 px off
+    vertically (vmis_px): the vertical search finds the row. Measured: 18, 16, 15, 15 of 20 (cones, teddy, tsukuba,
+    venus; README, The simulated rig); the floors sit 2 below. The paper's network (no vertical search)
+    converges at 1, 1, 4, 2: the misalignment is real."""
+    rng = np.random.default_rng(2)
+    ok = faithful = 0
+    for x, y in points(name, n=20, seed=1, margin=60, mask=visible(name)):
+        state = rng.bit_generator.state
+        n = frames_to_converge(run(_started_off(name, x, y, rng, vmis_px=6)))
+        ok += n is not None and n <= 5
+        rng.bit_generator.state = state  # the same start for the paper's network
+        n = frames_to_converge(run(_started_off(name, x, y, rng, vmis_px=6), params=vergence.FAITHFUL))
+        faithful += n is not None and n <= 5
+    with capsys.disabled():
+        print(f"\n{name}, 6 px vertical misalignment: {ok}/20 converged, the paper's network {faithful}/20")
+    assert ok >= VMIS_FLOORS[name]
+    assert faithful <= 5
+
+
 @functools.lru_cache(maxsize=None)
 def _loop_outcomes(name, seed, n, gain=1.0, offset=0.0):
     """Whether the loop converges (within 1 px by frame 5, staying there) at each of n visible points of `seed`
