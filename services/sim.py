@@ -121,6 +121,9 @@ def run(args: argparse.Namespace) -> int:
         for f, (x, y) in fixations.items():
             if not (0 <= x < rig.size[0] and 0 <= y < rig.size[1]):
                 raise ValueError(f"--fixate-at {f}:{x},{y}: outside the {rig.size[0]} x {rig.size[1]} view")
+            if f > args.frames:
+                raise ValueError(f"--fixate-at {f}:{x},{y}: after the last frame (--frames {args.frames}); "
+                                 f"run at least --frames {f}")
     except (ValueError, ConfigError) as e:
         print(f"vergence sim: {e}", file=sys.stderr)
         return 2

@@ -259,3 +259,5 @@ def test_sim_fixate_at_reconverges_and_measures_the_new_depth():
     assert "fixation (440, 240) from frame 10: converged pan -3.874 deg; within 1 px from frame" in r.stdout
     r = vergence("sim", "--fixate-at", "3:700,10")
     assert r.returncode == 2 and "outside the 640 x 480 view" in r.stderr
+    r = vergence("sim", "--fixate-at", "22:320,400")  # the default 20 frames never reach it
+    assert r.returncode == 2 and "after the last frame (--frames 20); run at least --frames 22" in r.stderr
