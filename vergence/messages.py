@@ -220,7 +220,7 @@ class _Where(Message, kw_only=True):
 
 
 class Verdict(_Where):
-    """vergence/<rig>/decision: the reducer's decision on every frame, a Profile without its scores (under 250
+    """vergence/<rig>/decision: the reducer's decision on every frame, a Profile without its scores (under 300
     bytes, where a profile is 65 KB at 640 px with vertical search), for whoever needs only the decision (the
     capture's dynamic window, a user's own logic). window: the fovea side it was decided with. It is a
     vergence.gather.FrameDecision on the wire (a vergence.decide.Decision's fields, its v as v_shift: `v` is
