@@ -100,6 +100,7 @@ class Procs:
         conf.insert_json5("mode", '"client"')
         conf.insert_json5("connect/endpoints", f'["{self.endpoint}"]')
         conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("transport/shared_memory/enabled", "false")  # as every vergence process (services/session.py)
         s = zenoh.open(conf)
         self._sessions.append(s)
         return s
