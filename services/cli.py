@@ -13,7 +13,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "match": ("vergence_services.match", "decide where the master fovea lies in the slave image (no Zenoh)"),
     "accuracy": ("vergence_services.accuracy", "accuracy on a pair with a ground-truth disparity (no Zenoh)"),
     "sim": ("vergence_services.sim", "closed loop on the simulated rig, in one process (no Zenoh)"),
-    "bench": ("vergence_services.bench", "benchmarks: kernel, match, pipeline"),
+    "bench": ("vergence_services.bench", "benchmarks: kernel, match, messages, tracking, pipeline"),
     "up": ("vergence_services.up", "an embedded router and every process on this machine"),
     "router": ("vergence_services.router", "a Zenoh router"),
     "capture": ("vergence_services.capture", "read a stereo source and publish frames"),
