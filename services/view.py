@@ -69,10 +69,6 @@ ENTITIES = {
 }
 
 
-# frames carry the truth (a simulated target) in this build: then the view keeps listening to them
-FRAME_TRUTH = "truth_pan_rad" in Frame.__struct_fields__
-
-
 class MissingExtra(RuntimeError):
     """rerun-sdk is not installed."""
 
@@ -588,10 +584,9 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
         rr.disconnect()
         return 2
     with s:
-        subs = [s.declare_subscriber(k(rig), on_sample) for k in WATCHED if k is not keys.frame]
-        # frames (60 Hz, ~20 KB each at 640 px) only for what decisions may not carry: the fovea's point (the
-        # capture keeps it) until the first frame, the truth for as long as frames carry one
-        frames = [s.declare_subscriber(keys.frame(rig), on_sample)]
+        # frames (30 KB each at 640 px) too, for what decisions may not carry: the fovea's point (older reducers)
+        # and the simulator's truth
+        subs = [s.declare_subscriber(k(rig), on_sample) for k in WATCHED]
         subs.append(s.liveliness().declare_subscriber(keys.alives(rig), on_alive, history=True))
         log.info("view: rig %s -> %s", rig, ", ".join(x for x in (save and f"file {save}", url, spawn and "viewer")
                                                        if x))
@@ -599,8 +594,6 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
             while not stop.is_set() and (end is None or time.monotonic() < end):
                 ready.wait(0.1)
                 ready.clear()
-                if frames and cockpit.at and not FRAME_TRUTH:
-                    frames.pop().undeclare()
                 while inbox:
                     rest, payload, t_ns = inbox.popleft()
                     try:
@@ -612,7 +605,7 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
                         cockpit.bad["error"] += 1
                         log.warning("message on %s not logged: %s", rest, e)
         finally:
-            for sub in subs + frames:
+            for sub in subs:
                 sub.undeclare()
     while inbox:  # what arrived before the subscriptions closed
         rest, payload, t_ns = inbox.popleft()
