@@ -17,13 +17,14 @@ import numpy as np
 import pytest
 
 import vergence
+from vergence import evaluate
+from vergence.evaluate import GAINS
 from middlebury import SCENES, load, needs_data, points, visible
 from references import ref_winner
 
 pytestmark = needs_data
 
 N = 500
-GAINS = {"equal": (1.0, 0.0), "bright": (1.3, 20.0), "dark": (0.7, -15.0)}
 
 
 @pytest.mark.parametrize("name", SCENES)
@@ -37,10 +38,7 @@ def test_faithful_mode_gives_the_reference_winner(name):
 
 @functools.lru_cache(maxsize=None)
 def slave_image(name: str, gain: float = 1.0, offset: float = 0.0) -> np.ndarray:
-    right = load(name)[1]
-    if gain == 1.0 and offset == 0.0:
-        return right
-    return np.clip(right.astype(np.float32) * np.float32(gain) + np.float32(offset), 0, 255).astype(np.uint8)
+    return evaluate.gained(load(name)[1], gain, offset)
 
 
 @functools.lru_cache(maxsize=None)
