@@ -141,7 +141,7 @@ def message_samples() -> dict:
                          band=bytes((w + 2 * R + 2) * (W + 2)), plan=[["a-1", 0, K // 2], ["b-2", K // 2, K]],
                          master_band=bytes((w + 2) * (W + 2))),
         "partial": M.Partial(rig="head", frame=7, t_capture_ns=1, worker="a-1", k0=0, k1=K // 2, rows=rows,
-                             scores=np.zeros((rows, K // 2)).tobytes(), texture=3.0, t_done_ns=5),
+                             scores=np.zeros((rows, K // 2)).tobytes(), t_done_ns=5),
         "decision": M.Verdict(rig="head", frame=7, t_capture_ns=1, t_reduced_ns=2, window=w, k=3, k_sub=3.2,
                               v_shift=0, k_centre=3, direction=0, magnitude=0, offset_px=0.2, confidence=0.5,
                               confident=True, texture=9.0, pan_rad=0.0, x=320, y=240),

@@ -197,7 +197,6 @@ class Partial(Message):
     k1: int
     rows: int
     scores: bytes
-    texture: float = 0.0
     t_done_ns: int = 0
 
     def array(self) -> np.ndarray:

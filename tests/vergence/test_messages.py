@@ -49,6 +49,15 @@ def test_round_trip(kind):
     assert M.KINDS[kind].from_bytes(data) == msg
 
 
+def test_a_partial_of_an_older_worker_still_decodes():
+    """An older worker sent `texture` (never read, since removed): the field is ignored, the rest decodes."""
+    d = SAMPLES["partial"].to_dict()
+    d["texture"] = 3.5
+    p = M.Partial.from_bytes(msgpack.packb(d, use_bin_type=True))
+    assert p == SAMPLES["partial"] and not hasattr(p, "texture")
+    assert p.array().tolist() == [[0.0, 1.0, 2.0, 3.0], [4.0, 5.0, 6.0, 7.0]]
+
+
 @pytest.mark.parametrize("kind", ["decision", "profile"])
 def test_a_decision_of_an_older_reducer_still_decodes(kind):
     """Without the fovea and depth fields (an older reducer, an older recording): x = y = -1, not converged,
