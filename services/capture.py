@@ -1,14 +1,14 @@
 """`vergence capture --source SPEC [--rate HZ] [--frames N]`: reads stereo frames and publishes them.
 
-Publishes on vergence/<rig>/frame a messages.Frame per image pair: only what layer 1 needs (the master fovea
-and the slave band with their Sobel margins, the master band for the left-right check), the slave pan at
-capture time (the latest messages.MotorState on vergence/<rig>/motor/state; the source's start pan before
-any), and the shard plan made from the workers' liveliness tokens vergence/<rig>/alive/worker/* at that
-moment, minus the workers the reducer's evidence (vergence/<rig>/workers) shows silent (vergence.frames.Roster:
-a token is an invitation, not a guarantee). A motor/state whose pan is outside the motor's limits or whose
-time is off our clock by more than [limits] max_skew_s is counted and ignored. With no worker alive, frames
-are counted (no_workers) and not published. A downscaled
-messages.Preview goes on vergence/<rig>/preview at [capture] preview_hz. With [network] max_window > 0 the
+Publishes on vergence/<rig>/frame a messages.Frame per image pair: only what layer 1 needs (the master fovea and
+the slave band with their Sobel margins, the master band for the left-right check), the slave pan at capture time
+(the latest messages.MotorState on vergence/<rig>/motor/state; the source's start pan before any; always the start
+pan, 0, for a source whose images do not move with the motor: a still pair, videos), and the shard plan made from
+the workers' liveliness tokens vergence/<rig>/alive/worker/* at that moment, minus the workers the reducer's
+evidence (vergence/<rig>/workers) shows silent (vergence.frames.Roster: a token is an invitation, not a guarantee).
+A motor/state whose pan is outside the motor's limits or whose time is off our clock by more than [limits]
+max_skew_s is counted and ignored. With no worker alive, frames are counted (no_workers) and not published. A
+downscaled messages.Preview goes on vergence/<rig>/preview at [capture] preview_hz. With [network] max_window > 0 the
 window grows by 8 px while the decisions (vergence/<rig>/decision) are not confident (the dynamic window), and
 with clip_fallback, where the master was clipped, the same windows follow with it unclipped (WindowControl).
 A messages.Fixate on vergence/<rig>/fixate moves the fovea to its (x, y) from the next frame on; a request
@@ -28,6 +28,7 @@ import contextlib
 import dataclasses
 import json
 import logging
+import math
 import sys
 import threading
 import time
@@ -267,6 +268,11 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         node.ready()
         log.info("capture %s: %s (%d x %d, f=%.1f px) at %s Hz on %s", cid, cs.source, wd, ht,
                  focal, cs.rate_hz or "max", keys.frame(rig))
+        if not source.follows_pan:
+            log.info("the source's images do not move with the slave motor: every frame carries the pan they were "
+                     "taken at, %.1f deg, so the commands hold the motor at one pan instead of winding it to a limit "
+                     "(the loop closes with camera and sim sources)",
+                     math.degrees(source.start_pan_rad))
         plan_key = None
         fid = 0
         next_t = time.monotonic()
@@ -280,7 +286,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                         break
                 # keep the schedule, but never try to catch up more than one period late
                 next_t = max(next_t + period, time.monotonic() - period)
-            p_now = pan[0]
+            p_now = pan[0] if source.follows_pan else source.start_pan_rad
             try:
                 master, slave = source.read(p_now)
             except SourceError as e:

@@ -10,7 +10,9 @@
 
 Every source has .size (W, H), .focal_px (0: unknown, the capture picks one), .start_pan_rad, read(pan_rad)
 -> (master, slave) uint8 gray arrays (the caller must not modify them), close(), and .truth_pan_rad: the
-converged slave pan of the last read when the source knows it (the simulator), else None. `master` says which
+converged slave pan of the last read when the source knows it (the simulator), else None. .follows_pan says
+whether the slave image moves with the slave motor (cameras, the simulator); a still pair or two videos were
+taken at one pan, .start_pan_rad (0: parallel cameras), whatever the motor does since. `master` says which
 camera is the fixed one ("left" or "right"). Errors are SourceError naming the file or device and the fix.
 No network code here.
 """
@@ -56,12 +58,13 @@ def _pair(rest: str, kind: str) -> tuple[str, str]:
 
 
 class Source:
-    """The interface: size, focal_px, start_pan_rad, read(pan_rad), close()."""
+    """The interface: size, focal_px, start_pan_rad, follows_pan, read(pan_rad), close()."""
 
     size: tuple[int, int] = (0, 0)
     focal_px: float = 0.0
     start_pan_rad: float = 0.0
     truth_pan_rad: float | None = None
+    follows_pan: bool = True
 
     def __init__(self, master: str = "left"):
         if master not in ("left", "right"):
@@ -92,7 +95,9 @@ def _check_pair(a: np.ndarray, b: np.ndarray, what: str) -> tuple[int, int]:
 
 
 class FilesSource(Source):
-    """One still pair, read once at start (no per-frame work: read() returns the same arrays)."""
+    """One still pair, read once at start (no per-frame work: read() returns the same arrays), taken at pan 0."""
+
+    follows_pan = False
 
     def __init__(self, left: str, right: str, master: str = "left"):
         super().__init__(master)
@@ -108,7 +113,9 @@ class FilesSource(Source):
 
 
 class VideoSource(Source):
-    """Two video files read frame by frame in step; both are rewound when either ends."""
+    """Two video files read frame by frame in step; both are rewound when either ends. Taken at pan 0."""
+
+    follows_pan = False
 
     def __init__(self, left: str, right: str, master: str = "left"):
         super().__init__(master)

@@ -16,7 +16,7 @@ import zenoh
 from emulators.dynamixel import DynamixelEmulator
 from emulators.line import LineEmulator
 from emulators.pty import PtyDevice
-from procs import VERGENCE, Procs, textured_pair, wait_for
+from procs import VERGENCE, Procs, wait_for
 
 from vergence.messages import Command, MotorState
 from vergence.motors.dynamixel import Inst, instruction_packet
@@ -207,9 +207,9 @@ def test_flood_keeps_goal_safe(tmp_path):
 @pytest.mark.slow
 def test_reducer_and_actuator_bound_the_pan_by_one_motor_table(tmp_path):
     """One settings file, one [actuator.motor]: the reducer's controller bounds every command by its limits
-    (max_step_deg 0.5 from the pan at capture, max_deg 1), before the actuator bounds it again. The pair
-    shows the scene 12 px off whatever the pan (a files source): the controller asks for 2.7 degrees at
-    every frame, so each command is the pan + 0.5 degrees, until the pan sits at the 1 degree limit."""
+    (max_step_deg 0.5 from the pan at capture, min_deg -1), before the actuator bounds it again. The simulated
+    rig's slave converges at -5.4 degrees, beyond the limit: each command is the pan at capture - 0.5 degrees,
+    until the pan sits at the -1 degree limit, where the scene still asks for more."""
     conf = tmp_path / "v.toml"
     conf.write_text('[network]\nmax_window = 0\n[capture]\npreview_hz = 0\n[control]\nmode = "p"\n'
                     "[actuator.motor]\nmin_deg = -1.0\nmax_deg = 1.0\nmax_step_deg = 0.5\n")
@@ -224,14 +224,14 @@ def test_reducer_and_actuator_bound_the_pan_by_one_motor_table(tmp_path):
         P.wait_alive(s, "actuator")
         commands = P.collect(s, P.key("command"))
         motor = P.collect(s, P.key("motor/state"))
-        P.start("capture", "capture", "--source", textured_pair(tmp_path), "--rate", "20", "--config", cfg)
-        wait_state(motor, lambda m: abs(m.goal_rad - math.radians(1.0)) < 1e-12, 30, "the goal at max_deg",
+        P.start("capture", "capture", "--source", "sim:size=320x240", "--rate", "20", "--config", cfg)
+        wait_state(motor, lambda m: abs(m.goal_rad + math.radians(1.0)) < 1e-12, 30, "the goal at min_deg",
                    P.logs)
         cmds = [Command.from_bytes(b) for _, b, _ in commands.snapshot()]
-        assert cmds and all(c.pan_rad <= math.radians(1.0) + 1e-12 for c in cmds)
+        assert cmds and all(c.pan_rad >= -math.radians(1.0) - 1e-12 for c in cmds)
         assert all(abs(c.correction_rad) <= math.radians(0.5) + 1e-12 for c in cmds)
-        # the controller's own bound, not the actuator's: a command is exactly its pan at capture + 0.5 deg
-        # (or the limit), where an unbounded one would be 2.7 deg past it
-        assert any(c.correction_rad == pytest.approx(math.radians(0.5), abs=1e-12) for c in cmds)
-        assert cmds[-1].pan_rad == pytest.approx(math.radians(1.0), abs=1e-12)
+        # the controller's own bound, not the actuator's: a command is exactly its pan at capture - 0.5 deg
+        # (or the limit), where an unbounded one would be up to 5.4 deg past it
+        assert any(c.correction_rad == pytest.approx(-math.radians(0.5), abs=1e-12) for c in cmds)
+        assert cmds[-1].pan_rad == pytest.approx(-math.radians(1.0), abs=1e-12)
         assert all(-math.radians(1.0) - 1e-12 <= m.goal_rad <= math.radians(1.0) + 1e-12 for m in states(motor))

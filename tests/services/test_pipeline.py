@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import random
 import signal
@@ -23,7 +24,7 @@ from procs import Procs, free_port, textured_pair, wait_for
 from vergence import kernel, retina
 from vergence.config import load
 from vergence.gather import decide_frame
-from vergence.messages import Command, Frame, MessageError, Partial, Preview, Profile, Verdict
+from vergence.messages import Command, Frame, MessageError, MotorState, Partial, Preview, Profile, Verdict
 
 pytestmark = pytest.mark.slow  # every test here runs real processes
 
@@ -468,3 +469,43 @@ def test_sigint_token_goes_then_the_exiting_status(tmp_path):
             assert len(last) == 1 and last[0]["exiting"] is True
             assert set(last[0]) == set(periodic) | {"exiting"}
             assert f"{role} {ident} exits:" in proc.text()
+
+
+@pytest.mark.parametrize("kind", ["files", "sim"])
+def test_a_frame_carries_the_pan_its_slave_image_was_taken_at(tmp_path, kind):
+    """A still pair was taken at one pan (0: parallel cameras) whatever the motor does since: its frames carry 0,
+    so the commands hold the motor at one pan instead of winding it to a limit, and the log says so. A source
+    that moves with the motor (sim, like a camera on it) carries the latest plausible motor/state; a forged one
+    (80 deg, outside the motor's +-45 deg) is counted and never carried. The test's client plays the motor."""
+    cfg = config(tmp_path)
+    spec = textured_pair(tmp_path) if kind == "files" else "sim:size=320x240"
+    with Procs(tmp_path) as P:
+        P.router()
+        P.start("w1", "worker", "--name", "w1", "--config", cfg)
+        s = P.session()
+        P.wait_alive(s, "worker", 1)
+        frames = P.collect(s, P.key("frame"))
+        statuses = P.collect(s, P.key("status/capture/*"))
+        cap = P.start("capture", "capture", "--source", spec, "--rate", str(RATE), "--config", cfg)
+        frames.wait(3, 30)
+        for deg in (80.0, 3.0):
+            s.put(P.key("motor/state"), MotorState(rig=P.rig, t_ns=time.time_ns(), pan_rad=math.radians(deg),
+                                                   goal_rad=math.radians(deg), min_rad=-math.radians(45),
+                                                   max_rad=math.radians(45), status="ok").to_bytes())
+        t_put = time.time_ns()
+
+        def pans():
+            return [f.pan_rad for f in (Frame.from_bytes(b) for t, b, _ in frames.snapshot() if t > t_put)
+                    if f.t_capture_ns > t_put]
+
+        got = wait_for(lambda: len(pans()) >= 10 and pans(), 20, "10 frames after the motor states", logs=P.logs)
+        st = wait_for(lambda: next((st for st in (json.loads(b) for _, b, _ in statuses.snapshot())
+                                    if st.get("bad", {}).get("motor_state")), None), 10,
+                      "a capture status counting the forged state", logs=P.logs)
+        assert st["bad"]["motor_state"] == 1 and st["counters"]["motor_states"] == 1, st
+        if kind == "files":
+            assert set(got) == {0.0}
+            assert "do not move with the slave motor" in cap.text()
+        else:
+            assert set(got) == {math.radians(3.0)}
+            assert "do not move with the slave motor" not in cap.text()
