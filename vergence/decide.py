@@ -60,7 +60,7 @@ def _parabola(ym: float, y0: float, yp: float) -> float:
     den = ym - 2.0 * y0 + yp
     if den >= 0.0:  # not a strict maximum: no refinement
         return 0.0
-    return float(np.clip(0.5 * (ym - yp) / den, -0.5, 0.5))
+    return min(max(0.5 * (ym - yp) / den, -0.5), 0.5)  # np.clip's value, NaN included, without its call
 
 
 def decide(scores: np.ndarray, window: int, *, k_centre: int | None = None, subpixel: bool = True,
@@ -117,7 +117,8 @@ def decide(scores: np.ndarray, window: int, *, k_centre: int | None = None, subp
 
 
 def decide_scores(scores: np.ndarray, fovea: np.ndarray, x: int, params: Params,
-                  master_rows: np.ndarray | None = None, slave_band: np.ndarray | None = None) -> Decision:
+                  master_rows: np.ndarray | None = None, slave_band: np.ndarray | None = None,
+                  weights: np.ndarray | None = None) -> Decision:
     """Layer 4's scores -> a Decision for the fovea (planes (3, w, w)) centred on master column x.
 
     With params.min_correlation, a confident decision's slave window must correlate with the fovea
@@ -125,23 +126,27 @@ def decide_scores(scores: np.ndarray, fovea: np.ndarray, x: int, params: Params,
     the master's rows of the fovea as a gray strip with its margin ((w + 2, W + 2), retina.band_strip with
     no vertical search) and the slave band's planes ((3, w + 2R, W)); with params.halves_check, it must also
     pass halves_consistent, which reads the slave band's columns k - halves_range .. k + halves_range + w - 1
-    only. This is the one decision step of both match() and the reducer."""
+    only. This is the one decision step of both match() and the reducer. weights: the fovea's support weights
+    when the caller has them already (kernel.support_weights with params' scales), else computed when needed."""
     w = fovea.shape[1]
     d = decide(scores, w, k_centre=x - w // 2, subpixel=params.subpixel, tex=texture(fovea),
                min_texture=params.min_texture, min_margin=params.min_margin, vshift_cost=params.vshift_cost)
-    return apply_checks(d, fovea, x, params, master_rows, slave_band)
+    return apply_checks(d, fovea, x, params, master_rows, slave_band, weights)
 
 
 def apply_checks(d: Decision, fovea: np.ndarray, x: int, params: Params, master_rows: np.ndarray | None = None,
-                 slave_band: np.ndarray | None = None) -> Decision:
+                 slave_band: np.ndarray | None = None, weights: np.ndarray | None = None) -> Decision:
     """decide_scores' second half: the correlation, left-right and halves checks on a decision (only a
-    confident one can change), for a caller that gets the bands only once it knows the decision (the reducer)."""
-    if params.min_correlation > 0 and d.confident and slave_band is not None:
-        d = replace(d, confident=correlation(fovea, slave_band, d) >= params.min_correlation)
-    if params.lr_check and d.confident and master_rows is not None and slave_band is not None:
-        d = replace(d, confident=lr_consistent(master_rows, slave_band, x, d, params))
-    if params.halves_check and d.confident and slave_band is not None:
-        d = replace(d, confident=halves_consistent(fovea, slave_band, d, params))
+    confident one can change), for a caller that gets the bands only once it knows the decision (the reducer).
+    The first check that fails makes it not confident, and the later ones are not asked."""
+    if not d.confident or slave_band is None:
+        return d
+    if params.min_correlation > 0 and not correlation(fovea, slave_band, d) >= params.min_correlation:
+        return replace(d, confident=False)
+    if params.lr_check and master_rows is not None and not lr_consistent(master_rows, slave_band, x, d, params):
+        return replace(d, confident=False)
+    if params.halves_check and not halves_consistent(fovea, slave_band, d, params, weights):
+        return replace(d, confident=False)
     return d
 
 
@@ -167,16 +172,24 @@ def lr_consistent(master_rows: np.ndarray, slave_band: np.ndarray, x: int, d: De
     r = (slave_band.shape[1] - w) // 2  # R
     sf = np.ascontiguousarray(slave_band[:, r + d.v : r + d.v + w, d.k : d.k + w])
     back = kernel.correlate(sf, retina.planes(master_rows), circular=params.circular)
-    bd = decide(back, w, k_centre=0, subpixel=params.subpixel)
     expected = x - (d.k_sub - d.k)
-    return abs((bd.k_sub + half) - expected) <= params.lr_tolerance
+    return abs((_winner_sub(back, params.subpixel) + half) - expected) <= params.lr_tolerance
+
+
+def _winner_sub(scores: np.ndarray, subpixel: bool) -> float:
+    """decide(scores, ...).k_sub of 1-D scores, without the rest of the decision (the left-right check's)."""
+    k = int(np.argmax(scores))
+    if subpixel and 0 < k < scores.shape[0] - 1:
+        return k + _parabola(float(scores[k - 1]), float(scores[k]), float(scores[k + 1]))
+    return float(k)
 
 
 CLIPPED_HALF = 0.5  # a half with less of its weight on pixels the slave did not clip is not asked
 HALVES_TOLERANCE = 2  # px: how far a half's own best offset may lie from the winner (1 abstains at too many points)
 
 
-def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, params: Params) -> bool:
+def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, params: Params,
+                      weights: np.ndarray | None = None) -> bool:
     """The halves check: the left, right, top and bottom halves of the fovea (the centre row or column in
     each), weighed by the fovea's support weights when params.support, each matched alone along the winning
     row v at offsets within params.halves_range of the winner k, must each find their best offset within
@@ -186,14 +199,19 @@ def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, pa
     left out of every half, and a half left with under CLIPPED_HALF (half) of its weight is not asked: with the
     slave at gain 0.7, -15, a fifth of tsukuba's pixels go black, and a half on them found its best anywhere.
     Exact integers (kernel.half_sads, the four halves in one pass); reads the band's columns
-    k - halves_range .. k + halves_range + w - 1 of the winning rows only."""
+    k - halves_range .. k + halves_range + w - 1 of the winning rows only. weights: the fovea's support weights
+    when the caller has them (kernel.support_weights with params' scales; read, never written)."""
     w = fovea.shape[1]
     r = (slave_band.shape[1] - w) // 2  # the vertical search R
     kk = slave_band.shape[2] - w + 1
     k0, k1 = max(0, d.k - params.halves_range), min(kk, d.k + params.halves_range + 1)
     rows = slave_band[:, r + d.v : r + d.v + w, :]
-    wts = kernel.support_weights(fovea, params.support_gamma, params.support_radius_at(w)) if params.support \
-        else np.ones((w, w), np.uint8)
+    if not params.support:
+        wts = np.ones((w, w), np.uint8)
+    elif weights is not None:
+        wts = weights
+    else:
+        wts = kernel.support_weights(fovea, params.support_gamma, params.support_radius_at(w))
     # Pixels the slave camera clipped (its band's darkest or brightest level, in the winning window) carry no
     # texture: a half mostly on them would find its best offset anywhere. They are left out of the halves, and
     # a half left with under CLIPPED_HALF of its weight is not asked.

@@ -48,7 +48,7 @@ def _one(master, slave, x, y, w, p: Params) -> Match:
     fovea, band = retina.planes(fstrip), retina.planes(bstrip)
     weights = kernel.support_weights(fovea, p.support_gamma, p.support_radius_at(w)) if p.support else None
     scores = kernel.correlate(fovea, band, circular=p.circular, weights=weights)
-    return Match(x, y, w, decide_scores(scores, fovea, x, p, mrows, band), scores)
+    return Match(x, y, w, decide_scores(scores, fovea, x, p, mrows, band, weights), scores)
 
 
 def _clipped(master: np.ndarray, slave: np.ndarray, y: int, windows: list[int], p: Params) -> bool:
