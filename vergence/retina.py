@@ -158,15 +158,117 @@ AFFINE_QUANTILES = (0.3, 0.5, 0.7)
 BORDER_MIN_COLUMNS = 3  # a shorter run of dark columns at a strip's end is taken as the scene's
 
 
-def _border_columns(s: np.ndarray) -> tuple[int, int]:
+@numba.njit(cache=True, nogil=True)
+def _dark_column(s, j, lo):
+    for i in range(s.shape[0]):
+        if s[i, j] != lo:
+            return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _border_columns(s):
     """How many whole columns at the left and at the right end of a gray strip are at the strip's darkest
     level: (left, right), each 0 when fewer than BORDER_MIN_COLUMNS; (0, 0) when little else would be left."""
-    dark = np.all(s == s.min(), axis=0)
-    if dark.all():
+    lo = np.uint8(255)
+    for i in range(s.shape[0]):
+        for j in range(s.shape[1]):
+            lo = min(lo, s[i, j])
+    n = s.shape[1]
+    a = 0
+    while a < n and _dark_column(s, a, lo):
+        a += 1
+    if a == n:  # every column dark
         return 0, 0
-    a, b = int(np.argmin(dark)), int(np.argmin(dark[::-1]))
-    a, b = (a if a >= BORDER_MIN_COLUMNS else 0), (b if b >= BORDER_MIN_COLUMNS else 0)
-    return (0, 0) if a + b >= dark.size - 2 else (a, b)
+    b = 0
+    while _dark_column(s, n - 1 - b, lo):  # stops at column a at the latest
+        b += 1
+    a = a if a >= BORDER_MIN_COLUMNS else 0
+    b = b if b >= BORDER_MIN_COLUMNS else 0
+    return (0, 0) if a + b >= n - 2 else (a, b)
+
+
+@numba.njit(cache=True, nogil=True)
+def _histogram(s, a, b):
+    """The 256-level histogram (as float64 counts) of a gray strip's columns a .. width - b - 1 (what
+    cv2.calcHist counts), four partial histograms interleaved so that repeated levels do not wait on each other."""
+    h = np.zeros((4, 256), np.int64)
+    j1 = s.shape[1] - b
+    for i in range(s.shape[0]):
+        j = a
+        while j + 4 <= j1:
+            h[0, s[i, j]] += 1
+            h[1, s[i, j + 1]] += 1
+            h[2, s[i, j + 2]] += 1
+            h[3, s[i, j + 3]] += 1
+            j += 4
+        while j < j1:
+            h[0, s[i, j]] += 1
+            j += 1
+    out = np.empty(256, np.float64)
+    for level in range(256):
+        out[level] = np.float64(h[0, level] + h[1, level] + h[2, level] + h[3, level])
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _ends(h):
+    """The first and the last level with a count."""
+    lo, hi = 0, 255
+    while h[lo] == 0:
+        lo += 1
+    while h[hi] == 0:
+        hi -= 1
+    return lo, hi
+
+
+@numba.njit(cache=True, nogil=True)
+def _mid_quantiles(h, total):
+    """(cumsum(h) - h / 2) / total, level by level (the cumulative counts are exact integers)."""
+    q = np.empty(256, np.float64)
+    c = 0.0
+    for level in range(256):
+        c += h[level]
+        q[level] = (c - 0.5 * h[level]) / total
+    return q
+
+
+@numba.njit(cache=True, nogil=True)
+def _statistics(s, m):
+    """photometric_map's statistics of the two strips, up to its quantiles: (ok, lo_s, hi_s, lo_m, hi_m, cut_lo,
+    cut_hi, f_lo, f_hi, qs, ls, qs_in, lm, qm_in), ok False where photometric_map leaves the slave as it is.
+    Every sum here is of integer counts (exact), every other step the same IEEE operation photometric_map's
+    numpy expressions make, in the same order: the same doubles."""
+    a, b = _border_columns(s)
+    hs = _histogram(s, a, b)
+    hm = _histogram(m, a, b)
+    ns, nm = hs.sum(), hm.sum()
+    if ns == 0 or nm == 0:
+        raise IndexError("an empty strip has no levels")
+    lo_s, hi_s = _ends(hs)
+    lo_m, hi_m = _ends(hm)
+    x = hs[lo_s] / ns - hm[lo_m] / nm
+    cut_lo = x if x > 0.0 else 0.0  # max(0.0, x)
+    x = hs[hi_s] / ns - hm[hi_m] / nm
+    cut_hi = x if x > 0.0 else 0.0
+    hs[lo_s] = 0.0
+    hs[hi_s] = 0.0
+    hm[lo_m] = 0.0
+    hm[hi_m] = 0.0
+    ss, sm = hs.sum(), hm.sum()
+    empty = np.empty(0, np.float64)
+    f_lo, f_hi = 0.0, 0.0
+    ok = ss >= 2 and sm >= 2
+    if ok:
+        f_lo, f_hi = cut_lo * nm / sm, cut_hi * nm / sm
+        ok = not f_lo + f_hi >= 0.9
+    if not ok:
+        return False, lo_s, hi_s, lo_m, hi_m, cut_lo, cut_hi, f_lo, f_hi, empty, empty, empty, empty, empty
+    qs = _mid_quantiles(hs, ss)
+    qm = _mid_quantiles(hm, sm)
+    levels = np.arange(256).astype(np.float64)
+    ins, inm = hs > 0, hm > 0
+    return True, lo_s, hi_s, lo_m, hi_m, cut_lo, cut_hi, f_lo, f_hi, qs, levels[ins], qs[ins], levels[inm], qm[inm]
 
 
 def photometric(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str = "affine") -> np.ndarray:
@@ -201,37 +303,23 @@ def photometric_map(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str
     m = np.ascontiguousarray(master_strip)
     if s.dtype != np.uint8 or m.dtype != np.uint8 or s.ndim != 2 or m.ndim != 2:
         raise ValueError(f"photometric maps 2-D uint8 strips, got {s.dtype} {s.shape} and {m.dtype} {m.shape}")
+    if mode == "none":
+        return None, None
     levels = np.arange(256, dtype=np.float64)
     # A turned camera sees past the scene: whole columns at one end of the slave strip at its darkest level (the
     # simulator's black border, at the slave's offset; up to 40 % of the band on Middlebury). They are no part of
     # the scene the master sees, so they are left out of the slave's statistics, and as many columns at the same
-    # end of the master's (about the scene the slave does not see there).
-    a, b = _border_columns(s)
-    s_stat, m_stat = (s, m) if not (a or b) else (s[:, a : s.shape[1] - b], m[:, a : m.shape[1] - b])
-    hs, hm = (cv2.calcHist([np.ascontiguousarray(x)], [0], None, [256], [0, 256]).ravel().astype(np.float64)
-              for x in (s_stat, m_stat))
+    # end of the master's (about the scene the slave does not see there): _border_columns.
     # Each strip's darkest and brightest level is taken as clipped (black or saturated: 0 and 255 when the camera
     # clips; a black border, a turned camera seeing past the scene in the simulator, is such a level too, at the
     # slave's offset): those pixels say nothing of the gain and would drag any statistic. They are left out of
     # both strips; the share by which the slave has more of them than the master (its gain clipped those) is cut
     # off the master's darkest / brightest end, so that the two distributions left still correspond.
-    ns, nm = hs.sum(), hm.sum()
-    (lo_s, hi_s), (lo_m, hi_m) = (np.flatnonzero(h)[[0, -1]] for h in (hs, hm))
-    cut_lo = max(0.0, hs[lo_s] / ns - hm[lo_m] / nm)
-    cut_hi = max(0.0, hs[hi_s] / ns - hm[hi_m] / nm)
-    hs[[lo_s, hi_s]] = 0.0
-    hm[[lo_m, hi_m]] = 0.0
-    if mode == "none" or hs.sum() < 2 or hm.sum() < 2:
+    # Then the mid-quantile of each level on each strip's cumulative histogram; a slave quantile q lies at the
+    # master's f_lo + q (1 - f_lo - f_hi). All in _statistics, in one compiled pass.
+    ok, lo_s, hi_s, lo_m, hi_m, cut_lo, cut_hi, f_lo, f_hi, qs, ls, qs_in, lm, qm_in = _statistics(s, m)
+    if not ok:
         return None, None
-    f_lo, f_hi = cut_lo * nm / hm.sum(), cut_hi * nm / hm.sum()
-    if f_lo + f_hi >= 0.9:
-        return None, None
-    # the mid-quantile of each level on each strip's cumulative histogram; a slave quantile q lies at the
-    # master's f_lo + q (1 - f_lo - f_hi)
-    qs = (np.cumsum(hs) - 0.5 * hs) / hs.sum()
-    qm = (np.cumsum(hm) - 0.5 * hm) / hm.sum()
-    ls, lm = levels[hs > 0], levels[hm > 0]
-    qs_in, qm_in = qs[hs > 0], qm[hm > 0]
     if mode == "affine":
         # gain and offset from the 30th, 50th and 70th percentiles
         q = np.asarray(AFFINE_QUANTILES)
