@@ -42,18 +42,14 @@ class Match:
         return d
 
 
-def _one(master, slave, x, y, w, p: Params) -> Match:
-    fstrip, bstrip, mrows = retina.mapped_strips(master, slave, x, y, w, p.vsearch, p.photometric, p.lr_check,
-                                                 p.clip_master)
+def _one(master, slave, x, y, w, p: Params) -> tuple[Match, bool]:
+    """The match at window w, and whether clip_master clipped the master for it (retina.master_clipped)."""
+    fstrip, bstrip, mrows, lims = retina.mapped_strips_levels(master, slave, x, y, w, p.vsearch, p.photometric,
+                                                              p.lr_check, p.clip_master)
     fovea, band = retina.planes(fstrip), retina.planes(bstrip)
     weights = kernel.support_weights(fovea, p.support_gamma, p.support_radius_at(w)) if p.support else None
     scores = kernel.correlate(fovea, band, circular=p.circular, weights=weights)
-    return Match(x, y, w, decide_scores(scores, fovea, x, p, mrows, band, weights), scores)
-
-
-def _clipped(master: np.ndarray, slave: np.ndarray, y: int, windows: list[int], p: Params) -> bool:
-    """Whether clip_master clipped the master at any of these windows."""
-    return any(retina.master_clipped(master, slave, y, w, p) for w in windows)
+    return Match(x, y, w, decide_scores(scores, fovea, x, p, mrows, band, weights), scores), lims is not None
 
 
 def match(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = None,
@@ -74,18 +70,18 @@ def match(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = No
     x, y = at if at is not None else (master.shape[1] // 2, master.shape[0] // 2)
     retina.check_point(master.shape, x, y, params.window, params.vsearch)
     first = None
-    tried = []
+    clipped = False  # whether clip_master clipped the master at any window tried (retina.master_clipped)
     for w in params.windows():
         try:
             retina.check_point(master.shape, x, y, w, params.vsearch)
         except retina.BorderError:
             break
-        m = _one(master, slave, x, y, w, params)
-        tried.append(w)
+        m, clipped_w = _one(master, slave, x, y, w, params)
+        clipped = clipped or clipped_w
         first = first or m
         if m.confident:
             return m
-    if params.clip_master and params.clip_fallback and _clipped(master, slave, y, tried, params):
+    if params.clip_master and params.clip_fallback and clipped:
         # where the slave's gain clipped, the master clipped alike can leave too little texture (a bright fovea
         # just under the estimated clip level, flattened): the master as it is, every window again
         second = match(master, slave, at, params.override(clip_master=False))

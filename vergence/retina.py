@@ -15,8 +15,8 @@ import numba
 import numpy as np
 
 __all__ = ["BorderError", "gray", "strip", "fovea_strip", "band_strip", "planes", "features", "check_point",
-           "PHOTOMETRIC", "photometric", "photometric_map", "slave_band_strip", "mapped_strips", "master_clipped",
-           "clipped_share", "CLIP_WARN"]
+           "PHOTOMETRIC", "photometric", "photometric_map", "slave_band_strip", "mapped_strips", "mapped_strips_levels",
+           "master_clipped", "clipped_share", "CLIP_WARN"]
 
 
 class BorderError(ValueError):
@@ -361,17 +361,39 @@ def mapped_strips(master: np.ndarray, slave: np.ndarray, x: int, y: int, window:
     mapped onto the master's same rows, the master's own rows of the fovea (band_strip without vertical search)
     when master_rows, for the left-right check). With clip_master, where the slave's gain clipped
     (photometric_map), the master's strips are clipped to the same levels."""
-    fovea = fovea_strip(master, x, y, window)
-    band = band_strip(slave, y, window, vsearch)
-    mrows = band_strip(master, y, window) if master_rows else None
+    return mapped_strips_levels(master, slave, x, y, window, vsearch, mode, master_rows, clip_master)[:3]
+
+
+def mapped_strips_levels(master: np.ndarray, slave: np.ndarray, x: int, y: int, window: int, vsearch: int = 0,
+                         mode: str = "none", master_rows: bool = False, clip_master: bool = False
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, tuple[int, int] | None]:
+    """mapped_strips and the levels the master was clipped to (photometric_map's, None when it was not: what
+    master_clipped says for the same arguments)."""
+    half = window // 2
+    h, wd = master.shape[:2]
+    if mode == "none" or master.ndim != 2 or window % 2 != 1 or not (half <= x < wd - half and half <= y < h - half):
+        fovea = fovea_strip(master, x, y, window)
+        band = band_strip(slave, y, window, vsearch)
+        mrows = band_strip(master, y, window) if master_rows else None
+        mband = None if mode == "none" else band_strip(master, y, window, vsearch)
+    else:
+        band = band_strip(slave, y, window, vsearch)
+        mband = band_strip(master, y, window, vsearch)
+        # the fovea's and the master rows' strips are rows vsearch .. vsearch + w + 1 of the master's band strip
+        # (the band fits, so with vsearch > 0 they are off the image's top and bottom rows; at the left and right
+        # ends both mirror the same column): the same pixels, not read again
+        rows = mband[vsearch : vsearch + window + 2]
+        fovea = np.ascontiguousarray(rows[:, x - half : x + half + 3])
+        mrows = rows if master_rows else None
+    lims = None
     if mode != "none":
-        lut, lims = photometric_map(band, band_strip(master, y, window, vsearch), mode, clip=clip_master)
+        lut, lims = photometric_map(band, mband, mode, clip=clip_master)
         if lut is not None:
             band = cv2.LUT(band, lut)
         if lims is not None:
             fovea = np.clip(fovea, *lims).astype(np.uint8)
             mrows = None if mrows is None else np.clip(mrows, *lims).astype(np.uint8)
-    return fovea, band, mrows
+    return fovea, band, mrows, lims
 
 
 def slave_band_strip(master: np.ndarray, slave: np.ndarray, y: int, window: int, vsearch: int = 0,
