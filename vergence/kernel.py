@@ -98,32 +98,36 @@ def _half_sads(fovea, rows, weights, k0, k1, circular, out):
     nplanes, w, _ = fovea.shape
     c = w // 2
     n = k1 - k0
-    for p in range(nplanes):
-        circ = circular and p == 2
-        for i in range(w):
-            vert = 2 if i < c else 3 if i > c else -1  # top, bottom, or both (the centre row)
+    part = np.zeros((3, n), np.int64)  # one fovea row's columns left of c, column c, right of c
+    for i in range(w):
+        part[:] = 0
+        for p in range(nplanes):
+            circ = circular and p == 2
+            row = rows[p, i]
             for j in range(w):
                 wt = np.int64(weights[i, j])
                 if wt == 0:
                     continue
-                horiz = 0 if j < c else 1 if j > c else -1  # left, right, or both (the centre column)
                 f = np.int64(fovea[p, i, j])
-                row = rows[p, i]
-                for k in range(n):
-                    e = abs(np.int64(row[k0 + k + j]) - f)
-                    if circ:
-                        e = min(e, 256 - e)
-                    e *= wt
-                    if horiz < 0:
-                        out[0, k] += e
-                        out[1, k] += e
-                    else:
-                        out[horiz, k] += e
-                    if vert < 0:
-                        out[2, k] += e
-                        out[3, k] += e
-                    else:
-                        out[vert, k] += e
+                acc = part[0 if j < c else 1 if j == c else 2]
+                b = k0 + j
+                if circ:
+                    for k in range(n):
+                        e = abs(np.int64(row[b + k]) - f)
+                        acc[k] += min(e, 256 - e) * wt
+                else:
+                    for k in range(n):
+                        acc[k] += abs(np.int64(row[b + k]) - f) * wt
+        for k in range(n):
+            left = part[0, k] + part[1, k]  # the left half and the right half each with the centre column
+            right = part[1, k] + part[2, k]
+            whole = left + part[2, k]
+            out[0, k] += left
+            out[1, k] += right
+            if i <= c:  # top, bottom: each with the centre row
+                out[2, k] += whole
+            if i >= c:
+                out[3, k] += whole
 
 
 def half_sads(fovea: np.ndarray, rows: np.ndarray, k0: int, k1: int, *, circular: bool = True,
