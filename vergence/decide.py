@@ -51,9 +51,18 @@ def centre_offset(width: int, window: int) -> int:
     return width // 2 - window // 2
 
 
+def _mean(a: np.ndarray) -> float:
+    """float(a.mean()). Of a small array of 8-bit integers (the features) as the exact integer sum over the count,
+    rounded once: numpy's float64 sum of such integers is exact, so its mean is that same double, without
+    np.mean's wrapper."""
+    if a.dtype.itemsize == 1 and a.dtype.kind in "ui" and 0 < a.size <= 2 ** 40:
+        return int(a.sum(dtype=np.int64)) / a.size
+    return float(a.mean())
+
+
 def texture(fovea: np.ndarray) -> float:
     """Mean gradient magnitude G (0..255) of the fovea: near 0 for a flat or black fovea."""
-    return float(fovea[1].mean())
+    return _mean(fovea[1])
 
 
 def _parabola(ym: float, y0: float, yp: float) -> float:
@@ -156,10 +165,8 @@ def correlation(fovea: np.ndarray, slave_band: np.ndarray, d: Decision) -> float
     noise; 0 when either is flat."""
     w = fovea.shape[1]
     r = (slave_band.shape[1] - w) // 2
-    f = fovea[0].astype(np.float64)
-    s = slave_band[0, r + d.v : r + d.v + w, d.k : d.k + w].astype(np.float64)
-    f -= f.mean()
-    s -= s.mean()
+    f, s = fovea[0], slave_band[0, r + d.v : r + d.v + w, d.k : d.k + w]
+    f, s = f.astype(np.float64) - _mean(f), s.astype(np.float64) - _mean(s)
     den = float(np.sqrt((f * f).sum() * (s * s).sum()))
     return float((f * s).sum()) / den if den > 0 else 0.0
 
@@ -227,4 +234,5 @@ def halves_consistent(fovea: np.ndarray, slave_band: np.ndarray, d: Decision, pa
         asked = np.array([lf >= CLIPPED_HALF * fu for lf, fu in zip(left, full)])
         wts = kept
     s = kernel.half_sads(fovea, rows, k0, k1, circular=params.circular, weights=wts)
-    return bool(np.all((np.abs(k0 + np.argmin(s, axis=1) - d.k) <= HALVES_TOLERANCE) | ~asked))
+    best = np.argmin(s, axis=1)
+    return all(abs(k0 + int(best[h]) - d.k) <= HALVES_TOLERANCE or not asked[h] for h in range(4))
