@@ -244,7 +244,7 @@ def _statistics(s, m):
     hm = _histogram(m, a, b)
     ns, nm = hs.sum(), hm.sum()
     if ns == 0 or nm == 0:
-        raise IndexError("an empty strip has no levels")
+        raise IndexError("index 0 is out of bounds for axis 0 with size 0")  # what np.flatnonzero(h)[0] said
     lo_s, hi_s = _ends(hs)
     lo_m, hi_m = _ends(hm)
     x = hs[lo_s] / ns - hm[lo_m] / nm
@@ -303,8 +303,8 @@ def photometric_map(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str
     m = np.ascontiguousarray(master_strip)
     if s.dtype != np.uint8 or m.dtype != np.uint8 or s.ndim != 2 or m.ndim != 2:
         raise ValueError(f"photometric maps 2-D uint8 strips, got {s.dtype} {s.shape} and {m.dtype} {m.shape}")
-    if mode == "none":
-        return None, None
+    if s.size == 0:  # what s.min() said of it
+        raise ValueError("zero-size array to reduction operation minimum which has no identity")
     levels = np.arange(256, dtype=np.float64)
     # A turned camera sees past the scene: whole columns at one end of the slave strip at its darkest level (the
     # simulator's black border, at the slave's offset; up to 40 % of the band on Middlebury). They are no part of
@@ -318,7 +318,7 @@ def photometric_map(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str
     # Then the mid-quantile of each level on each strip's cumulative histogram; a slave quantile q lies at the
     # master's f_lo + q (1 - f_lo - f_hi). All in _statistics, in one compiled pass.
     ok, lo_s, hi_s, lo_m, hi_m, cut_lo, cut_hi, f_lo, f_hi, qs, ls, qs_in, lm, qm_in = _statistics(s, m)
-    if not ok:
+    if mode == "none" or not ok:
         return None, None
     if mode == "affine":
         # gain and offset from the 30th, 50th and 70th percentiles
