@@ -243,8 +243,8 @@ def _statistics(s, m):
     hs = _histogram(s, a, b)
     hm = _histogram(m, a, b)
     ns, nm = hs.sum(), hm.sum()
-    if ns == 0 or nm == 0:
-        raise IndexError("index 0 is out of bounds for axis 0 with size 0")  # what np.flatnonzero(h)[0] said
+    if ns == 0 or nm == 0:  # photometric_map asks for non-empty strips
+        raise ValueError("an empty strip")
     lo_s, hi_s = _ends(hs)
     lo_m, hi_m = _ends(hm)
     x = hs[lo_s] / ns - hm[lo_m] / nm
@@ -303,8 +303,8 @@ def photometric_map(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str
     m = np.ascontiguousarray(master_strip)
     if s.dtype != np.uint8 or m.dtype != np.uint8 or s.ndim != 2 or m.ndim != 2:
         raise ValueError(f"photometric maps 2-D uint8 strips, got {s.dtype} {s.shape} and {m.dtype} {m.shape}")
-    if s.size == 0:  # what s.min() said of it
-        raise ValueError("zero-size array to reduction operation minimum which has no identity")
+    if s.size == 0 or m.size == 0:
+        raise ValueError(f"photometric maps non-empty strips, got {s.shape} and {m.shape}")
     levels = np.arange(256, dtype=np.float64)
     # A turned camera sees past the scene: whole columns at one end of the slave strip at its darkest level (the
     # simulator's black border, at the slave's offset; up to 40 % of the band on Middlebury). They are no part of
