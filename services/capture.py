@@ -265,6 +265,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         if len(windows.states) > 1:  # a dynamic window (max_window, clip_fallback): the decisions drive it
             node.subscriber(keys.decision(rig), on_decision)
         node.subscriber(keys.fixate(rig), lambda sm: fovea.on_fixate(sm.payload.to_bytes()))
+        retina.warm_up()
         node.ready()
         log.info("capture %s: %s (%d x %d, f=%.1f px) at %s Hz on %s", cid, cs.source, wd, ht,
                  focal, cs.rate_hz or "max", keys.frame(rig))

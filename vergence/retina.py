@@ -16,7 +16,7 @@ import numpy as np
 
 __all__ = ["BorderError", "gray", "strip", "fovea_strip", "band_strip", "planes", "features", "check_point",
            "PHOTOMETRIC", "photometric", "photometric_map", "slave_band_strip", "mapped_strips", "mapped_strips_levels",
-           "master_clipped", "clipped_share", "CLIP_WARN"]
+           "master_clipped", "clipped_share", "CLIP_WARN", "warm_up"]
 
 
 class BorderError(ValueError):
@@ -445,3 +445,10 @@ def clipped_share(master: np.ndarray, slave: np.ndarray, y: int, window: int, vs
         levels = photometric_map(mine, other, "affine")[1]
         out[name] = 0.0 if levels is None else float(np.mean((other < levels[0]) | (other > levels[1])))
     return out
+
+
+def warm_up() -> None:
+    """Compile, or load from numba's cache, the photometric mapping's statistics (3 s the first time, 0.2 s from
+    the cache): the capture calls this before it announces itself, so that no frame pays for it."""
+    s = np.arange(64, dtype=np.uint8).reshape(4, 16)
+    photometric_map(s, s)
