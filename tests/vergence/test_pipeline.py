@@ -270,6 +270,7 @@ def test_files_source(tmp_path):
     a, b = src.read(0.3)
     assert isinstance(src, FilesSource) and src.size == (200, 120)
     assert np.array_equal(a, m) and np.array_equal(b, s)
+    assert not src.follows_pan and src.start_pan_rad == 0.0  # taken at pan 0, whatever the motor does
     a, b = open_source(f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}", master="right").read()
     assert np.array_equal(a, s)
 
@@ -297,6 +298,7 @@ def test_video_source(tmp_path):
             vw.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
         vw.release()
     src = open_source(f"video:{tmp_path / 'l.avi'},{tmp_path / 'r.avi'}")
+    assert not src.follows_pan and src.start_pan_rad == 0.0
     for _ in range(5):  # rewinds at the end
         a, b = src.read()
         assert a.shape == (120, 200) and a.dtype == np.uint8
@@ -306,7 +308,7 @@ def test_video_source(tmp_path):
 
 def test_sim_source_renders_at_the_given_pan():
     src = open_source("sim:size=160x120:focal=128")
-    assert isinstance(src, SimSource) and src.size == (160, 120) and src.focal_px == 128.0
+    assert isinstance(src, SimSource) and src.size == (160, 120) and src.focal_px == 128.0 and src.follows_pan
     a0, b0 = src.read(0.0)
     a1, b1 = src.read(0.05)
     assert a0.shape == (120, 160) and np.array_equal(a0, a1) and not np.array_equal(b0, b1)
