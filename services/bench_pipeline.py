@@ -124,6 +124,18 @@ def in_process_ms(master, slave, params, n: int = 30) -> float:
     return float(np.median(ts) * 1e3)
 
 
+def executed_lags(states: list, first: int, last: int) -> dict[int, int]:
+    """Capture -> command executed at the actuator, ns, per frame first..last: the first motor state naming a
+    frame is the one published right after its command went to the motor (its t_ns minus the frame's capture
+    time, no extra hop); the motor's periodic states name the same frame again, later."""
+    out: dict[int, int] = {}
+    for st in states:
+        if first <= st.frame <= last and st.t_capture_ns > 0:
+            lag = st.t_ns - st.t_capture_ns
+            out[st.frame] = min(out.get(st.frame, lag), lag)
+    return out
+
+
 def run_rate(cl: Cluster, s, source: str, rate: float, frames: int) -> dict:
     """One capture run at `rate`: WARM_FRAMES frames to start the capture (not counted), then `frames`
     frames; the latency of the commands that came back for those."""
@@ -154,13 +166,7 @@ def run_rate(cl: Cluster, s, source: str, rate: float, frames: int) -> dict:
     finally:
         sub.undeclare()
         sub_state.undeclare()
-    # at the actuator: the first motor state naming a frame is the one published right after its command went
-    # to the motor (its t_ns minus the frame's capture time: capture -> command executed, no extra hop)
-    executed: dict[int, int] = {}
-    for b in states:
-        st = MotorState.from_bytes(b)
-        if warm < st.frame <= frames + warm and st.t_capture_ns > 0:
-            executed[st.frame] = min(executed.get(st.frame, st.t_ns), st.t_ns) - st.t_capture_ns
+    executed = executed_lags([MotorState.from_bytes(b) for b in states], warm + 1, frames + warm)
     act = np.array(sorted(executed.values())) / 1e6 if executed else np.array([np.nan])
     cmds = [(t, c) for t, c in ((t, Command.from_bytes(b)) for t, b in got) if warm < c.frame <= frames + warm]
     lat = np.array([(t - c.t_capture_ns) / 1e6 for t, c in cmds]) if cmds else np.array([np.nan])

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from vergence_services.bench_pipeline import summary
+from vergence_services.bench_pipeline import executed_lags, summary
 
 CLI = [sys.executable, "-m", "vergence_services.cli", "bench"]
 
@@ -87,3 +87,20 @@ def test_summary_names_the_highest_rate_without_drops():
             dict(setting="heavy", workers=1, rate_hz=10.0, drops=3, p50_ms=9.0, p99_ms=20.0)]
     assert summary(rows) == ["vga    2 worker(s): held 250 Hz without drops (p50 2.70 ms, p99 4.50 ms)",
                              "heavy  1 worker(s): every rate tried dropped frames"]
+
+
+def test_executed_lags_take_the_first_state_naming_each_frame():
+    """A frame's command is executed when the first motor state naming it goes out; the periodic states after it
+    name it again (at 100 Hz with the motor's 50 Hz ticks, every other frame): they must not count (they once
+    made the p50 -1.8e12 ms)."""
+    from vergence.messages import MotorState
+
+    def st(frame, t_capture, t):
+        return MotorState(rig="r", t_ns=t, pan_rad=0.0, goal_rad=0.0, min_rad=-1.0, max_rad=1.0, status="ok",
+                          frame=frame, t_capture_ns=t_capture)
+
+    states = [st(7, 1_000_000_000, 1_003_000_000), st(7, 1_000_000_000, 1_020_000_000),
+              st(8, 1_010_000_000, 1_014_000_000), st(9, 1_020_000_000, 1_021_000_000), st(0, 0, 1_030_000_000),
+              st(10, 1_030_000_000, 1_032_500_000)]
+    assert executed_lags(states, 8, 10) == {8: 4_000_000, 9: 1_000_000, 10: 2_500_000}
+    assert executed_lags(states, 1, 10)[7] == 3_000_000
