@@ -48,7 +48,7 @@ def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, p
     x, y = at if at is not None else (wd // 2, h // 2)
     w = params.window if window is None else window
     retina.check_point(master.shape, x, y, w, params.vsearch)
-    fovea, band, mband = retina.mapped_strips(master, slave, x, y, w, params.vsearch, params.photometric,
+    fovea, band, mband, _ = retina.mapped_strips(master, slave, x, y, w, params.vsearch, params.photometric,
                                               params.lr_check, params.clip_master and clip)
     return Frame(rig=rig, frame=frame, t_capture_ns=t_capture_ns, pan_rad=float(pan_rad), width=wd, height=h,
                  x=x, y=y, window=w, vsearch=params.vsearch, focal_px=float(focal_px), fovea=fovea.tobytes(),

@@ -44,8 +44,8 @@ class Match:
 
 def _one(master, slave, x, y, w, p: Params) -> tuple[Match, bool]:
     """The match at window w, and whether clip_master clipped the master for it (retina.master_clipped)."""
-    fstrip, bstrip, mrows, lims = retina.mapped_strips_levels(master, slave, x, y, w, p.vsearch, p.photometric,
-                                                              p.lr_check, p.clip_master)
+    fstrip, bstrip, mrows, lims = retina.mapped_strips(master, slave, x, y, w, p.vsearch, p.photometric, p.lr_check,
+                                                       p.clip_master)
     fovea, band = retina.planes(fstrip), retina.planes(bstrip)
     weights = kernel.support_weights(fovea, p.support_gamma, p.support_radius_at(w)) if p.support else None
     scores = kernel.correlate(fovea, band, circular=p.circular, weights=weights)

@@ -15,8 +15,8 @@ import numba
 import numpy as np
 
 __all__ = ["BorderError", "gray", "strip", "fovea_strip", "band_strip", "planes", "features", "check_point",
-           "PHOTOMETRIC", "photometric", "photometric_map", "slave_band_strip", "mapped_strips", "mapped_strips_levels",
-           "master_clipped", "clipped_share", "CLIP_WARN", "warm_up"]
+           "PHOTOMETRIC", "photometric", "photometric_map", "slave_band_strip", "mapped_strips", "master_clipped",
+           "clipped_share", "CLIP_WARN", "warm_up"]
 
 
 class BorderError(ValueError):
@@ -356,19 +356,12 @@ def photometric_map(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str
 
 def mapped_strips(master: np.ndarray, slave: np.ndarray, x: int, y: int, window: int, vsearch: int = 0,
                   mode: str = "none", master_rows: bool = False, clip_master: bool = False
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, tuple[int, int] | None]:
     """The gray strips layer 1 reads, photometric `mode` applied: (the master's fovea strip, the slave's band strip
     mapped onto the master's same rows, the master's own rows of the fovea (band_strip without vertical search)
-    when master_rows, for the left-right check). With clip_master, where the slave's gain clipped
-    (photometric_map), the master's strips are clipped to the same levels."""
-    return mapped_strips_levels(master, slave, x, y, window, vsearch, mode, master_rows, clip_master)[:3]
-
-
-def mapped_strips_levels(master: np.ndarray, slave: np.ndarray, x: int, y: int, window: int, vsearch: int = 0,
-                         mode: str = "none", master_rows: bool = False, clip_master: bool = False
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, tuple[int, int] | None]:
-    """mapped_strips and the levels the master was clipped to (photometric_map's, None when it was not: what
-    master_clipped says for the same arguments)."""
+    when master_rows, for the left-right check, the levels the master was clipped to). With clip_master, where
+    the slave's gain clipped (photometric_map), the master's strips are clipped to those levels (None when they
+    were not: what master_clipped says for the same arguments)."""
     half = window // 2
     h, wd = master.shape[:2]
     if mode == "none" or master.ndim != 2 or window % 2 != 1 or not (half <= x < wd - half and half <= y < h - half):
@@ -416,14 +409,15 @@ def features(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None =
                          f"{slave.shape[1]} x {slave.shape[0]}")
     x, y = at if at is not None else (master.shape[1] // 2, master.shape[0] // 2)
     check_point(master.shape, x, y, window, vsearch)
-    fovea, band, _ = mapped_strips(master, slave, x, y, window, vsearch, photometric)
+    fovea, band, _, _ = mapped_strips(master, slave, x, y, window, vsearch, photometric)
     return planes(fovea), planes(band)
 
 
 def master_clipped(master: np.ndarray, slave: np.ndarray, y: int, window: int, params) -> bool:
     """Whether params.clip_master clips the master for the fovea at row y, window w: the slave's gain clipped
-    enough of the band (photometric_map's levels). match() and the capture (for frames.WindowControl)
-    ask it alike. params: a vergence.Params (not imported: params imports this module)."""
+    enough of the band (photometric_map's levels; mapped_strips returns the same). The capture asks it (for
+    frames.WindowControl); match() reads it off mapped_strips. params: a vergence.Params (not imported: params
+    imports this module)."""
     if not params.clip_master or params.photometric == "none":
         return False
     levels = photometric_map(band_strip(slave, y, window, params.vsearch),
