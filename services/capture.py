@@ -41,6 +41,7 @@ from vergence.config import load
 from vergence.frames import Roster, WindowControl, make_frame, plan_shards
 from vergence.messages import Fixate, MessageError, MotorState, Preview, Verdict
 from vergence.sources import SourceError, open_source
+from vergence.timing import PanHistory, Stamper
 
 from . import session
 from .health import Health
@@ -48,6 +49,7 @@ from .match import point_arg
 from .node import STATUS_S, Node
 
 log = logging.getLogger("vergence.capture")
+FUTURE_S = 0.05  # a motor history whose newest state is this far ahead of our clock is forgotten
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -154,6 +156,79 @@ class Rates:
         return dict(published_hz=sent / self.period, decided_hz=held)
 
 
+class PanLookup:
+    """The slave's pan for one frame, from the motor's history (the zenoh callback adds to it meanwhile): a
+    source that renders (the simulator) asks it at its exposure times, and the frame then carries the same
+    pan. Before any motor state, the source's start pan; a source whose images do not follow the motor
+    always has its start pan."""
+
+    def __init__(self, history: PanHistory, lock: threading.Lock, source):
+        self.history, self.lock, self.source = history, lock, source
+        self.seen: dict[int, float | None] = {}
+
+    def _at(self, t_ns: int) -> float | None:
+        if t_ns not in self.seen:
+            with self.lock:
+                self.seen[t_ns] = self.history.at(t_ns / 1e9) if len(self.history) else self.source.start_pan_rad
+        return self.seen[t_ns]
+
+    def __call__(self, t_ns: int) -> float:
+        """The pan to render the slave at (where the history cannot tell, its newest: the frame is stale)."""
+        pan = self._at(t_ns)
+        if pan is None:
+            with self.lock:
+                pan = self.history.newest()
+        return pan if pan is not None else self.source.start_pan_rad
+
+    def frame(self, t_slave_ns: int) -> tuple[float, bool]:
+        """(the frame's pan, stale): the pan at the slave's exposure, and whether the history could not tell."""
+        if not self.source.follows_pan:
+            return self.source.start_pan_rad, False
+        pan = self._at(t_slave_ns)
+        return (self(t_slave_ns), True) if pan is None else (pan, False)
+
+
+class ExposureClock:
+    """The exposure times of the pairs read (vergence.timing.Stamper: the source's own where believable, else
+    the read time less [camera] latency_s), and what the status says of them: the latency (read minus the
+    master's exposure) and the skew (slave minus master) over the last period, the stamps not believed per
+    reason (logged once each); a warning, once, when the skew is over half a frame."""
+
+    def __init__(self, timing, frame_s: float):
+        self.stamper = Stamper(timing)
+        self.frame_s = frame_s
+        self.latency: list[int] = []
+        self.skew: list[int] = []
+        self.logged: set[str] = set()
+
+    def stamp(self, t_read_ns: int, claimed) -> tuple[int, int]:
+        tm, ts, why = self.stamper.stamp(t_read_ns, claimed)
+        if why is not None and why not in self.logged:
+            self.logged.add(why)
+            log.warning("the source's exposure stamps %s are not believed (%s); this frame and any other such is "
+                        "stamped at its read time less [camera] latency_s (%.3f s)", claimed, {
+                            "future": "after the read", "old": "more than a second before the read",
+                            "backwards": "not after the previous frame's"}[why], self.stamper.timing.latency_s)
+        self.latency.append(t_read_ns - tm)
+        self.skew.append(ts - tm)
+        del self.latency[:-256], self.skew[:-256]
+        return tm, ts
+
+    def fields(self) -> dict:
+        out: dict = {"stamps_rejected": dict(self.stamper.rejected)}
+        if self.latency:
+            lat, skew = sorted(self.latency), sorted(self.skew)
+            out["latency_ms"] = round(lat[len(lat) // 2] / 1e6, 2)
+            out["skew_ms"] = round(skew[len(skew) // 2] / 1e6, 2)
+            if self.frame_s and abs(out["skew_ms"]) > 500 * self.frame_s and "skew" not in self.logged:
+                self.logged.add("skew")
+                log.warning("the slave is exposed %.1f ms after the master, over half a frame: trigger both cameras "
+                            "together, or the decisions measure a moving target at two instants", out["skew_ms"])
+            self.latency.clear()
+            self.skew.clear()
+        return out
+
+
 def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
          at: tuple[int, int] | None = None) -> int:
     rig, cs, params, geo = settings.rig, settings.capture, settings.network, settings.geometry
@@ -179,7 +254,10 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
     windows = WindowControl(params)
     lim = settings.limits
     members = Roster(lim.miss_s, lim.probation_s, lim.miss_frames)
-    pan = [source.start_pan_rad]
+    history = PanHistory(max_gap_s=max(0.1, 3.0 / settings.actuator.state_hz if settings.actuator.state_hz > 0
+                                        else 0.1))
+    history_lock = threading.Lock()
+    clock = ExposureClock(settings.camera.timing(), 1.0 / cs.rate_hz if cs.rate_hz > 0 else 0.0)
     rates = Rates()
     plan: list = []
     unclipped: dict[int, None] = {}  # the recent frames published with the master unclipped (clip_fallback)
@@ -208,7 +286,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
 
     def fields() -> dict:
         return dict(window=windows.window, workers=len(plan), excluded=members.excluded(), **rates.fields(),
-                    roster=dict(members.counters), clipped=clipped(), **fovea.fields())
+                    roster=dict(members.counters), clipped=clipped(), **fovea.fields(), **clock.fields())
 
     node = Node("capture", rig, conf, stop, log=log, fields=fields,
                 final_fields=lambda: dict(window=windows.window, workers=len(plan)))
@@ -221,7 +299,15 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
             why = motor_state_implausible(st, settings.actuator.motor, time.time_ns(), lim.max_skew_s)
             if why is not None:
                 raise MessageError(why)
-            pan[0] = st.pan_rad
+            t = st.t_ns / 1e9
+            with history_lock:
+                if not history.add(t, st.pan_rad):
+                    if not (history.t and history.t[-1] > time.time() + FUTURE_S):
+                        raise MessageError("motor state not newer than the last one")
+                    # the newest is from our future (a forgery within max_skew_s, or a clock that jumped):
+                    # forget it rather than refuse every true state until then
+                    history.clear()
+                    history.add(t, st.pan_rad)
             health.count("motor_states")
         except MessageError as e:
             health.reject("motor_state", e)
@@ -287,13 +373,17 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                         break
                 # keep the schedule, but never try to catch up more than one period late
                 next_t = max(next_t + period, time.monotonic() - period)
-            p_now = pan[0] if source.follows_pan else source.start_pan_rad
+            pan_at = PanLookup(history, history_lock, source)
             try:
-                master, slave = source.read(p_now)
+                master, slave = source.read(pan_at)
             except SourceError as e:
                 print(f"vergence capture: {e}", file=sys.stderr)
                 return 2
-            t_ns = time.time_ns()
+            t_read = time.time_ns()
+            t_ns, t_slave = clock.stamp(t_read, source.exposure_ns)
+            p_now, stale = pan_at.frame(t_slave)
+            if stale:
+                health.count("pan_unknown")
             pair[:] = master, slave
             w, clip = windows.state
             changes, ids = members.snapshot()
@@ -312,6 +402,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                                        params=params, plan=plan, at=fovea.at(), window=w,
                                        t_capture_ns=t_ns, clip=clip)
                     frame.master_pan_rad, frame.tilt_rad = master_pan, tilt
+                    frame.skew_ns, frame.t_read_ns, frame.pan_stale = t_slave - t_ns, t_read, stale
                 except retina.BorderError:  # a grown window that no longer fits: back to the base one
                     windows.reset()
                     continue

@@ -2,7 +2,9 @@
 
 With --motion SPEC the scene is a target moving in depth in front of the physical rig (--baseline,
 --focal; vergence.sim.moving), and the output is a tracking run: pan, truth and error at each frame, the
-RMS and maximum error after the first second."""
+RMS and maximum error after the first second. --camera-latency, --skew, --exposure and --jitter give the
+cameras a real camera's timing (vergence.timing.CameraTiming); time stays virtual. A frame's t_s is its
+master's exposure, its pan the slave's at the slave's exposure, its truth and error at t_s."""
 
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from vergence.sim import Rig
 from vergence.sim.fixation import truth_at
 from vergence.sim.loop import DELAY_S, closed_loop, frames_to_converge, tracking_error
 from vergence.sim.moving import MovingRig
+from vergence.timing import CameraTiming
 
 
 def fixate_at_arg(text: str) -> tuple[int, tuple[int, int]]:
@@ -32,6 +35,17 @@ def fixate_at_arg(text: str) -> tuple[int, tuple[int, int]]:
     if frame < 0:
         raise argparse.ArgumentTypeError(f"--fixate-at: frame {frame} is negative")
     return frame, (x, y)
+
+
+def camera_timing(args: argparse.Namespace) -> CameraTiming:
+    """The cameras' timing from --camera-latency, --skew, --exposure, --jitter (ValueError naming the option)."""
+    try:
+        return CameraTiming(args.camera_latency, args.skew, args.exposure, args.jitter)
+    except ValueError as e:
+        name = str(e).partition("=")[0]
+        flag = {"latency_s": "--camera-latency", "skew_s": "--skew", "exposure_s": "--exposure",
+                "jitter_s": "--jitter"}.get(name, name)
+        raise ValueError(f"{flag}{str(e)[len(name):]}") from None
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -69,7 +83,15 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="--motion: an image as the target's texture (default procedural; flat: none)")
     p.add_argument("--mode", choices=("p", "predictive"), help="the controller (default: [control] mode)")
     p.add_argument("--delay-ms", type=float, default=None, metavar="MS",
-                   help="capture to command, virtual (default 5)")
+                   help="read to command, virtual (default 5)")
+    p.add_argument("--camera-latency", type=float, default=0.0, metavar="S",
+                   help="the image is S old when read (exposure to read; default 0)")
+    p.add_argument("--skew", type=float, default=0.0, metavar="S",
+                   help="the slave is exposed S after the master (negative: before; default 0)")
+    p.add_argument("--exposure", type=float, default=0.0, metavar="S",
+                   help="each view integrates the scene and the slave's motion over S (motion blur; default 0)")
+    p.add_argument("--jitter", type=float, default=0.0, metavar="S",
+                   help="exposure times off their schedule, standard deviation S (default 0)")
     p.add_argument("--frames", type=int, default=20, help="frames to run after the starting one (default 20)")
     p.add_argument("--rate", type=float, default=30.0,
                    help="frames per second of the virtual clock (default 30)")
@@ -90,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
                       gimbal=args.gimbal)
         control = settings.control if args.mode is None else dataclasses.replace(settings.control, mode=args.mode)
         delay = DELAY_S if args.delay_ms is None else args.delay_ms / 1000.0
+        timing = camera_timing(args)
         if args.motion is not None:
             given = sorted(k for k, v in static.items() if v is not None)
             if given:
@@ -136,7 +159,8 @@ def run(args: argparse.Namespace) -> int:
     segments = []  # (first frame, (x, y)) of each fixation
     try:
         run_ = closed_loop(rig, args.frames, params, control, settings.actuator.motor, args.rate, delay,
-                           fixations=fixations)
+                           fixations=fixations, timing=timing, state_hz=settings.actuator.state_hz,
+                           seed=int(args.seed or 0))
         first = next(run_)
     except ValueError as e:
         print(f"vergence sim: {e}", file=sys.stderr)

@@ -11,6 +11,7 @@ values for one limit would leave the reader guessing which one holds).
     [rig]       # the rig's geometry: baseline_m, focal_px, master, gimbal (vergence.depth)
     [network]   # vergence.params.Params: window, vsearch, circular, subpixel, min_margin, ...
     [capture]   # source, rate_hz, preview_hz, focal_px, master
+    [camera]    # latency_s, skew_s: the cameras' timing where a source does not stamp its images
     [reducer]   # deadline_ms
     [control]   # mode, gain, dead_band_px, the predictive filter (vergence.control.ControlSettings)
     [actuator]  # driver, port, and the motor (see vergence.motors): [actuator.motor] min_deg, max_deg,
@@ -33,9 +34,10 @@ import msgspec
 from .control import ControlSettings
 from .params import Params
 from .motors.base import MotorSettings
+from .timing import CameraTiming
 
-__all__ = ["ConfigError", "MOVED", "RigSettings", "CaptureSettings", "ReducerSettings", "ActuatorSettings",
-           "LimitSettings", "Settings", "load", "from_dict"]
+__all__ = ["ConfigError", "MOVED", "RigSettings", "CaptureSettings", "CameraSettings", "ReducerSettings",
+           "ActuatorSettings", "LimitSettings", "Settings", "load", "from_dict"]
 
 
 class ConfigError(ValueError):
@@ -81,6 +83,23 @@ class CaptureSettings:
     preview_width: int = 160
     focal_px: float = 0.0
     master: str = "left"
+
+
+@dataclass(frozen=True)
+class CameraSettings:
+    """The `[camera]` table: the cameras' timing where the source does not stamp its images (or its stamps
+    are not believable): latency_s, from the exposure of the later image to its read (the image is this old
+    when the capture gets it; `vergence latency` measures it); skew_s, the slave's exposure after the master's
+    (negative: before). Both in seconds (vergence.timing.CameraTiming)."""
+
+    latency_s: float = 0.0
+    skew_s: float = 0.0
+
+    def __post_init__(self):
+        self.timing()  # its checks, with their messages
+
+    def timing(self) -> CameraTiming:
+        return CameraTiming(latency_s=self.latency_s, skew_s=self.skew_s)
 
 
 @dataclass(frozen=True)
@@ -139,6 +158,7 @@ class Settings:
     geometry: RigSettings = field(default_factory=RigSettings)  # the TOML's [rig] table
     network: Params = field(default_factory=Params)
     capture: CaptureSettings = field(default_factory=CaptureSettings)
+    camera: CameraSettings = field(default_factory=CameraSettings)
     reducer: ReducerSettings = field(default_factory=ReducerSettings)
     control: ControlSettings = field(default_factory=ControlSettings)
     actuator: ActuatorSettings = field(default_factory=ActuatorSettings)

@@ -30,9 +30,13 @@ by +-2 px with the paper's network, whose whole-pixel decisions feed the filter 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
+import numpy as np
+
 from .motors.base import MotorSettings, Safety
+from .timing import MAX_AGE_S
 
 __all__ = ["pixels_to_angle", "ControlSettings", "Controller", "Predictor", "MODES"]
 
@@ -63,8 +67,9 @@ class ControlSettings:
     mode: str = "predictive"
     gain: float = 1.0
     dead_band_px: float = 0.25
-    lead_s: float = 0.02
+    lead_s: float = 0.015
     accel_deg_s2: float = 700.0
+    periodic: bool = True
     noise_px: float = 1.0
     gate_px: float = 10.0
     coast_s: float = 0.25
@@ -84,9 +89,9 @@ class ControlSettings:
 
 
 class Predictor:
-    """A constant-velocity Kalman filter of the target's pan (radians) over capture times (seconds).
+    """A constant-velocity Kalman filter of the target's pan (radians) over exposure times (seconds).
 
-    update(t, z) takes a measurement z of the target's pan captured at t; at(t) is the estimate there.
+    update(t, z) takes a measurement z of the target's pan exposed at t; at(t) is the estimate there.
     q: the variance of the target's acceleration (rad^2/s^4, piecewise constant between measurements),
     r: the measurement variance (rad^2), gate: the largest innovation (rad) taken as motion (larger:
     restart at z), vmax: the bound of the estimated rate (rad/s)."""
@@ -133,6 +138,124 @@ class Predictor:
         return self.x + self.v * (t - self.t)
 
 
+class Periodic:
+    """A target that moves back and forth: its pan over the last window_s as a constant plus `harmonics`
+    harmonics of one frequency (least squares), the frequency the one whose fit leaves the least residual
+    (searched every `every` predictions over a log grid from the lowest of which `cycles` periods fit in the
+    history, to max_hz, then refined by golden section); predict(at) extrapolates the fit. None while the
+    history is shorter than min_s.
+
+    Where a target repeats its motion (a hand moving an object to and fro, a pendulum, the simulator's
+    sines), this predicts far past where any polynomial holds, as primate smooth pursuit does for periodic
+    targets to overcome its own latency of about 100 ms; where it does not, its predictions are poor, and the
+    Referee leaves them out."""
+
+    def __init__(self, harmonics: int = 3, window_s: float = 3.0, min_s: float = 0.4, max_hz: float = 4.0,
+                 cycles: float = 0.6, every: int = 10):
+        self.k, self.window_s, self.min_s, self.max_hz, self.every = harmonics, window_s, min_s, max_hz, every
+        self.cycles = cycles
+        self.t: deque[float] = deque()
+        self.z: deque[float] = deque()
+        self.hz: float | None = None
+        self.calls = 0
+
+    def reset(self) -> None:
+        self.t.clear()
+        self.z.clear()
+        self.hz = None
+
+    def add(self, t: float, z: float) -> None:
+        if self.t and t <= self.t[-1]:
+            return
+        self.t.append(t)
+        self.z.append(z)
+        while self.t[-1] - self.t[0] > self.window_s:
+            self.t.popleft()
+            self.z.popleft()
+
+    def _design(self, tt: np.ndarray, hz: float) -> np.ndarray:
+        w = 2 * math.pi * hz * np.asarray(tt, float)
+        cols = [np.ones_like(w)]
+        for k in range(1, self.k + 1):
+            cols += [np.cos(k * w), np.sin(k * w)]
+        return np.stack(cols, -1)
+
+    def _fit(self, tt: np.ndarray, zs: np.ndarray, hz: float) -> tuple[float, np.ndarray]:
+        x = self._design(tt, hz)
+        coef = np.linalg.lstsq(x, zs, rcond=None)[0]
+        return float(np.sum((x @ coef - zs) ** 2)), coef
+
+    def _search(self, tt: np.ndarray, zs: np.ndarray, span: float) -> float:
+        lo = self.cycles / span
+        grid = np.geomspace(lo, self.max_hz, 40)
+        res = [self._fit(tt, zs, f)[0] for f in grid]
+        i = int(np.argmin(res))
+        a, b = grid[max(0, i - 1)], grid[min(len(grid) - 1, i + 1)]
+        for _ in range(8):  # golden section between the neighbours
+            m1, m2 = b - 0.618 * (b - a), a + 0.618 * (b - a)
+            if self._fit(tt, zs, m1)[0] < self._fit(tt, zs, m2)[0]:
+                b = m2
+            else:
+                a = m1
+        return 0.5 * (a + b)
+
+    def predict(self, at: float) -> float | None:
+        if len(self.t) < 4 * self.k + 4 or self.t[-1] - self.t[0] < self.min_s:
+            return None
+        ts, zs = np.fromiter(self.t, float), np.fromiter(self.z, float)
+        tt = ts - ts[-1]
+        if self.hz is None or self.calls % self.every == 0 or self.hz < self.cycles / (ts[-1] - ts[0]):
+            self.hz = self._search(tt, zs, ts[-1] - ts[0])
+        self.calls += 1
+        coef = self._fit(tt, zs, self.hz)[1]
+        return float(self._design(np.array([at - ts[-1]]), self.hz)[0] @ coef)
+
+
+class Referee:
+    """Which predictions to trust, by how well each predicted: every prediction made for an instant is scored
+    once the measurements around that instant are in (the measurement interpolated there), its squared error
+    averaged (exponentially, over about `memory` scores). blend(preds) weighs the predictions (None: that
+    predictor has none now) by the inverse square of their mean squared errors, so the one that predicts
+    best all but decides; the first is the fallback, alone until another has `warm` scores."""
+
+    def __init__(self, n: int, memory: int = 30, warm: int = 8, power: float = 2.0):
+        self.alpha, self.warm, self.power = 1.0 / memory, warm, power
+        self.pending: deque[tuple[float, list]] = deque()
+        self.mse: list[float | None] = [None] * n
+        self.scored = [0] * n
+        self.last: tuple[float, float] | None = None
+
+    def reset(self) -> None:
+        self.pending.clear()
+        self.last = None
+
+    def predicted(self, at: float, preds: list) -> None:
+        self.pending.append((at, preds))
+        while len(self.pending) > 64:
+            self.pending.popleft()
+
+    def measured(self, t: float, z: float) -> None:
+        last, self.last = self.last, (t, z)
+        while self.pending and self.pending[0][0] <= t:
+            at, preds = self.pending.popleft()
+            if last is None or at < last[0]:
+                continue
+            truth = last[1] + (z - last[1]) * (at - last[0]) / (t - last[0]) if t > last[0] else z
+            for k, p in enumerate(preds):
+                if p is not None:
+                    e = (p - truth) ** 2
+                    self.mse[k] = e if self.mse[k] is None else self.mse[k] + self.alpha * (e - self.mse[k])
+                    self.scored[k] += 1
+
+    def blend(self, preds: list) -> float:
+        use = [(p, self.mse[k]) for k, p in enumerate(preds)
+               if p is not None and self.mse[k] is not None and (k == 0 or self.scored[k] >= self.warm)]
+        if len(use) < 2:
+            return preds[0]
+        w = [1.0 / max(m, 1e-18) ** self.power for _, m in use]
+        return sum(wi * p for wi, (p, _) in zip(w, use)) / sum(w)
+
+
 class Controller:
     """Turns decisions into absolute pan targets for the slave, each bounded by the motor's limits.
 
@@ -144,6 +267,8 @@ class Controller:
         self.s = settings or ControlSettings()
         self.limits = limits if isinstance(limits, Safety) else Safety(limits or MotorSettings())
         self.predictor: Predictor | None = None
+        self.periodic: Periodic | None = None
+        self.referee: Referee | None = None
         self.t_confident: float | None = None  # capture time of the last confident decision
         self.coasting = 0  # abstentions answered from the estimate
         self.last_goal: float | None = None  # the predictive mode's last set-point
@@ -155,12 +280,15 @@ class Controller:
         return self.limits.limit_step(pan_at_capture, pan_at_capture + step)
 
     def target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool = True,
-               centre_px: float = 0.0, t_s: float | None = None) -> float | None:
+               centre_px: float = 0.0, t_s: float | None = None, t_now: float | None = None) -> float | None:
         """The new absolute pan (radians) or None when the camera should not move (not confident, inside
-        the dead band, or a non-finite input). t_s: the frame's capture time in seconds (any epoch; the
-        predictive mode needs it, and acts as "p" without it)."""
+        the dead band, or a non-finite input). pan_at_capture: the slave's pan at its exposure; t_s: that
+        exposure's time in seconds (any epoch; the predictive mode needs it, and acts as "p" without it);
+        t_now: the time of this command on the same clock (default t_s: an image with no latency)."""
         if self.s.mode == "predictive" and t_s is not None and math.isfinite(t_s):
-            return self._predictive(pan_at_capture, offset_px, focal_px, confident, centre_px, t_s)
+            # (an image older than MAX_AGE_S is not believed: vergence.timing)
+            now = t_s if t_now is None or not math.isfinite(t_now) else min(max(t_s, t_now), t_s + MAX_AGE_S)
+            return self._predictive(pan_at_capture, offset_px, focal_px, confident, centre_px, t_s, now)
         if not confident or not all(math.isfinite(v) for v in (pan_at_capture, offset_px, focal_px)):
             return None
         if focal_px <= 0 or abs(offset_px) < self.s.dead_band_px:
@@ -171,28 +299,42 @@ class Controller:
         return self._bounded(pan_at_capture, step)
 
     def _predictive(self, pan: float, offset_px: float, focal_px: float, confident: bool, centre_px: float,
-                    t: float) -> float | None:
+                    t: float, now: float) -> float | None:
         if not (math.isfinite(pan) and math.isfinite(focal_px) and focal_px > 0):
             return None
         if self.predictor is None:
             one = math.atan(1.0 / focal_px)
-            self.predictor = Predictor(q=math.radians(self.s.accel_deg_s2) ** 2,
-                                       r=(self.s.noise_px * one) ** 2, gate=self.s.gate_px * one,
-                                       vmax=math.radians(self.s.max_rate_deg_s))
+            self.predictor = Predictor(q=math.radians(self.s.accel_deg_s2) ** 2, r=(self.s.noise_px * one) ** 2,
+                                       gate=self.s.gate_px * one, vmax=math.radians(self.s.max_rate_deg_s))
         f = self.predictor
+        if self.periodic is None and self.s.periodic:
+            self.periodic, self.referee = Periodic(), Referee(2)
         if self.t_prev is not None and 0 < t - self.t_prev < 1.0:
             self.period = t - self.t_prev if self.period is None else 0.9 * self.period + 0.1 * (t - self.t_prev)
         self.t_prev = t
-        # a set-point holds until the next decision: aim at the middle of that interval
-        at = t + self.s.lead_s + 0.5 * (self.period or 0.0)
+        # a set-point holds until the next decision: aim at the middle of that interval, from when the motor
+        # acts on this command (now + lead_s), however old the image it comes from
+        at = now + self.s.lead_s + 0.5 * (self.period or 0.0)
         if confident and math.isfinite(offset_px):
-            f.update(t, pan + pixels_to_angle(offset_px, focal_px, centre_px))
+            z = pan + pixels_to_angle(offset_px, focal_px, centre_px)
+            restarts = f.restarts
+            f.update(t, z)
             self.t_confident = t
+            if self.periodic is not None:
+                if f.restarts != restarts:  # a jump: what the target did before it says nothing now
+                    self.periodic.reset()
+                    self.referee.reset()
+                self.referee.measured(t, z)
+                self.periodic.add(t, z)
             # the rate, less min_rate_deg_s (soft threshold): the noise of a still target's rate estimate
             # (whole-tick encoder readings during small moves, a hesitating matcher) is not extrapolated
             vmin = math.radians(self.s.min_rate_deg_s)
             v = math.copysign(max(0.0, abs(f.v) - vmin), f.v)
             goal = f.x + v * (at - f.t)
+            if self.periodic is not None:
+                preds = [goal, self.periodic.predict(at)]
+                self.referee.predicted(at, preds)
+                goal = self.referee.blend(preds)
         elif f.t is None or self.t_confident is None or t - self.t_confident > self.s.coast_s \
                 or t < self.t_confident:
             f.reset()  # nothing to coast on, or coasted long enough: hold

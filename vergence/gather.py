@@ -67,7 +67,7 @@ def make_verdict(frame: Frame, d: Decision, t_reduced_ns: int) -> Verdict:
                    window=frame.window, k=d.k, k_sub=d.k_sub, v_shift=d.v, k_centre=d.k_centre,
                    direction=d.direction, magnitude=d.magnitude, offset_px=d.offset_px, confidence=d.confidence,
                    confident=d.confident, texture=d.texture if math.isfinite(d.texture) else 0.0,
-                   pan_rad=frame.pan_rad)
+                   pan_rad=frame.pan_rad, t_read_ns=frame.t_read_ns, skew_ns=frame.skew_ns)
 
 
 def make_profile(frame: Frame, scores: np.ndarray, d: Decision, t_reduced_ns: int) -> Profile:
@@ -77,9 +77,16 @@ def make_profile(frame: Frame, scores: np.ndarray, d: Decision, t_reduced_ns: in
                    workers=[str(e[0]) for e in frame.plan])
 
 
-def _command(frame: Frame, d: Decision, controller: Controller) -> Command | None:
+def _command(frame: Frame, d: Decision, controller: Controller, now_ns: int | None = None) -> Command | None:
+    """The command of a decided frame (None: no move). The measurement is the slave's pan at its exposure plus
+    the correction, referred to the slave's exposure time; the controller aims for when the command acts
+    (now_ns, this host's clock: default the read time). A frame whose pan at exposure is not known (pan_stale)
+    commands nothing."""
+    if frame.pan_stale:
+        return None
+    now = now_ns if now_ns is not None else (frame.t_read_ns or frame.t_capture_ns)
     target = controller.target(frame.pan_rad, d.offset_px, frame.focal_px, d.confident,
-                               centre_px=frame.x - frame.width // 2, t_s=frame.t_capture_ns / 1e9)
+                               centre_px=frame.x - frame.width // 2, t_s=frame.t_slave_ns / 1e9, t_now=now / 1e9)
     if target is None:
         return None
     return Command(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, pan_rad=target,
@@ -112,7 +119,7 @@ class FrameDecision:
            t_reduced_ns: int | None = None) -> "FrameDecision":
         d = decide_frame(frame, scores, params)
         now = time.time_ns() if t_reduced_ns is None else t_reduced_ns
-        return cls(frame, d, _command(frame, d, controller), scores, now)
+        return cls(frame, d, _command(frame, d, controller, now), scores, now)
 
     @property
     def verdict(self) -> Verdict:

@@ -130,6 +130,18 @@ class Frame(Message):
     tilt_rad: float = 0.0
     # a simulated source's ground truth: the converged slave pan at capture (None from real cameras)
     truth_pan_rad: float | None = None
+    # the camera's time (vergence.timing): t_capture_ns is the master's exposure; the slave's is skew_ns after it
+    # (pan_rad is the slave's pan then); t_read_ns when the capture read the pair (0: an older capture, which
+    # stamped its read time); pan_stale: the slave's pan at its exposure is not known (older than the motor's
+    # history, or across a gap in it): the frame is decided, and commands nothing
+    skew_ns: int = 0
+    t_read_ns: int = 0
+    pan_stale: bool = False
+
+    @property
+    def t_slave_ns(self) -> int:
+        """The slave's exposure time."""
+        return self.t_capture_ns + self.skew_ns
 
     @property
     def k_count(self) -> int:
@@ -211,6 +223,8 @@ class Partial(Message):
 class _Where(Message, kw_only=True):
     """A decision's keyword-only fields with their defaults (what an older reducer did not send)."""
 
+    t_read_ns: int = 0  # when the capture read the frame (t_capture_ns is its master's exposure)
+    skew_ns: int = 0  # the slave's exposure after the master's
     x: int = -1
     y: int = -1
     converged: bool = False

@@ -8,9 +8,16 @@
                          motion=SPEC (sim:motion=sine:z=0.8,amp=0.3,hz=0.5:focal=500) a target moves in
                          depth in front of the physical rig, on the wall clock from the first read
 
-Every source has .size (W, H), .focal_px (0: unknown, the capture picks one), .start_pan_rad, read(pan_rad)
+Every source has .size (W, H), .focal_px (0: unknown, the capture picks one), .start_pan_rad, read(pan_at)
 -> (master, slave) uint8 gray arrays (the caller must not modify them), close(), and .truth_pan_rad: the
-converged slave pan of the last read when the source knows it (the simulator), else None. .follows_pan says
+converged slave pan of the last read when the source knows it (the simulator), else None. pan_at is the slave's
+pan: a number, or a function of a time (ns, time.time_ns's clock) giving the pan then (the capture's motor
+history); only the simulator uses it. After each read, .exposure_ns is the pair's exposure times (master,
+slave; ns, the middle of each exposure) where the source knows them, else None (the capture then takes the
+read time less [camera] latency_s): the simulator knows its own; a camera's come from the driver's buffer
+timestamps where OpenCV's backend gives them (V4L2: CAP_PROP_POS_MSEC is the buffer's time on the monotonic
+clock; docs/SERVICE.md, "The camera's time"); a video's from its frame times, anchored at the read time of its
+first frame. .follows_pan says
 whether the slave image moves with the slave motor (cameras, the simulator); a still pair or two videos were
 taken at one pan, .start_pan_rad (0: parallel cameras), whatever the motor does since. `master` says which
 camera is the fixed one ("left" or "right"). Errors are SourceError naming the file or device and the fix.
@@ -25,6 +32,8 @@ import time
 
 import cv2
 import numpy as np
+
+from .timing import CameraTiming
 
 __all__ = ["SourceError", "read_image", "Source", "FilesSource", "VideoSource", "CameraSource", "SimSource",
            "open_source"]
@@ -65,6 +74,7 @@ class Source:
     start_pan_rad: float = 0.0
     truth_pan_rad: float | None = None
     follows_pan: bool = True
+    exposure_ns: tuple[int, int] | None = None
 
     def __init__(self, master: str = "left"):
         if master not in ("left", "right"):
@@ -74,7 +84,7 @@ class Source:
     def _order(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return (right, left) if self.swap else (left, right)
 
-    def read(self, pan_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    def read(self, pan_at=0.0) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
     def close(self) -> None:
@@ -108,7 +118,7 @@ class FilesSource(Source):
         self.size = _check_pair(imgs[0], imgs[1], f"files:{left},{right}")
         self.pair = self._order(imgs[0], imgs[1])
 
-    def read(self, pan_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    def read(self, pan_at=0.0) -> tuple[np.ndarray, np.ndarray]:
         return self.pair
 
 
@@ -130,27 +140,45 @@ class VideoSource(Source):
                 self.close()
                 raise SourceError(f"video source: OpenCV cannot open {path!r} (not a video, or no codec for it)")
             self.caps.append(cap)
+        self.anchor: tuple[int, float] | None = None  # (read time ns, the video's time ms) of the first frame
         a, b = self._grab()
         self.size = _check_pair(a, b, f"video:{left},{right}")
-        self.first = self._order(a, b)
+        self.first = self._order(a, b), self.msec
 
     def _grab(self) -> tuple[np.ndarray, np.ndarray]:
-        out = []
+        out, msec = [], []
         for cap, path in zip(self.caps, self.paths):
             ok, img = cap.read()
             if not ok:
                 cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+                self.anchor = None  # rewound: the video's time starts again
                 ok, img = cap.read()
                 if not ok:
                     raise SourceError(f"video source: no frame can be read from {path!r}")
             out.append(_gray(img))
+            msec.append(cap.get(cv2.CAP_PROP_POS_MSEC))
+        self.msec = msec
         return out[0], out[1]
 
-    def read(self, pan_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    def _stamps(self, msec: list[float]) -> tuple[int, int] | None:
+        """The frames' times in the video, on our clock: anchored at the read of the first frame (and again
+        after a rewind, or where the reads have drifted from the video's pace by more than a second)."""
+        now = time.time_ns()
+        if not all(math.isfinite(m) and m >= 0 for m in msec):
+            return None
+        if self.anchor is None or abs(self.anchor[0] + (msec[0] - self.anchor[1]) * 1e6 - now) > 1e9:
+            self.anchor = (now, msec[0])
+        t0, m0 = self.anchor
+        stamps = [t0 + round((m - m0) * 1e6) for m in msec]
+        return (stamps[1], stamps[0]) if self.swap else (stamps[0], stamps[1])
+
+    def read(self, pan_at=0.0) -> tuple[np.ndarray, np.ndarray]:
         if self.first is not None:
-            pair, self.first = self.first, None
-            return pair
-        return self._order(*self._grab())
+            (pair, msec), self.first = self.first, None
+        else:
+            pair, msec = self._order(*self._grab()), self.msec
+        self.exposure_ns = self._stamps(msec)
+        return pair
 
     def close(self) -> None:
         for cap in self.caps:
@@ -183,6 +211,7 @@ class CameraSource(Source):
             if size is not None:
                 cap.set(cv2.CAP_PROP_FRAME_WIDTH, size[0])
                 cap.set(cv2.CAP_PROP_FRAME_HEIGHT, size[1])
+            cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # as little driver buffering as the backend allows
             self.caps.append(cap)
         a, b = self._grab()
         self.size = _check_pair(a, b, f"camera:{left},{right}")
@@ -190,15 +219,26 @@ class CameraSource(Source):
     def _grab(self) -> tuple[np.ndarray, np.ndarray]:
         for cap in self.caps:  # grab both first, then decode: the two exposures are as close as possible
             cap.grab()
-        out = []
+        out, stamps = [], []
         for cap, name in zip(self.caps, self.names):
             ok, img = cap.retrieve()
             if not ok or img is None:
                 raise SourceError(f"camera source: camera {name!r} gave no image (unplugged, or busy?)")
             out.append(_gray(img))
+            stamps.append(cap.get(cv2.CAP_PROP_POS_MSEC))
+        self.exposure_ns = self._stamps(stamps)
         return out[0], out[1]
 
-    def read(self, pan_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    def _stamps(self, msec: list[float]) -> tuple[int, int] | None:
+        """V4L2's buffer times (ms on the monotonic clock) on time.time_ns's clock; None where the backend
+        gives none (0, or not a number). Whether they are believable is the capture's to judge."""
+        if not all(math.isfinite(m) and m > 0 for m in msec):
+            return None
+        offset = time.time_ns() - time.monotonic_ns()
+        ns = [offset + round(m * 1e6) for m in msec]
+        return (ns[1], ns[0]) if self.swap else (ns[0], ns[1])
+
+    def read(self, pan_at=0.0) -> tuple[np.ndarray, np.ndarray]:
         return self._order(*self._grab())
 
     def close(self) -> None:
@@ -208,13 +248,23 @@ class CameraSource(Source):
 
 
 class SimSource(Source):
-    """The rig simulator: the master view is fixed, the slave is rendered at the pan given to read()."""
+    """The rig simulator: the master view is fixed, the slave is rendered at the pan at its exposure.
+
+    Its cameras are as the spec's timing keys say (vergence.timing.CameraTiming): latency=S (the image is S
+    old when read), skew=S (the slave exposed S after the master), exposure=S (each view integrates the scene
+    and the slave's motion over S: motion blur), jitter=S (exposure times off their schedule); stamps=no
+    gives no exposure times (as a camera whose backend has none: the capture then takes [camera]
+    latency_s), for measuring the latency from outside (`vergence latency`)."""
+
+    TIMING = {"latency": "latency_s", "skew": "skew_s", "exposure": "exposure_s", "jitter": "jitter_s"}
 
     def __init__(self, spec: str = ""):
         super().__init__("left")
         from .sim import Rig  # the simulator is only loaded when used
 
         try:
+            spec, timing, self.stamps = self._timing(spec)
+            self.timing = CameraTiming(**timing)
             self.rig = Rig.from_spec(spec)
         except (ValueError, OSError) as e:
             raise SourceError(str(e)) from None
@@ -224,16 +274,48 @@ class SimSource(Source):
         # the master's aim and the gimbal, for the depth of the fixated point (services/capture.py)
         self.master_pan_rad, self.tilt_rad = float(self.rig.master_pan_rad), float(self.rig.tilt_rad)
         self.gimbal = self.rig.gimbal
-        self.t0: float | None = None  # the scene's time 0: the first read
+        self.t0: int | None = None  # the scene's time 0 (ns): the first exposure
+        self.rng = np.random.default_rng(0)
 
-    def read(self, pan_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-        now = time.monotonic()
+    @classmethod
+    def _timing(cls, spec: str) -> tuple[str, dict, bool]:
+        """The spec without its timing keys, the CameraTiming's arguments, and whether to stamp."""
+        rest, timing, stamps = [], {}, True
+        for item in (spec or "").split(":"):
+            key, eq, value = item.partition("=")
+            key = key.strip()
+            if eq and key in cls.TIMING:
+                try:
+                    timing[cls.TIMING[key]] = float(value)
+                except ValueError:
+                    raise ValueError(f"sim source: {key}={value.strip()!r} is not a number of seconds") from None
+            elif eq and key == "stamps":
+                if value.strip() not in ("yes", "no"):
+                    raise ValueError(f"sim source: stamps={value.strip()!r}: yes or no")
+                stamps = value.strip() == "yes"
+            else:
+                rest.append(item)
+        return ":".join(rest), timing, stamps
+
+    def read(self, pan_at=0.0) -> tuple[np.ndarray, np.ndarray]:
+        from .sim.camera import expose, sub_times
+
+        pan_of = pan_at if callable(pan_at) else (lambda t_ns: pan_at)
+        tm = self.timing
+        later = time.time_ns() - round(tm.latency_s * 1e9)
+        if tm.jitter_s > 0:
+            later += round(float(np.clip(self.rng.normal(0.0, tm.jitter_s), -0.02, 0.02)) * 1e9)
+        skew = round(tm.skew_s * 1e9)
+        t_master, t_slave = (later - skew, later) if skew > 0 else (later, later + skew)
         if self.t0 is None:
-            self.t0 = now
-        t = now - self.t0
-        truth = self.rig.truth_pan(t)
+            self.t0 = t_master
+        scene = [t / 1e9 for t in sub_times((t_master - self.t0) / 1e9, tm.exposure_s)]
+        slave = [(pan_of(self.t0 + round(t * 1e9)), t)
+                 for t in sub_times((t_slave - self.t0) / 1e9, tm.exposure_s)]
+        truth = self.rig.truth_pan((t_master - self.t0) / 1e9)
         self.truth_pan_rad = truth if math.isfinite(truth) else None
-        return self.rig.render(pan_rad, t)
+        self.exposure_ns = (t_master, t_slave) if self.stamps else None
+        return expose(self.rig, scene, slave)
 
 
 def open_source(spec: str, master: str = "left") -> Source:

@@ -25,7 +25,7 @@ def test_settings_from_toml(tmp_path):
     ({"actuator": {"motor": {"retries": 0}}}, r"actuator\.motor: retries must be >= 1"),
     ({"rig": {"gimbal": "x"}}, r"rig: gimbal='x': must be helmholtz or fick"),
     ({"control": 3}, "control: expected a table"),
-    ({"colour": 1}, "colour: unknown setting; known here: actuator, capture, control, geometry"),
+    ({"colour": 1}, "colour: unknown setting; known here: actuator, camera, capture, control, geometry"),
     (5, "settings: expected a table, got `int`"),
     ({"control": {"min_deg": -20}}, r"control\.min_deg: moved to \[actuator\.motor\] min_deg"),
     ({"control": {"gain": 1, "max_step_deg": 3}}, r"control\.max_step_deg: moved to \[actuator\.motor\] max_step_deg"),

@@ -156,11 +156,12 @@ def test_predictive_controller_coasts_then_holds():
     pan = 0.0
     for i in range(20):  # a target moving at 0.1 rad/s, seen exactly
         t = i / 60
-        g = c.target(pan, F * math.tan(0.1 * t - pan), F, True, t_s=t)
+        g = c.target(pan, F * math.tan(0.1 * t - pan), F, True, t_s=t, t_now=t + 0.005)
         pan = g if g is not None else pan
-    coast = [c.target(pan, math.nan, F, False, t_s=(20 + i) / 60) for i in range(12)]
-    # coasted set-points carry the last estimate at a fading rate (time constant coast_s / 2 = 0.05 s) to
-    # lead_s + half a frame past their capture (None: within the dead band of the last one): short of the
+    coast = [c.target(pan, math.nan, F, False, t_s=(20 + i) / 60, t_now=(20 + i) / 60 + 0.005)
+             for i in range(12)]
+    # coasted set-points carry the last estimate at a fading rate (time constant coast_s / 2 = 0.05 s) to 5 ms
+    # (read to command) + lead_s + half a frame past their exposure (None: within the dead band of the last one): short of the
     # target, never past it; after coast_s = 0.1 s, hold
     x, at = 0.1 * 19 / 60, [(20 + i) / 60 + 0.02 + 0.5 / 60 for i in range(12)]
     want = [x + 0.1 * 0.05 * (1 - math.exp(-(a - 19 / 60) / 0.05)) for a in at]

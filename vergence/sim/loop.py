@@ -1,14 +1,21 @@
-"""The closed loop in one process: render -> vergence.match -> controller -> safety -> simulated motor.
+"""The closed loop in one process: expose -> read -> vergence.match -> controller -> safety -> simulated motor.
 
-The same steps as the distributed service (capture renders the slave at the motor's present pan, the
-network decides, the controller turns the decision into an absolute pan target, the actuator's safety layer
-bounds it, the motor moves), with a virtual clock: frame i is captured at i / rate_hz seconds, its command
-reaches the motor delay_s later (the capture-to-command latency of the distributed loop), and the motor is
-integrated in between, so runs are deterministic and as fast as the maths. The camera sees the motor's
-exact shaft angle; the controller is told the pan the encoder reports (whole ticks), as the capture is."""
+The same steps as the distributed service, with a virtual clock and a real camera's timing
+(vergence.timing.CameraTiming, vergence.sim.camera): frame i's master is exposed at i / rate_hz (off its
+schedule by the jitter), the slave skew_s after it, each integrating the scene and the slave's motion over
+the exposure; the pair is read latency_s after the later exposure, decided delay_s after the read (the
+pipeline: capture, workers, reducer), and its command reaches the motor then. The motor is integrated in
+between and publishes its encoder reading (whole ticks) at state_hz and after each command, as the actuator
+does, and at each slave exposure; the controller gets the slave's pan at its exposure from that history
+(vergence.timing.PanHistory), as the capture gives it. (The reading at the exposure is what the service's sim
+source amounts to: it renders the slave at the pan its frame carries. A real camera's image is older than the
+motor's newest report, so the capture interpolates between two reports; tests/vergence/test_timing.py checks
+that interpolation.) Events run in time order, so a frame's command may come after the next frames'
+exposures (a latency longer than a frame); runs are deterministic and as fast as the maths."""
 
 from __future__ import annotations
 
+import heapq
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -20,20 +27,24 @@ from ..match import match
 from ..params import Params
 from ..motors.base import MotorSettings, Safety
 from ..motors.simulated import SimMotor
+from ..timing import CameraTiming, PanHistory
+from .camera import Schedule, expose, sub_times
 from .rig import Rig
 
-__all__ = ["Step", "closed_loop", "frames_to_converge", "tracking_error", "DELAY_S"]
+__all__ = ["Step", "closed_loop", "frames_to_converge", "tracking_error", "DELAY_S", "STATE_HZ"]
 
-DELAY_S = 0.005  # capture to command, about what the distributed loop takes (vergence bench pipeline)
+DELAY_S = 0.005  # read to command, about what the distributed loop takes (vergence bench pipeline)
+STATE_HZ = 50.0  # the motor's position reports ([actuator] state_hz)
 
 
 @dataclass(frozen=True)
 class Step:
-    """One frame of the loop: the slave pan at capture and what the network made of that view (its Match's
+    """One frame of the loop: the slave pan at exposure and what the network made of that view (its Match's
     Decision, flattened: k, v, offset_px, confident, confidence; not a decision of its own).
 
-    pan_deg / truth_pan_deg: the slave's pan and the converged pan; error_px: f tan(pan - truth), how far
-    the slave is from converged, in pixels at the view centre (NaN when the truth is unknown). offset_px,
+    t_s: the master's exposure time. pan_deg: the slave's pan at the slave's exposure; truth_pan_deg: the
+    converged pan at t_s; error_px: f tan(slave pan at t_s - truth), how far the slave is from converged at
+    the master's exposure, in pixels at the view centre (NaN when the truth is unknown). offset_px,
     confident, k, window: the network's decision on this frame; target_deg: the pan commanded from it
     (None: no move). scores: the layer-4 profile (best row when searching vertically)."""
 
@@ -66,45 +77,92 @@ class Step:
 
 def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: ControlSettings | None = None,
                 motor: MotorSettings | None = None, rate_hz: float = 30.0, delay_s: float = DELAY_S,
-                fixations: dict[int, tuple[int, int]] | None = None) -> Iterator[Step]:
-    """Yield frames + 1 Steps: the starting state (frame 0), then the state at each following capture.
+                fixations: dict[int, tuple[int, int]] | None = None, timing: CameraTiming | None = None,
+                state_hz: float = STATE_HZ, seed: int = 0) -> Iterator[Step]:
+    """Yield frames + 1 Steps: the starting state (frame 0), then the state at each following exposure.
 
-    rig: a Rig (a still scene) or a MovingRig (render(pan, t), truth_pan(t)). motor: the simulated motor's
-    settings (its start pan is the rig's; default: MotorSettings(), a Dynamixel X-series), whose pan and step
-    limits bound the controller's set-points too; control: the controller's (mode, gain, dead band).
-    delay_s: from capture to the command.
+    rig: a Rig (a still scene) or a MovingRig (master_view(t), slave_view(pan, t), truth_pan(t)). motor: the
+    simulated motor's settings (its start pan is the rig's; default: MotorSettings(), a Dynamixel X-series),
+    whose pan and step limits bound the controller's set-points too; control: the controller's (mode, gain,
+    dead band). timing: the cameras' (default: none of it, an image read the instant it is exposed).
+    delay_s: from the read to the command. state_hz: the motor's position reports. seed: the jitter's.
     fixations: {frame: (x, y)}, the fovea at (x, y) of the master view from that frame on (default: the view
     centre); a Step's truth and error stay the centre's (vergence.sim.fixation.truth_at gives the fovea's)."""
-    if not (0 <= delay_s < 1 / rate_hz):
-        raise ValueError(f"delay {delay_s} s must be >= 0 and shorter than a frame (1 / {rate_hz:g} Hz)")
+    if not (delay_s >= 0 and math.isfinite(delay_s)):
+        raise ValueError(f"delay {delay_s} s must be a finite number >= 0")
+    if not (state_hz > 0 and math.isfinite(state_hz)):
+        raise ValueError(f"state rate {state_hz} Hz must be a positive number")
     params = params or Params()
+    timing = timing or CameraTiming()
+    schedule = Schedule(rate_hz, timing, seed)
     ms = replace(motor or MotorSettings(), start_deg=math.degrees(rig.start_pan_rad))
     clock = [0.0]
     drive = SimMotor(ms, clock=lambda: clock[0])
     safety = Safety(ms, drive.open())
     controller = Controller(control, safety)  # asks the motor's limits of the Safety (as the reducer does)
+    history = PanHistory(max_gap_s=max(0.1, 3.0 / state_hz))
+    history.add(0.0, drive.read_position())
+    events: list = []  # (time, order, kind, frame, payload)
+    order = [0]
+
+    def push(t: float, kind: str, frame: int = -1, payload=None) -> None:
+        order[0] += 1
+        heapq.heappush(events, (t, order[0], kind, frame, payload))
+
+    times = [schedule.frame(i) for i in range(frames + 1)]
+    shafts: dict[int, dict] = {}  # frame -> what its exposures saw of the shaft
+    for i, (tm, ts, tr) in enumerate(times):
+        shafts[i] = {"slave": [], "master_t": sub_times(tm, timing.exposure_s)}
+        for t in sub_times(ts, timing.exposure_s):
+            push(t, "slave", i, t)
+        push(tm, "at_master", i)
+        push(ts, "at_slave", i)
+        push(tr, "read", i)
+    for k in range(1, int(times[-1][2] * state_hz) + 2):
+        push(k / state_hz, "state")
     at = None
-    for i in range(frames + 1):
-        t = i / rate_hz
-        clock[0] = t
-        at = (fixations or {}).get(i, at)
-        pan = drive.shaft
-        reading = drive.read_position()
-        master, slave = rig.render(pan, t)
-        m = match(master, slave, at, params)
-        d = m.decision
-        target = controller.target(reading, d.offset_px, rig.focal_px, d.confident, t_s=t,
-                                   centre_px=0.0 if at is None else at[0] - master.shape[1] // 2)
-        clock[0] = t + delay_s
-        if target is not None:
-            target = safety.command(target).goal
+    while events:
+        t, _, kind, i, payload = heapq.heappop(events)
+        clock[0] = max(clock[0], t)
+        if kind == "slave":
+            shafts[i]["slave"].append((drive.shaft, payload))
+        elif kind in ("at_master", "at_slave"):
+            shafts[i][kind] = drive.shaft
+            if kind == "at_slave":  # the encoder's reading at the slave's exposure (see the docstring)
+                history.add(clock[0], drive.read_position())
+        elif kind == "state":
+            history.add(clock[0], drive.read_position())
+        elif kind == "read":
+            at = (fixations or {}).get(i, at)
+            push(t + delay_s, "command", i, _decide(rig, i, shafts.pop(i), times[i], at, params, controller,
+                                                    history, t + delay_s))
+        elif kind == "command":
+            step, target = payload
             if target is not None:
-                drive.write_goal(target)
-        yield Step(frame=i, t_s=t, pan_deg=math.degrees(pan), truth_pan_deg=math.degrees(rig.truth_pan(t)),
-                   error_px=rig.error_px(pan, t), offset_px=d.offset_px, confident=d.confident, k=d.k, v=d.v,
-                   window=m.window, confidence=d.confidence,
-                   target_deg=None if target is None else math.degrees(target),
-                   scores=np.atleast_2d(m.scores)[d.v + params.vsearch])
+                target = safety.command(target).goal
+                if target is not None:
+                    drive.write_goal(target)
+                    history.add(clock[0], drive.read_position())
+            yield replace(step, target_deg=None if target is None else math.degrees(target))
+
+
+def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, params: Params, controller: Controller,
+            history: PanHistory, t_now: float) -> tuple[Step, float | None]:
+    """One frame read: its images, the network's decision, the controller's target (None: no move)."""
+    t_master, t_slave, _ = times
+    master, slave = expose(rig, seen["master_t"], seen["slave"])
+    m = match(master, slave, at, params)
+    d = m.decision
+    pan = history.at(t_slave)  # the slave's pan at its exposure, as the encoder reports it
+    target = None
+    if pan is not None:
+        target = controller.target(pan, d.offset_px, rig.focal_px, d.confident, t_s=t_slave, t_now=t_now,
+                                   centre_px=0.0 if at is None else at[0] - master.shape[1] // 2)
+    step = Step(frame=frame, t_s=t_master, pan_deg=math.degrees(seen["at_slave"]),
+                truth_pan_deg=math.degrees(rig.truth_pan(t_master)), error_px=rig.error_px(seen["at_master"], t_master),
+                offset_px=d.offset_px, confident=d.confident, k=d.k, v=d.v, window=m.window,
+                confidence=d.confidence, target_deg=None, scores=np.atleast_2d(m.scores)[d.v + params.vsearch])
+    return step, target
 
 
 def frames_to_converge(steps: list[Step], tol_px: float = 1.0) -> int | None:

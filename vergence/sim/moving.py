@@ -174,13 +174,25 @@ class MovingRig:
         a = tm[..., 1].astype(np.float32) * np.float32(1 / 255)
         return np.rint(bg * (1 - a) + tm[..., 0]).astype(np.uint8)
 
-    def render(self, slave_pan_rad: float, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-        """(master, slave) uint8 gray views at time t, the slave panned to slave_pan_rad."""
+    def master_view(self, t: float = 0.0) -> np.ndarray:
+        """The master's view of the scene at time t, without sensor noise."""
+        if not math.isfinite(t):
+            raise ValueError(f"time {t} is not finite")
+        return self._view(self.motion.z(t), 0.0, 0.0)
+
+    def slave_view(self, slave_pan_rad: float, t: float = 0.0) -> np.ndarray:
+        """The slave's view at time t, panned to slave_pan_rad, without sensor noise."""
         if not (math.isfinite(slave_pan_rad) and math.isfinite(t)):
             raise ValueError(f"slave pan {slave_pan_rad} or time {t} is not finite")
-        z = self.motion.z(t)
-        master = self._view(z, 0.0, 0.0)
-        slave = self._view(z, self.head.baseline_m, slave_pan_rad)
+        return self._view(self.motion.z(t), self.head.baseline_m, slave_pan_rad)
+
+    def noisy(self, img: np.ndarray, camera: int) -> np.ndarray:
+        """img with this camera's sensor noise."""
+        return self.noise(img, camera)
+
+    def render(self, slave_pan_rad: float, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(master, slave) uint8 gray views at time t with sensor noise, the slave panned to slave_pan_rad."""
+        master, slave = self.master_view(t), self.slave_view(slave_pan_rad, t)
         return self.noise(master, 0), self.noise(slave, 1)
 
     # -- construction from text ---------------------------------------------------------------------------

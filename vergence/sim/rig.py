@@ -256,7 +256,7 @@ class Rig:
 
     _BANK, _PAD = 6, 64
 
-    def _noisy(self, img: np.ndarray, camera: int) -> np.ndarray:
+    def noisy(self, img: np.ndarray, camera: int) -> np.ndarray:
         """img + Gaussian noise of sigma `noise`, rounded. The noise is cut at a random place out of a few
         fields pre-drawn for this camera (drawing 300 k normals per view took 3-4 ms; this takes well under
         1 ms). Each camera has its own fields: with shared ones, the slave's noise was often the master's
@@ -272,9 +272,12 @@ class Rig:
         n = self._banks[camera][i, dy:dy + h, dx:dx + w]
         return np.clip(img + n, 0, 255).astype(np.uint8)
 
-    def render(self, slave_pan_rad: float, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-        """(master, slave) uint8 gray views, the slave panned to slave_pan_rad (radians); the scene is
-        still, so the time t does not matter (the moving scene's render takes it too)."""
+    def master_view(self, t: float = 0.0) -> np.ndarray:
+        """The master's view without sensor noise (the scene is still: the same at every t)."""
+        return self._master
+
+    def slave_view(self, slave_pan_rad: float, t: float = 0.0) -> np.ndarray:
+        """The slave's view at slave_pan_rad (radians) without sensor noise: warped, defocused, its gain."""
         if not math.isfinite(slave_pan_rad):
             raise ValueError(f"slave pan {slave_pan_rad} is not finite")
         slave = self._warp(self.right, slave_pan_rad, self.slave_tilt_rad)
@@ -283,7 +286,13 @@ class Rig:
         if self.gain != 1.0 or self.offset != 0.0:
             lin = slave.astype(np.float32) * np.float32(self.gain) + np.float32(self.offset)
             slave = np.clip(lin, 0, 255).astype(np.uint8)
-        return self._noisy(self._master, 0), self._noisy(slave, 1)
+        return slave
+
+    def render(self, slave_pan_rad: float, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(master, slave) uint8 gray views with sensor noise, the slave panned to slave_pan_rad (radians);
+        the scene is still, so the time t does not matter (the moving scene's render takes it too)."""
+        slave = self.slave_view(slave_pan_rad, t)
+        return self.noisy(self._master, 0), self.noisy(slave, 1)
 
     # -- ground truth -------------------------------------------------------------------------------------
 
