@@ -308,7 +308,7 @@ class Controller:
                                        gate=self.s.gate_px * one, vmax=math.radians(self.s.max_rate_deg_s))
         f = self.predictor
         if self.periodic is None and self.s.periodic:
-            self.periodic, self.referee = Periodic(), Referee(2)
+            self.periodic, self.referee = Periodic(), Referee(3)
         if self.t_prev is not None and 0 < t - self.t_prev < 1.0:
             self.period = t - self.t_prev if self.period is None else 0.9 * self.period + 0.1 * (t - self.t_prev)
         self.t_prev = t
@@ -332,7 +332,7 @@ class Controller:
             v = math.copysign(max(0.0, abs(f.v) - vmin), f.v)
             goal = f.x + v * (at - f.t)
             if self.periodic is not None:
-                preds = [goal, self.periodic.predict(at)]
+                preds = [f.x, goal, self.periodic.predict(at)]
                 self.referee.predicted(at, preds)
                 goal = self.referee.blend(preds)
         elif f.t is None or self.t_confident is None or t - self.t_confident > self.s.coast_s \

@@ -161,8 +161,8 @@ def test_predictive_controller_coasts_then_holds():
     coast = [c.target(pan, math.nan, F, False, t_s=(20 + i) / 60, t_now=(20 + i) / 60 + 0.005)
              for i in range(12)]
     # coasted set-points carry the last estimate at a fading rate (time constant coast_s / 2 = 0.05 s) to 5 ms
-    # (read to command) + lead_s + half a frame past their exposure (None: within the dead band of the last one): short of the
-    # target, never past it; after coast_s = 0.1 s, hold
+    # (read to command) + lead_s + half a frame past their exposure (None: within the dead band of the last
+    # one): short of the target, never past it; after coast_s = 0.1 s, hold
     x, at = 0.1 * 19 / 60, [(20 + i) / 60 + 0.02 + 0.5 / 60 for i in range(12)]
     want = [x + 0.1 * 0.05 * (1 - math.exp(-(a - 19 / 60) / 0.05)) for a in at]
     sent = [(g, w, a) for g, w, a in zip(coast[:5], want, at) if g is not None]
