@@ -50,6 +50,7 @@ from .node import STATUS_S, Node
 
 log = logging.getLogger("vergence.capture")
 FUTURE_S = 0.05  # a motor history whose newest state is this far ahead of our clock is forgotten
+SETTLE_S = 0.025  # the longest a rendering source waits for the motor's report of its exposure's instant
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -165,6 +166,20 @@ class PanLookup:
     def __init__(self, history: PanHistory, lock: threading.Lock, source):
         self.history, self.lock, self.source = history, lock, source
         self.seen: dict[int, float | None] = {}
+
+    def settle(self, t_ns: int, timeout: float = SETTLE_S) -> None:
+        """Wait (at most timeout) until the motor has reported its pan at or after t_ns: a source that renders
+        the slave (the simulator) then never renders a pan the history has to guess (extrapolated past its
+        newest state, a step of the motor shows some 15 ms late). Without a history, or a motor that stopped
+        reporting, it does not wait (longer)."""
+        end = time.monotonic() + timeout
+        while True:
+            with self.lock:
+                if not len(self.history) or self.history.t[-1] * 1e9 >= t_ns:
+                    return
+            if time.monotonic() >= end:
+                return
+            time.sleep(0.0005)
 
     def _at(self, t_ns: int) -> float | None:
         if t_ns not in self.seen:

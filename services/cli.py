@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "reducer": ("vergence_services.reducer", "gather shards, decide, publish profile and command"),
     "actuator": ("vergence_services.actuator", "drive the slave pan motor"),
     "fixate": ("vergence_services.fixate", "move the running capture's fovea to a master pixel"),
+    "latency": ("vergence_services.latency", "measure the camera's exposure-to-read latency on the running head"),
     "monitor": ("vergence_services.monitor", "live view of the correlation topics"),
     "record": ("vergence_services.record", "record every vergence/<rig>/** message to a file"),
     "replay": ("vergence_services.replay", "publish a recording again"),

@@ -34,7 +34,7 @@ from vergence import depth, kernel, keys
 from vergence.config import load
 from vergence.frames import frame_too_large, make_frame
 from vergence.gather import FrameDecision, Gatherer
-from vergence.messages import Frame, MessageError, Partial, replace as replace_message
+from vergence.messages import MAX_HOLD_S, Frame, Hold, MessageError, Partial, replace as replace_message
 from vergence.shards import compute_partial
 
 from . import session
@@ -113,6 +113,35 @@ class Inbox:
             return out
 
 
+class Lease:
+    """A hold on the reducer's commands (messages.Hold, vergence/<rig>/hold): none goes out until its until_ns.
+    A hold further than MAX_HOLD_S ahead is not believed (counted under bad.hold, nothing held), so a client
+    that stops renewing it (killed, or a forgery) leaves the loop commanding again within MAX_HOLD_S."""
+
+    def __init__(self, health, clock=time.time_ns):
+        self.health, self.clock = health, clock
+        self.lock = threading.Lock()
+        self.until_ns = 0
+
+    def on_hold(self, payload: bytes) -> None:
+        try:
+            h = Hold.from_bytes(payload)
+            if h.until_ns > self.clock() + MAX_HOLD_S * 1e9:
+                raise MessageError(f"hold until {(h.until_ns - self.clock()) / 1e9:.3g} s from now: more than "
+                                   f"{MAX_HOLD_S:g} s")
+        except MessageError as e:
+            self.health.reject("hold", e)
+            return
+        with self.lock:
+            if not self.until_ns > self.clock() and h.until_ns > self.clock():
+                log.info("commands held%s", f" for {h.source}" if h.source else "")
+            self.until_ns = h.until_ns
+
+    def held(self) -> bool:
+        with self.lock:
+            return self.clock() < self.until_ns
+
+
 def newest_first(msgs: list) -> list:
     """Decoded messages (Frame or Partial) in the order the gatherer should see them: the newest frame id
     first, its Frame before its partials. Then the newest frame that is complete is reduced and every older
@@ -142,12 +171,16 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
 
         last: list[FrameDecision] = []
         geo = settings.geometry
+        hold = Lease(health)
+        node.subscriber(keys.hold(rig), lambda sm: hold.on_hold(sm.payload.to_bytes()))
 
         def publish(results) -> None:
             if results:
                 last[:] = results[-1:]
             for r in results:
-                if r.command is not None:  # the command first: the actuator waits for it
+                if r.command is not None and hold.held():
+                    health.count("held")  # a client moves the slave itself (`vergence latency`)
+                elif r.command is not None:  # the command first: the actuator waits for it
                     pub_command.put(r.command.to_bytes())
                     health.count("commands")
                 where = depth.decision_fields(r.frame, r.decision, r.scores, geo.baseline_m, geo.gimbal,

@@ -29,6 +29,7 @@ by +-2 px with the paper's network, whose whole-pixel decisions feed the filter 
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -86,6 +87,9 @@ class ControlSettings:
                 raise ValueError(f"{name}={v}: must be a finite number >= 0")
         if not self.noise_px > 0:
             raise ValueError(f"noise_px={self.noise_px}: must be > 0")
+        if not 0 < self.gain < 2:
+            raise ValueError(f"gain={self.gain}: must be above 0 and below 2 (at 2 and above each correction "
+                             "overshoots by as much as it corrects: the loop never settles)")
 
 
 class Predictor:
@@ -256,6 +260,10 @@ class Referee:
         return sum(wi * p for wi, (p, _) in zip(w, use)) / sum(w)
 
 
+LATE_S = 0.02  # an image older than this when its command goes out: p's gain is at most 1
+log = logging.getLogger("vergence.control")
+
+
 class Controller:
     """Turns decisions into absolute pan targets for the slave, each bounded by the motor's limits.
 
@@ -267,6 +275,7 @@ class Controller:
         self.s = settings or ControlSettings()
         self.limits = limits if isinstance(limits, Safety) else Safety(limits or MotorSettings())
         self.predictor: Predictor | None = None
+        self.gain_lowered = 0  # p commands whose gain was lowered to 1 (an old image)
         self.periodic: Periodic | None = None
         self.referee: Referee | None = None
         self.t_confident: float | None = None  # capture time of the last confident decision
@@ -293,10 +302,24 @@ class Controller:
             return None
         if focal_px <= 0 or abs(offset_px) < self.s.dead_band_px:
             return None
-        step = self.s.gain * pixels_to_angle(offset_px, focal_px, centre_px)
+        step = self._gain(t_s, t_now) * pixels_to_angle(offset_px, focal_px, centre_px)
         if abs(step) < self.limits.dead_band_rad:
             return None
         return self._bounded(pan_at_capture, step)
+
+    def _gain(self, t_s: float | None, t_now: float | None) -> float:
+        """p's gain: [control] gain, but at most 1 for an image older than LATE_S when its command goes out.
+        Referred to the pan at its exposure, each command is (1 - g) x that pan + g x the target there: at
+        gain <= 1 a low-pass of the target, stable at any latency; above 1 it overshoots, and the motor's own
+        lag makes that grow with the latency (gain 1.9 at 100 ms never converged on a still target)."""
+        g = self.s.gain
+        if g > 1 and t_s is not None and t_now is not None and t_now - t_s > LATE_S:
+            if not self.gain_lowered:
+                log.warning("p controller: gain %.2f lowered to 1 for images %.0f ms old (above 1 the loop "
+                            "overshoots more the older the image)", g, (t_now - t_s) * 1e3)
+            self.gain_lowered += 1
+            return 1.0
+        return g
 
     def _predictive(self, pan: float, offset_px: float, focal_px: float, confident: bool, centre_px: float,
                     t: float, now: float) -> float | None:

@@ -5,6 +5,7 @@ A rig's keys all live under vergence/<rig>/:
     frame                   messages.Frame, from the capture
     preview                 messages.Preview, from the capture
     fixate                  messages.Fixate, from a user (`vergence fixate`)
+    hold                    messages.Hold, from a user (`vergence latency`): the reducer commands nothing
     correlation/<worker>    messages.Partial, from worker <worker>
     decision                messages.Verdict, from the reducer
     profile                 messages.Profile, from the reducer
@@ -23,17 +24,17 @@ from __future__ import annotations
 from typing import NamedTuple
 
 __all__ = ["ROOT", "REPLAY_RIG", "KINDS", "SIMPLE", "NAMED", "Key", "parse", "kind_of", "prefix", "key", "frame",
-           "preview", "fixate", "correlation", "correlations", "decision", "profile", "command", "workers",
+           "preview", "fixate", "hold", "correlation", "correlations", "decision", "profile", "command", "workers",
            "motor_state", "status", "statuses", "alive", "alives", "everything"]
 
 ROOT = "vergence"
 REPLAY_RIG = "replay"  # where `vergence replay` publishes by default: no actuator listens there
 
 FRAME, PREVIEW, FIXATE, DECISION, PROFILE = "frame", "preview", "fixate", "decision", "profile"
-COMMAND, WORKERS, MOTOR_STATE = "command", "workers", "motor/state"
+COMMAND, WORKERS, MOTOR_STATE, HOLD = "command", "workers", "motor/state", "hold"
 CORRELATION, STATUS, ALIVE = "correlation", "status", "alive"
 # kinds whose key is exactly vergence/<rig>/<kind>
-SIMPLE = (FRAME, PREVIEW, FIXATE, DECISION, PROFILE, COMMAND, WORKERS, MOTOR_STATE)
+SIMPLE = (FRAME, PREVIEW, FIXATE, DECISION, PROFILE, COMMAND, WORKERS, MOTOR_STATE, HOLD)
 # kinds followed by a name: correlation/<worker>, status/<role>/<id>, alive/<role>/<id>
 NAMED = (CORRELATION, STATUS, ALIVE)
 KINDS = SIMPLE + NAMED
@@ -67,6 +68,10 @@ def preview(rig: str) -> str:
 
 def fixate(rig: str) -> str:
     return key(rig, FIXATE)
+
+
+def hold(rig: str) -> str:
+    return key(rig, HOLD)
 
 
 def decision(rig: str) -> str:

@@ -17,7 +17,7 @@ import msgspec
 import numpy as np
 
 __all__ = ["SCHEMA", "MessageError", "Message", "Frame", "Partial", "Verdict", "Profile", "Command", "MotorState",
-           "Preview", "Fixate", "KINDS", "replace"]
+           "Preview", "Fixate", "Hold", "MAX_HOLD_S", "KINDS", "replace"]
 
 SCHEMA = 1
 MAX_MESSAGE = 64 * 1024 * 1024
@@ -373,8 +373,26 @@ class Fixate(Message):
             raise MessageError("fixate.source: longer than 200 characters")
 
 
+class Hold(Message):
+    """vergence/<rig>/hold: the reducer sends no command until until_ns (this host's clock, ns), while a client
+    moves the slave itself (`vergence latency`). A lease: it ends by itself, and one further than MAX_HOLD_S
+    ahead is not believed (counted, nothing held); until_ns in the past releases it. source: who asks."""
+
+    KIND: ClassVar[str] = "hold"
+    until_ns: int
+    t_ns: int
+    source: str = ""
+
+    def validate(self) -> None:
+        if len(self.source) > 200:
+            raise MessageError("hold.source: longer than 200 characters")
+
+
+MAX_HOLD_S = 5.0  # the longest hold one message may claim
+
+
 KINDS: dict[str, type[Message]] = {c.KIND: c for c in (Frame, Partial, Verdict, Profile, Command, MotorState,
-                                                         Preview, Fixate)}
+                                                         Preview, Fixate, Hold)}
 
 for _cls in KINDS.values():
     _DECODERS[_cls] = msgspec.msgpack.Decoder(typing.Union[_cls, _NoSchema])

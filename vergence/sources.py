@@ -309,7 +309,10 @@ class SimSource(Source):
         t_master, t_slave = (later - skew, later) if skew > 0 else (later, later + skew)
         if self.t0 is None:
             self.t0 = t_master
-        scene = [t / 1e9 for t in sub_times((t_master - self.t0) / 1e9, tm.exposure_s)]
+        settle = getattr(pan_at, "settle", None)  # the capture's: until the motor has told its pan then
+        if settle is not None:
+            settle(t_slave + round(tm.exposure_s * 5e8))
+        scene = sub_times((t_master - self.t0) / 1e9, tm.exposure_s)
         slave = [(pan_of(self.t0 + round(t * 1e9)), t)
                  for t in sub_times((t_slave - self.t0) / 1e9, tm.exposure_s)]
         truth = self.rig.truth_pan((t_master - self.t0) / 1e9)

@@ -29,6 +29,9 @@ def test_settings_from_toml(tmp_path):
     (5, "settings: expected a table, got `int`"),
     ({"control": {"min_deg": -20}}, r"control\.min_deg: moved to \[actuator\.motor\] min_deg"),
     ({"control": {"gain": 1, "max_step_deg": 3}}, r"control\.max_step_deg: moved to \[actuator\.motor\] max_step_deg"),
+    ({"control": {"gain": 2.0}}, r"control: gain=2.0: must be above 0 and below 2"),
+    ({"camera": {"latency_s": 1.5}}, r"camera: latency_s=1.5: must be a number of seconds from 0 to 1"),
+    ({"camera": {"skew_s": "x"}}, r"camera\.skew_s: expected `float`, got `str`"),
 ])
 def test_bad_settings_name_the_field(data, says):
     with pytest.raises(ConfigError, match=says):

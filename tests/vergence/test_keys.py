@@ -18,6 +18,7 @@ CASES = [
     (keys.frame("head"), "vergence/head/frame", "frame", "frame", "", ""),
     (keys.preview("head"), "vergence/head/preview", "preview", "preview", "", ""),
     (keys.fixate("head"), "vergence/head/fixate", "fixate", "fixate", "", ""),
+    (keys.hold("head"), "vergence/head/hold", "hold", "hold", "", ""),
     (keys.decision("head"), "vergence/head/decision", "decision", "decision", "", ""),
     (keys.profile("head"), "vergence/head/profile", "profile", "profile", "", ""),
     (keys.command("left"), "vergence/left/command", "command", "command", "", ""),

@@ -199,7 +199,7 @@ def test_controller_set_points_are_the_safetys_values():
 @settings(max_examples=200, deadline=None)
 @given(st.builds(MotorSettings, min_deg=st.floats(-60, 0), max_deg=st.floats(0, 60),
                  max_step_deg=st.floats(0.01, 20), dead_band_deg=st.floats(0, 0.5)),
-       st.sampled_from(["p", "predictive"]), st.floats(0.1, 3.0),
+       st.sampled_from(["p", "predictive"]), st.floats(0.1, 1.99),  # a gain of 2 and above is refused
        st.lists(st.tuples(st.one_of(st.floats(-1e4, 1e4), st.sampled_from([math.nan, math.inf, -math.inf])),
                           st.booleans(),
                           st.floats(0.001, 0.2)), max_size=60))
@@ -298,8 +298,14 @@ class Blindfold:
     def __getattr__(self, name):
         return getattr(self.textured, name)
 
-    def render(self, pan, t=0.0):
-        return (self.textured if t < self.t_off else self.flat).render(pan, t)
+    def _at(self, t):
+        return self.textured if t < self.t_off else self.flat
+
+    def master_view(self, t=0.0):
+        return self._at(t).master_view(t)
+
+    def slave_view(self, pan, t=0.0):
+        return self._at(t).slave_view(pan, t)
 
 
 @pytest.mark.slow
@@ -374,23 +380,15 @@ def _interp(ts, vs, t):
     return float(np.interp(t, ts, vs))
 
 
-@pytest.mark.slow
-def test_up_tracks_a_sine_at_60_hz(tmp_path):
-    """`vergence up --source 'sim:motion=sine:z=0.8,amp=0.3,hz=0.5:focal=500' --rate 60` (router, sim actuator,
-    2 workers, reducer, capture as real processes): the tracking error over 10 s, from the recorded stream.
-
-    Two measures, both printed: the error of each decided frame (its slave pan at capture, as the decision
-    says, against the truth the frame carries) and the error of the motor itself (the motor states' pan,
-    interpolated at each capture time, against that frame's truth). The first is held by its median (<= 1 px) and
-    90th percentile (<= 2.5 px): on a quiet machine 0.46 and 0.86 px (RMS 0.6 px), with three busy processes
-    beside it on the 2 cores 0.52 and 1.34 px (RMS 0.84 px). Not by its RMS: a stall of a loaded machine (the
-    target moves up to 50 px/s) put a few frames 5-13 px off and the RMS at 1.7 px in a run beside a whole
-    second test suite."""
+def _up_tracking(tmp_path, spec: str) -> tuple[np.ndarray, str]:
+    """`vergence up --source SPEC --workers 2 --rate 60` (router, sim actuator, 2 workers, reducer, capture as
+    real processes): the error of each decided frame over 10 s after 2 s, from the recorded stream (its slave
+    pan at exposure, as the decision says, against the truth the frame carries), and a line saying it and the
+    error of the motor itself (the motor states' pan, interpolated at each exposure, against that truth)."""
     from procs import Procs, free_port, wait_for
     from vergence.messages import Frame, MotorState, Verdict
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    spec = "sim:motion=sine:z=0.8,amp=0.3,hz=0.5:focal=500"
     with Procs(tmp_path) as P:
         P.endpoint = endpoint
         P.start("up", "up", "--listen", endpoint, "--source", spec, "--workers", "2", "--rate", "60",
@@ -412,6 +410,8 @@ def test_up_tracks_a_sine_at_60_hz(tmp_path):
         ds = [d for d in decoded(decisions, Verdict) if 2e9 <= d.t_capture_ns - t_start <= 12e9 and d.frame in fr]
         ms = sorted(decoded(states, MotorState), key=lambda m: m.t_ns)
     assert len(ds) > 100 and all(fr[d.frame].truth_pan_rad is not None for d in ds)
+    truths = [fr[d.frame].truth_pan_rad for d in ds]
+    assert max(truths) - min(truths) > math.radians(3)  # the target did move: -3.1 .. -6.8 deg
     rate = (len(ds) - 1) / ((ds[-1].t_capture_ns - ds[0].t_capture_ns) / 1e9)
     err = np.array([F * math.tan(d.pan_rad - fr[d.frame].truth_pan_rad) for d in ds])
     ts, pans = [m.t_ns for m in ms], [m.pan_rad for m in ms]
@@ -419,12 +419,34 @@ def test_up_tracks_a_sine_at_60_hz(tmp_path):
     confident = np.mean([d.confident for d in ds])
     rms, mrms = float(np.sqrt(np.mean(err ** 2))), float(np.sqrt(np.mean(motor ** 2)))
     p50, p90, p95 = np.percentile(np.abs(err), [50, 90, 95])
-    print(f"\nvergence up, sine 0.5 Hz: {len(ds)} decisions in 10 s ({rate:.1f} Hz), {confident:.0%} confident; "
-          f"RMS {rms:.2f} px (median {p50:.2f}, 90th / 95th percentile {p90:.2f} / {p95:.2f}, "
-          f"max {np.abs(err).max():.2f}) at the decided frames, motor {mrms:.2f} px (max {np.abs(motor).max():.2f})")
-    truths = [fr[d.frame].truth_pan_rad for d in ds]
-    assert max(truths) - min(truths) > math.radians(3)  # the target did move: -3.1 .. -6.8 deg
+    line = (f"vergence up, {spec}: {len(ds)} decisions in 10 s ({rate:.1f} Hz), {confident:.0%} confident; "
+            f"RMS {rms:.2f} px (median {p50:.2f}, 90th / 95th percentile {p90:.2f} / {p95:.2f}, "
+            f"max {np.abs(err).max():.2f}) at the decided frames, motor {mrms:.2f} px (max {np.abs(motor).max():.2f})")
+    return err, line
+
+
+@pytest.mark.slow
+def test_up_tracks_a_sine_at_60_hz(tmp_path):
+    """`vergence up --source 'sim:motion=sine:z=0.8,amp=0.3,hz=0.5:focal=500' --rate 60`: the error of each
+    decided frame is held by its median (<= 1 px) and 90th percentile (<= 2.5 px): on a quiet machine 0.34 and
+    0.61 px (RMS 0.40 px; 0.46, 0.86 and 0.6 px before the camera's time model). Not by its RMS: a stall of a
+    loaded machine (the target moves up to 50 px/s) put a few frames 5-13 px off and the RMS at 1.7 px in a run
+    beside a whole second test suite."""
+    err, line = _up_tracking(tmp_path, "sim:motion=sine:z=0.8,amp=0.3,hz=0.5:focal=500")
+    print("\n" + line)
+    p50, p90 = np.percentile(np.abs(err), [50, 90])
     assert p50 <= 1.0 and p90 <= 2.5
+
+
+@pytest.mark.slow
+def test_up_tracks_a_sine_at_60_hz_with_a_camera_66_ms_late(tmp_path):
+    """The same with the sim camera's image 66 ms old when read (latency=0.066: four frames): the capture
+    stamps each frame at its exposure with the slave's pan then, the controller aims from when its command
+    acts. RMS <= 1.5 px over the 10 s (the issue's bound); the default controller without the time model
+    oscillated between its limits here (33-70 px)."""
+    err, line = _up_tracking(tmp_path, "sim:motion=sine:z=0.8,amp=0.3,hz=0.5:focal=500:latency=0.066")
+    print("\n" + line)
+    assert float(np.sqrt(np.mean(err ** 2))) <= 1.5
 
 
 # -- the truth on the wire -----------------------------------------------------------------------------------------

@@ -1,0 +1,76 @@
+"""`vergence latency` against a running rig (real processes), and the reducer's hold that it relies on."""
+
+import json
+import re
+import statistics
+import threading
+
+import pytest
+
+from procs import Procs, free_port, run, wait_for
+from vergence.messages import MAX_HOLD_S, Hold
+from vergence_services.reducer import Lease
+
+
+class Health:
+    def __init__(self):
+        self.rejected = []
+
+    def reject(self, kind, why):
+        self.rejected.append((kind, str(why)))
+
+
+def test_a_hold_lasts_until_its_time_and_a_hold_too_far_ahead_is_not_believed():
+    now = [10**18]
+    h = Health()
+    lease = Lease(h, clock=lambda: now[0])
+    assert not lease.held()
+    lease.on_hold(Hold(until_ns=now[0] + 10**9, t_ns=now[0]).to_bytes())
+    assert lease.held()
+    now[0] += 10**9
+    assert not lease.held()  # ends by itself
+    lease.on_hold(Hold(until_ns=now[0] + int((MAX_HOLD_S + 1) * 1e9), t_ns=now[0]).to_bytes())
+    assert not lease.held() and h.rejected[-1][0] == "hold" and "more than 5 s" in h.rejected[-1][1]
+    lease.on_hold(b"\x93garbage")
+    assert not lease.held() and len(h.rejected) == 2
+    lease.on_hold(Hold(until_ns=now[0] + 10**9, t_ns=now[0]).to_bytes())
+    lease.on_hold(Hold(until_ns=now[0], t_ns=now[0]).to_bytes())  # released
+    assert not lease.held()
+    assert threading.active_count() >= 1
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("latency,stamps", [(0.0, "yes"), (0.033, "no"), (0.066, "no"), (0.1, "no")])
+def test_vergence_latency_measures_the_sim_camera_within_5_ms(tmp_path, latency, stamps):
+    """The sim camera's image `latency` old when read; with stamps=no the capture stamps frames at their read
+    time (as a camera whose backend gives no timestamps, [camera] latency_s 0), so the measurement has to find
+    the whole latency from the image offsets and the motor's history. At latency 0 the sim camera's image is
+    as old as the motor's newest report of its pan (it waits for it, up to 20 ms at 50 Hz: it never renders a
+    pan it has to guess), so the truth there is what the capture's status says of its stamps."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with Procs(tmp_path) as P:
+        P.endpoint = endpoint
+        P.start("up", "up", "--listen", endpoint, "--source", f"sim:latency={latency}:stamps={stamps}",
+                "--workers", "1", "--rate", "30", connect=False)
+        s = P.session()
+        decisions = P.collect(s, P.key("decision"))
+        status = P.collect(s, P.key("status/capture/*"))
+        wait_for(lambda: len(decisions) > 10, 60, "decisions", logs=P.logs)
+        r = run("latency", "--connect", endpoint, "--rig", P.rig, timeout=60)
+        assert r.returncode == 0, r.stdout + r.stderr
+        got = float(re.search(r"exposure to read: ([\d.]+) \+- ([\d.]+) ms", r.stdout)[1])
+        said = [json.loads(b).get("latency_ms") for _, b, _ in status.snapshot()]
+        truth = statistics.median(v for v in said if v is not None) if stamps == "yes" else latency * 1e3
+        print(f"\nsim latency {latency * 1e3:.0f} ms (stamps={stamps}, truth {truth:.1f} ms): measured {got:.1f} ms")
+        assert got == pytest.approx(truth, abs=5.0)
+        toml = float(re.search(r"latency_s = ([\d.]+)", r.stdout)[1])
+        assert toml == pytest.approx(got / 1e3, abs=0.0005)
+        held = P.collect(s, P.key("command"))
+        wait_for(lambda: len(held) > 0 or len(decisions) > 400, 20, "commands again after the hold", logs=P.logs)
+
+
+def test_vergence_latency_with_no_rig_says_so_and_exits_1(tmp_path):
+    with Procs(tmp_path) as P:
+        P.router()
+        r = run("latency", "--connect", P.endpoint, "--rig", P.rig, "--wait", "1", timeout=30)
+    assert r.returncode == 1 and "no decisions on rig" in r.stderr
