@@ -26,8 +26,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     t.add_argument("--json", action="store_true", help="one JSON object per row")
     t.add_argument("--seconds", type=float, default=5.0, help="length of each sine run (default 5)")
     t.add_argument("--seed", type=int, default=0, help="seed of the scene's textures (default 0)")
-    t.add_argument("--rates", default="30,60,120", help="camera rates, Hz (default 30,60,120)")
-    t.add_argument("--hz", default="0.25,0.5,1,2", help="sine frequencies (default 0.25,0.5,1,2)")
+    t.add_argument("--rates", default=None, help="camera rates, Hz (default 30,60,120; --camera: 30,60)")
+    t.add_argument("--hz", default=None, help="sine frequencies (default 0.25,0.5,1,2; --camera: 0.5,1)")
+    t.add_argument("--camera", action="store_true",
+                   help="the camera's timing instead: the image 0/33/66/100 ms old when read (--latencies) x the "
+                        "rates (default 30,60) x sine 0.5/1 Hz x {-, skew 8 ms, exposure 8 ms} x predictive/p, the "
+                        "slave starting parallel (as vergence sim --camera-latency runs it)")
+    t.add_argument("--latencies", default="0,0.033,0.066,0.1", help="--camera: seconds (default 0,0.033,0.066,0.1)")
     try:
         importlib.import_module("vergence_services.bench_pipeline").configure(
             sub.add_parser("pipeline", help="capture-to-command latency and throughput over Zenoh"))
@@ -89,18 +94,26 @@ def _messages(args) -> int:
     return 0
 
 
+def _numbers(text: str) -> tuple[float, ...]:
+    return tuple(float(x) for x in text.split(","))
+
+
 def _tracking(args) -> int:
     from vergence.bench import bench_tracking
 
     try:
-        rates = tuple(float(x) for x in args.rates.split(","))
-        hzs = tuple(float(x) for x in args.hz.split(","))
-        if not (args.seconds > 1 and all(r > 0 for r in rates) and all(h >= 0 for h in hzs)):
+        rates = _numbers(args.rates or ("30,60" if args.camera else "30,60,120"))
+        hzs = _numbers(args.hz or ("0.5,1" if args.camera else "0.25,0.5,1,2"))
+        latencies = _numbers(args.latencies)
+        if not (args.seconds > 1 and all(r > 0 for r in rates) and all(h >= 0 for h in hzs)
+                and all(0 <= v <= 1 for v in latencies)):
             raise ValueError
     except ValueError:
-        print("vergence bench tracking: --rates and --hz are comma-separated positive numbers, --seconds > 1",
-              file=sys.stderr)
+        print("vergence bench tracking: --rates, --hz and --latencies are comma-separated numbers (rates > 0, "
+              "latencies 0 to 1 s), --seconds > 1", file=sys.stderr)
         return 2
+    if args.camera:
+        return _camera(args, latencies, rates, hzs)
     if not args.json:
         print(f"{'motion':28s} {'Hz':>5s} {'mode':>10s} {'RMS px':>7s} {'max px':>7s} {'RMS deg':>8s} "
               f"{'max deg':>8s} {'settle':>6s} {'over px':>7s}")
@@ -123,6 +136,29 @@ def _tracking(args) -> int:
               "from a converged start, error after the first second; step: frames from the step to within 1 px "
               "for good, overshoot past the new truth, error after settling. Virtual time, 5 ms capture to "
               "command, the default simulated servo")
+    return 0
+
+
+def _camera(args, latencies, rates, hzs) -> int:
+    from vergence.bench import bench_camera
+
+    if not args.json:
+        print(f"{'motion':24s} {'latency':>7s} {'Hz':>4s} {'variant':>13s} {'mode':>10s} {'RMS px':>7s} "
+              f"{'max px':>7s}")
+
+    def show(r):
+        if args.json:
+            print(json.dumps(r), flush=True)
+            return
+        print(f"{r['motion']:24s} {r['latency_ms']:5.0f} ms {r['rate_hz']:4.0f} {r['variant']:>13s} {r['mode']:>10s} "
+              f"{r['rms_px']:7.2f} {r['max_px']:7.2f}", flush=True)
+
+    bench_camera(latencies, rates, hzs, seconds=args.seconds, seed=args.seed, progress=show)
+    if not args.json:
+        print(f"b = 0.06 m, f = 500 px, 640 x 480, seed {args.seed}; sine: z = 0.8 m, amp = 0.3 m, the slave starting "
+              f"parallel, error from the first second to {args.seconds:g} s at the master's exposures; the image "
+              "'latency' old when read, 5 ms read to command, the motor reporting at 50 Hz; p is the predictive "
+              "controller's baseline")
     return 0
 
 

@@ -207,7 +207,8 @@ def run(args: argparse.Namespace) -> int:
         from vergence.plots import plot_run, plot_tracking
 
         if moving:
-            plot_tracking(steps, args.plot, f"{rig.motion.spec}, {args.rate:g} Hz, {control.mode}, "
+            late = f", image {timing.latency_s * 1e3:g} ms old" if timing.latency_s else ""
+            plot_tracking(steps, args.plot, f"{rig.motion.spec}, {args.rate:g} Hz{late}, {control.mode}, "
                           f"b={rig.head.baseline_m:g} m, f={rig.focal_px:g} px", first=skip)
         else:
             plot_run(steps, args.plot, math.degrees(rig.one_px_rad))

@@ -224,3 +224,42 @@ def bench_tracking(hzs=(0.25, 0.5, 1.0, 2.0), rates=(30.0, 60.0, 120.0), modes=(
             if isinstance(v, float) and not math.isfinite(v):
                 r[k] = None
     return rows
+
+
+CAMERA_VARIANTS = {"-": {}, "skew 8 ms": {"skew_s": 0.008}, "exposure 8 ms": {"exposure_s": 0.008}}
+
+
+def bench_camera(latencies=(0.0, 0.033, 0.066, 0.1), rates=(30.0, 60.0), hzs=(0.5, 1.0),
+                 variants=tuple(CAMERA_VARIANTS), modes=("predictive", "p"), seconds: float = 5.0, seed: int = 0,
+                 progress=None) -> list[dict]:
+    """Tracking with a real camera's timing (vergence.timing.CameraTiming): the image `latency` old when read,
+    and each variant (none, the slave exposed 8 ms after the master, an exposure of 8 ms: motion blur), on
+    `sine:z=0.8,amp=0.3,hz=F` at each camera rate and controller mode, as `vergence sim --motion ... --focal
+    500 --camera-latency L` runs it (the slave starting parallel): RMS and maximum error from the first second
+    to `seconds`. One dict per row (progress(row) as each is done)."""
+    import math
+
+    from .control import ControlSettings
+    from .sim.loop import closed_loop, tracking_error
+    from .sim.moving import MovingRig
+    from .timing import CameraTiming
+
+    rows = []
+    for latency in latencies:
+        for rate in rates:
+            for hz in hzs:
+                for variant in variants:
+                    for mode in modes:
+                        spec = f"sine:z=0.8,amp=0.3,hz={hz:g}"
+                        rig = MovingRig.from_options(motion=spec, focal="500", seed=str(seed))
+                        timing = CameraTiming(latency, **CAMERA_VARIANTS[variant])
+                        steps = list(closed_loop(rig, int(round(seconds * rate)), None, ControlSettings(mode=mode),
+                                                 None, rate, timing=timing, seed=seed))
+                        e = tracking_error(steps, int(round(rate)))
+                        row = dict(motion=spec, latency_ms=round(latency * 1e3, 1), rate_hz=rate, variant=variant,
+                                   mode=mode, **{k: (v if math.isfinite(v) else None) if isinstance(v, float) else v
+                                                 for k, v in e.items()})
+                        rows.append(row)
+                        if progress:
+                            progress(row)
+    return rows
