@@ -119,6 +119,7 @@ def blueprint(rr):
             row_shares=[3, 2]),
         rrb.TimeSeriesView(origin="depth", name="depth, m"), rrb.TimeSeriesView(origin="latency", name="latency"),
         rrb.TimeSeriesView(origin="workers", name="workers"),
+        rrb.TextLogView(origin="motor", name="motor status (faults in red)"),
         collapse_panels=True)
 
 
@@ -141,6 +142,7 @@ class Cockpit:
         self.point: tuple[int, int] | None = None  # the latest frame's fovea point (the capture keeps it)
         self.decided: set[int] = set()  # frames whose decision was logged (recent)
         self.workers: set[str] = set()
+        self.motor_status: str | None = None  # the latest motor state's status (logged as text when it changes)
 
     # -- helpers -------------------------------------------------------------------------------------------
 
@@ -287,6 +289,11 @@ class Cockpit:
         self._time(m.frame, m.t_capture_ns or m.t_ns)
         self._scalar("pan/motor", math.degrees(m.pan_rad))
         self._scalar("pan/goal", math.degrees(m.goal_rad))
+        if m.status != self.motor_status:  # a change of status is an event: disconnected, absent (issue #29), back
+            self.motor_status = m.status
+            fault = m.status in ("disconnected", "absent")
+            self._log("motor/status", self.rr.TextLog(f"motor {m.status}" + (f": {m.note}" if m.note else ""),
+                                                      level="ERROR" if fault else "INFO"))
 
     def _status(self, rest: str, payload: bytes, t_ns: int | None) -> None:
         text = bytes(payload).decode("utf-8")
