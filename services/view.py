@@ -33,6 +33,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 import threading
 from pathlib import Path
 
@@ -312,6 +313,39 @@ def host_address() -> str:
             return s.getsockname()[0]
     except OSError:
         return "127.0.0.1"
+
+
+class SaveWatch:
+    """Whether the --save file can still be written (issue #29): Rerun writes it from a thread of its own and
+    says nothing when a write fails, so every CHECK_S the file must still be the one opened (not removed or
+    replaced) and its filesystem must have MIN_FREE bytes left. fault(): why not (kept once found), or ""."""
+
+    CHECK_S = 1.0
+    MIN_FREE = 256 * 1024  # less than this left: Rerun's next chunks do not fit
+
+    def __init__(self, path: str | None):
+        self.path, self.why, self._ident, self._next = path, "", None, 0.0
+
+    def fault(self) -> str:
+        now = time.monotonic()
+        if self.path is None or self.why or now < self._next:
+            return self.why
+        self._next = now + self.CHECK_S
+        try:
+            st = os.stat(self.path)
+            fs = os.statvfs(self.path)
+        except OSError:
+            if self._ident is not None:
+                self.why = f"cannot write {self.path!r}: it was removed"
+            return self.why  # not created yet (Rerun opens it with its first data): next time
+        if self._ident is None:
+            self._ident = (st.st_dev, st.st_ino)
+        elif (st.st_dev, st.st_ino) != self._ident:
+            self.why = f"cannot write {self.path!r}: it was replaced by another file"
+        if fs.f_bavail * fs.f_frsize < self.MIN_FREE:
+            self.why = (f"cannot write {self.path!r}: No space left on device (its filesystem has "
+                        f"{fs.f_bavail * fs.f_frsize // 1024} KiB free)")
+        return self.why
 
 
 def start(rr, app: str, *, save: str | None = None, web: bool = False, port: int = 9090, grpc_port: int = 9876,
@@ -597,10 +631,14 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
         subs.append(s.liveliness().declare_subscriber(keys.alives(rig), on_alive, history=True))
         log.info("view: rig %s -> %s", rig, ", ".join(x for x in (save and f"file {save}", url, spawn and "viewer")
                                                        if x))
+        watch = SaveWatch(save)
         try:
             while not stop.is_set() and (end is None or time.monotonic() < end):
                 ready.wait(0.1)
                 ready.clear()
+                if watch.fault():  # --save can no longer be written: say it once, stop (exit 1)
+                    print(f"vergence view: {watch.fault()}; stopped", file=sys.stderr)
+                    break
                 while inbox:
                     rest, payload, t_ns = inbox.popleft()
                     try:
@@ -619,7 +657,7 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
         (cockpit.alive if isinstance(payload, bool) else cockpit.feed)(rest, payload, t_ns)
     rr.disconnect()  # flushes the file
     log.info("view exits: logged %s, bad %s, dropped %d (behind)", dict(cockpit.counts), dict(cockpit.bad), full[0])
-    return 0
+    return 1 if watch.fault() else 0
 
 
 def run(args: argparse.Namespace) -> int:
