@@ -48,6 +48,7 @@ def _run(fd: int, stall_s: float) -> None:
             except BlockingIOError:  # up does not read (it is busy or hung itself): the beat is dropped
                 pass
             except OSError:  # up is gone
+                os.close(fd)
                 return
         wait(BEAT_S)
 
