@@ -389,6 +389,24 @@ def test_spawn_without_a_display_says_what_to_do_instead(tmp_path):
     assert "--spawn needs a display" in out.stderr and "give --web" in out.stderr
 
 
+def test_each_change_of_the_motors_status_is_a_text_log_faults_as_errors(tmp_path):
+    """Issue #29: the cockpit logs the motor's status at motor/status when it changes, ERROR for disconnected and
+    absent (a fault), INFO otherwise; the same status again logs nothing."""
+    rec = rr.RecordingStream("vergence-test")
+    path = tmp_path / "m.rrd"
+    rec.save(str(path))
+    c = view.Cockpit(rr, rec)
+    st = M.MotorState(rig="r", t_ns=1, pan_rad=0.0, goal_rad=0.0, min_rad=-1, max_rad=1, status="ok", frame=1)
+    for i, (status, note) in enumerate([("ok", ""), ("ok", ""), ("disconnected", "no answer for 0.6 s"),
+                                        ("absent", "command ignored: motor absent for 2.1 s"), ("ok", "")]):
+        c._motor(M.replace(st, t_ns=1 + i, frame=1 + i, status=status, note=note))
+    rec.disconnect()
+    rows = read_rrd(path)["/motor/status"]
+    got = [(r["TextLog:text"][0], r["TextLog:level"][0]) for r in rows]
+    assert got == [("motor ok", "INFO"), ("motor disconnected: no answer for 0.6 s", "ERROR"),
+                   ("motor absent: command ignored: motor absent for 2.1 s", "ERROR"), ("motor ok", "INFO")], got
+
+
 @pytest.mark.slow
 def test_view_save_on_a_full_filesystem_stops_with_one_line(tmp_path):
     """`vergence view --save` into a 1 MiB tmpfs (issue #29): Rerun's writer fails silently, so the view
