@@ -218,3 +218,37 @@ def test_a_busy_child_that_beats_is_not_killed(caplog):
     lines = [r.getMessage() for r in caplog.records]
     assert any(re.match(r"busy \(pid \d+\) exited with 0 after 2\.\d s", m) for m in lines), lines
     assert not any("heartbeat" in m for m in lines), lines
+
+
+def test_a_hung_standby_is_killed_and_another_started(monkeypatch, caplog):
+    """A standby beats while it waits its turn; one SIGSTOPped is SIGKILLed (it could not take over) and a
+    fresh one follows after the back-off, while the child itself runs on."""
+    import os
+    import signal
+
+    from vergence.config import SuperviseSettings
+    from vergence_services import session, up
+
+    monkeypatch.setattr(up, "STANDBY_DELAY_S", 0.2)
+    monkeypatch.setattr(up, "BACKOFF_S", (0.2, 0.5))
+    sup = SuperviseSettings(heartbeat_s=0.3, start_grace_s=5.0, stall_s=0)
+    c = up.Child("svc", [sys.executable, "-c", BEATS + "from vergence_services import session; session._standby(); "
+                         + RUNS_ON], sup=sup)
+    c.standby_due = 0.0
+    c.start()
+    stop = session.Stop(install=False)
+    stopped = []
+
+    def cond():
+        if c.standby is not None and c.standby.ready and not stopped:
+            stopped.append(c.standby.p.pid)
+            os.kill(stopped[0], signal.SIGSTOP)
+        return stopped and c.standby is not None and c.standby.p.pid != stopped[0] and c.standby.ready
+
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until([c], stop, cond, 30) == 0
+    lines = [r.getMessage() for r in caplog.records]
+    assert any(re.fullmatch(rf"standby of svc \(pid {stopped[0]}\): no heartbeat for 0\.[3-6] s \(stopped or hung\): "
+                            "SIGKILL", m) for m in lines), lines
+    assert any(m.startswith(f"standby of svc (pid {stopped[0]}) exited with -9") for m in lines), lines
+    assert sum(m.startswith("started a standby of svc") for m in lines) == 2 and c.restarts == 0
