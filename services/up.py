@@ -325,8 +325,8 @@ def supervise(children: list[Child], stop: session.Stop, poll_s: float = POLL_S)
     while not stop.wait(poll_s):
         now = time.monotonic()
         for c in children:
-            if c.p is not None and c.due is None and c.hb is not None:
-                c.why = kill_hung(c.p, c.hb, now, c.name) or c.why
+            if c.p is not None and c.due is None and c.hb is not None and not c.why:  # once: dying can take time
+                c.why = kill_hung(c.p, c.hb, now, c.name) or ""
             code = c.exited()
             if code is not None and c.due is None and not _exited(c, code, now, children):
                 return 2
