@@ -20,7 +20,7 @@ from vergence.config import ConfigError, load
 from vergence.motors import DRIVERS, PortError, make_driver
 from vergence.motors.runner import MotorLoop
 
-from . import session
+from . import heartbeat, session
 
 log = logging.getLogger("vergence.actuator")
 
@@ -75,6 +75,7 @@ def serve(loop: MotorLoop, publish, inbox: Latest, stop: session.Stop, state_hz:
             publish(loop.command(data))
         now = time.monotonic()
         if now >= next_tick:
+            heartbeat.progress()  # the motor loop turns (services/heartbeat.py)
             publish(loop.tick())
             next_tick = max(next_tick + period, now - period)
 

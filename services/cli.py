@@ -8,6 +8,8 @@ import importlib
 import logging
 import sys
 
+from . import heartbeat
+
 # name: (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "match": ("vergence_services.match", "decide where the master fovea lies in the slave image (no Zenoh)"),
@@ -40,6 +42,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    heartbeat.start()  # first: a child of `vergence up` beats while it imports and compiles (services/heartbeat.py)
     argv = sys.argv[1:] if argv is None else argv
     name = next((a for a in argv if not a.startswith("-")), None)
     if name not in COMMANDS:

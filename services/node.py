@@ -29,7 +29,7 @@ import zenoh
 
 from vergence import keys
 
-from . import session
+from . import heartbeat, session
 from .health import Health
 
 STATUS_S = 1.0
@@ -131,7 +131,8 @@ class Node:
     # -- status -----------------------------------------------------------------------------------------------
 
     def status(self) -> None:
-        """Publish the status now: health.status() with fields()."""
+        """Publish the status now: health.status() with fields(); the loop that calls it turned (heartbeat)."""
+        heartbeat.progress()
         self._status.put(json.dumps(self.health.status(**self.fields())))
 
     def tick(self, now: float | None = None) -> None:

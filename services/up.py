@@ -12,6 +12,13 @@ the reducer and the capture, slow to start, each have a standby (a second proces
 warmed up and waits in session.open_session) that takes over the moment its child dies. A child that exits
 with 2 at its first start (bad options or settings) stops everything instead.
 
+Liveness by heartbeat, not by exit (issue #29): each child and standby beats on a pipe of its own from a
+thread that its work cannot starve (services/heartbeat.py). One silent for longer than [supervise]
+heartbeat_s (1.5 s; start_grace_s, 30 s, for its first beat) is stopped or hung: up SIGKILLs its process
+group and handles it as an exit (its standby takes over, or it restarts), the log line saying why. A busy
+child keeps beating (the thread runs through a compile or a heavy frame); a SIGSTOPped, frozen or deadlocked
+one does not (a loop that has not turned for stall_s, 10 s, stops the beats).
+
 SIGINT (Ctrl-C) or SIGTERM ends the supervision and stops the standbys, then the children in order (capture
 first, router last), each with SIGINT, then SIGTERM and SIGKILL after grace times (services/launch.py);
 children also get SIGTERM if `up` itself dies (Linux parent-death signal), so nothing is left behind.
@@ -20,14 +27,16 @@ children also get SIGTERM if `up` itself dies (Linux parent-death signal), so no
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
+import signal
 import sys
 import time
 
-from vergence.config import load
+from vergence.config import SuperviseSettings, load
 
-from . import session
+from . import heartbeat, session
 from .launch import GRACE_S, Proc, accepts, vergence, wait_listening
 
 log = logging.getLogger("vergence.up")
@@ -82,16 +91,89 @@ def commands(args: argparse.Namespace, rig: str) -> list[tuple[str, list[str]]]:
     return out
 
 
+class Heartbeat:
+    """up's end of a child's heartbeat pipe (services/heartbeat.py): env and fds for its start, then when its
+    latest beat came."""
+
+    def __init__(self, sup: SuperviseSettings):
+        self.sup = sup
+        self.r, self._w = os.pipe()
+        os.set_blocking(self.r, False)
+        self.env = {heartbeat.ENV: f"{self._w},{sup.stall_s:g}"}
+        self.fds = (self._w,)
+        self.started = time.monotonic()
+        self.last: float | None = None  # time.monotonic() of the latest beat read
+
+    def spawned(self) -> None:
+        """The child has its copy of the write end: close up's (its end of file is then the child's exit)."""
+        os.close(self._w)
+        self._w = -1
+
+    def poll(self, now: float) -> None:
+        """Read the beats that came (every byte there: one read can be short)."""
+        while self.r >= 0:
+            try:
+                got = os.read(self.r, 4096)
+            except BlockingIOError:
+                return
+            if not got:  # end of file: the child exited (up sees it by its exit)
+                return
+            self.last = now
+
+    def silent(self, now: float) -> float | None:
+        """How long it has not beaten, when longer than it may (heartbeat_s; before its first beat,
+        start_grace_s); None while it beats."""
+        since, limit = ((self.started, self.sup.start_grace_s) if self.last is None
+                        else (self.last, self.sup.heartbeat_s))
+        return now - since if now - since > limit else None
+
+    def close(self) -> None:
+        for fd in (self.r, self._w):
+            if fd >= 0:
+                os.close(fd)
+        self.r = self._w = -1
+
+
+def spawn(name: str, argv: list[str], sup: SuperviseSettings, env: dict | None = None,
+          pass_fds: tuple[int, ...] = ()) -> tuple[Proc, Heartbeat]:
+    """A child (or standby) of up, dying with it, with a heartbeat pipe."""
+    hb = Heartbeat(sup)
+    try:
+        p = Proc(name, argv, env=dict(os.environ if env is None else env, **hb.env), die_with_parent=True,
+                 pass_fds=pass_fds + hb.fds)
+    except BaseException:
+        hb.close()
+        raise
+    hb.spawned()
+    return p, hb
+
+
+def kill_hung(p: Proc, hb: Heartbeat, now: float, what: str) -> str | None:
+    """SIGKILL p's process group (nothing it started outlives it) if its heartbeat stopped; reaped. Why, or None
+    while it beats."""
+    hb.poll(now)
+    silent = hb.silent(now)
+    if silent is None or p.poll() is not None:
+        return None
+    why = (f"no heartbeat for {silent:.1f} s (stopped or hung)" if hb.last is not None else
+           f"no first heartbeat within {silent:.1f} s of its start")
+    log.warning("%s (pid %d): %s: SIGKILL", what, p.pid, why)
+    p.signal_group(signal.SIGKILL)
+    with contextlib.suppress(TimeoutError):
+        p.wait(2.0)
+    return why
+
+
 class Standby:
     """A second copy of a child, started ahead: it has imported and warmed up, and waits in
     session.open_session for a byte on its pipe (then it is the child) or its end (then it leaves)."""
 
-    def __init__(self, name: str, argv: list[str]):
+    def __init__(self, name: str, argv: list[str], sup: SuperviseSettings):
         self.name = name  # the child's
         ready_r, ready_w = os.pipe()
         go_r, go_w = os.pipe()
         env = dict(os.environ, **{session.STANDBY_ENV: f"{ready_w},{go_r}"})
-        self.p = Proc(f"the standby of {name}", argv, env=env, die_with_parent=True, pass_fds=(ready_w, go_r))
+        self.p, self.hb = spawn(f"the standby of {name}", argv, sup, env=env, pass_fds=(ready_w, go_r))
         os.close(ready_w)
         os.close(go_r)
         os.set_blocking(ready_r, False)
@@ -112,7 +194,7 @@ class Standby:
         return self.ready
 
     def go(self) -> Proc:
-        """Let it open its session: from now on it is the child."""
+        """Let it open its session: from now on it is the child (its heartbeat, self.hb, the child's)."""
         try:
             os.write(self._go_w, b"g")
         except OSError:
@@ -133,9 +215,12 @@ class Child:
     """One supervised child: its command, the running process, its restarts, its back-off and, for the
     children on the decisions' path that are slow to start (reducer, capture), a standby."""
 
-    def __init__(self, name: str, argv: list[str], standby: bool = False):
+    def __init__(self, name: str, argv: list[str], standby: bool = False, sup: SuperviseSettings | None = None):
         self.name, self.argv = name, argv
+        self.sup = sup or SuperviseSettings()
         self.p: Proc | None = None
+        self.hb: Heartbeat | None = None
+        self.why = ""  # why up killed the running process (its heartbeat stopped), for the exit's log line
         self.started = 0.0  # time.monotonic() of the latest start
         self.restarts = 0
         self.backoff = BACKOFF_S[0]
@@ -146,13 +231,24 @@ class Child:
             self.standby_due = 0.0
 
     def start(self) -> None:
-        self.p = Proc(self.name, self.argv, die_with_parent=True)
-        self.started, self.due = time.monotonic(), None
+        if self.hb is not None:
+            self.hb.close()
+        self.p, self.hb = spawn(self.name, self.argv, self.sup)
+        self.started, self.due, self.why = time.monotonic(), None, ""
         if self.standby_due is not None:
             self.standby_due = max(self.standby_due, self.started + STANDBY_DELAY_S)
 
     def exited(self) -> int | None:
         return None if self.p is None else self.p.poll()
+
+    def take_over(self, now: float) -> int:
+        """Its standby becomes the child (with its heartbeat); the pid of the dead one."""
+        dead = self.p.pid
+        if self.hb is not None:
+            self.hb.close()
+        self.hb = self.standby.hb
+        self.p, self.started, self.standby, self.why = self.standby.go(), now, None, ""
+        return dead
 
 
 def stop_all(children: list[Child]) -> None:
@@ -169,6 +265,8 @@ def stop_all(children: list[Child]) -> None:
         if c.p is not None:
             c.p.stop(GRACE_S, log=log)
             log.info("%s stopped (exit %s)", c.name, c.p.returncode)
+        if c.hb is not None:
+            c.hb.close()
 
 
 def restarts_line(children: list[Child]) -> str:
@@ -181,48 +279,57 @@ def _tend_standby(c: Child, now: float) -> None:
     """Start c's standby when due, note when it is ready, replace it if it died."""
     sb = c.standby
     if sb is not None:
+        kill_hung(sb.p, sb.hb, now, f"standby of {c.name}")
         if sb.poll_ready():
             log.info("standby of %s (pid %d) ready", c.name, sb.p.pid)
         elif sb.p.poll() is not None:
             log.warning("standby of %s (pid %d) exited with %s: another in %.0f s", c.name, sb.p.pid,
                         sb.p.returncode, BACKOFF_S[1])
             sb.close()
+            sb.hb.close()
             c.standby, c.standby_due = None, now + BACKOFF_S[1]
     elif c.standby_due is not None and now >= c.standby_due and c.exited() is None:
-        c.standby = Standby(c.name, c.argv)
+        c.standby = Standby(c.name, c.argv, c.sup)
         log.info("started a standby of %s (pid %d)", c.name, c.standby.p.pid)
+
+
+def _exited(c: Child, code: int, now: float, children: list[Child]) -> bool:
+    """Handle the exit of c (code): its standby takes over, or a restart is due after its back-off. False: it
+    refused its settings at its first start (exit 2), which no restart fixes."""
+    ran = now - c.started
+    if code == 2 and c.restarts == 0 and ran < STABLE_S:
+        log.error("%s (pid %d) refused its options or settings (exit 2): stopping", c.name, c.p.pid)
+        return False
+    if ran >= STABLE_S:
+        c.backoff = BACKOFF_S[0]
+    wait, c.backoff = c.backoff, min(c.backoff * 2, BACKOFF_S[1])
+    how = f"was killed by up ({c.why})" if c.why else f"exited with {code}"
+    if c.standby is not None and c.standby.p.poll() is None:
+        ready = "ready" if c.standby.ready else "still starting"
+        dead = c.take_over(now)
+        c.standby_due = now + max(wait, STANDBY_DELAY_S)
+        c.restarts += 1
+        log.warning("%s (pid %d) %s after %.1f s: its standby (pid %d, %s) takes over, restart %d; %s", c.name,
+                    dead, how, ran, c.p.pid, ready, c.restarts, restarts_line(children))
+        return True
+    c.due = now + wait
+    log.warning("%s (pid %d) %s after %.1f s: restarting in %.1f s", c.name, c.p.pid, how, ran, wait)
+    return True
 
 
 def supervise(children: list[Child], stop: session.Stop, poll_s: float = POLL_S) -> int:
     """Restart every child that exits (in an instant with its standby if it has one ready or starting,
-    else after its back-off), until stop is set; the exit code of `up` (2: a child refused its settings at
-    its first start, which no restart can fix)."""
+    else after its back-off), or whose heartbeat stopped (SIGKILLed first), until stop is set; the exit
+    code of `up` (2: a child refused its settings at its first start, which no restart can fix)."""
     last_status = time.monotonic()
     while not stop.wait(poll_s):
         now = time.monotonic()
         for c in children:
+            if c.p is not None and c.due is None and c.hb is not None and not c.why:  # once: dying can take time
+                c.why = kill_hung(c.p, c.hb, now, c.name) or ""
             code = c.exited()
-            if code is not None and c.due is None:
-                ran = now - c.started
-                if code == 2 and c.restarts == 0 and ran < STABLE_S:
-                    log.error("%s (pid %d) refused its options or settings (exit 2): stopping", c.name, c.p.pid)
-                    return 2
-                if ran >= STABLE_S:
-                    c.backoff = BACKOFF_S[0]
-                wait, c.backoff = c.backoff, min(c.backoff * 2, BACKOFF_S[1])
-                if c.standby is not None and c.standby.p.poll() is None:
-                    ready = "ready" if c.standby.ready else "still starting"
-                    dead = c.p.pid
-                    c.p, c.started, c.standby = c.standby.go(), now, None
-                    c.standby_due = now + max(wait, STANDBY_DELAY_S)
-                    c.restarts += 1
-                    log.warning("%s (pid %d) exited with %s after %.1f s: its standby (pid %d, %s) takes over, "
-                                "restart %d; %s", c.name, dead, code, ran, c.p.pid, ready, c.restarts,
-                                restarts_line(children))
-                    continue
-                c.due = now + wait
-                log.warning("%s (pid %d) exited with %s after %.1f s: restarting in %.1f s", c.name, c.p.pid, code,
-                            ran, wait)
+            if code is not None and c.due is None and not _exited(c, code, now, children):
+                return 2
             if c.due is not None and now >= c.due and not stop.is_set():
                 c.start()
                 c.restarts += 1
@@ -255,7 +362,7 @@ def run(args: argparse.Namespace) -> int:
         for name, argv in commands(args, rig):
             if stop.is_set():
                 break
-            children.append(Child(name, argv, standby=name in standby))
+            children.append(Child(name, argv, standby=name in standby, sup=settings.supervise))
             children[-1].start()
             log.info("started %s (pid %d): %s", name, children[-1].p.pid, " ".join(argv[3:]))
             if name == "router":

@@ -33,6 +33,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 import threading
 from pathlib import Path
 
@@ -119,6 +120,7 @@ def blueprint(rr):
             row_shares=[3, 2]),
         rrb.TimeSeriesView(origin="depth", name="depth, m"), rrb.TimeSeriesView(origin="latency", name="latency"),
         rrb.TimeSeriesView(origin="workers", name="workers"),
+        rrb.TextLogView(origin="motor", name="motor status (faults in red)"),
         collapse_panels=True)
 
 
@@ -141,6 +143,7 @@ class Cockpit:
         self.point: tuple[int, int] | None = None  # the latest frame's fovea point (the capture keeps it)
         self.decided: set[int] = set()  # frames whose decision was logged (recent)
         self.workers: set[str] = set()
+        self.motor_status: str | None = None  # the latest motor state's status (logged as text when it changes)
 
     # -- helpers -------------------------------------------------------------------------------------------
 
@@ -287,6 +290,11 @@ class Cockpit:
         self._time(m.frame, m.t_capture_ns or m.t_ns)
         self._scalar("pan/motor", math.degrees(m.pan_rad))
         self._scalar("pan/goal", math.degrees(m.goal_rad))
+        if m.status != self.motor_status:  # a change of status is an event: disconnected, absent (issue #29), back
+            self.motor_status = m.status
+            fault = m.status in ("disconnected", "absent")
+            self._log("motor/status", self.rr.TextLog(f"motor {m.status}" + (f": {m.note}" if m.note else ""),
+                                                      level="ERROR" if fault else "INFO"))
 
     def _status(self, rest: str, payload: bytes, t_ns: int | None) -> None:
         text = bytes(payload).decode("utf-8")
@@ -305,6 +313,39 @@ def host_address() -> str:
             return s.getsockname()[0]
     except OSError:
         return "127.0.0.1"
+
+
+class SaveWatch:
+    """Whether the --save file can still be written (issue #29): Rerun writes it from a thread of its own and
+    says nothing when a write fails, so every CHECK_S the file must still be the one opened (not removed or
+    replaced) and its filesystem must have MIN_FREE bytes left. fault(): why not (kept once found), or ""."""
+
+    CHECK_S = 1.0
+    MIN_FREE = 256 * 1024  # less than this left: Rerun's next chunks do not fit
+
+    def __init__(self, path: str | None):
+        self.path, self.why, self._ident, self._next = path, "", None, 0.0
+
+    def fault(self) -> str:
+        now = time.monotonic()
+        if self.path is None or self.why or now < self._next:
+            return self.why
+        self._next = now + self.CHECK_S
+        try:
+            st = os.stat(self.path)
+            fs = os.statvfs(self.path)
+        except OSError:
+            if self._ident is not None:
+                self.why = f"cannot write {self.path!r}: it was removed"
+            return self.why  # not created yet (Rerun opens it with its first data): next time
+        if self._ident is None:
+            self._ident = (st.st_dev, st.st_ino)
+        elif (st.st_dev, st.st_ino) != self._ident:
+            self.why = f"cannot write {self.path!r}: it was replaced by another file"
+        if fs.f_bavail * fs.f_frsize < self.MIN_FREE:
+            self.why = (f"cannot write {self.path!r}: No space left on device (its filesystem has "
+                        f"{fs.f_bavail * fs.f_frsize // 1024} KiB free)")
+        return self.why
 
 
 def start(rr, app: str, *, save: str | None = None, web: bool = False, port: int = 9090, grpc_port: int = 9876,
@@ -590,10 +631,14 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
         subs.append(s.liveliness().declare_subscriber(keys.alives(rig), on_alive, history=True))
         log.info("view: rig %s -> %s", rig, ", ".join(x for x in (save and f"file {save}", url, spawn and "viewer")
                                                        if x))
+        watch = SaveWatch(save)
         try:
             while not stop.is_set() and (end is None or time.monotonic() < end):
                 ready.wait(0.1)
                 ready.clear()
+                if watch.fault():  # --save can no longer be written: say it once, stop (exit 1)
+                    print(f"vergence view: {watch.fault()}; stopped", file=sys.stderr)
+                    break
                 while inbox:
                     rest, payload, t_ns = inbox.popleft()
                     try:
@@ -612,7 +657,7 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
         (cockpit.alive if isinstance(payload, bool) else cockpit.feed)(rest, payload, t_ns)
     rr.disconnect()  # flushes the file
     log.info("view exits: logged %s, bad %s, dropped %d (behind)", dict(cockpit.counts), dict(cockpit.bad), full[0])
-    return 0
+    return 1 if watch.fault() else 0
 
 
 def run(args: argparse.Namespace) -> int:

@@ -17,6 +17,7 @@ values for one limit would leave the reader guessing which one holds).
     [actuator]  # driver, port, and the motor (see vergence.motors): [actuator.motor] min_deg, max_deg,
                 # max_step_deg, dead_band_deg are the one home of the pan limits (the reducer's controller
                 # and the actuator both read them there)
+    [supervise] # `vergence up`: heartbeat_s, start_grace_s, stall_s (liveness by heartbeat, issue #29)
     [limits]    # what a message may claim before it is believed (clock skew, frame window, sizes, membership)
 """
 
@@ -37,7 +38,7 @@ from .motors.base import MotorSettings
 from .timing import CameraTiming
 
 __all__ = ["ConfigError", "MOVED", "RigSettings", "CaptureSettings", "CameraSettings", "ReducerSettings",
-           "ActuatorSettings", "LimitSettings", "Settings", "load", "from_dict"]
+           "ActuatorSettings", "LimitSettings", "SuperviseSettings", "Settings", "load", "from_dict"]
 
 
 class ConfigError(ValueError):
@@ -153,6 +154,32 @@ class LimitSettings:
 
 
 @dataclass(frozen=True)
+class SuperviseSettings:
+    """How `vergence up` tells a hung child from a busy one (services/heartbeat.py, services/up.py).
+
+    heartbeat_s: a child (or standby) whose heartbeat, a byte every 0.1 s from a thread of its own, has been
+    missing this long is hung (SIGSTOP, a debugger, swapped out): it is SIGKILLed and handled as an exit (its
+    standby takes over, or it is restarted). start_grace_s: the time a fresh child has for its first beat (its
+    interpreter starting; the thread starts before any heavy import, so it beats through a numba compile).
+    stall_s: a child whose own loop (its status, the actuator's motor loop) has not turned for this long stops
+    beating, so a deadlocked loop is hung too (0: not checked)."""
+
+    heartbeat_s: float = 1.5
+    start_grace_s: float = 30.0
+    stall_s: float = 10.0
+
+    def __post_init__(self):
+        for name in ("heartbeat_s", "start_grace_s"):
+            v = getattr(self, name)
+            if not (v > 0 and v < float("inf")):
+                raise ValueError(f"{name} must be a positive number of seconds, got {v}")
+        if not (self.stall_s >= 0 and self.stall_s < float("inf")):
+            raise ValueError(f"stall_s must be >= 0 (0: not checked), got {self.stall_s}")
+        if 0 < self.stall_s <= self.heartbeat_s:
+            raise ValueError(f"stall_s ({self.stall_s}) must exceed heartbeat_s ({self.heartbeat_s}), or be 0")
+
+
+@dataclass(frozen=True)
 class Settings:
     rig: str = "head"
     geometry: RigSettings = field(default_factory=RigSettings)  # the TOML's [rig] table
@@ -163,6 +190,7 @@ class Settings:
     control: ControlSettings = field(default_factory=ControlSettings)
     actuator: ActuatorSettings = field(default_factory=ActuatorSettings)
     limits: LimitSettings = field(default_factory=LimitSettings)
+    supervise: SuperviseSettings = field(default_factory=SuperviseSettings)
 
 
 _CHECKS: dict[type, type] = {}

@@ -105,6 +105,7 @@ class Snapshot:
     min_rad: float = math.nan
     max_rad: float = math.nan
     motor_status: str = ""
+    motor_note: str = ""  # the motor state's note (why it is disconnected or absent)
     at_limit: bool = False
     profile: m.Profile | None = None
     command: m.Command | None = None
@@ -321,7 +322,7 @@ class Monitor:
             if self._motor is not None:
                 mo = self._motor
                 s.pan_rad, s.goal_rad, s.min_rad, s.max_rad = mo.pan_rad, mo.goal_rad, mo.min_rad, mo.max_rad
-                s.motor_status, s.at_limit = mo.status, mo.at_limit
+                s.motor_status, s.at_limit, s.motor_note = mo.status, mo.at_limit, mo.note
             if self._command is not None:
                 s.target_rad = self._command.pan_rad
             if self._truth is not None:
@@ -479,6 +480,8 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
         status += " AT LIMIT"
     out.append(f"pan {_deg(s.pan_rad)}   goal {_deg(s.goal_rad)}   target {_deg(s.target_rad)}{lim}   "
                f"status {status}")
+    if s.motor_status in ("disconnected", "absent"):  # a fault, not a state: say it in red, with why
+        out.append(c(RED, f"MOTOR {s.motor_status.upper()}: commands are not executed; {s.motor_note[:width]}"))
     if math.isfinite(s.truth_rad):
         out.append(f"truth {_deg(s.truth_rad)} (the simulator's converged pan at the last capture; that frame's "
                    f"pan is {s.truth_error_px:+.2f} px off it)")

@@ -11,10 +11,17 @@ key is the full Zenoh key (vergence/<rig>/...), payload the message bytes exactl
 messages.* map, or anything else: recording never decodes). The reader stops quietly at a truncated last
 record (a recorder killed mid-write) and says so in Reader.truncated; a corrupt record in the middle is an
 error that names the file and the byte offset.
+
+A write that fails (a full disk, an I/O error) raises RecordingError naming the file and the error, and
+leaves the file cut at the end of the last record it had flushed whole (Writer.durable): it replays up to
+the failure, with no truncated tail. check() says whether the file is still the one being written (not
+removed or replaced).
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import io
 import os
 import time
@@ -29,6 +36,7 @@ FORMAT = "vergence-recording"
 VERSION = 1
 EVENTS = ("put", "delete", "alive", "dead")
 MAX_RECORD = 64 * 1024 * 1024
+FLUSH_BYTES = 64 * 1024  # a Writer flushes after this many bytes (or flush_every records): what a failure loses
 
 
 class RecordingError(ValueError):
@@ -52,7 +60,8 @@ class Record:
 
 
 class Writer:
-    """Appends records to a file. Thread-compatible, not thread-safe: one writer thread (see record.py)."""
+    """Appends records to a file. Thread-compatible, not thread-safe: one writer thread (see record.py).
+    count, bytes: records and bytes written (buffered included); durable: (records, bytes) flushed whole."""
 
     def __init__(self, path: str | os.PathLike, rig: str = "", t_start_ns: int | None = None,
                  flush_every: int = 64):
@@ -62,15 +71,25 @@ class Writer:
         except OSError as e:
             raise RecordingError(f"cannot write recording {self.path!r}: {e.strerror}; check the directory "
                                  f"exists and is writable") from None
+        st = os.fstat(self._f.fileno())
+        self._ident = (st.st_dev, st.st_ino)
         self.count = 0
         self.bytes = 0
+        self.durable = (0, 0)
+        self.error: str | None = None
         self._flush_every = max(1, flush_every)
         header = {"format": FORMAT, "version": VERSION, "rig": rig,
                   "t_start_ns": time.time_ns() if t_start_ns is None else t_start_ns}
         self._write(msgpack.packb(header, use_bin_type=True))
+        self.flush()  # a failure at once still leaves a recording (an empty one)
 
     def _write(self, data: bytes) -> None:
-        self._f.write(data)
+        if self.error is not None:
+            raise RecordingError(self.error)
+        try:
+            self._f.write(data)
+        except OSError as e:
+            self._failed(e)
         self.bytes += len(data)
 
     def write(self, key: str, t_ns: int, payload: bytes, event: str = "put") -> None:
@@ -78,22 +97,57 @@ class Writer:
             raise ValueError(f"event {event!r} is not one of {EVENTS}")
         self._write(Record(key, int(t_ns), bytes(payload), event).pack())
         self.count += 1
-        if self.count % self._flush_every == 0:
-            self._f.flush()
+        if self.count % self._flush_every == 0 or self.bytes - self.durable[1] >= FLUSH_BYTES:
+            self.flush()
 
     def flush(self) -> None:
-        self._f.flush()
+        if self.error is not None:
+            raise RecordingError(self.error)
+        try:
+            self._f.flush()
+        except OSError as e:
+            self._failed(e)
+        self.durable = (self.count, self.bytes)
+
+    def check(self) -> None:
+        """RecordingError if the file was removed or replaced since it was opened (writes to it would be lost)."""
+        if self.error is not None:
+            raise RecordingError(self.error)
+        try:
+            st = os.stat(self.path)
+            same = (st.st_dev, st.st_ino) == self._ident
+        except OSError:
+            same = False
+        if not same:
+            self._failed(None, "it was removed or replaced while recording")
+
+    def _failed(self, e: OSError | None, what: str = "") -> None:
+        """Stop writing for good: cut the file after its last record flushed whole, close it, raise."""
+        if e is not None:
+            code = errno.errorcode.get(e.errno or 0, "")
+            what = f"{e.strerror or e}" + (f" ({code})" if code else "")
+        self.error = f"cannot write recording {self.path!r}: {what}"
+        fd = os.dup(self._f.fileno())
+        try:
+            with contextlib.suppress(OSError):
+                self._f.close()  # tries to flush the buffer once more, and fails as the write did
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, self.durable[1])  # the bytes after the last whole flush: a partial tail
+        finally:
+            os.close(fd)
+        raise RecordingError(self.error)
 
     def close(self) -> None:
         if not self._f.closed:
-            self._f.flush()
+            self.flush()
             self._f.close()
 
     def __enter__(self) -> "Writer":
         return self
 
     def __exit__(self, *exc) -> None:
-        self.close()
+        if self.error is None:
+            self.close()
 
 
 class Reader:

@@ -8,7 +8,8 @@ What it does: finds packets in the byte stream (skipping noise), checks the CRC 
 the CRC error), removes stuffing, answers PING, READ and WRITE for its id (PING also for the broadcast id),
 keeps the control table as bytes, refuses writes to read-only fields and to the EEPROM area while torque
 is on (access error), checks values (data range / data limit errors), and moves Present Position toward
-Goal Position at a finite speed while torque is on. Faults can be injected for the next replies.
+Goal Position at a finite speed while torque is on. Faults can be injected for the next replies, and
+silence(s) makes it answer nothing for s seconds (a motor unpowered, or its bus cut), then come back.
 """
 
 from __future__ import annotations
@@ -122,6 +123,9 @@ class DynamixelEmulator:
         self.buf = bytearray()
         self.packets: list[tuple[int, int, bytes]] = []  # (id, instruction, params) of every valid packet
         self.goal_writes: list[int] = []
+        self.goal_log: list[tuple[float, int]] = []  # (clock(), value) of each goal write it took
+        self.silent_until = 0.0  # clock() before which it hears and answers nothing (silence())
+        self.unheard: list[tuple[float, int, int]] = []  # (clock(), id, instruction) of packets sent while silent
         self.errors_sent: list[int] = []
         self.bad_crc = 0
         # fault injection for the next replies
@@ -152,9 +156,28 @@ class DynamixelEmulator:
         self.set("present_position", int(round(pos)))
         self.set("moving", int(pos != goal))
 
+    def silence(self, seconds: float) -> None:
+        """Answer nothing, and take nothing in, for `seconds` from now (an unpowered motor, or a cut bus)."""
+        with self.lock:
+            self.silent_until = self.clock() + seconds
+
+    def silent(self) -> bool:
+        return self.clock() < self.silent_until
+
+    def _unheard(self, data: bytes) -> None:
+        """Note the packets in data (their id and instruction) that a silent motor does not hear."""
+        i = 0
+        while (i := data.find(HEADER, i)) >= 0 and i + 7 < len(data):
+            self.unheard.append((self.clock(), data[i + 4], data[i + 7]))
+            i += 4
+
     # -- bytes --------------------------------------------------------------------------------------------
     def feed(self, data: bytes) -> bytes:
         with self.lock:
+            if self.silent():
+                self._unheard(data)
+                self.buf.clear()
+                return b""
             self.buf += data
             out = bytearray()
             while True:
@@ -223,6 +246,7 @@ class DynamixelEmulator:
             return ERR_RANGE
         if name == "goal_position":
             self.goal_writes.append(value)
+            self.goal_log.append((self.clock(), value))
             if self.get("operating_mode") == 3 and not (
                     self.get("min_position_limit") <= value <= self.get("max_position_limit")):
                 return ERR_LIMIT

@@ -7,6 +7,7 @@ through a symlink, which the test re-points to a new pty to simulate unplugging 
 from __future__ import annotations
 
 import math
+import re
 import signal
 import subprocess
 import time
@@ -235,3 +236,82 @@ def test_reducer_and_actuator_bound_the_pan_by_one_motor_table(tmp_path):
         assert any(c.correction_rad == pytest.approx(-math.radians(0.5), abs=1e-12) for c in cmds)
         assert cmds[-1].pan_rad == pytest.approx(-math.radians(1.0), abs=1e-12)
         assert all(-math.radians(1.0) - 1e-12 <= m.goal_rad <= math.radians(1.0) + 1e-12 for m in states(motor))
+
+
+def test_a_silent_dynamixel_is_a_visible_fault_and_control_resumes_by_itself(tmp_path):
+    """Issue #29: the emulated motor answers nothing for 10 s, then comes back, under a stream of fresh commands
+    (20 Hz). The real actuator (default settings: silent_s 0.5, absent_s 2, watchdog_s 2) reports
+    "disconnected" within silent_s and "absent" absent_s later, in its state, its log and a real `vergence
+    monitor`; while lost it writes nothing but pings; once the motor answers it holds where it is and the
+    commands move it again within 2 s; no goal it writes comes from a command older than the watchdog's 2 s."""
+    import threading
+
+    emu = DynamixelEmulator(present=2048)
+    dev = PtyDevice(emu, str(tmp_path / "ttyDXL"))
+    sent: list[tuple[float, int]] = []  # (time.monotonic(), goal ticks) of each command
+    quit_ = threading.Event()
+    try:
+        with Procs(tmp_path) as P:
+            P.router()
+            act = P.start("actuator", "actuator", "--driver", "dynamixel", "--port", dev.link, "--id", "1",
+                          "--baud", "1000000")
+            s = P.session()
+            col = P.collect(s, P.key("motor/state"))
+            P.wait_alive(s, "actuator")
+            wait_state(col, lambda m: m.status == "ok", 10, "status ok", P.logs)
+            mon = P.start("monitor", "monitor", "--timeout", "60", "--refresh", "0.2", "--color", "never")
+            pub = s.declare_publisher(P.key("command"))
+
+            def commander():  # the reducer's part: a fresh command every 50 ms, a slow sine of 0.3 rad
+                k = 0
+                while not quit_.wait(0.05):
+                    k += 1
+                    pan = 0.3 * math.sin(2 * math.pi * k / 400)
+                    sent.append((time.monotonic(), ticks(pan)))
+                    pub.put(command(P.rig, pan, k))
+
+            th = threading.Thread(target=commander, daemon=True)
+            th.start()
+            wait_for(lambda: len(emu.goal_writes) > 10, 10, "goals written")
+            t_quiet = time.monotonic()
+            emu.silence(10.0)
+            n = len(col)
+            lost = wait_state(col, lambda m: m.status == "disconnected", 5, "disconnected", P.logs, after=n)
+            t_lost = time.monotonic()
+            absent = wait_state(col, lambda m: m.status == "absent", 10, "absent", P.logs, after=n)
+            t_absent = time.monotonic()
+            wait_for(lambda: "MOTOR ABSENT: commands are not executed" in mon.text(), 5, "the monitor's fault line",
+                     logs=P.logs)
+            t_monitor = time.monotonic()
+            assert re.search(r"motor absent for 2\.\d s \(lost: no answer for 0\.\d s: ", act.text()), act.text()
+            t_back = emu.silent_until
+            n = len(col)
+            wait_state(col, lambda m: m.status == "ok", 10, "ok again", P.logs, after=n)
+            t_ok = time.monotonic()
+            wait_for(lambda: [v for t, v in emu.goal_log if t > t_back][1:], 5, "a command executed after the return")
+            quit_.set()
+            th.join(5)
+            after = [(t, v) for t, v in emu.goal_log if t > t_back]
+            t_moved = after[1][0]
+            print(f"silent for 10 s: disconnected after {t_lost - t_quiet:.2f} s, absent after "
+                  f"{t_absent - t_quiet:.2f} s, on the monitor after {t_monitor - t_quiet:.2f} s; back: ok after "
+                  f"{t_ok - t_back:.2f} s, a command executed after {t_moved - t_back:.2f} s")
+            assert "no answer for" in lost.note and absent.ignored > 0
+            assert t_lost - t_quiet < 0.5 + 0.5 and t_absent - t_quiet < 0.5 + 2.0 + 0.6
+            assert t_moved - t_back < 2.0
+            # while lost: nothing but pings on the bus (the probes); before it, the transactions of silent_s
+            assert {inst for t, _, inst in emu.unheard if t > t_lost} == {Inst.PING}
+            # back: the first goal is the hold at its present position, then only fresh commands
+            hold = after[0][1]
+            assert hold == emu.goal_log[len(emu.goal_log) - len(after) - 1][1]  # where it was when it went silent
+            for t, v in after[1:]:
+                src = [ts for ts, tv in sent if tv == v and ts <= t]
+                assert src and t - src[-1] < 2.0, (t, v)
+            assert re.search(r"motor reconnected \(1\) after 9\.\d s absent", act.text()) or \
+                re.search(r"motor reconnected \(1\) after 1\d\.\d s absent", act.text()), act.text()
+            act.signal(signal.SIGINT)
+            assert act.wait(10) == 0
+            mon.signal(signal.SIGINT)
+    finally:
+        quit_.set()
+        dev.close()

@@ -3,6 +3,13 @@ are the recorded ones, bit for bit (real processes, a real router, bounded waits
 
 from __future__ import annotations
 
+import contextlib
+import os
+import re
+import signal
+import subprocess
+import time
+
 import pytest
 
 from procs import Procs, textured_pair, wait_for
@@ -70,3 +77,98 @@ def test_record_then_replay_gives_the_same_profiles(tmp_path, pair):
             assert (a.k, a.k_sub, a.v_shift, a.direction, a.magnitude, a.confidence, a.confident) == \
                 (b.k, b.k_sub, b.v_shift, b.direction, b.magnitude, b.confidence, b.confident)
             assert set(b.workers) <= new_workers and len(b.workers) == 3
+
+
+PAYLOAD = bytes(50_000)  # a frame-sized message
+PACE_S = 0.005  # the publisher's pace, 200 messages (10 MB) a second: what the recorder is given to write
+
+
+def _publish_while(pub, cond, timeout: float) -> None:
+    """Put PAYLOAD every PACE_S while cond() holds, at most timeout s (the pace is the load under test)."""
+    deadline = time.monotonic() + timeout
+    while cond() and time.monotonic() < deadline:
+        pub.put(PAYLOAD)
+        time.sleep(PACE_S)
+
+
+def test_record_on_a_full_filesystem_stops_within_1_s_and_the_file_replays(tmp_path):
+    """`vergence record` into a 1 MiB tmpfs (issue #29): exit status 1 within 1 s of the disk filling, one
+    line naming the file and the error, RSS flat meanwhile, and the file replays up to the failure (no
+    truncated tail). Needs root to mount the tmpfs."""
+    if os.geteuid() != 0:
+        pytest.skip("mounting a 1 MiB tmpfs needs root")
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        path = mnt / "run.vrec"
+        with Procs(tmp_path) as P:
+            P.router()
+            s = P.session()
+            rec = P.start("record", "record", str(path))
+            P.wait_alive(s, "record", 1)
+            pub = s.declare_publisher(P.key("frame"))
+            full: list[float] = []
+            rss: list[int] = []
+
+            def running() -> bool:
+                st = os.statvfs(mnt)
+                if not full and st.f_bavail * st.f_frsize < 64 * 1024:
+                    full.append(time.monotonic())
+                with contextlib.suppress(Exception):
+                    rss.append(rec.rss_bytes() or rss[-1])  # 0 once it exits
+                return rec.alive()
+
+            _publish_while(pub, running, 30)
+            t_exit = time.monotonic()
+            assert rec.wait(5) == 1, rec.tail()
+            err = [line for line in rec.text().splitlines() if line.startswith("vergence record:")]
+            print(err, f"; exit {t_exit - full[0]:.3f} s after the disk filled; RSS "
+                       f"{min(rss) / 2**20:.1f}..{max(rss) / 2**20:.1f} MB")
+            assert len(err) == 1 and f"cannot write recording '{path}': No space left on device (ENOSPC)" in err[0]
+            assert t_exit - full[0] < 1.0
+            assert max(rss) - min(rss) < 20 * 2**20
+            n = int(re.search(r"the file holds the first (\d+) messages", err[0])[1])
+            header, records, truncated = read(path)
+            assert len(records) == n > 5 and not truncated
+            assert all(r.payload == PAYLOAD for r in records if r.key.endswith("/frame"))
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def test_record_into_a_slow_disk_drops_what_does_not_fit_and_stays_bounded(tmp_path):
+    """A FIFO that the test does not read for 3 s is a disk that stops: the writer blocks, the queue holds at
+    most --queue-mb (4 MB), the rest is dropped and counted; RSS flat; once the FIFO is read again the
+    recording completes with every message it kept."""
+    fifo = tmp_path / "slow.vrec"
+    os.mkfifo(fifo)
+    rfd = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)  # a reader exists: the recorder's open does not block
+    with Procs(tmp_path) as P:
+        P.router()
+        s = P.session()
+        rec = P.start("record", "record", str(fifo), "--queue-mb", "4")
+        P.wait_alive(s, "record", 1)
+        pub = s.declare_publisher(P.key("frame"))
+        rss: list[int] = []
+        t_end = time.monotonic() + 3.0
+        _publish_while(pub, lambda: rss.append(rec.rss_bytes()) or time.monotonic() < t_end, 10)
+        rec.signal(signal.SIGINT)
+        got = bytearray()
+        os.set_blocking(rfd, True)
+        while chunk := os.read(rfd, 1 << 20):  # the disk is back: read all of it, to the recorder's close
+            got += chunk
+        os.close(rfd)
+        assert rec.wait(20) == 0, rec.tail()
+        line = [x for x in rec.text().splitlines() if x.startswith("vergence record:")][-1]
+        print(line, f"; RSS {min(rss) / 2**20:.1f}..{max(rss) / 2**20:.1f} MB")
+        m = re.search(r"(\d+) messages, .*; (\d+) dropped \(([\d.]+) MB: the disk fell behind by 4 MB\)", line)
+        assert m, line
+        kept, dropped = int(m[1]), int(m[2])
+        assert dropped > 200 and kept < 600 - dropped + 50  # ~600 sent in 3 s: most could not wait
+        assert max(rss) - min(rss) < 30 * 2**20  # the 4 MB queue, not the 30 MB sent
+        out = tmp_path / "copy.vrec"
+        out.write_bytes(bytes(got))
+        header, records, truncated = read(out)
+        assert len(records) == kept and not truncated

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import re
 import subprocess
 import sys
 import threading
@@ -157,3 +158,97 @@ def test_a_standby_takes_over_at_once_and_leaves_when_up_stops(monkeypatch, capl
     assert sum(m.startswith("started a standby of svc") for m in lines) == 2  # and another standby after it
     assert not any("did not stop" in m for m in lines)  # the waiting standby left when its pipe closed
     assert c.p.returncode is not None
+
+
+BEATS = "from vergence_services import heartbeat; heartbeat.start(); "  # what cli.main does first
+
+
+def test_a_child_whose_heartbeat_stops_is_killed_and_restarted(caplog):
+    """Liveness by heartbeat (issue #29): a child that SIGSTOPs itself after 0.5 s, one that never beats (past
+    start_grace_s) and one whose loop stops turning (past stall_s) are each SIGKILLed and restarted, the log
+    saying why; the stopped one is gone (not left stopped)."""
+    from vergence.config import SuperviseSettings
+    from vergence_services import session, up
+
+    sup = SuperviseSettings(heartbeat_s=0.3, start_grace_s=1.0, stall_s=0.6)
+    stops = up.Child("stops", [sys.executable, "-c", BEATS + "import os, signal, time; time.sleep(0.5); "
+                                                            "os.kill(os.getpid(), signal.SIGSTOP)"], sup=sup)
+    mute = up.Child("mute", [sys.executable, "-c", RUNS_ON], sup=sup)
+    stalls = up.Child("stalls", [sys.executable, "-c", BEATS + "heartbeat.progress(); " + RUNS_ON], sup=sup)
+    children = [stops, mute, stalls]
+    for c in children:
+        c.start()
+    first = {c.name: c.p for c in children}
+    stop = session.Stop(install=False)
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until(children, stop, lambda: all(c.restarts >= 1 for c in children), 30) == 0
+    lines = [r.getMessage() for r in caplog.records]
+    print("\n".join(lines))
+    pid = {n: p.pid for n, p in first.items()}
+    for name, why in (("stops", r"no heartbeat for 0\.[3-6] s \(stopped or hung\)"),
+                      ("mute", r"no first heartbeat within 1\.[0-3] s of its start"),
+                      ("stalls", r"no heartbeat for 0\.[3-6] s \(stopped or hung\)")):
+        assert any(re.fullmatch(rf"{name} \(pid {pid[name]}\): {why}: SIGKILL", m) for m in lines), (name, lines)
+        assert any(re.match(rf"{name} \(pid {pid[name]}\) was killed by up \({why}\) after [\d.]+ s: restarting "
+                            r"in 0\.2 s", m) for m in lines), (name, lines)
+        assert first[name].returncode == -9  # reaped: no stopped process left behind
+    ran = {n: float(re.search(rf"{n} \(pid {pid[n]}\) was killed by up \(.*\) after ([\d.]+) s", "\n".join(lines))[1])
+           for n in pid}
+    # killed heartbeat_s after its last beat, which came up to one BEAT_S (0.1 s) before it stopped (and the log
+    # rounds to 0.1 s)
+    assert 0.5 + 0.3 - 0.15 <= ran["stops"] < 0.5 + 0.3 + 1.0
+    assert 1.0 <= ran["mute"] < 2.0
+    assert 0.6 + 0.3 - 0.15 <= ran["stalls"] < 0.6 + 0.3 + 1.0  # stall_s after its progress, then heartbeat_s
+
+
+def test_a_busy_child_that_beats_is_not_killed(caplog):
+    """A child busy in Python (a compile, a heavy frame: the main thread never sleeps) for 2 s, 6 times its
+    heartbeat_s, keeps beating from its thread: it ends by itself, never killed."""
+    from vergence.config import SuperviseSettings
+    from vergence_services import session, up
+
+    sup = SuperviseSettings(heartbeat_s=0.3, start_grace_s=5.0, stall_s=0)
+    busy = up.Child("busy", [sys.executable, "-c", BEATS + "import time\nt = time.monotonic()\n"
+                                                           "while time.monotonic() - t < 2.0: sum(range(10000))"],
+                    sup=sup)
+    busy.start()
+    stop = session.Stop(install=False)
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until([busy], stop, lambda: busy.restarts >= 1, 30) == 0
+    lines = [r.getMessage() for r in caplog.records]
+    assert any(re.match(r"busy \(pid \d+\) exited with 0 after 2\.\d s", m) for m in lines), lines
+    assert not any("heartbeat" in m for m in lines), lines
+
+
+def test_a_hung_standby_is_killed_and_another_started(monkeypatch, caplog):
+    """A standby beats while it waits its turn; one SIGSTOPped is SIGKILLed (it could not take over) and a
+    fresh one follows after the back-off, while the child itself runs on."""
+    import os
+    import signal
+
+    from vergence.config import SuperviseSettings
+    from vergence_services import session, up
+
+    monkeypatch.setattr(up, "STANDBY_DELAY_S", 0.2)
+    monkeypatch.setattr(up, "BACKOFF_S", (0.2, 0.5))
+    sup = SuperviseSettings(heartbeat_s=0.3, start_grace_s=5.0, stall_s=0)
+    c = up.Child("svc", [sys.executable, "-c", BEATS + "from vergence_services import session; session._standby(); "
+                         + RUNS_ON], sup=sup)
+    c.standby_due = 0.0
+    c.start()
+    stop = session.Stop(install=False)
+    stopped = []
+
+    def cond():
+        if c.standby is not None and c.standby.ready and not stopped:
+            stopped.append(c.standby.p.pid)
+            os.kill(stopped[0], signal.SIGSTOP)
+        return stopped and c.standby is not None and c.standby.p.pid != stopped[0] and c.standby.ready
+
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until([c], stop, cond, 30) == 0
+    lines = [r.getMessage() for r in caplog.records]
+    assert any(re.fullmatch(rf"standby of svc \(pid {stopped[0]}\): no heartbeat for 0\.[3-6] s \(stopped or hung\): "
+                            "SIGKILL", m) for m in lines), lines
+    assert any(m.startswith(f"standby of svc (pid {stopped[0]}) exited with -9") for m in lines), lines
+    assert sum(m.startswith("started a standby of svc") for m in lines) == 2 and c.restarts == 0

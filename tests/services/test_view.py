@@ -387,3 +387,64 @@ def test_spawn_without_a_display_says_what_to_do_instead(tmp_path):
                          capture_output=True, text=True, timeout=60, env=env)
     assert out.returncode == 2
     assert "--spawn needs a display" in out.stderr and "give --web" in out.stderr
+
+
+def test_each_change_of_the_motors_status_is_a_text_log_faults_as_errors(tmp_path):
+    """Issue #29: the cockpit logs the motor's status at motor/status when it changes, ERROR for disconnected and
+    absent (a fault), INFO otherwise; the same status again logs nothing."""
+    rec = rr.RecordingStream("vergence-test")
+    path = tmp_path / "m.rrd"
+    rec.save(str(path))
+    c = view.Cockpit(rr, rec)
+    st = M.MotorState(rig="r", t_ns=1, pan_rad=0.0, goal_rad=0.0, min_rad=-1, max_rad=1, status="ok", frame=1)
+    for i, (status, note) in enumerate([("ok", ""), ("ok", ""), ("disconnected", "no answer for 0.6 s"),
+                                        ("absent", "command ignored: motor absent for 2.1 s"), ("ok", "")]):
+        c._motor(M.replace(st, t_ns=1 + i, frame=1 + i, status=status, note=note))
+    rec.disconnect()
+    rows = read_rrd(path)["/motor/status"]
+    got = [(r["TextLog:text"][0], r["TextLog:level"][0]) for r in rows]
+    assert got == [("motor ok", "INFO"), ("motor disconnected: no answer for 0.6 s", "ERROR"),
+                   ("motor absent: command ignored: motor absent for 2.1 s", "ERROR"), ("motor ok", "INFO")], got
+
+
+@pytest.mark.slow
+def test_view_save_on_a_full_filesystem_stops_with_one_line(tmp_path):
+    """`vergence view --save` into a 1 MiB tmpfs (issue #29): Rerun's writer fails silently, so the view
+    watches the file: exit 1 within 2 s of the disk filling (its check runs every second), one line naming
+    the file and the error. Needs root to mount the tmpfs."""
+    if os.geteuid() != 0:
+        pytest.skip("mounting a 1 MiB tmpfs needs root")
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        rrd = mnt / "cockpit.rrd"
+        with Procs(tmp_path) as P:
+            P.router()
+            s = P.session()
+            v = P.start("view", "view", "--save", str(rrd))
+            wait_for(lambda: "view: rig" in v.text(), 60, "the view's subscriptions", logs=P.logs)
+            pub = s.declare_publisher(P.key("preview"))
+            rng = np.random.default_rng(1)
+            full: list[float] = []
+            frame = 0
+            deadline = time.monotonic() + 30
+            while v.alive() and time.monotonic() < deadline:
+                frame += 1
+                img = rng.integers(0, 256, (2, 120, 160), np.uint8)  # noise: it does not compress
+                pub.put(M.Preview(rig=P.rig, frame=frame, t_capture_ns=time.time_ns(), width=160, height=120,
+                                  scale=0.5, master=img[0].tobytes(), slave=img[1].tobytes()).to_bytes())
+                st = os.statvfs(mnt)
+                if not full and st.f_bavail * st.f_frsize < view.SaveWatch.MIN_FREE:
+                    full.append(time.monotonic())
+                time.sleep(0.01)  # the load under test: 100 previews (3.8 MB) a second
+            t_exit = time.monotonic()
+            assert v.wait(10) == 1, v.tail()
+            lines = [x for x in v.text().splitlines() if x.startswith("vergence view:")]
+            print(lines, f"; exit {t_exit - full[0]:.2f} s after the disk filled")
+            assert len(lines) == 1 and f"cannot write '{rrd}': No space left on device" in lines[0]
+            assert t_exit - full[0] < 2.0
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)

@@ -25,6 +25,11 @@ def test_settings_from_toml(tmp_path):
     ({"actuator": {"motor": {"retries": 0}}}, r"actuator\.motor: retries must be >= 1"),
     ({"rig": {"gimbal": "x"}}, r"rig: gimbal='x': must be helmholtz or fick"),
     ({"control": 3}, "control: expected a table"),
+    ({"supervise": {"heartbeat_s": 0}}, r"supervise: heartbeat_s must be a positive number of seconds, got 0"),
+    ({"supervise": {"stall_s": 1.0}}, r"supervise: stall_s \(1\.0\) must exceed heartbeat_s \(1\.5\), or be 0"),
+    ({"supervise": {"heartbeat": 1}}, r"supervise\.heartbeat: unknown setting; known here: heartbeat_s, "
+                                      "stall_s, start_grace_s"),
+    ({"actuator": {"motor": {"silent_s": -1}}}, r"actuator\.motor: silent_s must be >= 0, got -1"),
     ({"colour": 1}, "colour: unknown setting; known here: actuator, camera, capture, control, geometry"),
     (5, "settings: expected a table, got `int`"),
     ({"control": {"min_deg": -20}}, r"control\.min_deg: moved to \[actuator\.motor\] min_deg"),

@@ -309,3 +309,15 @@ def test_forged_reducer_counters_do_not_stop_the_screen():
     s = mon.snapshot(T0 + 2_000 * MS)
     assert (s.dropped, s.dropped_of, s.dropped_from) == (2, 40, "reducer")
     assert "dropped 2 (5.00 % of 40, reducer counters)" in render_text(s, color=False)
+
+
+def test_an_absent_motor_is_a_red_line_with_why():
+    """Issue #29: a motor state `absent` (or `disconnected`) is a fault line, in red, with the state's note."""
+    mon = Monitor("head")
+    mon.add(motor(T0, 0.01), T0)
+    assert "MOTOR" not in render_text(mon.snapshot(), color=False)
+    note = "command ignored: motor absent for 3.0 s (no answer for 0.6 s: ping failed 3 times)"
+    mon.add(m.replace(motor(T0 + MS, 0.01), status="absent", note=note), T0 + MS)
+    text = render_text(mon.snapshot(), width=200, color=False)
+    assert "status absent" in text and f"MOTOR ABSENT: commands are not executed; {note}" in text
+    assert "\x1b[31mMOTOR ABSENT" in render_text(mon.snapshot(), width=200, color=True)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import errno
+import os
+
 import msgpack
 import pytest
 
@@ -66,3 +69,54 @@ def test_corrupt_record_names_offset(tmp_path):
     p.write_bytes(good + msgpack.packb(["vergence/head/frame", "not a time", b""]) + good[-20:])
     with pytest.raises(rec.RecordingError, match=f"record at byte {len(good)}"):
         rec.read(p)
+
+
+def test_a_failed_write_names_the_file_and_the_error_and_stops_the_writer():
+    """/dev/full: every write fails with ENOSPC, as on a full disk (issue #29)."""
+    if not os.path.exists("/dev/full"):
+        pytest.skip("no /dev/full on this system")
+    with pytest.raises(rec.RecordingError, match=r"cannot write recording '/dev/full': No space left on device "
+                                                 r"\(ENOSPC\)"):
+        rec.Writer("/dev/full", rig="head")  # its header is flushed at once
+
+
+def test_a_failed_write_cuts_the_file_after_its_last_whole_flush(tmp_path, monkeypatch):
+    """The bytes after the last flush are a partial tail: the file is cut to the last whole record, and
+    replays without a truncated end."""
+    p = tmp_path / "cut.vrec"
+    w = rec.Writer(p, rig="head", flush_every=1000)
+    for i in range(5):
+        w.write("vergence/head/frame", i, b"y" * 10)
+    w.flush()
+    assert w.durable == (5, p.stat().st_size)
+    w.write("vergence/head/frame", 5, b"z" * 5000)
+    real = w._f
+
+    class Full:  # the file as on a full disk: a write reaches it in part, then ENOSPC
+        closed = False
+
+        def write(self, data):
+            real.write(data[: len(data) // 2])
+            real.flush()
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        flush = close = lambda self: None
+
+        def fileno(self):
+            return real.fileno()
+
+    w._f = Full()
+    with pytest.raises(rec.RecordingError, match="No space left on device"):
+        w.write("vergence/head/frame", 6, b"w" * 9000)
+    real.close()
+    header, got, truncated = rec.read(p)
+    assert [r.t_ns for r in got] == [0, 1, 2, 3, 4] and not truncated
+
+
+def test_a_removed_file_is_a_failure(tmp_path):
+    p = tmp_path / "gone.vrec"
+    w = rec.Writer(p, rig="head")
+    w.check()
+    p.unlink()
+    with pytest.raises(rec.RecordingError, match=f"cannot write recording '{p}': it was removed or replaced"):
+        w.check()

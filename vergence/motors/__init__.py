@@ -1,9 +1,10 @@
 """Motors: the driver interface and safety layer (base), the simulated motor, Dynamixel Protocol 2.0 and a
 line protocol over serial, and the actuator loop that ties them to commands (runner). No zenoh here."""
 
-from .base import Disconnected, Driver, MotorError, MotorSettings, PortError, Safety, TransientError
+from .base import Disconnected, Driver, MotorError, MotorSettings, NoAnswer, PortError, Safety, TransientError
 
-__all__ = ["Disconnected", "Driver", "MotorError", "MotorSettings", "PortError", "Safety", "TransientError",
+__all__ = ["Disconnected", "Driver", "MotorError", "MotorSettings", "NoAnswer", "PortError", "Safety",
+           "TransientError",
            "make_driver", "DRIVERS"]
 
 DRIVERS = ("sim", "dynamixel", "line")

@@ -20,7 +20,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 __all__ = ["MotorSettings", "Driver", "SerialDriver", "MotorError", "PortError", "Disconnected", "TransientError",
-           "Safety", "Ruling"]
+           "NoAnswer", "Safety", "Ruling"]
 
 log = logging.getLogger("vergence.motors")
 
@@ -65,6 +65,8 @@ class MotorSettings:
     max_age_s: float = 0.0
     max_skew_s: float = 2.0
     torque_off_on_stop: bool = True
+    silent_s: float = 0.5
+    absent_s: float = 2.0
     set_profile_velocity: bool = False
     timeout_s: float = 0.05
     retries: int = 3
@@ -84,7 +86,7 @@ class MotorSettings:
         if not (self.max_step_deg > 0 and math.isfinite(self.max_step_deg)):
             raise ValueError(f"max_step_deg must be a positive number, got {self.max_step_deg}")
         for name in ("max_speed_deg_s", "dead_band_deg", "watchdog_s", "max_age_s", "max_skew_s", "tau_s",
-                     "latency_s", "max_accel_deg_s2"):
+                     "latency_s", "max_accel_deg_s2", "silent_s", "absent_s"):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
                 raise ValueError(f"{name} must be >= 0, got {v}")
@@ -125,6 +127,11 @@ class Disconnected(MotorError):
 
 class TransientError(MotorError):
     """A transaction failed after its retries (timeout, bad CRC, a status error): counted, never fatal."""
+
+
+class NoAnswer(TransientError):
+    """A transaction that got no reply at all, every retry timed out: the motor is silent (unpowered, a cut
+    bus). The loop takes a silence of [actuator.motor] silent_s for a lost motor (vergence.motors.runner)."""
 
 
 try:  # pyserial's posix backend lets termios.error (not an OSError) out of flush/reconfigure on a dead tty

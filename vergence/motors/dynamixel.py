@@ -22,7 +22,7 @@ import struct
 import time
 
 
-from .base import IO_ERRORS, Disconnected, MotorSettings, SerialDriver, TransientError
+from .base import IO_ERRORS, Disconnected, MotorSettings, NoAnswer, SerialDriver, TransientError
 
 __all__ = ["crc16", "stuff", "unstuff", "instruction_packet", "status_packet", "parse_status", "StatusError",
            "PacketError", "XSERIES", "Inst", "ERRORS", "DynamixelDriver"]
@@ -208,7 +208,8 @@ def parse_status(packet: bytes) -> tuple[int, int, bytes]:
 
 def read_packet(port, deadline: float) -> bytes:
     """Read one packet (FF FF FD 00 ... CRC) from port before the monotonic deadline, skipping any noise
-    before the header. Raises TransientError on timeout; serial errors propagate."""
+    before the header. Raises TransientError on timeout (NoAnswer when not one byte came); serial errors
+    propagate."""
     buf = bytearray()
     while True:
         i = buf.find(HEADER)
@@ -224,7 +225,7 @@ def read_packet(port, deadline: float) -> bytes:
             need = 7
         left = deadline - time.monotonic()
         if left <= 0:
-            raise TransientError(f"timeout: {len(buf)} of {need} bytes of a status packet")
+            raise (TransientError if buf else NoAnswer)(f"timeout: {len(buf)} of {need} bytes of a status packet")
         buf += port.read(max(1, need - len(buf)))  # port.timeout is a fraction of the deadline
 
 
@@ -253,6 +254,7 @@ class DynamixelDriver(SerialDriver):
             raise Disconnected(f"{self.url} is not open")
         pkt = instruction_packet(self.settings.id, inst, params)
         last: Exception | None = None
+        silent = True  # no try got a byte back
         for _ in range(self.settings.retries):
             try:
                 self.port.reset_input_buffer()
@@ -274,7 +276,9 @@ class DynamixelDriver(SerialDriver):
             except TransientError as e:
                 self.errors += 1
                 last = e
-        raise TransientError(f"{what} failed {self.settings.retries} times on {self.url}: {last}")
+                silent = silent and isinstance(e, NoAnswer)
+        raise (NoAnswer if silent else TransientError)(f"{what} failed {self.settings.retries} times on {self.url}: "
+                                                       f"{last}")
 
     def read(self, name: str, signed: bool = False) -> int:
         addr, size, _, _ = self.table[name]
@@ -303,7 +307,7 @@ class DynamixelDriver(SerialDriver):
             try:
                 self.model, self.firmware = self.ping()
             except TransientError as e:
-                raise TransientError(f"no answer from Dynamixel id {self.settings.id} on {self.url} at "
+                raise type(e)(f"no answer from Dynamixel id {self.settings.id} on {self.url} at "
                                      f"{self.settings.baud} baud ({e}); check power, id and baud rate "
                                      "(Dynamixel Wizard can scan for them)") from e
             mode = self.read("operating_mode")

@@ -22,7 +22,7 @@ import re
 import time
 
 
-from .base import IO_ERRORS, Disconnected, MotorSettings, SerialDriver, TransientError
+from .base import IO_ERRORS, Disconnected, MotorSettings, NoAnswer, SerialDriver, TransientError
 
 __all__ = ["LineDriver"]
 
@@ -58,7 +58,8 @@ class LineDriver(SerialDriver):
                 del self.buf[:i + 1]
                 return line
             if time.monotonic() >= deadline:
-                raise TransientError(f"timeout waiting for a line ({bytes(self.buf)!r} so far)")
+                raise (TransientError if self.buf else NoAnswer)(f"timeout waiting for a line ({bytes(self.buf)!r} "
+                                                                 "so far)")
             if len(self.buf) > 4096:
                 self.buf.clear()
             self.buf += self.port.read(max(1, self.port.in_waiting))
@@ -68,6 +69,7 @@ class LineDriver(SerialDriver):
         if self.port is None:
             raise Disconnected(f"{self.url} is not open")
         last: Exception | None = None
+        silent = True  # no try got a byte back
         for _ in range(self.settings.retries):
             try:
                 self.port.reset_input_buffer()
@@ -87,9 +89,11 @@ class LineDriver(SerialDriver):
             except TransientError as e:
                 self.errors += 1
                 last = e
+                silent = silent and isinstance(e, NoAnswer)
                 if device_errors_fatal and isinstance(e, DeviceError):
                     raise
-        raise TransientError(f"{line!r} failed {self.settings.retries} times on {self.url}: {last}")
+        raise (NoAnswer if silent else TransientError)(f"{line!r} failed {self.settings.retries} times on "
+                                                       f"{self.url}: {last}")
 
     def query(self) -> int:
         return self._transact("Q", lambda a: int(a) if _INT.match(a) else None)

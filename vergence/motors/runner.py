@@ -6,8 +6,14 @@ with the simulated motor and a fake clock:
 - malformed messages are counted and skipped (logged once per kind of fault);
 - targets go through the safety layer (limits, step, stale, dead band);
 - the watchdog holds the present position when commands stop;
-- a port lost while running gives status "disconnected", reconnection attempts with exponential backoff, and
-  resumes without a restart; transient faults (timeouts, bad CRC, status errors) are counted, never fatal.
+- a port lost while running gives status "disconnected", reconnection attempts with exponential backoff (up to
+  1 s), and resumes without a restart; transient faults (timeouts, bad CRC, status errors) are counted, never
+  fatal;
+- a motor that answers nothing for [actuator.motor] silent_s (every transaction timed out: unpowered, a cut
+  bus) is lost the same way: nothing more is written to it, it is probed until it answers (issue #29);
+- lost for absent_s, the status turns "absent" and an error is logged, repeated every ABSENT_REPEAT_S; the
+  commands meanwhile are ignored (counted); when it answers again it holds where it is (its goal register is
+  rewritten with its present position, vergence.motors.dynamixel) until a new command.
 """
 
 from __future__ import annotations
@@ -18,11 +24,13 @@ import time
 from collections.abc import Callable
 
 from ..messages import Command, MessageError, MotorState
-from .base import Disconnected, Driver, MotorError, MotorSettings, PortError, Safety, TransientError
+from .base import Disconnected, Driver, MotorError, MotorSettings, NoAnswer, PortError, Safety, TransientError
 
-__all__ = ["MotorLoop"]
+__all__ = ["MotorLoop", "ABSENT_REPEAT_S"]
 
 log = logging.getLogger("vergence.actuator")
+ABSENT_REPEAT_S = 30.0  # an absent motor's error is logged again this often
+AWAY = ("disconnected", "absent")  # the statuses of a motor that is not written to
 
 
 class MotorLoop:
@@ -30,7 +38,7 @@ class MotorLoop:
 
     def __init__(self, driver: Driver, settings: MotorSettings, rig: str = "head",
                  clock: Callable[[], float] = time.monotonic, wall_ns: Callable[[], int] = time.time_ns,
-                 backoff_s: tuple[float, float] = (0.1, 2.0)):
+                 backoff_s: tuple[float, float] = (0.1, 1.0)):
         self.driver = driver
         self.s = settings
         self.rig = rig
@@ -50,6 +58,10 @@ class MotorLoop:
         self._held = False
         self._retry_at = 0.0
         self._delay = backoff_s[0]
+        self._answered = clock()  # the latest transaction the motor answered (or its connection)
+        self._lost_at = 0.0  # when it was lost (status disconnected or absent)
+        self._said_absent = 0.0  # when its absence was last logged
+        self._why_lost = ""  # what lost it (no answer for silent_s, the port gone)
         self._logged: set[str] = set()
 
     # -- lifecycle ----------------------------------------------------------------------------------------
@@ -82,9 +94,10 @@ class MotorLoop:
                 self._once("malformed", f"skipping a malformed command: {e}")
                 self.note = f"malformed command: {e}"[:200]
                 return self.state()
-        if self.status == "disconnected":
+        if self.status in AWAY:
             self.safety.ignored += 1
-            self.note = "command ignored: motor disconnected"
+            self.note = (f"command ignored: motor {self.status} for {self.clock() - self._lost_at:.1f} s "
+                         f"({self._why_lost})")[:200]
             return self.state()
         self._last_cmd = self.clock()
         self._held = False
@@ -116,7 +129,8 @@ class MotorLoop:
     def tick(self) -> MotorState:
         """The periodic step: reconnect when due, watchdog, read the position. Returns the state."""
         now = self.clock()
-        if self.status == "disconnected":
+        if self.status in AWAY:
+            self._absent(now)
             if now >= self._retry_at:
                 self._reconnect()
             return self.state()
@@ -139,8 +153,22 @@ class MotorLoop:
             self._logged.add(kind)
             log.warning("%s (logged once)", text)
 
+    def _absent(self, now: float) -> None:
+        """Lost for absent_s: status "absent", an error logged (again every ABSENT_REPEAT_S)."""
+        away = now - self._lost_at
+        if self.s.absent_s <= 0 or away < self.s.absent_s:
+            return
+        if self.status != "absent":
+            self.status = "absent"
+            log.error("motor absent for %.1f s (lost: %s); commands are ignored until it answers, probed every "
+                      "%.1f s at most", away, self._why_lost, self.backoff[1])
+            self._said_absent = now
+        elif now - self._said_absent >= ABSENT_REPEAT_S:
+            log.error("motor still absent after %.0f s (lost: %s; latest try: %s)", away, self._why_lost, self.note)
+            self._said_absent = now
+
     def _read(self) -> None:
-        if self.status == "disconnected":
+        if self.status in AWAY:
             return
         p = self._io(self.driver.read_position)
         if p is not _FAILED and math.isfinite(p):
@@ -148,7 +176,17 @@ class MotorLoop:
 
     def _io(self, fn, *args):
         try:
-            return fn(*args)
+            out = fn(*args)
+            self._answered = self.clock()
+            return out
+        except NoAnswer as e:
+            self.note = f"fault: {e}"[:200]
+            silent = self.clock() - self._answered
+            if self.s.silent_s > 0 and silent >= self.s.silent_s:
+                self._lost(Disconnected(f"no answer for {silent:.1f} s: {e}"))
+            else:
+                self._once("transient:" + type(e).__name__, f"motor fault (retried, counted): {e}")
+            return _FAILED
         except TransientError as e:
             self.note = f"fault: {e}"[:200]
             self._once("transient:" + type(e).__name__, f"motor fault (retried, counted): {e}")
@@ -158,9 +196,12 @@ class MotorLoop:
             return _FAILED
 
     def _lost(self, e: Exception) -> None:
-        if self.status != "disconnected":
+        if self.status not in AWAY:
             log.warning("motor disconnected: %s; retrying with backoff", e)
-        self.status = "disconnected"
+            self._lost_at = self.clock()
+            self._why_lost = str(e)[:200]
+        if self.status != "absent":
+            self.status = "disconnected"
         self.note = f"disconnected: {e}"[:200]
         self.driver.close(torque_off=False)
         self._delay = self.backoff[0]
@@ -175,7 +216,8 @@ class MotorLoop:
             self.note = f"disconnected: {e}; next try in {self._delay:.2f} s"[:200]
             return
         self.reconnects += 1
-        log.warning("motor reconnected (%d)", self.reconnects)
+        log.warning("motor reconnected (%d) after %.1f s %s", self.reconnects, self.clock() - self._lost_at,
+                    self.status)
         self._connected(present)
 
     def _connected(self, present: float) -> None:
@@ -184,7 +226,7 @@ class MotorLoop:
             self._io(self.driver.write_goal, self.safety.goal)
         self.status = "ok"
         self.note = ""
-        self._last_cmd = self.clock()
+        self._last_cmd = self._answered = self.clock()
         self._held = False
 
     def state(self) -> MotorState:

@@ -4,6 +4,7 @@ the actuator loop (MotorLoop) with a fake clock."""
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 from hypothesis import given, settings
@@ -11,7 +12,7 @@ from hypothesis import strategies as st
 
 from vergence.config import ConfigError, from_dict
 from vergence.messages import MotorState
-from vergence.motors import Disconnected, MotorSettings, PortError, Safety, TransientError, make_driver
+from vergence.motors import Disconnected, MotorSettings, NoAnswer, PortError, Safety, TransientError, make_driver
 from vergence.motors.base import Driver
 from vergence.motors.runner import MotorLoop
 from vergence.motors.simulated import SimMotor
@@ -249,6 +250,8 @@ class FlakyDriver(Driver):
         self.tries.append(self.clock())
         if self.mode == "gone":
             raise PortError("no such port 'x'")
+        if self.mode == "silent":
+            raise NoAnswer("no answer from motor 1 (timeout: 0 of 7 bytes)")
         self.opens += 1
         return self.present
 
@@ -270,11 +273,14 @@ class FlakyDriver(Driver):
         if self.mode == "crc":
             self.errors += 3
             raise TransientError("bad CRC, 3 attempts")
+        if self.mode == "silent":
+            self.errors += 3
+            raise NoAnswer("read failed 3 times: timeout: 0 of 7 bytes")
 
 
 def test_loop_reconnects_with_backoff():
     clock = Clock()
-    ms = MotorSettings(watchdog_s=0)
+    ms = MotorSettings(watchdog_s=0, absent_s=0)  # (absent_s: the test below)
     drv = FlakyDriver(ms, clock)
     loop = MotorLoop(drv, ms, clock=clock, backoff_s=(0.1, 0.4))
     assert loop.start().goal_rad == pytest.approx(0.1)  # goal starts at the present position
@@ -299,6 +305,57 @@ def test_loop_reconnects_with_backoff():
     assert st_.status == "ok" and loop.reconnects == 1
     assert loop.command(cmd(0.15, frame=3)).goal_rad == pytest.approx(0.15)
     assert drv.goals[-1] == pytest.approx(0.15)
+
+
+def test_loop_takes_a_silent_motor_for_lost_then_absent_and_resumes_holding(caplog):
+    """Issue #29: a motor that answers nothing for silent_s is lost (nothing more written to it), absent after
+    absent_s (an error logged, again every 30 s), and back by itself within the backoff's 1 s of answering,
+    holding where it is until a new command."""
+    import logging
+
+    from vergence.motors import runner
+
+    clock = Clock()
+    ms = MotorSettings(watchdog_s=2.0, silent_s=0.5, absent_s=2.0)
+    drv = FlakyDriver(ms, clock)
+    loop = MotorLoop(drv, ms, clock=clock)
+    loop.start()
+    assert loop.command(cmd(0.12, frame=1)).status == "ok" and drv.goals == [pytest.approx(0.12)]
+    drv.mode = "silent"
+    clock.t += 0.2
+    s = loop.command(cmd(0.13, frame=2))
+    assert s.status == "ok" and "fault" in s.note  # 0.2 s of silence: a transient fault so far
+    clock.t += 0.4
+    with caplog.at_level(logging.INFO, logger="vergence.actuator"):
+        s = loop.tick()
+        assert s.status == "disconnected" and "no answer for 0.6 s" in s.note
+        t_lost, frame, states = clock.t, 3, []
+        while clock.t - t_lost < 40.0:  # commands at 10 Hz into the silence
+            clock.t += 0.1
+            states.append((clock.t - t_lost, loop.command(cmd(0.2, frame=frame)).status, loop.tick().status))
+            frame += 1
+    assert drv.goals == [pytest.approx(0.12)]  # nothing written while lost
+    first_absent = min(t for t, a, b in states if b == "absent")
+    assert 2.0 <= first_absent < 2.0 + 0.1 + 1e-9
+    assert all(b == "disconnected" for t, a, b in states if t < first_absent)
+    assert loop.state().ignored == len(states) and loop.state().status == "absent"
+    errors = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
+    assert len(errors) == 2 and re.match(r"motor absent for 2\.[01] s \(lost: no answer for 0\.6 s: read failed 3 "
+                                         r"times: timeout: 0 of 7 bytes\); commands are ignored", errors[0]), errors
+    assert errors[1].startswith("motor still absent after 32 s (lost: no answer")  # again ABSENT_REPEAT_S later
+    assert runner.ABSENT_REPEAT_S == 30.0
+    assert max(b - a for a, b in zip(drv.tries, drv.tries[1:])) <= 1.0 + 0.1 + 1e-9  # probed every 1 s at most
+    drv.mode = "ok"
+    drv.present = 0.05  # where it is when it answers again
+    t_back = clock.t
+    while loop.tick().status != "ok":
+        clock.t += 0.05
+        assert clock.t - t_back <= 1.1
+    s = loop.state()
+    assert s.goal_rad == pytest.approx(0.05) and loop.reconnects == 1  # holds where it is, no old target
+    assert drv.goals == [pytest.approx(0.12)]
+    assert loop.command(cmd(0.06, frame=frame)).goal_rad == pytest.approx(0.06)  # a new command moves it
+    assert drv.goals[-1] == pytest.approx(0.06)
 
 
 def test_loop_port_missing_at_start_is_fatal():
