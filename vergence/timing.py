@@ -50,15 +50,21 @@ class CameraTiming:
         if not (math.isfinite(self.skew_s) and abs(self.skew_s) <= 0.5):
             raise ValueError(f"skew_s={self.skew_s}: must be a number of seconds from -0.5 to 0.5")
 
+    @property
+    def age_s(self) -> float:
+        """How old the later image is when read: latency_s, but at least half the exposure (an image is read
+        after its exposure ends, and its time is the exposure's middle)."""
+        return max(self.latency_s, self.exposure_s / 2)
+
     def exposures(self, t_read: float) -> tuple[float, float]:
         """(master, slave) exposure times of a pair read at t_read (seconds, any epoch): the later one is
-        latency_s old."""
-        later = t_read - self.latency_s
+        age_s old."""
+        later = t_read - self.age_s
         return (later - self.skew_s, later) if self.skew_s > 0 else (later, later + self.skew_s)
 
     def read_time(self, t_master: float) -> float:
         """When a pair whose master was exposed at t_master is read."""
-        return t_master + max(0.0, self.skew_s) + self.latency_s
+        return t_master + max(0.0, self.skew_s) + self.age_s
 
 
 class Stamper:

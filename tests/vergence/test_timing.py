@@ -123,3 +123,13 @@ def test_an_exposure_integrates_the_views_over_its_duration():
     assert abs(blurred.astype(float) - mean).max() <= 0.5 + 1e-9  # the rounded mean, no noise
     sharp = expose(rig, [0.0], pans[:1])[1]
     assert (sharp == a).all()
+
+
+def test_an_image_is_read_after_its_exposure_ends_even_at_no_latency():
+    from vergence.sim.loop import closed_loop
+
+    t = CameraTiming(0.0, exposure_s=0.008)
+    assert t.age_s == 0.004 and t.read_time(1.0) == pytest.approx(1.004)
+    assert t.exposures(1.004) == pytest.approx((1.0, 1.0))
+    steps = list(closed_loop(MovingRig("sine:z=0.8,amp=0.3,hz=1"), 10, rate_hz=60.0, timing=t))
+    assert [s.frame for s in steps] == list(range(11))
