@@ -157,6 +157,19 @@ class Rates:
         return dict(published_hz=sent / self.period, decided_hz=held)
 
 
+def remember(history: PanHistory, st: MotorState, now_ns: int) -> None:
+    """A plausible motor state into the history; MessageError when it is not newer than the newest. A newest
+    state from more than FUTURE_S in our future (a forgery within max_skew_s, or a clock that jumped) is
+    forgotten rather than left to refuse every true state until then."""
+    t = st.t_ns / 1e9
+    if history.add(t, st.pan_rad):
+        return
+    if not (history.t and history.t[-1] > now_ns / 1e9 + FUTURE_S):
+        raise MessageError("motor state not newer than the last one")
+    history.clear()
+    history.add(t, st.pan_rad)
+
+
 class PanLookup:
     """The slave's pan for one frame, from the motor's history (the zenoh callback adds to it meanwhile): a
     source that renders (the simulator) asks it at its exposure times, and the frame then carries the same
@@ -314,15 +327,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
             why = motor_state_implausible(st, settings.actuator.motor, time.time_ns(), lim.max_skew_s)
             if why is not None:
                 raise MessageError(why)
-            t = st.t_ns / 1e9
             with history_lock:
-                if not history.add(t, st.pan_rad):
-                    if not (history.t and history.t[-1] > time.time() + FUTURE_S):
-                        raise MessageError("motor state not newer than the last one")
-                    # the newest is from our future (a forgery within max_skew_s, or a clock that jumped):
-                    # forget it rather than refuse every true state until then
-                    history.clear()
-                    history.add(t, st.pan_rad)
+                remember(history, st, time.time_ns())
             health.count("motor_states")
         except MessageError as e:
             health.reject("motor_state", e)

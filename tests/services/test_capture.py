@@ -66,3 +66,23 @@ def test_a_rendering_source_waits_for_the_motors_report_of_its_instant_but_not_f
     assert h.t[-1] == 1.02
     look.settle(5000 * MS, timeout=0.02)  # a motor that stopped reporting: returns after the timeout
     assert look(1010 * MS) == pytest.approx(0.11)
+
+
+def test_a_motor_state_from_our_future_is_forgotten_when_the_true_ones_come():
+    from vergence.messages import MessageError, MotorState
+    from vergence_services.capture import remember
+
+    def state(t_ns, pan):
+        return MotorState(rig="r", t_ns=t_ns, pan_rad=pan, goal_rad=pan, min_rad=-1, max_rad=1, status="ok")
+
+    h = PanHistory(max_gap_s=0.1)
+    now = 10**18
+    remember(h, state(now - 20 * MS, 0.1), now)
+    with pytest.raises(MessageError, match="not newer"):
+        remember(h, state(now - 30 * MS, 0.2), now)  # older than the newest: refused
+    remember(h, state(now + 1500 * MS, 0.7), now)  # a forgery 1.5 s ahead, within max_skew_s
+    remember(h, state(now, 0.11), now)  # the next true state: the forgery is forgotten
+    assert list(h.pan) == [0.11]
+    remember(h, state(now + 30 * MS, 0.12), now)  # 30 ms ahead: clock skew, kept
+    with pytest.raises(MessageError):
+        remember(h, state(now + 10 * MS, 0.13), now)
