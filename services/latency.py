@@ -46,20 +46,18 @@ class Recorder:
         self.states: list[MotorState] = []
 
     def on_decision(self, sample) -> None:
-        try:
-            v = Verdict.from_bytes(sample.payload.to_bytes())
-        except MessageError:
-            return
-        with self.lock:
-            self.decisions.append(v)
+        self._keep(sample, Verdict, self.decisions)
 
     def on_state(self, sample) -> None:
+        self._keep(sample, MotorState, self.states)
+
+    def _keep(self, sample, cls, into: list) -> None:
         try:
-            m = MotorState.from_bytes(sample.payload.to_bytes())
+            msg = cls.from_bytes(sample.payload.to_bytes())
         except MessageError:
             return
         with self.lock:
-            self.states.append(m)
+            into.append(msg)
 
     def snapshot(self) -> tuple[list[Verdict], list[MotorState]]:
         with self.lock:

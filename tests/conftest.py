@@ -10,8 +10,12 @@ the folder tests/vergence/ would otherwise be a namespace-package candidate for 
 
 from __future__ import annotations
 
+import os
+import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 import vergence  # noqa: F401  (before tests/ is on sys.path: see above)
 import vergence_services  # noqa: F401
@@ -19,3 +23,20 @@ import vergence_services  # noqa: F401
 HERE = str(Path(__file__).resolve().parent)
 if HERE not in sys.path:
     sys.path.insert(0, HERE)
+
+
+@pytest.fixture
+def tiny_fs(tmp_path):
+    """A 1 MiB tmpfs mounted at tmp_path/small for the test, unmounted after it (a full disk, for the writers'
+    tests); skips where it cannot be mounted (not root)."""
+    if os.geteuid() != 0:
+        pytest.skip("mounting a 1 MiB tmpfs needs root")
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)

@@ -87,18 +87,25 @@ def test_missing_port_exits_with_hint():
     assert "/dev/ttyUSB_NOPE9" in r.stderr and "python -m serial.tools.list_ports" in r.stderr
 
 
+def _dynamixel_actuator(P, dev):
+    """A router and `vergence actuator --driver dynamixel` on the emulator's port, at status ok: (its Proc, the
+    test's session, a collector of its motor states)."""
+    P.router()
+    act = P.start("actuator", "actuator", "--driver", "dynamixel", "--port", dev.link, "--id", "1",
+                  "--baud", "1000000")
+    s = P.session()
+    col = P.collect(s, P.key("motor/state"))
+    P.wait_alive(s, "actuator")
+    wait_state(col, lambda m: m.status == "ok", 10, "status ok", P.logs)
+    return act, s, col
+
+
 def test_dynamixel_actuator_bytes_state_and_replug(tmp_path):
     emu = DynamixelEmulator(present=2048 + 100)
     dev = PtyDevice(emu, str(tmp_path / "ttyDXL"))
     try:
         with Procs(tmp_path) as P:
-            P.router()
-            act = P.start("actuator", "actuator", "--driver", "dynamixel", "--port", dev.link, "--id", "1",
-                          "--baud", "1000000")
-            s = P.session()
-            col = P.collect(s, P.key("motor/state"))
-            P.wait_alive(s, "actuator")
-            wait_state(col, lambda m: m.status == "ok", 10, "status ok", P.logs)
+            act, s, col = _dynamixel_actuator(P, dev)
             # start-up: ping, mode read, present read, goal = present, torque on
             insts = [(inst, bytes(p)) for _, inst, p in emu.packets[:6]]
             assert insts[0] == (Inst.PING, b"")
@@ -252,13 +259,7 @@ def test_a_silent_dynamixel_is_a_visible_fault_and_control_resumes_by_itself(tmp
     quit_ = threading.Event()
     try:
         with Procs(tmp_path) as P:
-            P.router()
-            act = P.start("actuator", "actuator", "--driver", "dynamixel", "--port", dev.link, "--id", "1",
-                          "--baud", "1000000")
-            s = P.session()
-            col = P.collect(s, P.key("motor/state"))
-            P.wait_alive(s, "actuator")
-            wait_state(col, lambda m: m.status == "ok", 10, "status ok", P.logs)
+            act, s, col = _dynamixel_actuator(P, dev)
             mon = P.start("monitor", "monitor", "--timeout", "60", "--refresh", "0.2", "--color", "never")
             pub = s.declare_publisher(P.key("command"))
 

@@ -7,7 +7,6 @@ import contextlib
 import os
 import re
 import signal
-import subprocess
 import time
 
 import pytest
@@ -91,51 +90,42 @@ def _publish_while(pub, cond, timeout: float) -> None:
         time.sleep(PACE_S)
 
 
-def test_record_on_a_full_filesystem_stops_within_1_s_and_the_file_replays(tmp_path):
+def test_record_on_a_full_filesystem_stops_within_1_s_and_the_file_replays(tmp_path, tiny_fs):
     """`vergence record` into a 1 MiB tmpfs (issue #29): exit status 1 within 1 s of the disk filling, one
     line naming the file and the error, RSS flat meanwhile, and the file replays up to the failure (no
     truncated tail). Needs root to mount the tmpfs."""
-    if os.geteuid() != 0:
-        pytest.skip("mounting a 1 MiB tmpfs needs root")
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
-    try:
-        path = mnt / "run.vrec"
-        with Procs(tmp_path) as P:
-            P.router()
-            s = P.session()
-            rec = P.start("record", "record", str(path))
-            P.wait_alive(s, "record", 1)
-            pub = s.declare_publisher(P.key("frame"))
-            full: list[float] = []
-            rss: list[int] = []
+    mnt = tiny_fs
+    path = mnt / "run.vrec"
+    with Procs(tmp_path) as P:
+        P.router()
+        s = P.session()
+        rec = P.start("record", "record", str(path))
+        P.wait_alive(s, "record", 1)
+        pub = s.declare_publisher(P.key("frame"))
+        full: list[float] = []
+        rss: list[int] = []
 
-            def running() -> bool:
-                st = os.statvfs(mnt)
-                if not full and st.f_bavail * st.f_frsize < 64 * 1024:
-                    full.append(time.monotonic())
-                with contextlib.suppress(Exception):
-                    rss.append(rec.rss_bytes() or rss[-1])  # 0 once it exits
-                return rec.alive()
+        def running() -> bool:
+            st = os.statvfs(mnt)
+            if not full and st.f_bavail * st.f_frsize < 64 * 1024:
+                full.append(time.monotonic())
+            with contextlib.suppress(Exception):
+                rss.append(rec.rss_bytes() or rss[-1])  # 0 once it exits
+            return rec.alive()
 
-            _publish_while(pub, running, 30)
-            t_exit = time.monotonic()
-            assert rec.wait(5) == 1, rec.tail()
-            err = [line for line in rec.text().splitlines() if line.startswith("vergence record:")]
-            print(err, f"; exit {t_exit - full[0]:.3f} s after the disk filled; RSS "
-                       f"{min(rss) / 2**20:.1f}..{max(rss) / 2**20:.1f} MB")
-            assert len(err) == 1 and f"cannot write recording '{path}': No space left on device (ENOSPC)" in err[0]
-            assert t_exit - full[0] < 1.0
-            assert max(rss) - min(rss) < 20 * 2**20
-            n = int(re.search(r"the file holds the first (\d+) messages", err[0])[1])
-            header, records, truncated = read(path)
-            assert len(records) == n > 5 and not truncated
-            assert all(r.payload == PAYLOAD for r in records if r.key.endswith("/frame"))
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], check=False)
+        _publish_while(pub, running, 30)
+        t_exit = time.monotonic()
+        assert rec.wait(5) == 1, rec.tail()
+        err = [line for line in rec.text().splitlines() if line.startswith("vergence record:")]
+        print(err, f"; exit {t_exit - full[0]:.3f} s after the disk filled; RSS "
+                   f"{min(rss) / 2**20:.1f}..{max(rss) / 2**20:.1f} MB")
+        assert len(err) == 1 and f"cannot write recording '{path}': No space left on device (ENOSPC)" in err[0]
+        assert t_exit - full[0] < 1.0
+        assert max(rss) - min(rss) < 20 * 2**20
+        n = int(re.search(r"the file holds the first (\d+) messages", err[0])[1])
+        header, records, truncated = read(path)
+        assert len(records) == n > 5 and not truncated
+        assert all(r.payload == PAYLOAD for r in records if r.key.endswith("/frame"))
 
 
 def test_record_into_a_slow_disk_drops_what_does_not_fit_and_stays_bounded(tmp_path):

@@ -408,43 +408,34 @@ def test_each_change_of_the_motors_status_is_a_text_log_faults_as_errors(tmp_pat
 
 
 @pytest.mark.slow
-def test_view_save_on_a_full_filesystem_stops_with_one_line(tmp_path):
+def test_view_save_on_a_full_filesystem_stops_with_one_line(tmp_path, tiny_fs):
     """`vergence view --save` into a 1 MiB tmpfs (issue #29): Rerun's writer fails silently, so the view
     watches the file: exit 1 within 2 s of the disk filling (its check runs every second), one line naming
     the file and the error. Needs root to mount the tmpfs."""
-    if os.geteuid() != 0:
-        pytest.skip("mounting a 1 MiB tmpfs needs root")
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
-    try:
-        rrd = mnt / "cockpit.rrd"
-        with Procs(tmp_path) as P:
-            P.router()
-            s = P.session()
-            v = P.start("view", "view", "--save", str(rrd))
-            wait_for(lambda: "view: rig" in v.text(), 60, "the view's subscriptions", logs=P.logs)
-            pub = s.declare_publisher(P.key("preview"))
-            rng = np.random.default_rng(1)
-            full: list[float] = []
-            frame = 0
-            deadline = time.monotonic() + 30
-            while v.alive() and time.monotonic() < deadline:
-                frame += 1
-                img = rng.integers(0, 256, (2, 120, 160), np.uint8)  # noise: it does not compress
-                pub.put(M.Preview(rig=P.rig, frame=frame, t_capture_ns=time.time_ns(), width=160, height=120,
-                                  scale=0.5, master=img[0].tobytes(), slave=img[1].tobytes()).to_bytes())
-                st = os.statvfs(mnt)
-                if not full and st.f_bavail * st.f_frsize < view.SaveWatch.MIN_FREE:
-                    full.append(time.monotonic())
-                time.sleep(0.01)  # the load under test: 100 previews (3.8 MB) a second
-            t_exit = time.monotonic()
-            assert v.wait(10) == 1, v.tail()
-            lines = [x for x in v.text().splitlines() if x.startswith("vergence view:")]
-            print(lines, f"; exit {t_exit - full[0]:.2f} s after the disk filled")
-            assert len(lines) == 1 and f"cannot write '{rrd}': No space left on device" in lines[0]
-            assert t_exit - full[0] < 2.0
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], check=False)
+    mnt = tiny_fs
+    rrd = mnt / "cockpit.rrd"
+    with Procs(tmp_path) as P:
+        P.router()
+        s = P.session()
+        v = P.start("view", "view", "--save", str(rrd))
+        wait_for(lambda: "view: rig" in v.text(), 60, "the view's subscriptions", logs=P.logs)
+        pub = s.declare_publisher(P.key("preview"))
+        rng = np.random.default_rng(1)
+        full: list[float] = []
+        frame = 0
+        deadline = time.monotonic() + 30
+        while v.alive() and time.monotonic() < deadline:
+            frame += 1
+            img = rng.integers(0, 256, (2, 120, 160), np.uint8)  # noise: it does not compress
+            pub.put(M.Preview(rig=P.rig, frame=frame, t_capture_ns=time.time_ns(), width=160, height=120,
+                              scale=0.5, master=img[0].tobytes(), slave=img[1].tobytes()).to_bytes())
+            st = os.statvfs(mnt)
+            if not full and st.f_bavail * st.f_frsize < view.SaveWatch.MIN_FREE:
+                full.append(time.monotonic())
+            time.sleep(0.01)  # the load under test: 100 previews (3.8 MB) a second
+        t_exit = time.monotonic()
+        assert v.wait(10) == 1, v.tail()
+        lines = [x for x in v.text().splitlines() if x.startswith("vergence view:")]
+        print(lines, f"; exit {t_exit - full[0]:.2f} s after the disk filled")
+        assert len(lines) == 1 and f"cannot write '{rrd}': No space left on device" in lines[0]
+        assert t_exit - full[0] < 2.0
