@@ -1,16 +1,22 @@
 """From the network's decision to a pan set-point: pixels -> angle, gain, dead band, then the motor's limits.
 
+Every measurement is referred to the instant the slave's image was exposed (vergence.timing): the pan it
+is given is the slave's pan then, t_s that exposure's time, t_now the time of the command.
+
 Two modes ([control] mode):
-- "p": each confident decision sets the target pan at capture + gain x the measured correction; an
-  abstention does not move the slave.
-- "predictive": each confident decision is a measurement of where the target is (the pan at capture + the
-  measured correction) at its capture time; a constant-velocity Kalman filter (Predictor) estimates the
-  target's pan and its rate from that stream, and the command is the estimate extrapolated `lead_s` plus
-  half a decision interval past the capture (to when the motor will be acting on it). A measurement far
-  off the prediction (gate_px) restarts the filter (a jump, not a motion). An abstention coasts on the
-  estimate (its rate fading with the time constant coast_s / 2) for at most coast_s, then the slave
-  holds. No command within dead_band_px of the present pan, nor of the last set-point while the motor is
-  there (within 1 px or 0.1 degree: a motor settles on its nearest tick).
+- "p": each confident decision sets the target pan at exposure + gain x the measured correction; an
+  abstention does not move the slave. Its gain is at most 1 for an image older than LATE_S (above 1 the loop
+  overshoots more, the older the image).
+- "predictive": each confident decision is a measurement of where the target was (the pan at exposure + the
+  measured correction) at the slave's exposure; the command is the target's pan predicted for t_now +
+  `lead_s` + half a decision interval (when the motor will be acting on it), however old the image. Three
+  predictions, refereed by how well each has predicted (Referee): hold (the filter's pan), a constant-velocity
+  Kalman filter (Predictor) of the target's pan and rate, and, with `periodic`, a periodic fit (Periodic) that
+  predicts a target moving to and fro far past where any polynomial holds. A measurement far off the filter's
+  prediction (gate_px) restarts them all (a jump, not a motion). An abstention coasts on the filter's
+  estimate (its rate fading with the time constant coast_s / 2) for at most coast_s, then the slave holds.
+  No command within dead_band_px of the present pan, nor of the last set-point while the motor is there
+  (within 1 px or 0.1 degree: a motor settles on its nearest tick).
 
 The pan limits and the step limit are the motor's ([actuator.motor] min_deg, max_deg, max_step_deg): the
 Controller holds no copy of them, it asks the motor's safety layer (vergence.motors.base.Safety.limit_step)
@@ -19,9 +25,10 @@ arrives again (the last line). Its dead band is the larger of [control] dead_ban
 the focal length, a correction smaller than this many pixels is noise) and the motor's dead_band_deg (a goal
 change the actuator would hold anyway).
 
-The default is "predictive": in `vergence bench tracking` p's error is 2.2-4.0 times its own on sines
-from 0.5 Hz on (p lags by the loop's latency, about a frame plus the motor), 1.2-2.1 times at 0.25 Hz, and
-both settle alike on a step; its cost, on still Middlebury scenes, is a few points of convergence where the
+The default is "predictive": in `vergence bench tracking` p's error is 3-7 times its own on sines from
+0.5 Hz on (p lags by the loop's latency, about a frame plus the motor, and more with an old image), 1.3-2
+times at 0.25 Hz, and both settle alike on a step; the predictors were chosen by measurement
+(docs/SIMULATOR.md, "A real camera's timing"); its cost, on still Middlebury scenes, is a few points of convergence where the
 matcher hesitates between offsets a pixel apart. Its filter is kept calm
 (accel_deg_s2 700, noise_px 1): a livelier one (1000 / 0.5) tracked a 2 Hz sine a little closer but rang
 by +-2 px with the paper's network, whose whole-pixel decisions feed the filter a loop-correlated error.
@@ -230,8 +237,11 @@ class Referee:
         self.last: tuple[float, float] | None = None
 
     def reset(self) -> None:
+        """After a jump: the scores start again (a fit of the motion before says nothing of the one after)."""
         self.pending.clear()
         self.last = None
+        self.mse = [None] * len(self.mse)
+        self.scored = [0] * len(self.scored)
 
     def predicted(self, at: float, preds: list) -> None:
         self.pending.append((at, preds))
