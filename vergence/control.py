@@ -28,8 +28,8 @@ change the actuator would hold anyway).
 The default is "predictive": in `vergence bench tracking` p's error is 3-7 times its own on sines from
 0.5 Hz on (p lags by the loop's latency, about a frame plus the motor, and more with an old image), 1.3-2
 times at 0.25 Hz, and both settle alike on a step; the predictors were chosen by measurement
-(docs/SIMULATOR.md, "A real camera's timing"); its cost, on still Middlebury scenes, is a few points of convergence where the
-matcher hesitates between offsets a pixel apart. Its filter is kept calm
+(docs/SIMULATOR.md, "A real camera's timing"); its cost, on still Middlebury scenes, is a few points of
+convergence where the matcher hesitates between offsets a pixel apart. Its filter is kept calm
 (accel_deg_s2 700, noise_px 1): a livelier one (1000 / 0.5) tracked a 2 Hz sine a little closer but rang
 by +-2 px with the paper's network, whose whole-pixel decisions feed the filter a loop-correlated error.
 """
