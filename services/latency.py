@@ -110,7 +110,12 @@ def main(rig: str, conf, amplitude_deg: float, hold_s: float, wait: float) -> in
               file=sys.stderr)
         return 2
     rec = Recorder()
-    with session.open_session(conf) as s:
+    try:
+        s = session.open_session(conf, timeout=wait)
+    except ConnectionError as e:
+        print(f"vergence latency: {e}", file=sys.stderr)
+        return 1
+    with s:
         subs = [s.declare_subscriber(keys.decision(rig), rec.on_decision),
                 s.declare_subscriber(keys.motor_state(rig), rec.on_state)]
         mover = Mover(s, rig, rec)

@@ -74,3 +74,8 @@ def test_vergence_latency_with_no_rig_says_so_and_exits_1(tmp_path):
         P.router()
         r = run("latency", "--connect", P.endpoint, "--rig", P.rig, "--wait", "1", timeout=30)
     assert r.returncode == 1 and "no decisions on rig" in r.stderr
+
+
+def test_vergence_latency_with_no_router_gives_up_within_its_wait():
+    r = run("latency", "--connect", f"tcp/127.0.0.1:{free_port()}", "--wait", "1.5", timeout=30)
+    assert r.returncode == 1 and "no Zenoh router or peer answered" in r.stderr and "within 1.5 s" in r.stderr
