@@ -96,6 +96,10 @@ def _finite(name: str, *values: float) -> None:
             raise MessageError(f"{name}: not a finite number ({x})")
 
 
+MAX_SKEW_NS = 500_000_000  # a frame's slave exposure more than this from the master's is not believed
+MAX_AGE_NS = 1_500_000_000  # nor a read more than this after the exposure (vergence.timing.MAX_AGE_S, and slack)
+
+
 class Frame(Message):
     """vergence/<rig>/frame: what layer 1 needs of one stereo frame, and the shard plan for it.
 
@@ -176,6 +180,12 @@ class Frame(Message):
         _finite("frame.support_gamma", self.support_gamma, self.support_radius)
         if self.truth_pan_rad is not None:
             _finite("frame.truth_pan_rad", self.truth_pan_rad)
+        if abs(self.skew_ns) > MAX_SKEW_NS:
+            raise MessageError(f"frame.skew_ns {self.skew_ns}: the cameras more than 0.5 s apart")
+        later, earlier = self.t_capture_ns + max(0, self.skew_ns), self.t_capture_ns + min(0, self.skew_ns)
+        if self.t_read_ns and not (self.t_read_ns >= later - 2_000_000 and self.t_read_ns - earlier <= MAX_AGE_NS):
+            raise MessageError(f"frame.t_read_ns: read {(self.t_read_ns - self.t_capture_ns) / 1e9:.3g} s after its "
+                               "exposure (an image is read after it, within a second)")
         if self.support_gamma <= 0 or self.support_radius <= 0:
             raise MessageError("frame.support_gamma and frame.support_radius must be positive")
         covered = 0

@@ -173,3 +173,13 @@ def test_motor_state_with_a_non_finite_pan_is_rejected(field):
     d[field] = math.nan
     with pytest.raises(M.MessageError, match="finite"):
         M.MotorState.from_bytes(msgpack.packb(d, use_bin_type=True))
+
+
+@pytest.mark.parametrize("kw,says", [({"skew_ns": 600_000_000}, "skew_ns"), ({"skew_ns": -600_000_000}, "skew_ns"),
+                                     ({"t_read_ns": 1}, "t_read_ns"), ({"t_read_ns": 10**18 + 2 * 10**9}, "t_read_ns"),
+                                     ({"t_read_ns": 10**18 + 4_000_000, "skew_ns": 8_000_000}, "t_read_ns")])
+def test_a_frame_whose_times_cannot_be_is_refused(kw, says):
+    with pytest.raises(M.MessageError, match=says):
+        M.Frame.from_bytes(frame(t_capture_ns=10**18, **kw).to_bytes())
+    ok = frame(t_capture_ns=10**18, skew_ns=8_000_000, t_read_ns=10**18 + 66_000_000)
+    assert M.Frame.from_bytes(ok.to_bytes()).t_slave_ns == 10**18 + 8_000_000
