@@ -1,0 +1,122 @@
+"""The tests' own ROS 2 side: a real rclpy node of the test process (not vergence's), on a ROS domain of its own,
+discovering only on this machine, that publishes to and reads from the node under test.
+
+    rclpy = rosnode.require()               # skips the test, saying why, where rclpy cannot be imported
+    with rosnode.TestNode(domain) as t:     # an rclpy node in its own context, spun in a thread
+        got = t.collect(JointState, "/vergence/head/joint_states")
+        t.wait(got, 3, timeout=10)          # the first 3 messages (arrival time.time_ns(), message)
+
+ros_env(monkeypatch) gives the test a random ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, in
+its own environment and so in every process it starts (tests/procs.py copies os.environ): tests never see
+each other's nodes, nor anything on the network, and send nothing off this machine.
+"""
+
+from __future__ import annotations
+
+import random
+import threading
+import time
+
+import pytest
+
+__all__ = ["require", "ros_env", "TestNode"]
+
+
+def require():
+    """rclpy, or skip: the ROS 2 tests need it (the test extra installs the PyPI wheels of Jazzy)."""
+    try:
+        import rclpy
+        import sensor_msgs.msg  # noqa: F401
+    except ImportError as e:
+        pytest.skip(f"rclpy cannot be imported ({e}): pip install -e '.[test]' installs ROS 2 Jazzy's wheels")
+    return rclpy
+
+
+def ros_env(monkeypatch) -> int:
+    """A ROS domain of this test's own (and localhost-only discovery) for the test and its processes."""
+    domain = random.randint(1, 100)
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    monkeypatch.delenv("ROS_LOCALHOST_ONLY", raising=False)
+    return domain
+
+
+class TestNode:
+    """An rclpy node of the test's own (context, executor thread); collect() and publisher() on it."""
+
+    __test__ = False  # not a test class for pytest
+
+    def __init__(self, domain: int, name: str = "vergence_test"):
+        rclpy = require()
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node(f"{name}_{random.randint(0, 10**6)}", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self):
+        while not self._stop.is_set() and self.context.ok():
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def collect(self, msg_type, topic: str, qos=10) -> list:
+        """A list that fills with (arrival time.time_ns(), message) for every message on topic."""
+        got: list = []
+
+        def on(msg):
+            with self.cond:
+                got.append((time.time_ns(), msg))
+                self.cond.notify_all()
+
+        self.node.create_subscription(msg_type, topic, on, qos)
+        return got
+
+    def wait(self, got: list, n: int, timeout: float, what: str = "messages", logs=None) -> list:
+        """The first n items of a collect() list, waiting up to timeout s (TimeoutError with logs())."""
+        with self.cond:
+            if self.cond.wait_for(lambda: len(got) >= n, timeout):
+                return got[:n]
+        raise TimeoutError(f"{len(got)} of {n} {what} within {timeout} s" + (f"\n{logs()}" if logs else ""))
+
+    def wait_until(self, cond, timeout: float, what: str, logs=None):
+        """cond() (called under the lock, re-checked as messages arrive, and every 0.1 s) until true."""
+        end = time.monotonic() + timeout
+        with self.cond:
+            while True:
+                v = cond()
+                if v:
+                    return v
+                left = end - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(f"timed out after {timeout} s waiting for {what}" + (f"\n{logs()}" if logs
+                                                                                            else ""))
+                self.cond.wait(min(left, 0.1))
+
+    def publisher(self, msg_type, topic: str, qos=10, matched: int = 1, timeout: float = 15.0, logs=None):
+        """A publisher, returned once `matched` subscriptions (the node under test's) have matched it."""
+        pub = self.node.create_publisher(msg_type, topic, qos)
+        end = time.monotonic() + timeout
+        while pub.get_subscription_count() < matched:
+            if time.monotonic() > end:
+                raise TimeoutError(f"no subscriber on {topic} within {timeout} s" + (f"\n{logs()}" if logs else ""))
+            time.sleep(0.02)
+        return pub
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(2.0)
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

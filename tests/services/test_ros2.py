@@ -1,0 +1,192 @@
+"""`vergence ros2`, the bridge, as a real process between a real Zenoh router and the test's own real rclpy node:
+every topic's values, stamps, type names and hashes; look_at to a Fixate; bad look_at points and bad Zenoh
+messages counted, never a Fixate. (The conversions alone: tests/vergence/test_ros2.py.)"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import numpy as np
+import pytest
+
+import rosnode
+from procs import Procs, wait_for
+from vergence import keys
+from vergence.frames import make_frame
+from vergence.messages import Fixate, MessageError, MotorState, Profile, Verdict
+from vergence.params import Params
+
+pytestmark = pytest.mark.slow
+
+# RIHS01 hashes as rclpy 7.1.6 (Jazzy) reports them (../shared/docs/ROS2.md), for the types that table names
+HASHES = {"sensor_msgs/msg/JointState": "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e",
+          "geometry_msgs/msg/PointStamped":
+              "RIHS01_4c0296af86e01e562e9e0405d138a01537247580076c58ea38d7923ac1045897"}
+W, H, F = 320, 240, 400.0
+
+
+def frame_bytes(rig: str) -> bytes:
+    rng = np.random.default_rng(1)
+    img = rng.integers(0, 256, (H, W), np.uint8)
+    return make_frame(img, img, rig=rig, frame=1, pan_rad=0.0, focal_px=F, params=Params(),
+                      plan=[["w", 0, W - 15 + 1]]).to_bytes()
+
+
+def verdict(rig: str, frame: int, converged: bool, x=200, y=100, depth=0.8, sigma=0.01, t=None) -> Verdict:
+    return Verdict(rig=rig, frame=frame, t_capture_ns=t or time.time_ns(), t_reduced_ns=time.time_ns(), window=15,
+                   k=150, k_sub=150.2, v_shift=0, k_centre=150, direction=0, magnitude=0, offset_px=0.2,
+                   confidence=0.9, confident=True, texture=1.0, pan_rad=0.05, x=x, y=y, converged=converged,
+                   depth_m=depth if converged else math.nan, depth_sigma_m=sigma if converged else math.nan)
+
+
+def put_until(s, key: str, payload: bytes, done, timeout: float = 10.0, what: str = "an answer", logs=None):
+    """Put payload on key every 0.1 s until done() (the subscriptions of a process just started route late)."""
+    def cond():
+        s.put(key, payload)
+        time.sleep(0.05)  # the answer's own time to come back; polled again by wait_for
+        return done()
+
+    return wait_for(cond, timeout, what, interval=0.05, logs=logs)
+
+
+def test_bridge_topics_values_stamps_hashes_and_look_at(tmp_path, monkeypatch):
+    rosnode.require()
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
+    from rosbags.typesys import Stores, get_typestore
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float32MultiArray
+
+    domain = rosnode.ros_env(monkeypatch)
+    with Procs(tmp_path) as P, rosnode.TestNode(domain) as t:
+        P.router()
+        P.start("ros2", "ros2")
+        ns = f"/vergence/{P.rig}"
+        joints = t.collect(JointState, f"{ns}/joint_states")
+        fixes = t.collect(PointStamped, f"{ns}/fixation")
+        covs = t.collect(PoseWithCovarianceStamped, f"{ns}/fixation/covariance")
+        corrs = t.collect(Float32MultiArray, f"{ns}/correlation")
+        diags = t.collect(DiagnosticArray, "/diagnostics")
+        s = P.session()
+        P.wait_alive(s, "ros2")
+        fixates = P.collect(s, P.key("fixate"))
+        statuses = P.collect(s, keys.status(P.rig, "ros2", "*"))
+
+        # joint_states: the motor's own stamps; velocity from two states 10 ms apart
+        t0 = time.time_ns()
+        st = MotorState(rig=P.rig, t_ns=t0, pan_rad=0.1, goal_rad=0.1, min_rad=-0.5, max_rad=0.5, status="ok")
+        put_until(s, P.key("motor/state"), st.to_bytes(), lambda: joints, what="a joint state", logs=P.logs)
+        n = len(joints)
+        s.put(P.key("motor/state"), MotorState(rig=P.rig, t_ns=t0 + 10_000_000, pan_rad=0.12, goal_rad=0.12,
+                                               min_rad=-0.5, max_rad=0.5, status="ok").to_bytes())
+        _, js = t.wait(joints, n + 1, 10, "joint states", P.logs)[n]
+        assert list(js.name) == [f"{P.rig}_slave_pan"] and js.position[0] == pytest.approx(0.12, abs=1e-12)
+        assert js.velocity[0] == pytest.approx(2.0, rel=1e-6)
+        assert (js.header.stamp.sec, js.header.stamp.nanosec) == divmod(t0 + 10_000_000, 10**9)
+
+        # fixation: nothing before a frame's view, nothing while not converged; then the point in the master's
+        # optical frame, stamped with the frame's capture time
+        put_until(s, P.key("frame"), frame_bytes(P.rig), lambda: any(json.loads(p)["counters"].get("frames") for _, p, _
+                                                                     in statuses.snapshot()), what="a frame counted")
+        s.put(P.key("decision"), verdict(P.rig, 2, False).to_bytes())
+        tc = time.time_ns()
+        s.put(P.key("decision"), verdict(P.rig, 3, True, t=tc).to_bytes())
+        _, fx = t.wait(fixes, 1, 10, "fixations", P.logs)[0]
+        assert (fx.point.x, fx.point.y, fx.point.z) == pytest.approx((40 * 0.8 / F, -20 * 0.8 / F, 0.8), abs=1e-12)
+        assert fx.header.frame_id == f"{P.rig}_master_optical_frame"
+        assert (fx.header.stamp.sec, fx.header.stamp.nanosec) == divmod(tc, 10**9)
+        _, cv = t.wait(covs, 1, 10, "covariances", P.logs)[0]
+        c = np.array(cv.pose.covariance).reshape(6, 6)
+        ray = np.array([0.08, -0.04, 0.8]) / np.linalg.norm([0.08, -0.04, 0.8])
+        assert ray @ c[:3, :3] @ ray == pytest.approx((0.01 * np.linalg.norm([0.08, -0.04, 0.8]) / 0.8) ** 2)
+        assert len(fixes) == 1  # the unconverged decision published nothing
+
+        # correlation: the profile's layer 4 as float32, rows v x offsets k
+        scores = np.arange(13 * 306, dtype="<f8").reshape(13, 306) / 7.0
+        pr = Profile(**{f: getattr(verdict(P.rig, 4, True), f) for f in Verdict.__struct_fields__},
+                     width=W, rows=13, scores=scores.tobytes())
+        s.put(P.key("profile"), pr.to_bytes())
+        _, cm = t.wait(corrs, 1, 10, "correlations", P.logs)[0]
+        assert [(d.label, d.size, d.stride) for d in cm.layout.dim] == [("v", 13, 13 * 306), ("k", 306, 306)]
+        assert np.array_equal(np.asarray(cm.data, np.float32), scores.astype(np.float32).ravel())
+
+        # look_at: a good point -> a Fixate at its pixel; bad ones -> nothing, counted, WARN on /diagnostics
+        look = t.publisher(PointStamped, f"{ns}/look_at", logs=P.logs)
+
+        def point(x, y, z, frame=""):
+            m = PointStamped()
+            m.header.frame_id = frame
+            m.point.x, m.point.y, m.point.z = x, y, z
+            return m
+
+        for bad in (point(0.0, 0.0, -1.0), point(math.nan, 0, 1), point(1.0, 0.0, 0.1), point(0, 0, math.inf),
+                    point(0, 0, 1, frame="base_link"), point(0.39, 0.0, 1.0)):
+            look.publish(bad)
+        look.publish(point(-0.1, 0.05, 1.0))  # pixel (160 - 40, 120 + 20)
+        _, fb, _ = fixates.wait(1, 10)[0]
+        req = Fixate.from_bytes(fb)
+        assert (req.x, req.y, req.source) == (120.0, 140.0, "ros2 look_at") and len(fixates) == 1
+
+        def bridge_status():
+            got = [json.loads(p) for _, p, _ in statuses.snapshot()]
+            return got[-1] if got and got[-1]["counters"].get("look_at", 0) >= 7 else None
+
+        own = wait_for(bridge_status, 10, "the bridge's status", logs=P.logs)
+        assert own["counters"]["look_at_refused"] == 6 and own["counters"]["look_at_sent"] == 1
+
+        def warned():
+            for _, arr in diags:
+                for d in arr.status:
+                    if d.name.startswith(f"vergence/{P.rig}/ros2/") and d.level == b"\x01":
+                        return d
+            return None
+
+        d = t.wait_until(warned, 10, "a WARN of the bridge on /diagnostics", P.logs)
+        assert d.message.startswith("look_at refused: point (0.39, 0, 1) at pixel (316, 120): ")
+
+        # /diagnostics: a process's status becomes one DiagnosticStatus; a growing bad count a WARN
+        cap = {"role": "capture", "id": "c-1", "counters": {"frames": 7}, "bad": {"fixate": 1}, "window": 15}
+        s.put(keys.status(P.rig, "capture", "c-1"), json.dumps(cap))
+        s.put(keys.status(P.rig, "capture", "c-1"), json.dumps(dict(cap, bad={"fixate": 2})))
+
+        def capture_diag():
+            for _, arr in diags:
+                for d in arr.status:
+                    if d.name == f"vergence/{P.rig}/capture/c-1":
+                        return d
+            return None
+
+        d = t.wait_until(capture_diag, 10, "the capture's DiagnosticStatus", P.logs)
+        assert d.level == b"\x01" and d.hardware_id == P.rig and d.message == "bad messages: fixate 2"
+        assert {kv.key: kv.value for kv in d.values} == {"frames": "7", "bad.fixate": "2", "window": "15"}
+        motor = next(d for _, a in diags for d in a.status if d.name == f"vergence/{P.rig}/motor")
+        assert motor.level == b"\x00" and {kv.key: kv.value for kv in motor.values}["pan_rad"] == "0.12"
+
+        # bad Zenoh messages: counted, nothing published, the bridge goes on
+        before = (len(joints), len(fixes), len(corrs))
+        for key in ("motor/state", "decision", "profile", "frame"):
+            s.put(P.key(key), b"\xc1 garbage")
+        s.put(P.key("motor/state"), MotorState(rig=P.rig, t_ns=-5, pan_rad=0.0, goal_rad=0.0, min_rad=-1,
+                                               max_rad=1, status="ok").to_bytes())  # a time before the epoch
+        s.put(keys.status(P.rig, "worker", "x"), b"[1, 2")
+        wait_for(lambda: (bridge_status() or {}).get("bad", {}).get("status") == 1, 10, "bad counted", logs=P.logs)
+        bad = bridge_status()["bad"]
+        assert bad == {"motor_state": 2, "decision": 1, "profile": 1, "frame": 1, "status": 1}
+        assert (len(joints), len(fixes), len(corrs)) == before
+
+        # type names and hashes as rclpy reports them, equal to rosbags' (an independent computation)
+        store = get_typestore(Stores.ROS2_JAZZY)
+        for topic, tp in (("joint_states", "sensor_msgs/msg/JointState"),
+                          ("fixation", "geometry_msgs/msg/PointStamped"),
+                          ("fixation/covariance", "geometry_msgs/msg/PoseWithCovarianceStamped"),
+                          ("correlation", "std_msgs/msg/Float32MultiArray")):
+            infos = [i for i in t.node.get_publishers_info_by_topic(f"{ns}/{topic}")]
+            assert [i.topic_type for i in infos] == [tp]
+            assert str(infos[0].topic_type_hash) == store.hash_rihs01(tp) == HASHES.get(tp, store.hash_rihs01(tp))
+        (info,) = t.node.get_publishers_info_by_topic("/diagnostics")
+        assert info.topic_type == "diagnostic_msgs/msg/DiagnosticArray"
+        assert str(info.topic_type_hash) == store.hash_rihs01("diagnostic_msgs/msg/DiagnosticArray")
+        with pytest.raises(MessageError):
+            MotorState.from_bytes(b"\xc1 garbage")
