@@ -53,7 +53,7 @@ log = logging.getLogger("vergence.capture")
 def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
     p.add_argument("--source", default=None, metavar="SPEC",
-                   help="files:LEFT,RIGHT | video:LEFT,RIGHT | camera:0,1 | sim[:key=value:...] "
+                   help="files:LEFT,RIGHT | video:LEFT,RIGHT | camera:0,1 | sim[:key=value:...] | ros2:LEFT,RIGHT "
                         "(default: settings, sim)")
     p.add_argument("--rate", type=float, default=None, metavar="HZ",
                    help="frames per second, 0 = as fast as possible (default: settings, 30)")
@@ -208,7 +208,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
 
     def fields() -> dict:
         return dict(window=windows.window, workers=len(plan), excluded=members.excluded(), **rates.fields(),
-                    roster=dict(members.counters), clipped=clipped(), **fovea.fields())
+                    roster=dict(members.counters), clipped=clipped(), **fovea.fields(),
+                    **({"source": source.status()} if hasattr(source, "status") else {}))
 
     node = Node("capture", rig, conf, stop, log=log, fields=fields,
                 final_fields=lambda: dict(window=windows.window, workers=len(plan)))
@@ -291,8 +292,13 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
             try:
                 master, slave = source.read(p_now)
             except SourceError as e:
+                if getattr(e, "transient", False):  # a live stream with no new image yet (ros2): try again
+                    node.tick()
+                    continue
                 print(f"vergence capture: {e}", file=sys.stderr)
                 return 2
+            if source.follows_pan and hasattr(source, "exposure_ns"):  # a source that waits (ros2): the pan after it
+                p_now = pan[0]
             t_ns = time.time_ns()
             pair[:] = master, slave
             w, clip = windows.state

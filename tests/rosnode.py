@@ -120,3 +120,60 @@ class TestNode:
 
     def __exit__(self, *exc):
         self.close()
+
+
+class StereoCamera:
+    """A stereo camera driver played by the test: at `hz`, the pair render(pan) (numpy uint8 gray, master left)
+    as sensor_msgs/Image mono8 on LEFT and RIGHT (both stamped with the exposure time, time.time_ns() at render)
+    and a sensor_msgs/CameraInfo with fx = fy = focal beside each (<namespace>/camera_info). pan() says the slave
+    pan to render at (the test reads it from the rig's joint_states)."""
+
+    LEFT, RIGHT = "/stereo/left/image_raw", "/stereo/right/image_raw"
+
+    def __init__(self, t: TestNode, render, pan, focal: float, hz: float = 30.0):
+        from sensor_msgs.msg import CameraInfo, Image
+
+        self.t, self.render, self.pan, self.focal, self.period = t, render, pan, focal, 1.0 / hz
+        self.pubs = [t.node.create_publisher(Image, topic, 10) for topic in (self.LEFT, self.RIGHT)]
+        self.infos = [t.node.create_publisher(CameraInfo, topic.rpartition("/")[0] + "/camera_info", 10)
+                      for topic in (self.LEFT, self.RIGHT)]
+        self.sent: list[tuple[int, float]] = []  # (stamp ns, pan rendered at)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def message(self, img, t_ns: int, frame: str):
+        from sensor_msgs.msg import Image
+
+        m = Image()
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(t_ns, 10**9)
+        m.header.frame_id = frame
+        m.height, m.width = img.shape
+        m.encoding, m.step = "mono8", img.shape[1]
+        m.data = img.tobytes()
+        return m
+
+    def _info(self, shape, t_ns: int):
+        from sensor_msgs.msg import CameraInfo
+
+        m = CameraInfo()
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(t_ns, 10**9)
+        m.height, m.width = shape
+        m.k = [self.focal, 0.0, shape[1] // 2, 0.0, self.focal, shape[0] // 2, 0.0, 0.0, 1.0]
+        return m
+
+    def _loop(self):
+        next_t = time.monotonic()
+        while not self._stop.wait(max(0.0, next_t - time.monotonic())):
+            next_t += self.period
+            pan = self.pan()
+            t_ns = time.time_ns()
+            imgs = self.render(pan)
+            for pub, info, img, name in zip(self.pubs, self.infos, imgs, ("left", "right")):
+                pub.publish(self.message(img, t_ns, f"{name}_optical_frame"))
+                info.publish(self._info(img.shape, t_ns))
+            self.sent.append((t_ns, pan))
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(2.0)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import rosnode
-from procs import Procs, wait_for
+from procs import Procs, free_port, wait_for
 from vergence import keys
 from vergence.frames import make_frame
 from vergence.messages import Fixate, MessageError, MotorState, Profile, Verdict
@@ -190,3 +190,64 @@ def test_bridge_topics_values_stamps_hashes_and_look_at(tmp_path, monkeypatch):
         assert str(info.topic_type_hash) == store.hash_rihs01("diagnostic_msgs/msg/DiagnosticArray")
         with pytest.raises(MessageError):
             MotorState.from_bytes(b"\xc1 garbage")
+
+
+def _verdicts(c, after_ns: int = 0) -> list[tuple[int, Verdict]]:
+    return [(t, Verdict.from_bytes(b)) for t, b, _ in c.snapshot() if t >= after_ns]
+
+
+def test_up_with_a_ros2_stereo_camera_converges_and_fixation_depth(tmp_path, monkeypatch):
+    """The Must of issue #27: the test's own ROS 2 node plays a stereo camera at 30 Hz (vergence.sim.moving's
+    head, f = 256 px, b = 0.06 m, a textured target 0.8 m ahead), its slave view rendered at the pan it reads
+    from /vergence/<rig>/joint_states; `vergence up --source ros2:LEFT,RIGHT --ros2` (the sim actuator) converges
+    within 1 px within 3 s of its first decision, and `fixation` says z within 2 % of 0.8 m."""
+    rosnode.require()
+    from geometry_msgs.msg import PointStamped
+    from sensor_msgs.msg import JointState
+    from vergence.sim.moving import Head, MovingRig
+
+    domain = rosnode.ros_env(monkeypatch)
+    z_true = 0.8
+    rig = MovingRig("still:z=0.8", Head(0.06, 256.0, (320, 240)))
+    with Procs(tmp_path) as P, rosnode.TestNode(domain) as t:
+        P.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        joints = t.collect(JointState, f"/vergence/{P.rig}/joint_states")
+        fixes = t.collect(PointStamped, f"/vergence/{P.rig}/fixation")
+
+        def pan() -> float:
+            """The slave's pan now, as a camera on the shaft sees it: the latest joint state moved on by its
+            velocity to this instant (the states come every 20 ms; the motor turns at up to 300 deg/s)."""
+            if not joints:
+                return 0.0
+            js = joints[-1][1]
+            age = (time.time_ns() - (js.header.stamp.sec * 10**9 + js.header.stamp.nanosec)) / 1e9
+            vel = js.velocity[0] if math.isfinite(js.velocity[0]) else 0.0
+            return float(js.position[0] + vel * min(max(age, 0.0), 0.05))
+
+        cam = rosnode.StereoCamera(t, lambda p: rig.render(p, 0.0), pan, 256.0, hz=30.0)
+        try:
+            P.start("up", "up", "--listen", P.endpoint, "--source", f"ros2:{cam.LEFT},{cam.RIGHT}", "--ros2",
+                    "--workers", "2", "--rate", "0", "--no-standby", connect=False)
+            s = P.session(60)
+            decisions = P.collect(s, P.key("decision"))
+            t_first = decisions.wait(1, 90)[0][0]
+
+            def converged():
+                v = _verdicts(decisions, t_first)
+                if len(v) >= 5 and all(abs(d.offset_px) <= 1 for _, d in v[-5:]) and abs(rig.error_px(pan())) <= 1:
+                    return v[-1][0]
+                return None
+
+            t_conv = wait_for(converged, 10, "converged decisions and joint states", interval=0.01, logs=P.logs)
+            took = (t_conv - t_first) / 1e9
+            print(f"converged {took:.2f} s after the first decision")
+            assert took <= 3.0
+            _, fx = t.wait_until(lambda: [f for f in fixes if f[0] > t_conv][:1], 5, "a fixation", P.logs)[0]
+            assert fx.point.z == pytest.approx(z_true, rel=0.02)
+            assert (fx.point.x, fx.point.y) == pytest.approx((0.0, 0.0), abs=0.005)  # the fovea: the view centre
+            assert fx.header.frame_id == f"{P.rig}_master_optical_frame"
+            # the fixation is stamped with a pair's exposure (the camera's stamps), never later than it arrived
+            stamp = fx.header.stamp.sec * 10**9 + fx.header.stamp.nanosec
+            assert min(abs(stamp - ts) for ts, _ in cam.sent) < 50_000_000
+        finally:
+            cam.close()
