@@ -251,3 +251,103 @@ def test_up_with_a_ros2_stereo_camera_converges_and_fixation_depth(tmp_path, mon
             assert min(abs(stamp - ts) for ts, _ in cam.sent) < 50_000_000
         finally:
             cam.close()
+
+
+def _image(t: "rosnode.TestNode", img, t_ns: int, encoding: str = "mono8"):
+    from sensor_msgs.msg import Image
+
+    m = Image()
+    m.header.stamp.sec, m.header.stamp.nanosec = divmod(t_ns, 10**9)
+    m.height, m.width = img.shape[:2]
+    m.encoding, m.step = encoding, img.shape[1] * (img.shape[2] if img.ndim == 3 else 1)
+    m.data = img.tobytes()
+    return m
+
+
+def test_ros2_source_counts_bad_images_and_goes_on(tmp_path, monkeypatch):
+    """`vergence capture --source ros2:...` fed by the test's node: compressed PNG on the left and raw bgr8 on the
+    right pair by stamp; an encoding it cannot use, stamps of 0 and 1 h ahead, an image of another size, right
+    images no left matches and a flood of 600 images in a burst are counted in the capture's status, and the
+    capture goes on pairing. A topic nobody publishes: exit 2 naming it."""
+    rosnode.require()
+    from sensor_msgs.msg import CompressedImage, Image
+
+    domain = rosnode.ros_env(monkeypatch)
+    rng = np.random.default_rng(2)
+    gray = rng.integers(0, 256, (120, 160), np.uint8)
+    bgr = np.dstack([gray] * 3)
+    png = __import__("cv2").imencode(".png", gray)[1].tobytes()
+    with Procs(tmp_path) as P, rosnode.TestNode(domain) as t:
+        P.router()
+        left = t.node.create_publisher(CompressedImage, "/cam/left/image_raw/compressed", 10)
+        right = t.node.create_publisher(Image, "/cam/right/image_raw", 10)
+
+        def pair(t_ns=None, dt=0):
+            t_ns = t_ns or time.time_ns()
+            c = CompressedImage(format="png", data=png)
+            c.header.stamp.sec, c.header.stamp.nanosec = divmod(t_ns, 10**9)
+            left.publish(c)
+            right.publish(_image(t, bgr, t_ns + dt, "bgr8"))
+
+        stop = __import__("threading").Event()
+        feeder = __import__("threading").Thread(target=lambda: [pair() for _ in iter(lambda: stop.wait(0.05), True)],
+                                                daemon=True)
+        feeder.start()
+        try:
+            cap = P.start("capture", "capture", "--source",
+                          "ros2:/cam/left/image_raw/compressed,/cam/right/image_raw:slop=0.002")
+            s = P.session()
+            statuses = P.collect(s, P.key("status/capture/*"))
+
+            def source(cond):
+                def f():
+                    for _, b, _ in reversed(statuses.snapshot()):
+                        src = json.loads(b).get("source", {})
+                        return src if cond(src) else None
+                    return None
+                return f
+
+            first = wait_for(source(lambda c: c.get("pairs", 0) >= 5), 30, "pairs counted", logs=P.logs)
+            assert not any(k.startswith("bad") for k in first)
+            # one at a time, each again every 0.5 s until counted (best effort: the subscription keeps the newest 5
+            # and may drop one while the feeder's pairs come)
+            sent = {"bad_image": 0, "bad_stamp": 0, "bad_size": 0}
+            for kind, n, make in (("bad_image", 1, lambda: _image(t, gray, time.time_ns(), "yuv422")),
+                                  ("bad_stamp", 1, lambda: _image(t, gray, 0)),
+                                  ("bad_stamp", 2, lambda: _image(t, gray, time.time_ns() + 3600 * 10**9)),
+                                  ("bad_size", 1, lambda: _image(t, np.zeros((60, 80, 3), np.uint8), time.time_ns(),
+                                                                 "bgr8"))):
+                due = [0.0]
+
+                def counted(kind=kind, n=n, make=make, due=due):
+                    if (source(lambda c: True)() or {}).get(kind, 0) >= n:
+                        return True
+                    if time.monotonic() >= due[0]:  # (again) once every 0.5 s
+                        right.publish(make())
+                        sent[kind] += 1
+                        due[0] = time.monotonic() + 0.5
+                    return False
+
+                wait_for(counted, 20, f"{kind} {n} counted", logs=P.logs)
+            unmatched = first.get("unmatched", 0)
+            for _ in range(3):  # no left image half a second on: pushed out unpaired
+                right.publish(_image(t, bgr, time.time_ns() + 10**9 // 2, "bgr8"))
+                time.sleep(0.05)  # one at a time (see above)
+            wait_for(source(lambda c: c.get("unmatched", 0) >= unmatched + 3), 20, "unmatched counted", logs=P.logs)
+            for _ in range(600):  # a flood: the newest are taken, the capture goes on
+                right.publish(_image(t, bgr, time.time_ns(), "bgr8"))
+            now = wait_for(source(lambda c: c), 5, "a status", logs=P.logs)
+            got = wait_for(source(lambda c: c["pairs"] >= now["pairs"] + 10), 20, "more pairs", logs=P.logs)
+            assert 1 <= got["bad_image"] <= sent["bad_image"] and 2 <= got["bad_stamp"] <= sent["bad_stamp"]
+            assert 1 <= got["bad_size"] <= sent["bad_size"]
+            assert cap.poll() is None
+            text = (tmp_path / "capture.log").read_text()
+            assert "encoding 'yuv422' is not one vergence reads" in text and "stamp 0" in text
+            assert "the stream changed size from 160 x 120 to 80 x 60" in text
+        finally:
+            stop.set()
+            feeder.join(2)
+        r = P.start("capture2", "capture", "--source", "ros2:/nobody/left,/cam/right/image_raw:wait=1")
+        wait_for(lambda: r.poll() is not None, 30, "the capture to exit", logs=P.logs)
+        assert r.returncode == 2
+        assert "no publisher on /nobody/left after 1 s" in (tmp_path / "capture2.log").read_text()
