@@ -177,3 +177,67 @@ class StereoCamera:
     def close(self):
         self._stop.set()
         self._thread.join(2.0)
+
+
+class ForwardController:
+    """A ros2_control forward command controller played by the test: std_msgs/Float64MultiArray goals on
+    /<name>/commands (one value: the joint's), a joint that heads for its goal at `speed` rad/s, and
+    sensor_msgs/JointState on /joint_states at `hz`, stamped now. Every command it took is in `commands`
+    (arrival time.time_ns(), value); `publishing` cleared: no more joint states (a controller manager gone)."""
+
+    def __init__(self, t: TestNode, name: str = "forward_position_controller", joint: str = "slave_pan",
+                 speed: float = 3.0, hz: float = 100.0):
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64MultiArray
+
+        self.t, self.joint, self.speed, self.period = t, joint, speed, 1.0 / hz
+        self.lock = threading.Lock()
+        self.pan = self.goal = 0.0
+        self.commands: list[tuple[int, float]] = []
+        self.bad_commands = 0
+        self.stamps: set[int] = set()  # of every joint state published
+        self.publishing = threading.Event()
+        self.publishing.set()
+        self.pub = t.node.create_publisher(JointState, "/joint_states", 10)
+        t.node.create_subscription(Float64MultiArray, f"/{name}/commands", self._on_command, 10)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _on_command(self, msg) -> None:
+        if len(msg.data) != 1:
+            self.bad_commands += 1
+            return
+        with self.lock:
+            self.goal = float(msg.data[0])
+            self.commands.append((time.time_ns(), self.goal))
+
+    def position(self) -> float:
+        with self.lock:
+            return self.pan
+
+    def state(self, t_ns: int, names=None, positions=None):
+        from sensor_msgs.msg import JointState
+
+        m = JointState()
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(t_ns, 10**9)
+        m.name = names if names is not None else [self.joint]
+        m.position = positions if positions is not None else [self.position()]
+        return m
+
+    def _loop(self):
+        last = time.monotonic()
+        while not self._stop.wait(self.period):
+            now = time.monotonic()
+            with self.lock:
+                step = self.speed * (now - last)
+                self.pan += max(-step, min(step, self.goal - self.pan))
+            last = now
+            if self.publishing.is_set():
+                t_ns = time.time_ns()
+                self.stamps.add(t_ns)
+                self.pub.publish(self.state(t_ns))
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(2.0)

@@ -457,3 +457,85 @@ def test_record_mcap_opens_in_independent_readers_and_replays(tmp_path):
         got = [b for _, b, _ in again.snapshot()]
         assert len(got) >= len(recorded) - 5 and set(got) <= recorded  # (the first ones may precede the routes)
         assert "replayed" in rp.text() and "bad 0" in rp.text()
+
+
+def test_up_with_the_ros2_driver_against_a_forward_command_controller(tmp_path, monkeypatch):
+    """The second Must of issue #27: as the stereo-camera test, with `--driver ros2` driving a forward command
+    controller played by the test (a joint heading for its command at 170 deg/s, /joint_states at 100 Hz; the
+    camera renders the slave at that joint's pan): converged within 1 px within 3 s of the first decision, the
+    fixation's depth within 2 %; every command inside the limits and steps of the Safety. Bad joint states
+    (arrays of unequal length, NaN, stamp 0) are counted in the motor state's errors; joint states that stop:
+    the motor state says disconnected with the reason and no command goes out; they come back: it resumes."""
+    rosnode.require()
+    from geometry_msgs.msg import PointStamped
+    from vergence.sim.moving import Head, MovingRig
+
+    domain = rosnode.ros_env(monkeypatch)
+    rig = MovingRig("still:z=0.8", Head(0.06, 256.0, (320, 240)))
+    with Procs(tmp_path) as P, rosnode.TestNode(domain) as t:
+        P.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        fixes = t.collect(PointStamped, f"/vergence/{P.rig}/fixation")
+        ctl = rosnode.ForwardController(t)
+        cam = rosnode.StereoCamera(t, lambda p: rig.render(p, 0.0), ctl.position, 256.0, hz=30.0)
+        try:
+            P.start("up", "up", "--listen", P.endpoint, "--source", f"ros2:{cam.LEFT},{cam.RIGHT}", "--ros2",
+                    "--driver", "ros2", "--port", "forward_position_controller:joint=slave_pan", "--workers", "2",
+                    "--rate", "0", "--no-standby", connect=False)
+            s = P.session(60)
+            decisions = P.collect(s, P.key("decision"))
+            states = P.collect(s, P.key("motor/state"))
+            t_first = decisions.wait(1, 90)[0][0]
+
+            def converged():
+                v = _verdicts(decisions, t_first)
+                if len(v) >= 5 and all(abs(d.offset_px) <= 1 for _, d in v[-5:]) \
+                        and abs(rig.error_px(ctl.position())) <= 1:
+                    return v[-1][0]
+                return None
+
+            t_conv = wait_for(converged, 10, "converged decisions and joint", interval=0.01, logs=P.logs)
+            took = (t_conv - t_first) / 1e9
+            print(f"converged {took:.2f} s after the first decision")
+            assert took <= 3.0
+            _, fx = t.wait_until(lambda: [f for f in fixes if f[0] > t_conv][:1], 5, "a fixation", P.logs)[0]
+            assert fx.point.z == pytest.approx(0.8, rel=0.02)
+            goals = [g for _, g in ctl.commands]
+            assert goals and ctl.bad_commands == 0 and all(abs(g) <= math.radians(45) for g in goals)
+            assert all(abs(b - a) <= math.radians(10) + 1e-9 for a, b in zip([0.0] + goals, goals))
+            last = MotorState.from_bytes(states.snapshot()[-1][1])
+            assert last.driver == "ros2" and last.status in ("ok", "hold")
+            assert last.t_ns in ctl.stamps  # the motor state's time is the joint state's own stamp
+
+            # bad joint states: counted, the pan unchanged
+            errors = last.errors
+            bad_pub = t.publisher(type(ctl.state(0)), "/joint_states", logs=P.logs)  # matched by the actuator
+
+            def counted():  # the three again every 0.5 s until counted (a best-effort subscription)
+                m = MotorState.from_bytes(states.snapshot()[-1][1])
+                if m.errors >= errors + 3:
+                    return m
+                for bad in (ctl.state(time.time_ns(), names=["slave_pan", "tilt"], positions=[0.5]),
+                            ctl.state(time.time_ns(), positions=[math.nan]), ctl.state(0, positions=[0.4])):
+                    bad_pub.publish(bad)
+                return None
+
+            st = wait_for(counted, 10, "errors counted", interval=0.5, logs=P.logs)
+            assert abs(st.pan_rad - ctl.position()) < math.radians(1)
+
+            # the joint states stop: disconnected, nothing sent; back: it resumes
+            ctl.publishing.clear()
+            gone = wait_for(lambda: (lambda m: m if m.status == "disconnected" else None)(
+                MotorState.from_bytes(states.snapshot()[-1][1])), 10, "disconnected", logs=P.logs)
+            assert "no joint state" in gone.note
+            n = len(ctl.commands)
+            t_fix = time.time_ns()
+            s.put(P.key("fixate"), Fixate(x=100, y=120, t_ns=t_fix).to_bytes())  # a reason to move: the background
+            wait_for(lambda: sum((v.x, v.y) == (100, 120) and abs(v.offset_px) > 1 for _, v in _verdicts(
+                decisions, t_fix)) >= 10, 10, "decisions off the new point", logs=P.logs)
+            assert len(ctl.commands) == n
+            ctl.publishing.set()
+            wait_for(lambda: MotorState.from_bytes(states.snapshot()[-1][1]).status in ("ok", "hold"), 15,
+                     "the motor back", logs=P.logs)
+        finally:
+            cam.close()
+            ctl.close()
