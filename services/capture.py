@@ -24,6 +24,7 @@ retina.clipped_share of the latest pair; a warning, once per camera, over retina
 from __future__ import annotations
 
 import argparse
+import collections
 import contextlib
 import dataclasses
 import json
@@ -40,6 +41,7 @@ from vergence import keys, retina
 from vergence.config import load
 from vergence.frames import Roster, WindowControl, make_frame, plan_shards
 from vergence.messages import Fixate, MessageError, MotorState, Preview, Verdict
+from vergence.ros2 import pan_at
 from vergence.sources import SourceError, open_source
 
 from . import session
@@ -180,6 +182,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
     lim = settings.limits
     members = Roster(lim.miss_s, lim.probation_s, lim.miss_frames)
     pan = [source.start_pan_rad]
+    pans: collections.deque = collections.deque(maxlen=64)  # (t_ns, pan_rad) of the latest motor states
     rates = Rates()
     plan: list = []
     unclipped: dict[int, None] = {}  # the recent frames published with the master unclipped (clip_fallback)
@@ -223,6 +226,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
             if why is not None:
                 raise MessageError(why)
             pan[0] = st.pan_rad
+            pans.append((st.t_ns, st.pan_rad))
             health.count("motor_states")
         except MessageError as e:
             health.reject("motor_state", e)
@@ -297,8 +301,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
                     continue
                 print(f"vergence capture: {e}", file=sys.stderr)
                 return 2
-            if source.follows_pan and hasattr(source, "exposure_ns"):  # a source that waits (ros2): the pan after it
-                p_now = pan[0]
+            if source.follows_pan and hasattr(source, "exposure_ns"):  # a stamped stream (ros2): the slave's pan at
+                p_now = pan_at(list(pans), source.exposure_ns[1], pan[0])  # its exposure (issue #25 generalises)
             t_ns = time.time_ns()
             pair[:] = master, slave
             w, clip = windows.state

@@ -13,6 +13,7 @@ each other's nodes, nor anything on the network, and send nothing off this machi
 
 from __future__ import annotations
 
+import collections
 import random
 import threading
 import time
@@ -124,16 +125,18 @@ class TestNode:
 
 class StereoCamera:
     """A stereo camera driver played by the test: at `hz`, the pair render(pan) (numpy uint8 gray, master left)
-    as sensor_msgs/Image mono8 on LEFT and RIGHT (both stamped with the exposure time, time.time_ns() at render)
-    and a sensor_msgs/CameraInfo with fx = fy = focal beside each (<namespace>/camera_info). pan() says the slave
-    pan to render at (the test reads it from the rig's joint_states)."""
+    as sensor_msgs/Image mono8 on LEFT and RIGHT, both stamped with their exposure time, and a
+    sensor_msgs/CameraInfo with fx = fy = focal beside each (<namespace>/camera_info). The images come out
+    `latency_s` after their exposure (a real camera's exposure, readout and driver); pan_at(t_ns) says where the
+    slave was at the exposure (the test knows it from the rig's joint_states, or from the joint it plays)."""
 
     LEFT, RIGHT = "/stereo/left/image_raw", "/stereo/right/image_raw"
 
-    def __init__(self, t: TestNode, render, pan, focal: float, hz: float = 30.0):
+    def __init__(self, t: TestNode, render, pan_at, focal: float, hz: float = 30.0, latency_s: float = 0.03):
         from sensor_msgs.msg import CameraInfo, Image
 
-        self.t, self.render, self.pan, self.focal, self.period = t, render, pan, focal, 1.0 / hz
+        self.t, self.render, self.pan_at, self.focal, self.period = t, render, pan_at, focal, 1.0 / hz
+        self.latency_ns = int(latency_s * 1e9)
         self.pubs = [t.node.create_publisher(Image, topic, 10) for topic in (self.LEFT, self.RIGHT)]
         self.infos = [t.node.create_publisher(CameraInfo, topic.rpartition("/")[0] + "/camera_info", 10)
                       for topic in (self.LEFT, self.RIGHT)]
@@ -166,8 +169,8 @@ class StereoCamera:
         next_t = time.monotonic()
         while not self._stop.wait(max(0.0, next_t - time.monotonic())):
             next_t += self.period
-            pan = self.pan()
-            t_ns = time.time_ns()
+            t_ns = time.time_ns() - self.latency_ns  # the exposure
+            pan = self.pan_at(t_ns)
             imgs = self.render(pan)
             for pub, info, img, name in zip(self.pubs, self.infos, imgs, ("left", "right")):
                 pub.publish(self.message(img, t_ns, f"{name}_optical_frame"))
@@ -196,6 +199,7 @@ class ForwardController:
         self.commands: list[tuple[int, float]] = []
         self.bad_commands = 0
         self.stamps: set[int] = set()  # of every joint state published
+        self.history: collections.deque = collections.deque([(time.time_ns(), 0.0)], maxlen=1000)  # (t_ns, pan)
         self.publishing = threading.Event()
         self.publishing.set()
         self.pub = t.node.create_publisher(JointState, "/joint_states", 10)
@@ -216,6 +220,13 @@ class ForwardController:
         with self.lock:
             return self.pan
 
+    def pan_at(self, t_ns: int) -> float:
+        """Where the joint was at t_ns (its motion is piecewise linear between its steps)."""
+        from vergence.ros2 import pan_at
+
+        with self.lock:
+            return pan_at(list(self.history), t_ns, self.pan)
+
     def state(self, t_ns: int, names=None, positions=None):
         from sensor_msgs.msg import JointState
 
@@ -232,6 +243,7 @@ class ForwardController:
             with self.lock:
                 step = self.speed * (now - last)
                 self.pan += max(-step, min(step, self.goal - self.pan))
+                self.history.append((time.time_ns(), self.pan))
             last = now
             if self.publishing.is_set():
                 t_ns = time.time_ns()

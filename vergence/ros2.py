@@ -29,7 +29,7 @@ import numpy as np
 
 __all__ = ["NS_PER_S", "OK", "ros_name", "WARN", "ERROR", "STALE", "stamp", "from_stamp", "stamp_problem", "View",
            "FrameView", "view_of_frame", "fixation_point", "fixation_covariance", "Refused", "look_at_pixel",
-           "joint_velocity", "correlation_layout", "Diagnostic", "diagnostic", "ImageError", "ENCODINGS",
+           "pan_at", "joint_velocity", "correlation_layout", "Diagnostic", "diagnostic", "ImageError", "ENCODINGS",
            "image_gray", "compressed_gray", "Pairer"]
 
 NS_PER_S = 1_000_000_000
@@ -191,6 +191,21 @@ def look_at_pixel(point: tuple[float, float, float], view: View, window: int, vs
     except BorderError as e:
         raise Refused(f"point ({x:g}, {y:g}, {z:g}) at pixel ({px}, {py}): {e}") from None
     return px, py
+
+
+def pan_at(states: list[tuple[int, float]], t_ns: int, default: float) -> float:
+    """The pan at t_ns from motor states (t_ns, pan_rad) in arrival order: interpolated between the two that
+    bracket it, the latest one before it when none is later yet, the earliest one when t_ns precedes them all,
+    `default` without any."""
+    if not states:
+        return default
+    before = max((s for s in states if s[0] <= t_ns), default=None, key=lambda s: s[0])
+    after = min((s for s in states if s[0] > t_ns), default=None, key=lambda s: s[0])
+    if before is None:
+        return after[1]
+    if after is None or after[0] == before[0]:
+        return before[1]
+    return before[1] + (after[1] - before[1]) * (t_ns - before[0]) / (after[0] - before[0])
 
 
 # -- joint, correlation -----------------------------------------------------------------------------------------

@@ -82,6 +82,13 @@ def test_look_at_projects_and_refuses():
             conv.look_at_pixel(point, v, 15, 6)
 
 
+def test_pan_at_interpolates_between_the_states_around_it():
+    states = [(100, 0.1), (120, 0.3), (110, 0.2)]  # as they arrived
+    assert conv.pan_at(states, 105, 9.0) == pytest.approx(0.15) and conv.pan_at(states, 115, 9.0) == pytest.approx(0.25)
+    assert conv.pan_at(states, 130, 9.0) == 0.3 and conv.pan_at(states, 90, 9.0) == 0.1  # the latest, the earliest
+    assert conv.pan_at(states, 110, 9.0) == 0.2 and conv.pan_at([], 110, 9.0) == 9.0
+
+
 def test_joint_velocity_and_correlation_layout():
     assert conv.joint_velocity((0, 0.1), (20_000_000, 0.12)) == pytest.approx(1.0)
     assert math.isnan(conv.joint_velocity(None, (1, 0.0))) and math.isnan(conv.joint_velocity((5, 0.0), (5, 1.0)))
