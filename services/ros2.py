@@ -16,8 +16,9 @@ and subscribing to `look_at` (geometry_msgs/msg/PointStamped in the master's opt
 projected to a master pixel (vergence.ros2.look_at_pixel, with the view of the latest frame) and sent as a
 messages.Fixate on vergence/<rig>/fixate; a point that is not finite, behind the camera, outside the view,
 in another frame_id or too close to the border is refused: counted, logged (at most once a second) and shown
-as a warning on /diagnostics; nothing moves. More than LOOK_AT_HZ requests a second: the extra ones are
-counted (look_at_flood) and dropped.
+as a warning on /diagnostics; nothing moves. A publisher of another type on look_at (which ROS 2 never
+connects to us) is found in the graph once a second, counted (look_at_wrong_type) and named the same way.
+More than LOOK_AT_HZ requests a second: the extra ones are counted (look_at_flood) and dropped.
 
 Its own counters go out as every service's status (vergence/<rig>/status/ros2/<id>). SIGINT/SIGTERM: the
 node, then the Zenoh session, close. Exit 2 when rclpy cannot be imported (the message says how to get it).
@@ -90,6 +91,7 @@ class Bridge:
         self.statuses: dict[str, tuple[float, dict, int | None]] = {}  # key: (arrival, status, bad before)
         self.refusal: tuple[float, str] | None = None
         self.look_times: list[float] = []
+        self.wrong_types: set[tuple[str, str, str]] = set()
         self._last_log = -1e9
         self.timer = n.create_timer(1.0, self.publish_diagnostics)
 
@@ -206,8 +208,21 @@ class Bridge:
         out.append(mine)
         return out
 
+    def check_look_at_types(self) -> None:
+        """A publisher of another type on look_at never reaches us (ROS 2 matches by type): find it in the
+        graph, count it once and say so (log, /diagnostics)."""
+        for info in self.ros.node.get_publishers_info_by_topic(self.sub_look.topic_name):
+            who = (info.node_namespace, info.node_name, info.topic_type)
+            if info.topic_type != "geometry_msgs/msg/PointStamped" and who not in self.wrong_types:
+                self.wrong_types.add(who)
+                self.health.count("look_at_wrong_type")
+                self.refuse(f"node {info.node_namespace.rstrip('/')}/{info.node_name} publishes {info.topic_type} "
+                            f"on {self.sub_look.topic_name}: want geometry_msgs/msg/PointStamped")
+
     def publish_diagnostics(self) -> None:
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+        self.check_look_at_types()
 
         arr = DiagnosticArray()
         arr.header.stamp = self.ros.node.get_clock().now().to_msg()

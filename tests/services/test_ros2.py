@@ -135,6 +135,23 @@ def test_bridge_topics_values_stamps_hashes_and_look_at(tmp_path, monkeypatch):
 
         own = wait_for(bridge_status, 10, "the bridge's status", logs=P.logs)
         assert own["counters"]["look_at_refused"] == 6 and own["counters"]["look_at_sent"] == 1
+        # a publisher of another type on look_at: never connected, found in the graph and named
+        from std_msgs.msg import String
+
+        with rosnode.TestNode(domain, "wrong_type") as other:  # (one participant cannot have both types on a topic)
+            other.node.create_publisher(String, f"{ns}/look_at", 10).publish(String(data="look at me"))
+            own = wait_for(lambda: (lambda st: st if st["counters"].get("look_at_wrong_type") else None)(
+                json.loads(statuses.snapshot()[-1][1])), 10, "the wrong type counted", logs=P.logs)
+        assert own["counters"]["look_at_wrong_type"] == 1 and own["counters"]["look_at_sent"] == 1
+        # a flood: 60 good points in 0.3 s; at most LOOK_AT_HZ (20) a second go on as Fixates, the rest counted
+        for i in range(60):
+            look.publish(point(-0.1, 0.05 + i * 1e-4, 1.0))
+            time.sleep(0.005)  # (the publishing rate under test: 200 Hz)
+        own = wait_for(lambda: (lambda st: st if st["counters"]["look_at"] >= 67 else None)(
+            json.loads(statuses.snapshot()[-1][1])), 10, "the flood counted", logs=P.logs)
+        assert own["counters"]["look_at_sent"] - 1 <= 20 and own["counters"]["look_at_flood"] >= 40
+        wait_for(lambda: len(fixates) == own["counters"]["look_at_sent"], 5, "the Fixates", logs=P.logs)
+        assert "publishes std_msgs/msg/String on " + f"{ns}/look_at" in (tmp_path / "ros2.log").read_text()
 
         def warned():
             for _, arr in diags:
