@@ -31,6 +31,7 @@ __all__ = ["SourceStall", "Ros2Source", "parse_spec"]
 
 log = logging.getLogger("vergence.ros2_source")
 STALL_S = 1.0  # read() waits this long for a new pair, then SourceStall
+QOS_DEPTH = 20  # images kept per topic until the node takes them
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
 
@@ -131,10 +132,15 @@ class Ros2Source:
                                   f"(image topics seen: {', '.join(images) or 'none'}; is the camera driver running, "
                                   "on this ROS_DOMAIN_ID?)")
             time.sleep(0.05)
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
         n = self.ros.node
+        # best effort (it matches reliable publishers too) with room for a burst: a capture starved of CPU for a
+        # few frames still finds both images of a pair
+        qos = QoSProfile(depth=QOS_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT)
         for i, (topic, kind) in enumerate(zip(self.topics, kinds)):
             tp = CompressedImage if kind == COMPRESSED else Image
-            n.create_subscription(tp, topic, lambda m, i=i: self._on_image(i, m), self.ros.sensor_qos)
+            n.create_subscription(tp, topic, lambda m, i=i: self._on_image(i, m), qos)
             n.create_subscription(CameraInfo, _info_topic(topic), lambda m, i=i: self._on_info(i, m),
                                   self.ros.sensor_qos)
         log.info("ros2 source: %s (%s) and %s (%s), paired within %g s", self.topics[0], kinds[0], self.topics[1],
