@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import threading
 import time
 
@@ -153,14 +154,19 @@ class Ros2Source:
                 raise SourceError(f"ros2 source: no pair of images within {self.opts['wait']:g} s from "
                                   f"{', '.join(self.topics)} (counted: {self.counters or 'nothing'})")
             self.cond.wait_for(lambda: all(self.info), max(0.0, min(1.0, end - time.monotonic())))
-        fx = [i.k[0] for i in self.info if i is not None and i.k[0] > 0]
-        if fx:
-            self.focal_px = float(fx[0])
-            cx, cy = self.info[0].k[2], self.info[0].k[5]
-            if abs(cx - self.size[0] // 2) > 2 or abs(cy - self.size[1] // 2) > 2:
+        # the master's camera_info first (the focal length of the frames is the master's), else the slave's
+        usable = [i for i in (self.info[::-1] if self.swap else self.info)
+                  if i is not None and math.isfinite(i.k[0]) and 0 < i.k[0] < 1e6]
+        if usable:
+            self.focal_px = float(usable[0].k[0])
+            cx, cy = usable[0].k[2], usable[0].k[5]
+            if not (abs(cx - self.size[0] // 2) <= 2 and abs(cy - self.size[1] // 2) <= 2):
                 log.warning("ros2 source: camera_info's principal point (%.1f, %.1f) is off the view centre (%d, %d) "
                             "that vergence assumes: fixation points and depths are off by that much", cx, cy,
                             self.size[0] // 2, self.size[1] // 2)
+        elif any(self.info):
+            log.warning("ros2 source: camera_info without a usable focal length (k[0] = %s): the focal length comes "
+                        "from the settings", [float(i.k[0]) for i in self.info if i is not None])
         else:
             log.info("ros2 source: no camera_info beside the image topics: the focal length comes from the settings")
 

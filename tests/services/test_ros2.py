@@ -313,7 +313,8 @@ def test_ros2_source_counts_bad_images_and_goes_on(tmp_path, monkeypatch):
     images no left matches and a flood of 600 images in a burst are counted in the capture's status, and the
     capture goes on pairing. A topic nobody publishes: exit 2 naming it."""
     rosnode.require()
-    from sensor_msgs.msg import CompressedImage, Image
+    from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+    from std_msgs.msg import String
 
     domain = rosnode.ros_env(monkeypatch)
     rng = np.random.default_rng(2)
@@ -324,9 +325,11 @@ def test_ros2_source_counts_bad_images_and_goes_on(tmp_path, monkeypatch):
         P.router()
         left = t.node.create_publisher(CompressedImage, "/cam/left/image_raw/compressed", 10)
         right = t.node.create_publisher(Image, "/cam/right/image_raw", 10)
+        info = t.node.create_publisher(CameraInfo, "/cam/left/camera_info", 10)  # a garbage focal length
 
         def pair(t_ns=None, dt=0):
             t_ns = t_ns or time.time_ns()
+            info.publish(CameraInfo(k=[math.inf, 0.0, 80.0, 0.0, math.inf, 60.0, 0.0, 0.0, 1.0]))
             c = CompressedImage(format="png", data=png)
             c.header.stamp.sec, c.header.stamp.nanosec = divmod(t_ns, 10**9)
             left.publish(c)
@@ -387,6 +390,7 @@ def test_ros2_source_counts_bad_images_and_goes_on(tmp_path, monkeypatch):
             text = (tmp_path / "capture.log").read_text()
             assert "encoding 'yuv422' is not one vergence reads" in text and "stamp 0" in text
             assert "the stream changed size from 160 x 120 to 80 x 60" in text
+            assert "camera_info without a usable focal length (k[0] = [inf])" in text and "f=128.0 px" in text
         finally:
             stop.set()
             feeder.join(2)
@@ -395,6 +399,13 @@ def test_ros2_source_counts_bad_images_and_goes_on(tmp_path, monkeypatch):
         assert r.returncode == 2
         text = (tmp_path / "capture2.log").read_text()  # (the right topic too, when discovery took over 1 s)
         assert re.search(r"no publisher on /nobody/left(, /cam/right/image_raw)? after 1 s", text), text
+        # a topic of another type
+        t.node.create_publisher(String, "/cam/words", 10)
+        r = P.start("capture3", "capture", "--source", "ros2:/cam/words,/cam/right/image_raw:wait=10")
+        wait_for(lambda: r.poll() is not None, 30, "the capture to exit", logs=P.logs)
+        assert r.returncode == 2
+        assert "topic /cam/words carries std_msgs/msg/String, not sensor_msgs/msg/Image" in (
+            tmp_path / "capture3.log").read_text()
 
 
 def test_record_mcap_opens_in_independent_readers_and_replays(tmp_path):
@@ -583,3 +594,72 @@ def test_up_with_the_ros2_driver_against_a_forward_command_controller(tmp_path, 
         finally:
             cam.close()
             ctl.close()
+
+
+def test_ros2_driver_trajectory_mode_a_joint_group_and_silence(monkeypatch):
+    """The ros2 driver in this process against the test's node: mode=trajectory sends one JointTrajectory point
+    (joint names, position, time_from_start = reach); joints=A,B sends the group's Float64MultiArray in the
+    controller's order with the other joint at its present position; parse_port refuses bad options; joint
+    states that stop make read_position raise Disconnected (the MotorLoop then says disconnected and sends
+    nothing) after the watchdog time."""
+    rosnode.require()
+    import threading
+
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+    from trajectory_msgs.msg import JointTrajectory
+    from vergence.motors import MotorSettings, PortError, make_driver
+    from vergence.motors.base import Disconnected
+    from vergence.motors.ros2 import parse_port
+
+    for bad in ("c:mode=velocity", "c:joint=a:joints=b,c", "c:reach=-1", "c:colour=red", "c:joint"):
+        with pytest.raises(PortError):
+            parse_port(bad)
+    domain = rosnode.ros_env(monkeypatch)
+    with rosnode.TestNode(domain) as t:
+        trajs = t.collect(JointTrajectory, "/head_controller/joint_trajectory")
+        groups = t.collect(Float64MultiArray, "/group_controller/commands")
+        pub = t.node.create_publisher(JointState, "/robot/joint_states", 10)
+        alive = threading.Event()
+        alive.set()
+        done = threading.Event()
+
+        def states():
+            while not done.wait(0.02):
+                if alive.is_set():
+                    m = JointState(name=["tilt", "pan"], position=[0.2, 0.1])
+                    m.header.stamp.sec, m.header.stamp.nanosec = divmod(time.time_ns(), 10**9)
+                    pub.publish(m)
+
+        th = threading.Thread(target=states, daemon=True)
+        th.start()
+        settings = MotorSettings(watchdog_s=0.5)
+        traj = make_driver("ros2", settings, "head_controller:joint=pan:mode=trajectory:states=/robot/joint_states"
+                                             ":reach=0.2")
+        group = make_driver("ros2", settings, "group_controller:joint=pan:joints=tilt,pan:states=/robot/joint_states")
+        try:
+            assert traj.open() == pytest.approx(0.1) and group.open() == pytest.approx(0.1)
+            assert traj.position_ns is not None and abs(traj.position_ns - time.time_ns()) < 10**9
+            wait_for(lambda: trajs or traj.write_goal(0.15), 10, "a trajectory", interval=0.1)
+            m = trajs[0][1]
+            assert list(m.joint_names) == ["pan"] and list(m.points[0].positions) == [0.15]
+            assert (m.points[0].time_from_start.sec, m.points[0].time_from_start.nanosec) == (0, 200_000_000)
+            wait_for(lambda: groups or group.write_goal(0.3), 10, "a group command", interval=0.1)
+            assert list(groups[0][1].data) == pytest.approx([0.2, 0.3])
+            alive.clear()  # the joint states stop
+            wait_for(lambda: _raises(traj.read_position, Disconnected), 5, "Disconnected", interval=0.05)
+            with pytest.raises(Disconnected, match="no joint state on /robot/joint_states"):
+                traj.read_position()
+        finally:
+            done.set()
+            th.join(2)
+            traj.close()
+            group.close()
+
+
+def _raises(f, exc) -> bool:
+    try:
+        f()
+    except exc:
+        return True
+    return False
