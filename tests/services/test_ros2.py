@@ -45,7 +45,7 @@ def verdict(rig: str, frame: int, converged: bool, x=200, y=100, depth=0.8, sigm
 def put_until(s, key: str, payload: bytes, done, timeout: float = 10.0, what: str = "an answer", logs=None):
     """Put payload on key every 0.1 s until done() (the subscriptions of a process just started route late)."""
     def cond():
-        s.put(key, payload)
+        s.put(key, payload() if callable(payload) else payload)
         time.sleep(0.05)  # the answer's own time to come back; polled again by wait_for
         return done()
 
@@ -63,7 +63,7 @@ def test_bridge_topics_values_stamps_hashes_and_look_at(tmp_path, monkeypatch):
     domain = rosnode.ros_env(monkeypatch)
     with Procs(tmp_path) as P, rosnode.TestNode(domain) as t:
         P.router()
-        P.start("ros2", "ros2")
+        bridge = P.start("ros2", "ros2")
         ns = f"/vergence/{P.rig}"
         joints = t.collect(JointState, f"{ns}/joint_states")
         fixes = t.collect(PointStamped, f"{ns}/fixation")
@@ -76,13 +76,17 @@ def test_bridge_topics_values_stamps_hashes_and_look_at(tmp_path, monkeypatch):
         statuses = P.collect(s, keys.status(P.rig, "ros2", "*"))
 
         # joint_states: the motor's own stamps; velocity from two states 10 ms apart
-        t0 = time.time_ns()
-        st = MotorState(rig=P.rig, t_ns=t0, pan_rad=0.1, goal_rad=0.1, min_rad=-0.5, max_rad=0.5, status="ok")
-        put_until(s, P.key("motor/state"), st.to_bytes(), lambda: joints, what="a joint state", logs=P.logs)
+        put_until(s, P.key("motor/state"), lambda: MotorState(rig=P.rig, t_ns=time.time_ns(), pan_rad=0.1,
+                                                                goal_rad=0.1, min_rad=-0.5, max_rad=0.5,
+                                                                status="ok").to_bytes(),
+                  lambda: joints, what="a joint state", logs=P.logs)
         n = len(joints)
-        s.put(P.key("motor/state"), MotorState(rig=P.rig, t_ns=t0 + 10_000_000, pan_rad=0.12, goal_rad=0.12,
-                                               min_rad=-0.5, max_rad=0.5, status="ok").to_bytes())
-        _, js = t.wait(joints, n + 1, 10, "joint states", P.logs)[n]
+        t0 = time.time_ns()
+        for dt, p in ((0, 0.1), (10_000_000, 0.12)):
+            s.put(P.key("motor/state"), MotorState(rig=P.rig, t_ns=t0 + dt, pan_rad=p, goal_rad=p, min_rad=-0.5,
+                                                   max_rad=0.5, status="ok").to_bytes())
+        js = t.wait_until(lambda: next((m for _, m in joints[n:] if (m.header.stamp.sec, m.header.stamp.nanosec)
+                                        == divmod(t0 + 10_000_000, 10**9)), None), 10, "the second state", P.logs)
         assert list(js.name) == [f"{P.rig}_slave_pan"] and js.position[0] == pytest.approx(0.12, abs=1e-12)
         assert js.velocity[0] == pytest.approx(2.0, rel=1e-6)
         assert (js.header.stamp.sec, js.header.stamp.nanosec) == divmod(t0 + 10_000_000, 10**9)
@@ -179,8 +183,9 @@ def test_bridge_topics_values_stamps_hashes_and_look_at(tmp_path, monkeypatch):
         d = t.wait_until(capture_diag, 10, "the capture's DiagnosticStatus", P.logs)
         assert d.level == b"\x01" and d.hardware_id == P.rig and d.message == "bad messages: fixate 2"
         assert {kv.key: kv.value for kv in d.values} == {"frames": "7", "bad.fixate": "2", "window": "15"}
-        motor = next(d for _, a in diags for d in a.status if d.name == f"vergence/{P.rig}/motor")
-        assert motor.level == b"\x00" and {kv.key: kv.value for kv in motor.values}["pan_rad"] == "0.12"
+        motor = [d for _, a in diags for d in a.status if d.name == f"vergence/{P.rig}/motor"]
+        assert motor[0].level == b"\x00" and {kv.key: kv.value for kv in motor[0].values}["pan_rad"] in ("0.1", "0.12")
+        assert motor[-1].level == b"\x03"  # STALE: no motor state for over 3 s by now
 
         # bad Zenoh messages: counted, nothing published, the bridge goes on
         before = (len(joints), len(fixes), len(corrs))
@@ -208,6 +213,8 @@ def test_bridge_topics_values_stamps_hashes_and_look_at(tmp_path, monkeypatch):
         assert str(info.topic_type_hash) == store.hash_rihs01("diagnostic_msgs/msg/DiagnosticArray")
         with pytest.raises(MessageError):
             MotorState.from_bytes(b"\xc1 garbage")
+        # SIGINT: the node and the session close, exit 0
+        assert bridge.stop() == 0 and f"ros2 {own['id']} exits" in bridge.text()
 
 
 def _verdicts(c, after_ns: int = 0) -> list[tuple[int, Verdict]]:
@@ -594,6 +601,10 @@ def test_up_with_the_ros2_driver_against_a_forward_command_controller(tmp_path, 
         finally:
             cam.close()
             ctl.close()
+    # SIGINT to `up`: each child, the ROS 2 ones too, exits by itself with 0
+    text = (tmp_path / "up.log").read_text()
+    for child in ("capture", "ros2", "actuator", "reducer"):
+        assert f"{child} stopped (exit 0)" in text, text[-3000:]
 
 
 def test_ros2_driver_trajectory_mode_a_joint_group_and_silence(monkeypatch):
