@@ -128,7 +128,9 @@ class StereoCamera:
     as sensor_msgs/Image mono8 on LEFT and RIGHT, both stamped with their exposure time, and a
     sensor_msgs/CameraInfo with fx = fy = focal beside each (<namespace>/camera_info). The images come out
     `latency_s` after their exposure (a real camera's exposure, readout and driver); pan_at(t_ns) says where the
-    slave was at the exposure (the test knows it from the rig's joint_states, or from the joint it plays)."""
+    slave was at the exposure (the test knows it from the rig's joint_states, or from the joint it plays), None
+    while it does not know: then no picture is taken (a camera on the shaft always sees its pan; one that
+    rendered pan 0 while the motor turned would send the loop to a limit)."""
 
     LEFT, RIGHT = "/stereo/left/image_raw", "/stereo/right/image_raw"
 
@@ -171,6 +173,8 @@ class StereoCamera:
             next_t += self.period
             t_ns = time.time_ns() - self.latency_ns  # the exposure
             pan = self.pan_at(t_ns)
+            if pan is None:  # the pan at that time is not known (yet): no picture
+                continue
             imgs = self.render(pan)
             for pub, info, img, name in zip(self.pubs, self.infos, imgs, ("left", "right")):
                 pub.publish(self.message(img, t_ns, f"{name}_optical_frame"))

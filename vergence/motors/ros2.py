@@ -20,6 +20,7 @@ position_ns is the stamp of the joint state the position came from: the MotorSta
 
 from __future__ import annotations
 
+import atexit
 import logging
 import math
 import threading
@@ -120,6 +121,7 @@ class Ros2Driver(Driver):
                 self.ros = RosNode("vergence_actuator")
             except RosUnavailable as e:
                 raise PortError(f"ros2 driver: {e}") from None
+            atexit.register(self.shutdown)
             from sensor_msgs.msg import JointState
             from std_msgs.msg import Float64MultiArray
             from trajectory_msgs.msg import JointTrajectory
@@ -141,11 +143,16 @@ class Ros2Driver(Driver):
         return self.read_position()
 
     def close(self, torque_off: bool = True) -> None:
+        """Forget the joint's position (a reopen waits for a new joint state). The node itself stays, so that a
+        reconnection needs no new DDS discovery; it closes at exit (shutdown, registered with atexit)."""
+        with self.cond:
+            self.positions.clear()
+        self.position_ns = None
+
+    def shutdown(self) -> None:
         ros, self.ros, self.pub = self.ros, None, None
         if ros is not None:
             ros.close()
-        with self.cond:
-            self.positions.clear()
 
     def read_position(self) -> float:
         with self.cond:
