@@ -9,7 +9,8 @@ namespace NS (default /vergence/<rig>), publishing:
                                                             (REP 103), only while converged, stamped with the
                                                             frame's capture (exposure) time
     fixation/covariance   geometry_msgs/msg/PoseWithCovarianceStamped   the same point with its covariance
-    correlation           std_msgs/msg/Float32MultiArray   layer 4 of each profile (rows v x K offsets k)
+    correlation           std_msgs/msg/Float32MultiArray   layer 4 of each profile (rows v x K offsets k), while
+                                                            a ROS 2 node subscribes (checked once a second)
     /diagnostics          diagnostic_msgs/msg/DiagnosticArray   one status per process of the rig, 1 Hz
 
 and subscribing to `look_at` (geometry_msgs/msg/PointStamped in the master's optical frame): the point is
@@ -69,7 +70,8 @@ class Bridge:
     """The ROS 2 side: publishers, the look_at subscription, the latest view and statuses. The on_* methods
     take Zenoh payloads (from zenoh's threads); on_look_at runs in the rclpy thread."""
 
-    def __init__(self, ros: RosNode, rig: str, joint: str, frame_id: str, settings, health, put_fixate):
+    def __init__(self, ros: RosNode, rig: str, joint: str, frame_id: str, settings, health, put_fixate,
+                 profiles=None):
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
         from sensor_msgs.msg import JointState
@@ -77,6 +79,8 @@ class Bridge:
 
         self.ros, self.rig, self.joint, self.frame_id = ros, rig, joint, frame_id
         self.settings, self.health, self.put_fixate = settings, health, put_fixate
+        self.profiles = profiles  # profiles(True | False): follow vergence/<rig>/profile or not
+        self.following = False
         n, q = ros.node, ros.reliable_qos
         self.pub_joint = n.create_publisher(JointState, "joint_states", q)
         self.pub_fix = n.create_publisher(PointStamped, "fixation", q)
@@ -219,10 +223,21 @@ class Bridge:
                 self.refuse(f"node {info.node_namespace.rstrip('/')}/{info.node_name} publishes {info.topic_type} "
                             f"on {self.sub_look.topic_name}: want geometry_msgs/msg/PointStamped")
 
+    def follow_correlation(self) -> None:
+        """Subscribe to the profiles only while someone subscribes to `correlation`: the reducer encodes and
+        sends its 65 KB profiles only while it has a subscriber."""
+        want = self.pub_corr.get_subscription_count() > 0
+        if self.profiles is not None and want != self.following:
+            self.profiles(want)
+            self.following = want
+            log.info("correlation: %s", "a ROS 2 subscriber: following the profiles" if want else
+                     "no ROS 2 subscriber: not following the profiles")
+
     def publish_diagnostics(self) -> None:
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
         self.check_look_at_types()
+        self.follow_correlation()
 
         arr = DiagnosticArray()
         arr.header.stamp = self.ros.node.get_clock().now().to_msg()
@@ -280,18 +295,31 @@ def main(settings, conf, stop: session.Stop, namespace: str, joint: str, frame_i
     try:
         with Node("ros2", rig, conf, stop, log=log) as node:
             pub_fixate = node.publisher(keys.fixate(rig))
-            b = Bridge(ros, rig, joint, frame_id, settings, node.health, pub_fixate.put)
+            sub_profile: list = []
+
+            def profiles(on: bool) -> None:  # from the rclpy thread, once a second at most
+                if on:
+                    sub_profile.append(node.session.declare_subscriber(keys.profile(rig),
+                                                                       lambda s: b.on_profile(s.payload.to_bytes())))
+                else:
+                    while sub_profile:
+                        sub_profile.pop().undeclare()
+
+            b = Bridge(ros, rig, joint, frame_id, settings, node.health, pub_fixate.put, profiles)
             node.subscriber(keys.motor_state(rig), lambda s: b.on_motor(s.payload.to_bytes()))
             node.subscriber(keys.frame(rig), lambda s: b.on_frame(s.payload.to_bytes()))
             node.subscriber(keys.decision(rig), lambda s: b.on_decision(s.payload.to_bytes()))
-            node.subscriber(keys.profile(rig), lambda s: b.on_profile(s.payload.to_bytes()))
             own = keys.status(rig, "ros2", node.ident)  # its own counters go on /diagnostics directly
             node.subscriber(keys.statuses(rig), lambda s: str(s.key_expr) != own and b.on_status(
                 str(s.key_expr), s.payload.to_bytes()))
             node.ready()
             log.info("ros2 %s: vergence/%s/** <-> ROS 2 %s (joint %s, frame %s)", node.ident, rig, namespace, joint,
                      frame_id)
-            node.run_status()
+            try:
+                node.run_status()
+            finally:
+                ros.close()  # no rclpy callback (the timer's declarations) runs while the subscribers go
+                profiles(False)
     finally:
         ros.close()
     return 0

@@ -79,6 +79,9 @@ class RosNode:
         return self.node.get_clock().now().nanoseconds
 
     def close(self) -> None:
+        """Stop the spinning thread, destroy the node, shut the context down; again: nothing."""
+        if self._stop.is_set():
+            return
         self._stop.set()
         self._thread.join(2.0)
         try:

@@ -133,8 +133,10 @@ def _fixation_and_correlation(b: Bridged) -> None:
     scores = np.arange(13 * 306, dtype="<f8").reshape(13, 306) / 7.0
     pr = Profile(**{f: getattr(verdict(P.rig, 4, True), f) for f in Verdict.__struct_fields__},
                  width=W, rows=13, scores=scores.tobytes())
-    s.put(P.key("profile"), pr.to_bytes())
-    _, cm = t.wait(b.corrs, 1, 10, "correlations", P.logs)[0]
+    # the bridge follows the profiles once it sees our subscription to correlation (within a second)
+    put_until(s, P.key("profile"), pr.to_bytes(), lambda: b.corrs, what="a correlation", logs=P.logs)
+    _, cm = b.corrs[0]
+    assert "correlation: a ROS 2 subscriber: following the profiles" in b.bridge.text()
     assert [(d.label, d.size, d.stride) for d in cm.layout.dim] == [("v", 13, 13 * 306), ("k", 306, 306)]
     assert np.array_equal(np.asarray(cm.data, np.float32), scores.astype(np.float32).ravel())
 
