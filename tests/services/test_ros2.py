@@ -272,7 +272,7 @@ def test_up_with_a_ros2_stereo_camera_converges_and_fixation_depth(tmp_path, mon
     head, f = 256 px, b = 0.06 m, a textured target 0.8 m ahead), its slave view rendered at the pan it reads
     from /vergence/<rig>/joint_states at the exposure (interpolated between two joint states; the images come
     out 30 ms after it); `vergence up --source ros2:LEFT,RIGHT --ros2` (the sim actuator) converges within 1 px
-    within 3 s of its first decision (measured: 0.19-0.28 s in 8 runs), and `fixation` says z within 2 % of
+    within 3 s of its first decision (measured: 0.23-0.30 s in 12 runs), and `fixation` says z within 2 % of
     0.8 m. A look_at point moves the fovea (the next decisions, then `fixation`, there); a bad one nothing."""
     rosnode.require()
     from geometry_msgs.msg import PointStamped
