@@ -1,4 +1,4 @@
-"""`vergence actuator --driver sim|dynamixel|line [--port URL] [--id 1] [--baud 57600]`: drive the slave pan.
+"""`vergence actuator --driver sim|dynamixel|line|ros2 [--port URL] [--id 1] [--baud 57600]`: drive the slave pan.
 
 Subscribes to vergence/<rig>/command (messages.Command: pan_rad is the absolute target pan of the slave) and
 publishes messages.MotorState on vergence/<rig>/motor/state at [actuator] state_hz and after each command.
@@ -31,7 +31,8 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="motor driver (default: from the settings, else sim)")
     p.add_argument("--port", default=None, metavar="URL",
                    help="serial port or pyserial URL: /dev/ttyUSB0, socket://host:port, loop:// "
-                        "(list ports: python -m serial.tools.list_ports -v)")
+                        "(list ports: python -m serial.tools.list_ports -v); ros2: CONTROLLER[:joint=NAME]"
+                        "[:mode=forward|trajectory][:joints=A,B][:states=TOPIC] (vergence/motors/ros2.py)")
     p.add_argument("--id", type=int, default=None, help="motor id on the bus (Dynamixel; default 1)")
     p.add_argument("--baud", type=int, default=None, help="serial speed (default 57600)")
     p.add_argument("--state-hz", type=float, default=None, help="motor/state rate (default 50)")

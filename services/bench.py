@@ -1,4 +1,4 @@
-"""`vergence bench kernel|match|messages|pipeline|tracking`: benchmarks that print ratios against baselines run
+"""`vergence bench kernel|match|messages|pipeline|tracking|ros2`: benchmarks that print ratios against baselines run
 alongside (tracking: the p controller is the predictive one's baseline, in the same virtual-time runs)."""
 
 from __future__ import annotations
@@ -38,6 +38,8 @@ def configure(p: argparse.ArgumentParser) -> None:
             sub.add_parser("pipeline", help="capture-to-command latency and throughput over Zenoh"))
     except ModuleNotFoundError:
         pass
+    importlib.import_module("vergence_services.bench_ros2").configure(
+        sub.add_parser("ros2", help="the latency the ROS 2 bridge and source add (the [ros2] extra)"))
 
 
 def _kernel(args) -> int:
@@ -171,5 +173,7 @@ def run(args: argparse.Namespace) -> int:
         return _kernel(args)
     if args.bench == "match":
         return _match(args)
+    if args.bench == "ros2":
+        return importlib.import_module("vergence_services.bench_ros2").run(args)
     return importlib.import_module("vergence_services.bench_pipeline").run(args)
 

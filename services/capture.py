@@ -56,7 +56,7 @@ SETTLE_S = 0.025  # the longest a rendering source waits for the motor's report 
 def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
     p.add_argument("--source", default=None, metavar="SPEC",
-                   help="files:LEFT,RIGHT | video:LEFT,RIGHT | camera:0,1 | sim[:key=value:...] "
+                   help="files:LEFT,RIGHT | video:LEFT,RIGHT | camera:0,1 | sim[:key=value:...] | ros2:LEFT,RIGHT "
                         "(default: settings, sim)")
     p.add_argument("--rate", type=float, default=None, metavar="HZ",
                    help="frames per second, 0 = as fast as possible (default: settings, 30)")
@@ -314,7 +314,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
 
     def fields() -> dict:
         return dict(window=windows.window, workers=len(plan), excluded=members.excluded(), **rates.fields(),
-                    roster=dict(members.counters), clipped=clipped(), **fovea.fields(), **clock.fields())
+                    roster=dict(members.counters), clipped=clipped(), **fovea.fields(), **clock.fields(),
+                    **({"source": source.status()} if hasattr(source, "status") else {}))
 
     node = Node("capture", rig, conf, stop, log=log, fields=fields,
                 final_fields=lambda: dict(window=windows.window, workers=len(plan)))
@@ -398,6 +399,9 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
             try:
                 master, slave = source.read(pan_at)
             except SourceError as e:
+                if getattr(e, "transient", False):  # a live stream with no new image yet (ros2): try again
+                    node.tick()
+                    continue
                 print(f"vergence capture: {e}", file=sys.stderr)
                 return 2
             t_read = time.time_ns()

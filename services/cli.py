@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "record": ("vergence_services.record", "record every vergence/<rig>/** message to a file"),
     "replay": ("vergence_services.replay", "publish a recording again"),
     "view": ("vergence_services.view", "the rig's cockpit in Rerun: images, boxes, profile, pans (the [view] extra)"),
+    "ros2": ("vergence_services.ros2", "the rig as a ROS 2 node: joint states, fixation, look_at (the [ros2] extra)"),
 }
 
 

@@ -1,5 +1,7 @@
 """`vergence record FILE [--duration S] [--queue-mb MB]`: every vergence/<rig>/** message, with its key and
-arrival time, into a msgpack stream (the format of vergence.recording).
+arrival time, into a msgpack stream (the format of vergence.recording); FILE.mcap: a ROS 2 MCAP file
+(vergence.mcap_file: the rig's messages as the standard ROS 2 messages of `vergence ros2`, and every sample raw
+for `vergence replay`).
 
 A zenoh callback stamps each sample (time.time_ns()) and hands it to a queue; one writer thread appends
 the records, so the network threads never wait on the disk. The queue is bounded (--queue-mb of payload,
@@ -28,6 +30,7 @@ import zenoh
 
 from vergence import keys
 from vergence.config import load
+from vergence.mcap_file import McapWriter, is_mcap
 from vergence.recording import RecordingError, Writer
 
 from . import session
@@ -106,7 +109,8 @@ def write_loop(writer: Writer, q: Bounded, done: threading.Event, failed: list[s
 def main(rig: str, conf: zenoh.Config, stop: session.Stop, path: str, duration: float | None = None,
          queue_mb: float = QUEUE_MB) -> int:
     try:
-        writer = Writer(path, rig=rig)
+        # FILE.mcap: a ROS 2 MCAP file (vergence.mcap_file; the [ros2] extra), else vergence's own format
+        writer = McapWriter(path, rig=rig) if is_mcap(path) else Writer(path, rig=rig)
     except RecordingError as e:
         print(f"vergence record: {e}", file=sys.stderr)
         return 2

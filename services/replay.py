@@ -29,6 +29,7 @@ import zenoh
 from vergence import keys
 from vergence.frames import plan_shards
 from vergence.messages import Frame, MessageError, replace
+from vergence.mcap_file import McapReader, is_mcap
 from vergence.recording import Reader, RecordingError
 
 from . import session
@@ -41,7 +42,7 @@ REPLAY_RIG = keys.REPLAY_RIG
 
 def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
-    p.add_argument("file", metavar="FILE", help="a recording made by `vergence record`")
+    p.add_argument("file", metavar="FILE", help="a recording made by `vergence record` (FILE.mcap: its MCAP file)")
     p.add_argument("--speed", type=float, default=1.0, metavar="X",
                    help="1 = as recorded, 2 = twice as fast, 0 = as fast as possible (default 1)")
     p.add_argument("--only", action="append", choices=KINDS, metavar="KIND",
@@ -84,7 +85,7 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
          only: list[str] | None = None, wait_workers: float = 5.0) -> int:
     kinds = set(only or KINDS)
     try:
-        reader = Reader(path)
+        reader = McapReader(path) if is_mcap(path) else Reader(path)
     except RecordingError as e:
         print(f"vergence replay: {e}", file=sys.stderr)
         return 2

@@ -1,4 +1,4 @@
-"""`vergence up [--workers N] [--source SPEC] [--driver sim] [--listen ENDPOINT]`: the whole pipeline here.
+"""`vergence up [--workers N] [--source SPEC] [--driver sim] [--listen ENDPOINT] [--ros2]`: the whole pipeline here.
 
 Starts, as child processes: a Zenoh router listening on ENDPOINT (default tcp/127.0.0.1:7447), the actuator,
 N workers, the reducer and the capture. These are Zenoh peers: each connects to the router, learns the others
@@ -61,6 +61,8 @@ def configure(p: argparse.ArgumentParser) -> None:
                                                                 "elsewhere)")
     p.add_argument("--rig", default=None, help="rig name, the key prefix vergence/<rig>/ (default: head)")
     p.add_argument("--config", metavar="FILE", help="vergence settings (TOML), passed to every child")
+    p.add_argument("--ros2", action="store_true", help="start `vergence ros2` too: the rig's topics as a ROS 2 node "
+                                                        "(the [ros2] extra; docs/ROS2.md)")
     p.add_argument("--no-standby", action="store_true",
                    help="no standby reducer and capture (each a second process, ready to take over at once if "
                         "the first dies; the capture has none with cameras, which one process holds)")
@@ -82,6 +84,8 @@ def commands(args: argparse.Namespace, rig: str) -> list[tuple[str, list[str]]]:
     for i in range(args.workers):
         out.append((f"worker{i + 1}", base + ["worker", "--name", f"w{i + 1}"] + common))
     out.append(("reducer", base + ["reducer"] + common))
+    if args.ros2:
+        out.append(("ros2", base + ["ros2"] + common))
     cap = base + ["capture"] + common
     if args.source:
         cap += ["--source", args.source]
@@ -358,7 +362,9 @@ def run(args: argparse.Namespace) -> int:
     code = 0
     try:
         source = args.source or settings.capture.source
-        standby = set() if args.no_standby else {"reducer"} | (set() if source.startswith("camera") else {"capture"})
+        # (no capture standby with cameras, which one process holds, nor with ROS 2 topics, which it would decode)
+        held = source.startswith(("camera", "ros2"))
+        standby = set() if args.no_standby else {"reducer"} | (set() if held else {"capture"})
         for name, argv in commands(args, rig):
             if stop.is_set():
                 break

@@ -7,14 +7,17 @@ __all__ = ["Disconnected", "Driver", "MotorError", "MotorSettings", "NoAnswer", 
            "TransientError",
            "make_driver", "DRIVERS"]
 
-DRIVERS = ("sim", "dynamixel", "line")
+DRIVERS = ("sim", "dynamixel", "line", "ros2")
 
 
 def make_driver(name: str, settings: MotorSettings, port: str = "") -> Driver:
-    """The driver called `name` (sim | dynamixel | line) for the motor `settings` on `port` (pyserial URL)."""
+    """The driver called `name` (sim | dynamixel | line | ros2) for the motor `settings` on `port` (pyserial URL)."""
     if name == "sim":
         from .simulated import SimMotor
         return SimMotor(settings)
+    if name == "ros2":  # a ros2_control joint; port: CONTROLLER[:joint=NAME...] (vergence/motors/ros2.py)
+        from .ros2 import Ros2Driver
+        return Ros2Driver(settings, port)
     if name in ("dynamixel", "line"):
         if not port:
             raise PortError(f"driver {name!r} needs a serial port: pass --port URL (e.g. /dev/ttyUSB0) "

@@ -233,7 +233,8 @@ class MotorLoop:
         s, g = self.safety, self.safety.goal
         at_limit = g <= s.lo + 1e-12 or g >= s.hi - 1e-12
         pan = self.pan if math.isfinite(self.pan) else g
-        return MotorState(rig=self.rig, t_ns=self.wall_ns(), pan_rad=pan,
+        t_ns = getattr(self.driver, "position_ns", None) or self.wall_ns()  # ros2: the joint state's own stamp
+        return MotorState(rig=self.rig, t_ns=t_ns, pan_rad=pan,
                           goal_rad=g, min_rad=s.lo, max_rad=s.hi, status=self.status, driver=self.driver.name,
                           frame=self.frame, t_capture_ns=self.t_capture_ns, at_limit=at_limit,
                           clamped=s.clamped, ignored=s.ignored, errors=self.driver.errors, note=self.note,

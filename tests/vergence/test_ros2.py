@@ -1,0 +1,148 @@
+"""vergence.ros2, the ROS 2 conversions without ROS: stamps, the master's view, the fixated point and its
+covariance, look_at's projection and refusals, diagnostics, image decoding, stamp pairing."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from vergence import ros2 as conv
+from vergence.frames import make_frame
+from vergence.params import Params
+from vergence.sim.rig import rotation
+
+
+def test_stamps_round_trip_and_refuse_what_is_not_a_time():
+    t = 1_764_600_000_123_456_789
+    assert conv.stamp(t) == (1_764_600_000, 123_456_789) and conv.from_stamp(*conv.stamp(t)) == t
+    assert conv.stamp(0) == (0, 0)
+    for bad in (-1, 2**31 * 10**9, 2**64):
+        with pytest.raises(ValueError):
+            conv.stamp(bad)
+    now = t
+    assert conv.stamp_problem(*conv.stamp(now - 10**8), now, 2.0) is None
+    assert "stamp 0" in conv.stamp_problem(0, 0, now, 2.0)
+    assert "out of range" in conv.stamp_problem(5, 10**9, now, 2.0)
+    assert "+3 s off" in conv.stamp_problem(*conv.stamp(now + 3 * 10**9), now, 2.0)
+    assert conv.ros_name("head") == "head" and conv.ros_name("my-rig.2") == "my_rig_2"
+    assert conv.ros_name("2heads") == "_2heads"
+
+
+def test_view_of_a_real_frame_and_garbage():
+    img = np.random.default_rng(0).integers(0, 256, (240, 320), np.uint8)
+    f = make_frame(img, img, rig="r", frame=1, pan_rad=0.0, focal_px=400.0, params=Params(), plan=[["w", 0, 306]])
+    f.master_pan_rad, f.tilt_rad = 0.1, -0.05
+    assert conv.view_of_frame(f.to_bytes(), "fick") == conv.View(320, 240, 400.0, 0.1, -0.05, "fick")
+    for bad in (b"\xc1", b"", f.to_bytes()[:20]):
+        with pytest.raises(ValueError):
+            conv.view_of_frame(bad)
+
+
+def test_fixation_point_lies_at_the_depth_on_the_fovea_ray():
+    v = conv.View(640, 480, 500.0)
+    # a fixed master: (x - cx) Z / f, (y - cy) Z / f, Z
+    assert conv.fixation_point(420, 190, 1.25, v) == pytest.approx((100 * 1.25 / 500, -50 * 1.25 / 500, 1.25))
+    assert conv.fixation_point(320, 240, math.nan, v) is None and conv.fixation_point(320, 240, -1.0, v) is None
+    # an aimed master (the simulator's): the point, turned into the head's frame by the camera's rotation
+    # (vergence.sim.rig.rotation, independent of vergence.ros2), has the decision's depth along the head's z
+    for gimbal in ("helmholtz", "fick"):
+        va = conv.View(640, 480, 500.0, 0.2, -0.1, gimbal)
+        p = np.array(conv.fixation_point(400, 300, 0.9, va))
+        head = rotation(0.2, -0.1, gimbal) @ p
+        assert head[2] == pytest.approx(0.9, rel=1e-12)
+        u, w = 500 * p[0] / p[2] + 320, 500 * p[1] / p[2] + 240  # and it is on the fovea's pixel
+        assert (u, w) == pytest.approx((400, 300), abs=1e-9)
+
+
+def test_fixation_covariance_along_and_across_the_ray():
+    v = conv.View(640, 480, 500.0)
+    p = conv.fixation_point(420, 190, 1.25, v)
+    c = np.array(conv.fixation_covariance(p, 0.02, v)).reshape(6, 6)
+    d = np.array(p) / np.linalg.norm(p)
+    assert d @ c[:3, :3] @ d == pytest.approx((0.02 * np.linalg.norm(p) / p[2]) ** 2)
+    across = np.cross(d, [0, 1, 0])
+    across /= np.linalg.norm(across)
+    assert across @ c[:3, :3] @ across == pytest.approx((conv.PIXEL_SIGMA * 1.25 / 500) ** 2)
+    assert np.allclose(c[:3, :3], c[:3, :3].T) and np.all(np.diag(c)[3:] == -1) and not c[:3, 3:].any()
+    assert np.all(np.diag(np.array(conv.fixation_covariance(p, math.nan, v)).reshape(6, 6)) == -1)
+
+
+def test_look_at_projects_and_refuses():
+    v = conv.View(640, 480, 500.0)
+    assert conv.look_at_pixel(conv.fixation_point(420, 190, 1.25, v), v, 15, 6) == (420, 190)
+    assert conv.look_at_pixel((0.0, 0.0, 2.0), v, 15, 6) == (320, 240)
+    refusals = {(math.nan, 0, 1): "not finite", (0, 0, math.inf): "not finite", (0, 0, -1): "not in front",
+                (0, 0, 0): "not in front", (1.0, 0, 0.5): "outside the view", (0, -1.0, 1): "outside the view",
+                (0.63, 0, 1): "too close to the left/right border", (0, 0.47, 1): "too close to the top/bottom"}
+    for point, why in refusals.items():
+        with pytest.raises(conv.Refused, match=why):
+            conv.look_at_pixel(point, v, 15, 6)
+
+
+def test_pan_at_interpolates_between_the_states_around_it():
+    states = [(100, 0.1), (120, 0.3), (110, 0.2)]  # as they arrived
+    assert conv.pan_at(states, 105, 9.0) == pytest.approx(0.15) and conv.pan_at(states, 115, 9.0) == pytest.approx(0.25)
+    assert conv.pan_at(states, 130, 9.0) == 0.3 and conv.pan_at(states, 90, 9.0) == 0.1  # the latest, the earliest
+    assert conv.pan_at(states, 110, 9.0) == 0.2 and conv.pan_at([], 110, 9.0) == 9.0
+
+
+def test_joint_velocity_and_correlation_layout():
+    assert conv.joint_velocity((0, 0.1), (20_000_000, 0.12)) == pytest.approx(1.0)
+    assert math.isnan(conv.joint_velocity(None, (1, 0.0))) and math.isnan(conv.joint_velocity((5, 0.0), (5, 1.0)))
+    assert conv.correlation_layout(13, 306) == [("v", 13, 3978), ("k", 306, 306)]
+
+
+def test_diagnostic_levels_and_values():
+    st = {"role": "reducer", "id": "r-1", "pid": 4, "counters": {"profiles": 10}, "bad": {"frame": 0},
+          "gatherer": {"dropped": 2}, "published_hz": 29.97}
+    d = conv.diagnostic("head", st, 0.5, 3.0, None)
+    assert (d.level, d.name, d.message, d.hardware_id) == (conv.OK, "vergence/head/reducer/r-1", "ok", "head")
+    assert dict(d.values) == {"pid": "4", "profiles": "10", "bad.frame": "0", "gatherer.dropped": "2",
+                              "published_hz": "29.97"}
+    assert conv.diagnostic("head", dict(st, bad={"frame": 3}), 0.5, 3.0, 0).level == conv.WARN
+    assert conv.diagnostic("head", dict(st, bad={"frame": 3}), 0.5, 3.0, 3).level == conv.OK
+    assert conv.diagnostic("head", dict(st, exiting=True), 0.5, 3.0, None).level == conv.ERROR
+    assert conv.diagnostic("head", st, 3.5, 3.0, None).level == conv.STALE
+    assert conv.diagnostic("head", {"bad": "x"}, 0, 3, None).name == "vergence/head/?/?"
+
+
+def test_images_decode_to_gray_with_step_padding_and_refuse_the_rest():
+    rng = np.random.default_rng(1)
+    bgr = rng.integers(0, 256, (5, 7, 3), np.uint8)
+    gray = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    pad = lambda a, step: np.pad(a.reshape(a.shape[0], -1), ((0, 0), (0, step - a[0].size))).tobytes()  # noqa: E731
+    assert np.array_equal(conv.image_gray("bgr8", 7, 5, 24, pad(bgr, 24)), gray)
+    assert np.array_equal(conv.image_gray("rgb8", 7, 5, 21, bgr[..., ::-1].tobytes()), gray)
+    assert np.array_equal(conv.image_gray("mono8", 7, 5, 8, pad(gray, 8)), gray)
+    bgra = np.dstack([bgr, np.full((5, 7), 255, np.uint8)])
+    assert np.array_equal(conv.image_gray("bgra8", 7, 5, 28, bgra.tobytes()), gray)
+    m16 = gray.astype(np.uint16) * 256 + 77
+    assert np.array_equal(conv.image_gray("mono16", 7, 5, 14, m16.astype("<u2").tobytes()), gray)
+    assert np.array_equal(conv.image_gray("mono16", 7, 5, 14, m16.astype(">u2").tobytes(), 1), gray)
+    for args, why in ((("yuv422", 7, 5, 14, bytes(70)), "encoding"), (("mono8", 7, 5, 6, bytes(35)), "step"),
+                      (("mono8", 7, 5, 7, bytes(34)), "34 bytes"), (("mono8", 0, 5, 7, b""), "0 x 5")):
+        with pytest.raises(conv.ImageError, match=why):
+            conv.image_gray(*args)
+    png = cv2.imencode(".png", gray)[1].tobytes()
+    assert np.array_equal(conv.compressed_gray("mono8; png compressed mono8", png), gray)
+    jpg = cv2.imencode(".jpg", np.tile(gray, (8, 8)), [cv2.IMWRITE_JPEG_QUALITY, 100])[1].tobytes()
+    assert np.abs(conv.compressed_gray("jpeg", jpg).astype(int) - np.tile(gray, (8, 8))).max() <= 8
+    for fmt, data, why in (("png", b"\x89PNG garbage", "cannot decode"), ("bmp", png, "want jpeg or png"),
+                           ("16UC1; compressedDepth", png, "depth"), ("png", b"", "cannot decode")):
+        with pytest.raises(conv.ImageError, match=why):
+            conv.compressed_gray(fmt, data)
+
+
+def test_pairer_pairs_by_stamp_within_slop_and_counts_the_rest():
+    p = conv.Pairer(slop_ns=5, depth=3)
+    assert p.add(0, 100, "L100") is None
+    assert p.add(1, 103, "R103") == (100, "L100", 103, "R103")
+    assert p.add(1, 130, "R130") is None and p.add(0, 120, "L120") is None  # 10 apart: no pair
+    assert p.add(0, 131, "L131") == (131, "L131", 130, "R130") and p.unmatched == 1  # L120 left unpaired
+    for t in (200, 210, 220, 230):  # a left camera alone: the oldest beyond depth go, counted
+        assert p.add(0, t, t) is None
+    assert p.unmatched == 2 and [t for t, _ in p.queues[0]] == [210, 220, 230]
+    assert p.add(1, 222, "R") == (220, 220, 222, "R") and p.unmatched == 3 and p.pairs == 3
