@@ -34,7 +34,7 @@ from vergence import depth, kernel, keys
 from vergence.config import load
 from vergence.frames import frame_too_large, make_frame
 from vergence.gather import FrameDecision, Gatherer
-from vergence.messages import MAX_HOLD_S, Frame, Hold, MessageError, Partial, replace as replace_message
+from vergence.messages import MAX_HOLD_S, Frame, Hold, MessageError, MotorState, Partial, replace as replace_message
 from vergence.shards import compute_partial
 
 from . import session
@@ -113,6 +113,42 @@ class Inbox:
             return out
 
 
+class MotorPresence:
+    """What the actuator says of its motor (messages.MotorState on vergence/<rig>/motor/state): while its latest
+    state, less than FRESH_S old, says the motor is absent (status "absent": it has not answered for
+    [actuator.motor] absent_s), the reducer sends no command (counted under motor_absent) and its status says
+    motor: absent. A state that does not decode is counted under bad.motor_state; no fresh state (an actuator
+    gone, or a forged "absent" not repeated) lets the commands go again by itself."""
+
+    FRESH_S = 1.0
+
+    def __init__(self, health, clock=time.monotonic):
+        self.health, self.clock = health, clock
+        self.lock = threading.Lock()
+        self.status, self.at = "", -1e9
+
+    def on_state(self, payload: bytes) -> None:
+        try:
+            st = MotorState.from_bytes(payload)
+        except MessageError as e:
+            self.health.reject("motor_state", e)
+            return
+        with self.lock:
+            if st.status == "absent" and self.status != "absent":
+                log.warning("the motor is absent (%s): no command is sent until it answers again", st.note or
+                            "no answer")
+            elif st.status != "absent" and self.status == "absent":
+                log.info("the motor answers again (%s): commands resume", st.status)
+            self.status, self.at = st.status, self.clock()
+
+    def absent(self) -> bool:
+        with self.lock:
+            return self.status == "absent" and self.clock() - self.at < self.FRESH_S
+
+    def fields(self) -> dict:
+        return {"motor": "absent" if self.absent() else (self.status or "unknown")}
+
+
 class Lease:
     """A hold on the reducer's commands (messages.Hold, vergence/<rig>/hold): none goes out until its until_ns.
     A hold further than MAX_HOLD_S ahead is not believed (counted under bad.hold, nothing held), so a client
@@ -158,12 +194,17 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
     lock = threading.Lock()  # the gatherer: the loop thread and the status
     inbox = Inbox()
 
+    presence: list[MotorPresence] = []
+
     def fields() -> dict:
         with lock:
-            return dict(gatherer=dict(gatherer.counters), pending=len(gatherer.pending), shed=dict(inbox.shed))
+            return dict(gatherer=dict(gatherer.counters), pending=len(gatherer.pending), shed=dict(inbox.shed),
+                        **(presence[0].fields() if presence else {}))
 
     with Node("reducer", rig, conf, stop, log=log, fields=fields) as node:
         health, rid = node.health, node.ident
+        presence.append(MotorPresence(health))
+        node.subscriber(keys.motor_state(rig), lambda sm: presence[0].on_state(sm.payload.to_bytes()))
         pub_decision = node.publisher(keys.decision(rig), express=True)
         pub_profile = node.publisher(keys.profile(rig), express=True)
         pub_command = node.publisher(keys.command(rig), express=True)
@@ -180,6 +221,8 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | 
             for r in results:
                 if r.command is not None and hold.held():
                     health.count("held")  # a client moves the slave itself (`vergence latency`)
+                elif r.command is not None and presence[0].absent():
+                    health.count("motor_absent")  # nothing would execute it: the actuator has lost its motor
                 elif r.command is not None:  # the command first: the actuator waits for it
                     pub_command.put(r.command.to_bytes())
                     health.count("commands")
