@@ -75,10 +75,11 @@ class Workers:
 
 
 def replan(payload: bytes, workers: list[str], t_shift_ns: int) -> bytes:
-    """A recorded frame with the plan of the live workers and its capture time moved by t_shift_ns."""
+    """A recorded frame with the plan of the live workers and its exposure and read times moved by t_shift_ns."""
     f = Frame.from_bytes(payload)
     plan = plan_shards(workers, f.k_count) if workers else f.plan
-    return replace(f, plan=plan, t_capture_ns=f.t_capture_ns + t_shift_ns).to_bytes()
+    return replace(f, plan=plan, t_capture_ns=f.t_capture_ns + t_shift_ns,
+                   t_read_ns=f.t_read_ns + t_shift_ns if f.t_read_ns else 0).to_bytes()
 
 
 def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = None, speed: float = 1.0,
