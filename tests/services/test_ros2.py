@@ -243,6 +243,25 @@ def _verdicts(c, after_ns: int = 0) -> list[tuple[int, Verdict]]:
     return [(t, Verdict.from_bytes(b)) for t, b, _ in c.snapshot() if t >= after_ns]
 
 
+def _converges_within_3_s(P, t, decisions, fixes, t_first: int, error_px, z_true: float) -> int:
+    """Five decisions in a row within 1 px and the slave within 1 px of the truth (error_px()) no later than 3 s
+    after the first decision; then a fixation at the depth z_true (within 2 %), which it returns."""
+
+    def converged():
+        v = _verdicts(decisions, t_first)
+        if len(v) >= 5 and all(abs(d.offset_px) <= 1 for _, d in v[-5:]) and abs(error_px()) <= 1:
+            return v[-1][0]
+        return None
+
+    t_conv = wait_for(converged, 10, "converged decisions and joint states", interval=0.01, logs=P.logs)
+    took = (t_conv - t_first) / 1e9
+    print(f"converged {took:.2f} s after the first decision")
+    assert took <= 3.0
+    _, fx = t.wait_until(lambda: [f for f in fixes if f[0] > t_conv][:1], 5, "a fixation", P.logs)[0]
+    assert fx.point.z == pytest.approx(z_true, rel=0.02)
+    return fx
+
+
 def _look_at_through_the_loop(P, t, decisions, fixes, z_true: float) -> None:
     """look_at another point of the target (pixel (90, 150), in the master's optical frame): the next decisions
     are there, and once the loop has converged there `fixation` says that point; one behind the camera moves
@@ -309,18 +328,7 @@ def test_up_with_a_ros2_stereo_camera_converges_and_fixation_depth(tmp_path, mon
             decisions = P.collect(s, P.key("decision"))
             t_first = decisions.wait(1, 90)[0][0]
 
-            def converged():
-                v = _verdicts(decisions, t_first)
-                if len(v) >= 5 and all(abs(d.offset_px) <= 1 for _, d in v[-5:]) and abs(rig.error_px(pan())) <= 1:
-                    return v[-1][0]
-                return None
-
-            t_conv = wait_for(converged, 10, "converged decisions and joint states", interval=0.01, logs=P.logs)
-            took = (t_conv - t_first) / 1e9
-            print(f"converged {took:.2f} s after the first decision")
-            assert took <= 3.0
-            _, fx = t.wait_until(lambda: [f for f in fixes if f[0] > t_conv][:1], 5, "a fixation", P.logs)[0]
-            assert fx.point.z == pytest.approx(z_true, rel=0.02)
+            fx = _converges_within_3_s(P, t, decisions, fixes, t_first, lambda: rig.error_px(pan()), z_true)
             assert (fx.point.x, fx.point.y) == pytest.approx((0.0, 0.0), abs=0.005)  # the fovea: the view centre
             assert fx.header.frame_id == f"{P.rig}_master_optical_frame"
             # the fixation is stamped with a pair's exposure (the camera's stamps), never later than it arrived
@@ -630,19 +638,7 @@ def test_up_with_the_ros2_driver_against_a_forward_command_controller(tmp_path, 
             t_first = wait_for(lambda: next((t for t, _, _ in decisions.snapshot() if t >= t_ok), None), 90,
                                "a decision", logs=P.logs)
 
-            def converged():
-                v = _verdicts(decisions, t_first)
-                if len(v) >= 5 and all(abs(d.offset_px) <= 1 for _, d in v[-5:]) \
-                        and abs(rig.error_px(ctl.position())) <= 1:
-                    return v[-1][0]
-                return None
-
-            t_conv = wait_for(converged, 10, "converged decisions and joint", interval=0.01, logs=P.logs)
-            took = (t_conv - t_first) / 1e9
-            print(f"converged {took:.2f} s after the first decision")
-            assert took <= 3.0
-            _, fx = t.wait_until(lambda: [f for f in fixes if f[0] > t_conv][:1], 5, "a fixation", P.logs)[0]
-            assert fx.point.z == pytest.approx(0.8, rel=0.02)
+            _converges_within_3_s(P, t, decisions, fixes, t_first, lambda: rig.error_px(ctl.position()), 0.8)
             goals = [g for _, g in ctl.commands]
             assert goals and ctl.bad_commands == 0 and all(abs(g) <= math.radians(45) for g in goals)
             assert all(abs(b - a) <= math.radians(10) + 1e-9 for a, b in zip([0.0] + goals, goals))
