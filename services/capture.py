@@ -1,9 +1,11 @@
 """`vergence capture --source SPEC [--rate HZ] [--frames N]`: reads stereo frames and publishes them.
 
 Publishes on vergence/<rig>/frame a messages.Frame per image pair: only what layer 1 needs (the master fovea and
-the slave band with their Sobel margins, the master band for the left-right check), the slave pan at capture time
-(the latest messages.MotorState on vergence/<rig>/motor/state; the source's start pan before any; always the start
-pan, 0, for a source whose images do not move with the motor: a still pair, videos), and the shard plan made from
+the slave band with their Sobel margins, the master band for the left-right check), the exposure times of both
+images and the read time (ExposureClock: the source's stamps where believable, else the read time less [camera]
+latency_s), the slave's pan at its exposure (PanLookup: the messages.MotorState history of vergence/<rig>/motor/state
+interpolated there; the source's start pan before any; always the start pan, 0, for a source whose images do not
+move with the motor: a still pair, videos; pan_stale where the history cannot tell), and the shard plan made from
 the workers' liveliness tokens vergence/<rig>/alive/worker/* at that moment, minus the workers the reducer's
 evidence (vergence/<rig>/workers) shows silent (vergence.frames.Roster: a token is an invitation, not a guarantee).
 A motor/state whose pan is outside the motor's limits or whose time is off our clock by more than [limits]
