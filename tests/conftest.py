@@ -4,8 +4,8 @@ layout) and the helpers the test files share (procs, emulators, middlebury, cdp,
 samples), imported by their bare names.
 
 pytest runs in importlib mode (pyproject.toml), so two test files may share a name in different folders (e.g.
-tests/vergence/test_monitor.py and tests/services/test_monitor.py) and no test folder is a package; this file puts
-tests/ on sys.path for the helpers. The real vergence and vergence_services are imported first: on sys.path,
+tests/vergence/test_monitor.py and tests/services/observe/test_monitor.py) and no test folder is a package; this
+file puts tests/ on sys.path for the helpers. The real vergence and services are imported first: on sys.path,
 the folder tests/vergence/ would otherwise be a namespace-package candidate for the name `vergence`."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 import vergence  # noqa: F401  (before tests/ is on sys.path: see above)
-import vergence_services  # noqa: F401
+import services  # noqa: F401
 
 HERE = str(Path(__file__).resolve().parent)
 if HERE not in sys.path:

@@ -12,7 +12,7 @@ own process groups with their output in log files, bounded waits, and a teardown
         # leaving the block kills every process group started (SIGINT, then SIGKILL after a grace time)
 
 Every wait has a timeout and raises TimeoutError (with the tail of the process logs) when it expires.
-Processes, ports and waits are services/launch.py's, the same as `vergence up`'s and the benchmark's.
+Processes, ports and waits are services/ops/launch.py's, the same as `vergence up`'s and the benchmark's.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import uuid
 from pathlib import Path
 
 from vergence import keys
-from vergence_services.launch import Proc, free_port, wait_for, wait_listening
+from services.ops.launch import Proc, free_port, wait_for, wait_listening
 
 VERGENCE = str(Path(sys.executable).with_name("vergence"))  # the installed command itself
 
@@ -36,7 +36,7 @@ __all__ = ["free_port", "Proc", "Procs", "wait_for", "VERGENCE", "run"]
 
 def run(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
     """`vergence ARGS...` run to its end (at most timeout s), its stdout and stderr captured as text."""
-    return subprocess.run([sys.executable, "-m", "vergence_services.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "services.ops.cli", *args], capture_output=True, text=True,
                           timeout=timeout)
 
 
@@ -100,7 +100,8 @@ class Procs:
         conf.insert_json5("mode", '"client"')
         conf.insert_json5("connect/endpoints", f'["{self.endpoint}"]')
         conf.insert_json5("scouting/multicast/enabled", "false")
-        conf.insert_json5("transport/shared_memory/enabled", "false")  # as every vergence process (services/session.py)
+        # as every vergence process (services/runtime/session.py)
+        conf.insert_json5("transport/shared_memory/enabled", "false")
         s = zenoh.open(conf)
         self._sessions.append(s)
         return s

@@ -1,6 +1,8 @@
-"""The library's layout (issue #16): no import cycle, vergence/ never imports zenoh or the services, and the
-data path's stages (frames: capture side, shards: worker side, gather: reducer side) each in a module of its
-own that imports none of the others."""
+"""The tree's layout (issues #16, #26): no import cycle in vergence/ or services/, not even through an import
+inside a function; vergence/ never imports zenoh or the services; each package imports only what ALLOWED lets it
+(a new arrow fails here); observers publish nothing of the pipeline's; the data path's stages (frames: capture
+side, shards: worker side, gather: reducer side) each in a module of its own that imports none of the others;
+the tests mirror the tree; docs/ARCHITECTURE.md names every module there is."""
 
 from __future__ import annotations
 
@@ -83,14 +85,61 @@ def _imports(path: Path, package: str, deferred: bool = True) -> set[str]:
     return out
 
 
-def _graph(deferred: bool = True) -> dict[str, set[str]]:
+TREE = ROOT.parent
+SERVICES = TREE / "services"
+PACKAGES = ("vergence", "services")
+
+
+def _modules() -> list[str]:
+    """Every module of both import packages, by dotted name."""
+    out = []
+    for top in PACKAGES:
+        base = TREE / top
+        out += [".".join(p.relative_to(TREE).with_suffix("").parts).removesuffix(".__init__")
+                for p in base.rglob("*.py") if "__pycache__" not in p.parts]
+    return sorted(out)
+
+
+def _path(name: str) -> Path:
+    p = TREE.joinpath(*name.split("."))
+    return p / "__init__.py" if p.is_dir() else p.with_suffix(".py")
+
+
+def _graph(deferred: bool = True, names: list[str] | None = None) -> dict[str, set[str]]:
     graph = {}
-    for name in MODULES:
-        mod_path = ROOT.joinpath(*name.split(".")[1:])
-        path = mod_path / "__init__.py" if mod_path.is_dir() else mod_path.with_suffix(".py")
+    for name in names or MODULES:
+        path = _path(name)
         package = name if path.name == "__init__.py" else name.rpartition(".")[0]
         graph[name] = _imports(path, package, deferred)
     return graph
+
+
+def _edges(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """Module -> the modules of the tree it imports (`from pkg import mod` names mod). A package's __init__
+    importing its own submodules is the package's public API, and a module naming its own package finds it
+    initialised already: neither is an arrow of the layout."""
+    known = set(graph)
+    edges = {m: {d for d in deps if d in known and d != m} for m, deps in graph.items()}
+    return {m: {d for d in ds if not d.startswith(m + ".") and not m.startswith(d + ".")} for m, ds in edges.items()}
+
+
+def _cycle(edges: dict[str, set[str]]) -> list[str] | None:
+    state: dict[str, int] = {}
+
+    def visit(m: str, trail: list[str]) -> list[str] | None:
+        state[m] = 1
+        for d in sorted(edges[m]):
+            if state.get(d) == 1:
+                return trail[trail.index(d):] + [m, d] if d in trail else trail + [m, d]
+            if d not in state and (found := visit(d, trail + [m])):
+                return found
+        state[m] = 2
+        return None
+
+    for m in sorted(edges):
+        if m not in state and (found := visit(m, [])):
+            return found
+    return None
 
 
 def test_no_source_in_the_library_names_zenoh_or_the_services():
@@ -99,30 +148,25 @@ def test_no_source_in_the_library_names_zenoh_or_the_services():
         assert bad == [], f"{name} imports {bad}"
 
 
-def test_module_graph_has_no_cycle_and_stages_stay_apart():
-    """Imports run at import time only: a deferred one inside a function (e.g. vergence.sim.rig's Rig.from_spec
-    naming vergence.sim.moving) cannot fail an import."""
-    graph = _graph(deferred=False)
-    known = set(graph)
-    edges = {m: {d for d in deps if d in known and d != m} for m, deps in graph.items()}
-    # a package's __init__ importing its own submodules is the package's public API, and a module naming its
-    # own package (`from . import kernel`) finds it initialised already: neither is a cycle of the layout
-    for m in edges:
-        edges[m] = {d for d in edges[m] if not d.startswith(m + ".") and not m.startswith(d + ".")}
-    state: dict[str, int] = {}
+def test_no_import_cycle_anywhere_not_even_inside_a_function():
+    """Over vergence/ and services/ both, the imports at a module's top and those deferred inside functions: a
+    deferred import that closes a cycle is a cycle all the same (it only moves the failure to a call)."""
+    edges = _edges(_graph(deferred=True, names=_modules()))
+    assert _cycle(edges) is None, "import cycle: " + " -> ".join(_cycle(edges))
 
-    def visit(m: str, trail: list[str]) -> None:
-        state[m] = 1
-        for d in sorted(edges[m]):
-            if state.get(d) == 1:
-                raise AssertionError("import cycle: " + " -> ".join(trail[trail.index(d):] + [m, d]))
-            if d not in state:
-                visit(d, trail + [m])
-        state[m] = 2
 
-    for m in sorted(edges):
-        if m not in state:
-            visit(m, [])
+def test_a_cycle_inside_a_function_is_found():
+    """The check above can fail: two modules importing each other, one of them inside a function."""
+    edges = {"a": {"b"}, "b": {"a"}}
+    assert _cycle(edges) == ["a", "b", "a"]
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": set()}) is None
+    tree = ast.parse("def f():\n    from . import other\n")
+    assert "vergence.other" in {d for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)
+                                for d in [f"vergence.{node.names[0].name}"]}
+
+
+def test_the_stages_stay_apart():
+    edges = _edges(_graph(deferred=False))
     stages = {"vergence.frames", "vergence.shards", "vergence.gather"}
     for s in stages:
         assert not (edges[s] & stages), f"{s} imports another stage: {sorted(edges[s] & stages)}"
@@ -130,14 +174,89 @@ def test_module_graph_has_no_cycle_and_stages_stay_apart():
         "vergence.decide", "vergence.match"}  # Params in one place, below every user of it
 
 
+# Who may import whom: each package of the tree and the packages of the tree it may import (itself always). The
+# library imports nothing of the services; the runtime only the library; the pipeline, the observers and the
+# bridges the runtime; the clients also the observers (replay --view shows the cockpit); the offline tools also the
+# observers (sim --save) and ops' process launcher (the pipeline benchmarks start processes); ops, everything.
+ALLOWED = {
+    "vergence": set(),
+    "services.runtime": {"vergence"},
+    "services.pipeline": {"vergence", "services.runtime"},
+    "services.observe": {"vergence", "services.runtime"},
+    "services.bridges": {"vergence", "services.runtime"},
+    "services.clients": {"vergence", "services.runtime", "services.observe"},
+    "services.offline": {"vergence", "services.runtime", "services.observe", "services.ops"},
+    "services.ops": {"vergence", "services.runtime"},
+}
+
+
+def _package(module: str) -> str:
+    parts = module.split(".")
+    return "vergence" if parts[0] == "vergence" else ".".join(parts[:2])
+
+
+def test_every_package_imports_only_what_the_table_allows():
+    assert sorted({_package(m) for m in _modules() if m != "services"}) == sorted(ALLOWED)
+    for m, deps in _edges(_graph(deferred=True, names=_modules())).items():
+        if m == "services":
+            continue
+        arrows = {_package(d) for d in deps} - {_package(m)}
+        assert arrows <= ALLOWED[_package(m)], f"{m} imports {sorted(arrows - ALLOWED[_package(m)])}: a new arrow"
+
+
+# what an observer may not say on the bus: a command, a fixation, a hold, or any of the pipeline's messages
+COMMANDING = ("command", "fixate", "hold", "frame", "preview", "decision", "profile", "correlation", "motor_state",
+              "workers")
+
+
+def test_observers_never_publish_commands():
+    """The observers (services/observe/) build no key of the pipeline's or the motor's: they subscribe through
+    the runtime, which publishes only their status and liveliness."""
+    for path in sorted((SERVICES / "observe").glob("*.py")):
+        tree = ast.parse(path.read_text(), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+                f = node.func
+                if f.attr in ("put", "declare_publisher", "publisher", "publish"):
+                    args = [a for a in node.args if isinstance(a, ast.Call) and isinstance(a.func, ast.Attribute)]
+                    built = {a.func.attr for a in args
+                             if isinstance(a.func.value, ast.Name) and a.func.value.id == "keys"}
+                    assert not built & set(COMMANDING), f"{path.name}:{node.lineno} publishes {built}"
+                    assert f.attr != "declare_publisher", f"{path.name}:{node.lineno} declares a publisher"
+
+
+# The modules with no test file of their own, and where they are tested.
+TESTED_ELSEWHERE = {
+    "vergence.bench": "tests/services/offline/test_bench.py (the benchmarks run from the CLI)",
+    "vergence.control": "tests/scenarios/test_tracking.py (the controller in the closed loop)",
+    "vergence.images": "tests/vergence/test_sources.py (read_image's errors, through the sources)",
+    "vergence.params": "tests/vergence/test_decide.py, test_match.py (the parameters' effects)",
+    "vergence.ros2_node": "tests/services/bridges/test_ros2.py (real rclpy nodes)",
+    "vergence.ros2_source": "tests/services/bridges/test_ros2.py (the ros2: source end to end)",
+    "vergence.simd": "tests/vergence/test_kernel.py (the kernel's variants agree)",
+}
+
+
 def test_the_tests_mirror_the_tree():
-    """tests/ holds the project-wide checks and the shared helpers; tests/vergence/ the library's tests, its
-    folders those of vergence/ (motors/, sim/); tests/services/ the services'. No test folder is a package
-    (pytest's importlib mode lets two folders hold a file of the same name), and no test file sits elsewhere."""
+    """tests/ holds the project-wide checks and the shared helpers; tests/vergence/ and tests/services/ mirror the
+    two packages folder by folder: a test file per library module (test_<module>.py; vergence/sim's and
+    vergence/motors' in their folders), a test folder per services subpackage; tests/scenarios/ the tests of
+    several processes or modules at once; tests/deploy/ the deployment's (deploy/). No test file names a module
+    that does not exist, and no test folder is a package (pytest's importlib mode lets two folders hold a file of
+    the same name)."""
     tests = Path(__file__).resolve().parent
     assert sorted(p.name for p in tests.glob("test_*.py")) == ["test_install.py", "test_layout.py", "test_lint.py"]
     places = {p.parent.relative_to(tests).as_posix() for p in tests.rglob("test_*.py")}
-    subpackages = {p.parent.relative_to(ROOT).as_posix() for p in ROOT.glob("*/__init__.py")}
-    assert places <= {".", "vergence", "services"} | {f"vergence/{s}" for s in subpackages}, places
-    assert {"vergence", "services"} <= places
+    folders = {p.parent.relative_to(TREE).as_posix() for top in PACKAGES for p in (TREE / top).rglob("__init__.py")}
+    assert places == {".", "scenarios", "deploy"} | folders - {"services"}, places ^ folders
+    for p in tests.rglob("test_*.py"):
+        where = p.parent.relative_to(tests)
+        if where.parts and where.parts[0] in PACKAGES and where.as_posix() not in ("vergence/sim", "vergence/motors"):
+            module = TREE / where / (p.stem.removeprefix("test_") + ".py")
+            assert module.is_file(), f"{p.relative_to(tests)} mirrors no module ({module.relative_to(TREE)})"
+    library = [m for m in _modules() if m.count(".") == 1 and m.startswith("vergence.")
+               and _path(m).name != "__init__.py"]
+    missing = [m for m in library if m not in TESTED_ELSEWHERE
+               and not (tests / "vergence" / f"test_{m.removeprefix('vergence.')}.py").is_file()]
+    assert missing == [], f"library modules with no test file: {missing}"
     assert not [p for p in tests.rglob("__init__.py") if p.parent.name != "emulators"]

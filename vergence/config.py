@@ -155,7 +155,7 @@ class LimitSettings:
 
 @dataclass(frozen=True)
 class SuperviseSettings:
-    """How `vergence up` tells a hung child from a busy one (services/heartbeat.py, services/up.py).
+    """How `vergence up` tells a hung child from a busy one (services/runtime/heartbeat.py, services/ops/up.py).
 
     heartbeat_s: a child (or standby) whose heartbeat, a byte every 0.1 s from a thread of its own, has been
     missing this long is hung (SIGSTOP, a debugger, swapped out): it is SIGKILLed and handled as an exit (its

@@ -1,5 +1,5 @@
 """Accuracy of the network on any rectified pair with a ground-truth disparity (`vergence accuracy`), drawn as
-tests/vergence/test_accuracy.py and tests/vergence/sim/test_loop.py draw Middlebury's: the tests' visible() and
+tests/scenarios/test_accuracy.py and tests/vergence/sim/test_loop.py draw Middlebury's: the tests' visible() and
 points() are these.
 
 static(): per gain of the slave image (GAINS: as is, 1.3 * I + 20 and 0.7 * I - 15, clipped) and per seed, n
@@ -28,7 +28,7 @@ from .motors.base import MotorSettings
 from .params import Params
 from .sim.loop import closed_loop, frames_to_converge
 from .sim.rig import Rig
-from .sources import read_image
+from .images import read_image
 
 __all__ = ["GAINS", "STATIC_MARGIN", "LOOP_MARGIN", "STATIC_SEEDS", "LOOP_SEEDS", "STATIC_N", "LOOP_N",
            "EDGE_RADIUS", "EDGE_STEP", "load_disparity", "visible", "depth_edges", "points", "gained",
@@ -36,7 +36,7 @@ __all__ = ["GAINS", "STATIC_MARGIN", "LOOP_MARGIN", "STATIC_SEEDS", "LOOP_SEEDS"
 
 # slave = gain * I + offset, clipped: the slave camera as is, brighter, darker
 GAINS: dict[str, tuple[float, float]] = {"equal": (1.0, 0.0), "bright": (1.3, 20.0), "dark": (0.7, -15.0)}
-STATIC_MARGIN = 40  # px from the border (tests/vergence/test_accuracy.py)
+STATIC_MARGIN = 40  # px from the border (tests/scenarios/test_accuracy.py)
 LOOP_MARGIN = 60  # px (tests/vergence/sim/test_loop.py: the slave pans, the fovea must stay inside)
 STATIC_SEEDS, STATIC_N = (0, 1, 2, 3, 4), 500
 LOOP_SEEDS, LOOP_N = (3, 4, 5), 100

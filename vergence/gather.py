@@ -50,7 +50,7 @@ def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
     if ((p.lr_check and mstrip is not None) or p.halves_check or p.min_correlation > 0) and d.confident:
         # The checks read the slave band's features at the winning window's columns k..k+w-1 (correlation and
         # left-right checks) and k-R..k+R+w-1 (halves check, R = halves_range) only: compute those (all rows),
-        # not the whole band. tests/vergence/test_pipeline.py holds this equal to match().
+        # not the whole band. tests/vergence/test_gather.py holds this equal to match().
         w = frame.window
         band = frame.band_strip()
         sband = np.zeros((3, band.shape[0] - 2, band.shape[1] - 2), np.uint8)

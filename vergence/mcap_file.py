@@ -3,7 +3,7 @@
 An MCAP file with the ros2 profile: each channel's schema is the ros2msg text of its type (with its
 dependencies, as rosbag2 writes them) and its messages CDR, serialised by rosbags (pure Python), so that
 `ros2 bag`, Foxglove, PlotJuggler and any MCAP reader open it. Under /vergence/<rig>/, as the bridge
-(services/ros2.py) publishes them:
+(services/bridges/ros2.py) publishes them:
 
     joint_states          sensor_msgs/msg/JointState       each motor/state (stamp: its t_ns)
     fixation              geometry_msgs/msg/PointStamped   each converged decision (stamp: its capture time)

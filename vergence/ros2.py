@@ -1,4 +1,4 @@
-"""ROS 2 conversions, with no ROS import: what the bridge (services/ros2.py), the ros2 source
+"""ROS 2 conversions, with no ROS import: what the bridge (services/bridges/ros2.py), the ros2 source
 (vergence/ros2_source.py), the ros2 motor driver and the MCAP recorder put into or take out of ROS 2 messages,
 as plain numbers and arrays, so that every rule here is unit-tested without rclpy.
 
@@ -11,7 +11,7 @@ the same clock as time.time_ns(), and an image's stamp is its exposure time.
   viewing ray, the pixel's quantisation across it), as the position block of a PoseWithCovariance.
 - look_at_pixel: a 3-D point in the master's optical frame -> the master pixel a Fixate asks for, or Refused
   with the reason (not finite, behind the camera, outside the view, where the fovea does not fit).
-- diagnostic: one process's status (the JSON of vergence_services.health) -> one DiagnosticStatus's fields.
+- diagnostic: one process's status (the JSON of services.runtime.health) -> one DiagnosticStatus's fields.
 - image_gray, compressed_gray: sensor_msgs Image / CompressedImage fields -> a uint8 gray array, or ImageError.
 - Pairer: approximate-time pairing of two image streams by stamp (message_filters' ApproximateTime, simplified:
   the closest partner within `slop`), with the images it could not pair counted.

@@ -7,7 +7,7 @@
 
 rclpy is imported here only (require() says how to get it: a sourced ROS 2, or the `ros2` extra's PyPI wheels
 of Jazzy). The context is the node's own and installs no signal handler: SIGINT and SIGTERM stay the
-process's (vergence_services.session.Stop), which closes the node on its way out. The executor spins in a
+process's (services.runtime.session.Stop), which closes the node on its way out. The executor spins in a
 daemon thread until close().
 """
 

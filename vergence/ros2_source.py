@@ -26,7 +26,7 @@ import threading
 import time
 
 from . import ros2 as conv
-from .sources import SourceError
+from .images import SourceError
 
 __all__ = ["SourceStall", "Ros2Source", "parse_spec"]
 

@@ -34,30 +34,17 @@ import time
 import cv2
 import numpy as np
 
+from .images import SourceError, read_image
 from .timing import CameraTiming
 
-__all__ = ["SourceError", "read_image", "Source", "FilesSource", "VideoSource", "CameraSource", "SimSource",
+__all__ = ["SourceError", "Source", "FilesSource", "VideoSource", "CameraSource", "SimSource",
            "open_source"]
-
-
-class SourceError(ValueError):
-    """A source that cannot be opened or read; the message names it and says how to fix it."""
 
 
 def _gray(img: np.ndarray) -> np.ndarray:
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
     return np.ascontiguousarray(img)
-
-
-def read_image(path: str, flags: int = cv2.IMREAD_GRAYSCALE) -> np.ndarray:
-    """An image file (gray by default); SourceError that says whether it is missing or undecodable."""
-    if not os.path.isfile(path):
-        raise SourceError(f"cannot read image {path!r}: no such file")
-    img = cv2.imread(path, flags)
-    if img is None:
-        raise SourceError(f"cannot read image {path!r}: not an image OpenCV can decode")
-    return img
 
 
 def _pair(rest: str, kind: str) -> tuple[str, str]:
@@ -272,7 +259,7 @@ class SimSource(Source):
         self.size = tuple(self.rig.size)
         self.focal_px = float(self.rig.focal_px)
         self.start_pan_rad = float(self.rig.start_pan_rad)
-        # the master's aim and the gimbal, for the depth of the fixated point (services/capture.py)
+        # the master's aim and the gimbal, for the depth of the fixated point (services/pipeline/capture.py)
         self.master_pan_rad, self.tilt_rad = float(self.rig.master_pan_rad), float(self.rig.tilt_rad)
         self.gimbal = self.rig.gimbal
         self.t0: int | None = None  # the scene's time 0 (ns): the first exposure

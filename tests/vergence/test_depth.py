@@ -18,7 +18,7 @@ from vergence import depth
 from vergence.config import ConfigError, from_dict, load as load_settings
 from vergence.sim import Rig, generate
 from vergence.sim.fixation import truth_at
-from vergence.sim.rig import homography
+from vergence.sim.optics import homography
 from vergence.sim.scene import texture
 
 

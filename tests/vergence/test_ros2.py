@@ -12,7 +12,7 @@ import pytest
 from vergence import ros2 as conv
 from vergence.frames import make_frame
 from vergence.params import Params
-from vergence.sim.rig import rotation
+from vergence.sim.optics import rotation
 
 
 def test_stamps_round_trip_and_refuse_what_is_not_a_time():

@@ -1,10 +1,16 @@
-"""vergence.sources: the exposure times each source gives with its images (#25)."""
+"""vergence.sources: each kind of source opens, reads and refuses as it says; the exposure times each gives with
+its images (#25)."""
 
 import cv2
 import numpy as np
 import pytest
 
-from vergence.sources import SourceError, open_source
+from vergence.control import ControlSettings
+from vergence.gather import Gatherer
+from vergence.params import Params
+from vergence.sources import FilesSource, SimSource, SourceError, open_source
+
+from samples import textured
 
 
 def _video(path, n=6, fps=25):
@@ -59,3 +65,67 @@ def test_the_sim_source_renders_the_slave_at_the_pan_of_its_exposure():
 def test_a_bad_timing_key_is_refused_naming_it(spec, says):
     with pytest.raises(SourceError, match=says):
         open_source(spec)
+
+
+
+
+def clipping_pair():
+    """A textured pair whose slave is at gain 1.6, +40: a quarter of its band saturates (clip_master clips)."""
+    m, s = textured()
+    return m, np.clip(s * 1.6 + 40, 0, 255).astype(np.uint8)
+
+
+def gather(params=Params(max_window=0), deadline=0.05):
+    return Gatherer(params, ControlSettings(), deadline)
+
+
+def test_files_source(tmp_path):
+    m, s = textured()
+    cv2.imwrite(str(tmp_path / "l.png"), m)
+    cv2.imwrite(str(tmp_path / "r.png"), s)
+    src = open_source(f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}")
+    a, b = src.read(0.3)
+    assert isinstance(src, FilesSource) and src.size == (200, 120)
+    assert np.array_equal(a, m) and np.array_equal(b, s)
+    assert not src.follows_pan and src.start_pan_rad == 0.0  # taken at pan 0, whatever the motor does
+    a, b = open_source(f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}", master="right").read()
+    assert np.array_equal(a, s)
+
+
+@pytest.mark.parametrize("spec,msg", [
+    ("files:/nonexistent/l.png,/nonexistent/r.png", "/nonexistent/l.png"),
+    ("files:onlyone", "LEFT,RIGHT"),
+    ("video:/nonexistent/a.avi,/nonexistent/b.avi", "no such file"),
+    ("camera:97,98", "camera '97'"),
+    ("nope:1", "unknown source"),
+    ("sim:bogus=1", "bogus"),
+], ids=["missing-file", "one-file", "missing-video", "no-camera", "unknown", "bad-sim-key"])
+def test_source_errors_name_the_problem(spec, msg):
+    with pytest.raises(SourceError, match=msg):
+        open_source(spec)
+
+
+def test_video_source(tmp_path):
+    m, s = textured()
+    for name, img in (("l.avi", m), ("r.avi", s)):
+        vw = cv2.VideoWriter(str(tmp_path / name), cv2.VideoWriter_fourcc(*"MJPG"), 10, (200, 120))
+        if not vw.isOpened():
+            pytest.skip("no MJPG writer in this OpenCV")
+        for _ in range(2):
+            vw.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+        vw.release()
+    src = open_source(f"video:{tmp_path / 'l.avi'},{tmp_path / 'r.avi'}")
+    assert not src.follows_pan and src.start_pan_rad == 0.0
+    for _ in range(5):  # rewinds at the end
+        a, b = src.read()
+        assert a.shape == (120, 200) and a.dtype == np.uint8
+        assert np.abs(a.astype(int) - m).mean() < 4
+    src.close()
+
+
+def test_sim_source_renders_at_the_given_pan():
+    src = open_source("sim:size=160x120:focal=128")
+    assert isinstance(src, SimSource) and src.size == (160, 120) and src.focal_px == 128.0 and src.follows_pan
+    a0, b0 = src.read(0.0)
+    a1, b1 = src.read(0.05)
+    assert a0.shape == (120, 160) and np.array_equal(a0, a1) and not np.array_equal(b0, b1)

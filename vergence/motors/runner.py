@@ -1,6 +1,6 @@
 """The actuator's logic without the network: command bytes in, motor goals and MotorState messages out.
 
-services/actuator.py only subscribes, hands the newest command to `MotorLoop.command`, calls `tick` at the
+services/pipeline/actuator.py only subscribes, hands the newest command to `MotorLoop.command`, calls `tick` at the
 state rate and publishes what they return. Everything that decides something lives here, so it is tested
 with the simulated motor and a fake clock:
 - malformed messages are counted and skipped (logged once per kind of fault);

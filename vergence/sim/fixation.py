@@ -7,7 +7,8 @@ import math
 
 import numpy as np
 
-from .rig import Rig, homography
+from .optics import homography
+from .rig import Rig
 
 __all__ = ["truth_at"]
 

@@ -21,8 +21,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..images import read_image
 from .motion import Motion, parse_motion
-from .rig import intrinsics, option_number, rotation
+from .optics import intrinsics, option_number, rotation
 from .scene import texture
 
 __all__ = ["Head", "MovingRig"]
@@ -205,7 +206,6 @@ class MovingRig:
         (0.8 x width), size=WxH (640x480), noise=SIGMA, seed=N, pan=DEG (the slave's start pan),
         texture=FILE|flat (the target's; default procedural), target=M (its width), bg=M (the background's
         distance). A bad key or value raises ValueError naming it."""
-        from ..sources import read_image
 
         items = {k: v for k, v in items.items() if v is not None}
         unknown = sorted(set(items) - set(cls.KEYS))

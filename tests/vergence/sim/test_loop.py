@@ -74,7 +74,7 @@ def test_generated_scene_is_consistent(scene):
 # The motor and the controller these tests were written for: first order (20 ms), no latency, acceleration
 # limit or encoder ticks, and the "p" controller. They measure the network's accuracy in the loop on still
 # scenes; the servo-like default motor (whose whole ticks alone leave up to half a tick, 0.39 px at f = 512)
-# and the predictive default controller are tests/vergence/test_tracking.py's (README: what the predictive one costs
+# and the predictive default controller are tests/scenarios/test_tracking.py's (README: what the predictive one costs
 # on these still scenes). IDEAL_MOTOR and P_CONTROL are vergence.evaluate's: `vergence accuracy --loop` runs this loop.
 def run(rig, frames=8, params=None, **kw):
     kw.setdefault("motor", IDEAL_MOTOR)

@@ -1,0 +1,101 @@
+"""`vergence fixate X,Y [--rig R] [--wait S]`: ask the running capture to move its fovea to master pixel (X, Y).
+
+Puts one messages.Fixate on vergence/<rig>/fixate. With --wait S (default 2), waits up to S seconds for the
+first decision (vergence/<rig>/decision) made for the new point and prints it (x, y, offset, converged,
+depth); exit 2 with the capture's reason when its status says it refused this request (the point where the fovea
+does not fit: status field fixate_rejection, matched by the request's t_ns); exit 1 when nothing came (no
+capture running). --wait 0 only sends."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import threading
+import time
+
+from vergence import keys
+from vergence.config import load
+from vergence.messages import Fixate, MessageError, Verdict
+
+from services.runtime import session
+from services.runtime.args import master_point
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    session.add_options(p)
+    p.add_argument("point", type=master_point, metavar="X,Y", help="the new fovea centre in master pixels")
+    p.add_argument("--source", default="vergence fixate", help="who asks (free text, logged by the capture)")
+    p.add_argument("--wait", type=float, default=2.0, metavar="S",
+                   help="wait up to S seconds for the first decision at the new point (0: only send)")
+
+
+def describe(v: Verdict) -> str:
+    depth = (f"depth {v.depth_m:.4f} m +- {v.depth_sigma_m:.4f}" if math.isfinite(v.depth_m) else "no depth")
+    return (f"frame {v.frame} at ({v.x}, {v.y}): offset {v.offset_px:+.2f} px, "
+            f"{'converged' if v.converged else 'confident' if v.confident else 'abstains'}, {depth}")
+
+
+def refusal(payload: bytes, t_ns: int) -> str | None:
+    """A capture status's reason for refusing the request sent at t_ns, or None (another request's, none, or
+    not a status we can read: a peer's message is a claim, so anything malformed is only ignored)."""
+    try:
+        st = json.loads(payload)
+    except (ValueError, RecursionError):
+        return None
+    r = st.get("fixate_rejection") if isinstance(st, dict) else None
+    if isinstance(r, dict) and r.get("t_ns") == t_ns and isinstance(r.get("why"), str):
+        return r["why"][:300]
+    return None
+
+
+def main(rig: str, conf, x: float, y: float, source: str, wait: float) -> int:
+    target = (int(round(x)), int(round(y)))
+    t_ns = time.time_ns()
+    got: list[Verdict] = []
+    refused: list[str] = []
+    seen = threading.Event()
+
+    def on_decision(sample):
+        try:
+            v = Verdict.from_bytes(sample.payload.to_bytes())
+        except MessageError:
+            return
+        if (v.x, v.y) == target and not seen.is_set():
+            got.append(v)
+            seen.set()
+
+    def on_status(sample):
+        why = refusal(sample.payload.to_bytes(), t_ns)
+        if why is not None and not seen.is_set():
+            refused.append(why)
+            seen.set()
+
+    with session.open_session(conf) as s:
+        subs = [s.declare_subscriber(keys.decision(rig), on_decision),
+                s.declare_subscriber(keys.status(rig, "capture", "*"), on_status)] if wait > 0 else []
+        try:
+            t0 = time.monotonic()
+            s.put(keys.fixate(rig), Fixate(x=x, y=y, t_ns=t_ns, source=source).to_bytes())
+            if not subs:
+                print(f"fixate ({x:g}, {y:g}) sent on {keys.fixate(rig)}")
+                return 0
+            if not seen.wait(wait):
+                print(f"vergence fixate: no decision at ({target[0]}, {target[1]}) within {wait:g} s (is a "
+                      "capture running on this rig?)", file=sys.stderr)
+                return 1
+            if refused:
+                print(f"vergence fixate: the capture refused {refused[0]}; the fovea stays where it was",
+                      file=sys.stderr)
+                return 2
+            print(f"{describe(got[0])}  ({(time.monotonic() - t0) * 1e3:.0f} ms after the request)")
+            return 0
+        finally:
+            for sub in subs:
+                sub.undeclare()
+
+
+def run(args: argparse.Namespace) -> int:
+    rig = args.rig or load(args.config).rig
+    return main(rig, session.config_from_args(args), *args.point, args.source, args.wait)

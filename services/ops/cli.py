@@ -1,0 +1,73 @@
+"""The `vergence` command: each sub-command lives in its own module, imported only when it runs, so that
+`vergence match` never loads zenoh. A module provides configure(parser) and run(args) -> exit code."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from services.runtime import heartbeat
+
+# name: (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "match": ("services.offline.match", "decide where the master fovea lies in the slave image (no Zenoh)"),
+    "accuracy": ("services.offline.accuracy", "accuracy on a pair with a ground-truth disparity (no Zenoh)"),
+    "sim": ("services.offline.sim", "closed loop on the simulated rig, in one process (no Zenoh)"),
+    "bench": ("services.offline.bench", "benchmarks: kernel, match, messages, tracking, pipeline"),
+    "up": ("services.ops.up", "an embedded router and every process on this machine"),
+    "router": ("services.ops.router", "a Zenoh router"),
+    "capture": ("services.pipeline.capture", "read a stereo source and publish frames"),
+    "worker": ("services.pipeline.worker", "compute layer 4 for a shard of each frame"),
+    "reducer": ("services.pipeline.reducer", "gather shards, decide, publish profile and command"),
+    "actuator": ("services.pipeline.actuator", "drive the slave pan motor"),
+    "fixate": ("services.clients.fixate", "move the running capture's fovea to a master pixel"),
+    "latency": ("services.clients.latency", "measure the camera's exposure-to-read latency on the running head"),
+    "monitor": ("services.observe.monitor", "live view of the correlation topics"),
+    "record": ("services.observe.record", "record every vergence/<rig>/** message to a file"),
+    "replay": ("services.clients.replay", "publish a recording again"),
+    "view": ("services.observe.view", "the rig's cockpit in Rerun: images, boxes, profile, pans (the [view] extra)"),
+    "ros2": ("services.bridges.ros2", "the rig as a ROS 2 node: joint states, fixation, look_at (the [ros2] extra)"),
+}
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="vergence", description="Dynamic vergence control for active stereo vision")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (modname, help_) in COMMANDS.items():
+        sp = sub.add_parser(name, help=help_, description=help_)
+        if name == only:
+            importlib.import_module(modname).configure(sp)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    # first: a child of `vergence up` beats while it imports and compiles (services/runtime/heartbeat.py)
+    heartbeat.start()
+    argv = sys.argv[1:] if argv is None else argv
+    name = next((a for a in argv if not a.startswith("-")), None)
+    if name not in COMMANDS:
+        build_parser().print_help()
+        return 0 if name is None and any(a in ("-h", "--help") for a in argv) else 2
+    args = build_parser(name).parse_args(argv)
+    mod = importlib.import_module(COMMANDS[name][0])
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
+    try:
+        return int(mod.run(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+    except Exception as e:
+        # a settings file or value that is wrong: the message names the field. Looked up only if the command
+        # loaded the settings: importing vergence costs ~1 s (numba), which `vergence router` does without
+        # (a router restarted by `vergence up` is back that much sooner)
+        config = sys.modules.get("vergence.config")
+        if config is not None and isinstance(e, config.ConfigError):
+            print(f"vergence {name}: {e}", file=sys.stderr)
+            return 2
+        raise
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,139 @@
+"""`vergence actuator --driver sim|dynamixel|line|ros2 [--port URL] [--id 1] [--baud 57600]`: drive the slave pan.
+
+Subscribes to vergence/<rig>/command (messages.Command: pan_rad is the absolute target pan of the slave) and
+publishes messages.MotorState on vergence/<rig>/motor/state at [actuator] state_hz and after each command.
+The Zenoh callback only keeps the newest command (a flood is coalesced, never queued); one thread runs
+vergence.motors.runner.MotorLoop, which owns every decision (safety, watchdog, reconnection).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import sys
+import threading
+import time
+
+from vergence import keys
+from vergence.config import ConfigError, load
+from vergence.motors import DRIVERS, PortError, make_driver
+from vergence.motors.runner import MotorLoop
+
+from services.runtime import heartbeat, session
+
+log = logging.getLogger("vergence.actuator")
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    session.add_options(p)
+    p.add_argument("--driver", choices=DRIVERS, default=None,
+                   help="motor driver (default: from the settings, else sim)")
+    p.add_argument("--port", default=None, metavar="URL",
+                   help="serial port or pyserial URL: /dev/ttyUSB0, socket://host:port, loop:// "
+                        "(list ports: python -m serial.tools.list_ports -v); ros2: CONTROLLER[:joint=NAME]"
+                        "[:mode=forward|trajectory][:joints=A,B][:states=TOPIC] (vergence/motors/ros2.py)")
+    p.add_argument("--id", type=int, default=None, help="motor id on the bus (Dynamixel; default 1)")
+    p.add_argument("--baud", type=int, default=None, help="serial speed (default 57600)")
+    p.add_argument("--state-hz", type=float, default=None, help="motor/state rate (default 50)")
+
+
+class Latest:
+    """A one-slot mailbox: the Zenoh callback puts, the motor thread takes; a newer message replaces an
+    older one that was not taken yet (counted in `superseded`)."""
+
+    def __init__(self):
+        self.cond = threading.Condition()
+        self.item = None
+        self.superseded = 0
+
+    def put(self, item) -> None:
+        with self.cond:
+            if self.item is not None:
+                self.superseded += 1
+            self.item = item
+            self.cond.notify()
+
+    def take(self, timeout: float):
+        with self.cond:
+            if self.item is None:
+                self.cond.wait(timeout)
+            item, self.item = self.item, None
+            return item
+
+
+def serve(loop: MotorLoop, publish, inbox: Latest, stop: session.Stop, state_hz: float) -> None:
+    """Run the motor loop until stop: commands as they come, a state every 1/state_hz."""
+    period = 1.0 / state_hz if state_hz > 0 else 0.02
+    next_tick = time.monotonic()
+    seen = 0
+    while not stop.is_set():
+        data = inbox.take(max(0.0, min(0.1, next_tick - time.monotonic())))
+        if inbox.superseded != seen:
+            n, seen = inbox.superseded - seen, inbox.superseded
+            loop.superseded(n)
+        if data is not None:
+            publish(loop.command(data))
+        now = time.monotonic()
+        if now >= next_tick:
+            heartbeat.progress()  # the motor loop turns (services/runtime/heartbeat.py)
+            publish(loop.tick())
+            next_tick = max(next_tick + period, now - period)
+
+
+def main(settings, conf, stop: session.Stop) -> int:
+    a = settings.actuator
+    rig = settings.rig
+    try:
+        driver = make_driver(a.driver, a.motor, a.port)
+    except (PortError, ValueError) as e:
+        print(f"vergence actuator: {e}", file=sys.stderr)
+        return 2
+    loop = MotorLoop(driver, a.motor, rig)
+    try:
+        first = loop.start()
+    except PortError as e:
+        print(f"vergence actuator: {e}", file=sys.stderr)
+        return 2
+    s = session.open_session(conf)
+    try:
+        pub = s.declare_publisher(keys.motor_state(rig))
+        inbox = Latest()
+        sub = s.declare_subscriber(keys.command(rig),
+                                   lambda sample: inbox.put(sample.payload.to_bytes()))
+        token = s.liveliness().declare_token(session.alive_key(rig, "actuator"))
+
+        def publish(state):
+            pub.put(state.to_bytes())
+
+        log.info("actuator %s on %s: %s", driver.describe(), keys.command(rig), first.status)
+        publish(first)
+        try:
+            serve(loop, publish, inbox, stop, a.state_hz)
+        finally:
+            publish(loop.stop())
+            token.undeclare()
+            sub.undeclare()
+            pub.undeclare()
+    finally:
+        s.close()
+    return 0
+
+
+def settings_from_args(args: argparse.Namespace):
+    st = load(args.config)
+    a, m = st.actuator, st.actuator.motor
+    m = dataclasses.replace(m, **{k: v for k, v in (("id", args.id), ("baud", args.baud)) if v is not None})
+    a = dataclasses.replace(a, motor=m, **{k: v for k, v in (("driver", args.driver), ("port", args.port),
+                                                               ("state_hz", args.state_hz)) if v is not None})
+    return dataclasses.replace(st, actuator=a, **({"rig": args.rig} if args.rig else {}))
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        settings = settings_from_args(args)
+    except (ConfigError, ValueError) as e:
+        print(f"vergence actuator: {e}", file=sys.stderr)
+        return 2
+    stop = session.Stop()
+    return main(settings, session.config_from_args(args), stop)

@@ -1,0 +1,474 @@
+"""`vergence capture --source SPEC [--rate HZ] [--frames N]`: reads stereo frames and publishes them.
+
+Publishes on vergence/<rig>/frame a messages.Frame per image pair: only what layer 1 needs (the master fovea and
+the slave band with their Sobel margins, the master band for the left-right check), the exposure times of both
+images and the read time (ExposureClock: the source's stamps where believable, else the read time less [camera]
+latency_s), the slave's pan at its exposure (PanLookup: the messages.MotorState history of vergence/<rig>/motor/state
+interpolated there; the source's start pan before any; always the start pan, 0, for a source whose images do not
+move with the motor: a still pair, videos; pan_stale where the history cannot tell), and the shard plan made from
+the workers' liveliness tokens vergence/<rig>/alive/worker/* at that moment, minus the workers the reducer's
+evidence (vergence/<rig>/workers) shows silent (vergence.frames.Roster: a token is an invitation, not a guarantee).
+A motor/state whose pan is outside the motor's limits or whose time is off our clock by more than [limits]
+max_skew_s is counted and ignored. With no worker alive, frames are counted (no_workers) and not published. A
+downscaled messages.Preview goes on vergence/<rig>/preview at [capture] preview_hz. With [network] max_window > 0 the
+window grows by 8 px while the decisions (vergence/<rig>/decision) are not confident (the dynamic window), and
+with clip_fallback, where the master was clipped, the same windows follow with it unclipped (WindowControl).
+A messages.Fixate on vergence/<rig>/fixate moves the fovea to its (x, y) from the next frame on; a request
+that is not a valid Fixate, or where the fovea would not fit the image, is rejected (counted under bad.fixate
+and in the fixate_rejected counter, its reason logged and, for a well-formed request, named with its t_ns in the
+status's fixate_rejection) and nothing moves.
+Counters go out as JSON on vergence/<rig>/status/capture/<id> every second and at exit, with the rate
+published and the rate the reducer completed (published_hz, decided_hz; a warning when the pipeline
+holds less than half), and what each camera clips of the fovea's rows where the other sees texture (clipped:
+retina.clipped_share of the latest pair; a warning, once per camera, over retina.CLIP_WARN).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import json
+import logging
+import math
+import sys
+import threading
+import time
+
+import cv2
+import zenoh
+
+from vergence import keys, retina
+from vergence.config import load
+from vergence.frames import Roster, WindowControl, make_frame, plan_shards
+from vergence.messages import Fixate, MessageError, MotorState, Preview, Verdict
+from vergence.sources import SourceError, open_source
+from vergence.timing import PanHistory, Stamper
+
+from services.runtime import session
+from services.runtime.health import Health
+from services.runtime.args import pixel
+from services.runtime.node import STATUS_S, Node
+
+log = logging.getLogger("vergence.capture")
+FUTURE_S = 0.05  # a motor history whose newest state is this far ahead of our clock is forgotten
+SETTLE_S = 0.025  # the longest a rendering source waits for the motor's report of its exposure's instant
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    session.add_options(p)
+    p.add_argument("--source", default=None, metavar="SPEC",
+                   help="files:LEFT,RIGHT | video:LEFT,RIGHT | camera:0,1 | sim[:key=value:...] | ros2:LEFT,RIGHT "
+                        "(default: settings, sim)")
+    p.add_argument("--rate", type=float, default=None, metavar="HZ",
+                   help="frames per second, 0 = as fast as possible (default: settings, 30)")
+    p.add_argument("--frames", type=int, default=0, metavar="N", help="exit after publishing N frames (0: never)")
+    p.add_argument("--at", type=pixel, default=None, metavar="X,Y", help="fovea centre (default: image centre)")
+    p.add_argument("--focal", type=float, default=None, help="focal length in pixels (default: the source's)")
+
+
+def motor_state_implausible(st: MotorState, motor, now_ns: int, max_skew_s: float) -> str | None:
+    """Why a motor/state is not believed (it moves the pan every frame carries, hence the commands): a pan
+    outside the motor's soft limits of our settings, or a time further than max_skew_s from our clock."""
+    lo, hi = motor.min_rad, motor.max_rad
+    if not lo - 1e-3 <= st.pan_rad <= hi + 1e-3:
+        return f"pan {st.pan_rad:.4g} rad outside the motor limits [{lo:.4g}, {hi:.4g}]"
+    if abs(st.t_ns - now_ns) > max_skew_s * 1e9:
+        return f"state from {(st.t_ns - now_ns) / 1e9:+.3g} s off our clock"
+    return None
+
+
+class Fovea:
+    """Where the fovea is, and the fixate requests that move it (zenoh callback thread -> capture loop)."""
+
+    LOG_EVERY_S = 1.0
+
+    def __init__(self, x: int, y: int, shape: tuple[int, int], params, health: Health):
+        self.lock = threading.Lock()
+        self.x, self.y = x, y
+        self.shape, self.params, self.health = shape, params, health
+        self._last_log = -1e9
+        # the latest well-formed request that was refused, for the status (`vergence fixate` reads it to say why
+        # at once): its t_ns, which the asker knows, and our reason
+        self.rejection: dict | None = None
+
+    def at(self) -> tuple[int, int]:
+        with self.lock:
+            return self.x, self.y
+
+    def fields(self) -> dict:
+        """For the status: the fovea's centre and the latest refused request, if any."""
+        with self.lock:
+            out = {"fovea": [self.x, self.y]}
+            if self.rejection is not None:
+                out["fixate_rejection"] = dict(self.rejection)
+            return out
+
+    def _reject(self, why: str) -> None:
+        self.health.reject("fixate", why)
+        self.health.count("fixate_rejected")
+        now = time.monotonic()
+        if now - self._last_log >= self.LOG_EVERY_S:  # every reason, at most once a second
+            self._last_log = now
+            log.warning("fixate request rejected, the fovea stays at (%d, %d): %s", self.x, self.y, why)
+
+    def on_fixate(self, payload: bytes) -> tuple[int, int] | None:
+        """A fixate request's bytes -> the new fovea centre, or None (rejected, counted, logged)."""
+        try:
+            req = Fixate.from_bytes(payload)
+        except MessageError as e:
+            self._reject(str(e))
+            return None
+        x, y = int(round(req.x)), int(round(req.y))
+        try:
+            retina.check_point(self.shape, x, y, self.params.window, self.params.vsearch)
+        except retina.BorderError as e:
+            why = f"({req.x:g}, {req.y:g}): {e}"
+            self._reject(why)
+            with self.lock:
+                self.rejection = {"t_ns": req.t_ns, "why": why}
+            return None
+        with self.lock:
+            self.x, self.y = x, y
+        self.health.count("fixations")
+        log.info("fixate: fovea to (%d, %d)%s", x, y, f" for {req.source}" if req.source else "")
+        return x, y
+
+
+class Rates:
+    """The rate the pipeline holds, for each status: frames published here against frames the reducer
+    completed (the `complete` of its latest report); one warning when it holds less than half."""
+
+    def __init__(self, period: float = STATUS_S):
+        self.period = period
+        self.published = 0
+        self.decided = 0
+        self._then = (0, 0)  # both at the previous status
+        self._warned = False
+
+    def fields(self) -> dict:
+        sent, done = self.published - self._then[0], self.decided - self._then[1]
+        self._then = (self.published, self.decided)
+        # (the reducer's count lags by up to its report period: never more than was published; a negative
+        # difference is a new reducer)
+        held = min(done, sent) / self.period if done >= 0 else None
+        if held is not None and sent >= 20 and done < 0.5 * sent and not self._warned:
+            self._warned = True
+            log.warning("the pipeline completes %.0f of the %.0f frames/s published: lower the rate (--rate) or "
+                        "add workers", held, sent / self.period)
+        return dict(published_hz=sent / self.period, decided_hz=held)
+
+
+def remember(history: PanHistory, st: MotorState, now_ns: int) -> None:
+    """A plausible motor state into the history; MessageError when it is not newer than the newest. A newest
+    state from more than FUTURE_S in our future (a forgery within max_skew_s, or a clock that jumped) is
+    forgotten rather than left to refuse every true state until then."""
+    t = st.t_ns / 1e9
+    if history.add(t, st.pan_rad):
+        return
+    if not (history.t and history.t[-1] > now_ns / 1e9 + FUTURE_S):
+        raise MessageError("motor state not newer than the last one")
+    history.clear()
+    history.add(t, st.pan_rad)
+
+
+class PanLookup:
+    """The slave's pan for one frame, from the motor's history (the zenoh callback adds to it meanwhile): a
+    source that renders (the simulator) asks it at its exposure times, and the frame then carries the same
+    pan. Before any motor state, the source's start pan; a source whose images do not follow the motor
+    always has its start pan."""
+
+    def __init__(self, history: PanHistory, lock: threading.Lock, source):
+        self.history, self.lock, self.source = history, lock, source
+        self.seen: dict[int, float | None] = {}
+
+    def settle(self, t_ns: int, timeout: float = SETTLE_S) -> None:
+        """Wait (at most timeout) until the motor has reported its pan at or after t_ns: a source that renders
+        the slave (the simulator) then never renders a pan the history has to guess (extrapolated past its
+        newest state, a step of the motor shows some 15 ms late). Without a history, or a motor that stopped
+        reporting, it does not wait (longer)."""
+        end = time.monotonic() + timeout
+        while True:
+            with self.lock:
+                if not len(self.history) or self.history.t[-1] * 1e9 >= t_ns:
+                    return
+            if time.monotonic() >= end:
+                return
+            time.sleep(0.0005)
+
+    def _at(self, t_ns: int) -> float | None:
+        if t_ns not in self.seen:
+            with self.lock:
+                self.seen[t_ns] = self.history.at(t_ns / 1e9) if len(self.history) else self.source.start_pan_rad
+        return self.seen[t_ns]
+
+    def __call__(self, t_ns: int) -> float:
+        """The pan to render the slave at (where the history cannot tell, its newest: the frame is stale)."""
+        pan = self._at(t_ns)
+        if pan is None:
+            with self.lock:
+                pan = self.history.newest()
+        return pan if pan is not None else self.source.start_pan_rad
+
+    def frame(self, t_slave_ns: int) -> tuple[float, bool]:
+        """(the frame's pan, stale): the pan at the slave's exposure, and whether the history could not tell."""
+        if not self.source.follows_pan:
+            return self.source.start_pan_rad, False
+        pan = self._at(t_slave_ns)
+        return (self(t_slave_ns), True) if pan is None else (pan, False)
+
+
+class ExposureClock:
+    """The exposure times of the pairs read (vergence.timing.Stamper: the source's own where believable, else
+    the read time less [camera] latency_s), and what the status says of them: the latency (read minus the
+    master's exposure) and the skew (slave minus master) over the last period, the stamps not believed per
+    reason (logged once each); a warning, once, when the skew is over half a frame."""
+
+    def __init__(self, timing, frame_s: float):
+        self.stamper = Stamper(timing)
+        self.frame_s = frame_s
+        self.latency: list[int] = []
+        self.skew: list[int] = []
+        self.logged: set[str] = set()
+
+    def stamp(self, t_read_ns: int, claimed) -> tuple[int, int]:
+        tm, ts, why = self.stamper.stamp(t_read_ns, claimed)
+        if why is not None and why not in self.logged:
+            self.logged.add(why)
+            log.warning("the source's exposure stamps %s are not believed (%s); this frame and any other such is "
+                        "stamped at its read time less [camera] latency_s (%.3f s)", claimed, {
+                            "future": "after the read", "old": "more than a second before the read",
+                            "backwards": "not after the previous frame's"}[why], self.stamper.timing.latency_s)
+        self.latency.append(t_read_ns - tm)
+        self.skew.append(ts - tm)
+        del self.latency[:-256], self.skew[:-256]
+        return tm, ts
+
+    def fields(self) -> dict:
+        out: dict = {"stamps_rejected": dict(self.stamper.rejected)}
+        if self.latency:
+            lat, skew = sorted(self.latency), sorted(self.skew)
+            out["latency_ms"] = round(lat[len(lat) // 2] / 1e6, 2)
+            out["skew_ms"] = round(skew[len(skew) // 2] / 1e6, 2)
+            if self.frame_s and abs(out["skew_ms"]) > 500 * self.frame_s and "skew" not in self.logged:
+                self.logged.add("skew")
+                log.warning("the slave is exposed %.1f ms after the master, over half a frame: trigger both cameras "
+                            "together, or the decisions measure a moving target at two instants", out["skew_ms"])
+            self.latency.clear()
+            self.skew.clear()
+        return out
+
+
+def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
+         at: tuple[int, int] | None = None) -> int:
+    rig, cs, params, geo = settings.rig, settings.capture, settings.network, settings.geometry
+    try:
+        source = open_source(cs.source, geo.master or cs.master)
+    except SourceError as e:
+        print(f"vergence capture: {e}", file=sys.stderr)
+        return 2
+    wd, ht = source.size
+    focal = geo.focal_px or cs.focal_px or source.focal_px or 0.8 * wd
+    # the master's pan and the common tilt (the simulated rig aims its master; a real master is fixed: 0, 0)
+    master_pan, tilt = getattr(source, "master_pan_rad", 0.0), getattr(source, "tilt_rad", 0.0)
+    if getattr(source, "gimbal", geo.gimbal) != geo.gimbal:
+        log.warning("the source's gimbal is %s, [rig] gimbal %s: the reducer's depth assumes the latter",
+                    source.gimbal, geo.gimbal)
+    x, y = at if at is not None else (wd // 2, ht // 2)
+    try:
+        retina.check_point((ht, wd), x, y, params.window, params.vsearch)
+    except retina.BorderError as e:
+        print(f"vergence capture: {e}", file=sys.stderr)
+        source.close()
+        return 2
+    windows = WindowControl(params)
+    lim = settings.limits
+    members = Roster(lim.miss_s, lim.probation_s, lim.miss_frames)
+    history = PanHistory(max_gap_s=max(0.1, 3.0 / settings.actuator.state_hz if settings.actuator.state_hz > 0
+                                        else 0.1))
+    history_lock = threading.Lock()
+    clock = ExposureClock(settings.camera.timing(), 1.0 / cs.rate_hz if cs.rate_hz > 0 else 0.0)
+    rates = Rates()
+    plan: list = []
+    unclipped: dict[int, None] = {}  # the recent frames published with the master unclipped (clip_fallback)
+
+    pair: list = []  # the latest (master, slave), for the clipped shares of the status
+    warned: set[str] = set()
+
+    def clipped() -> dict:
+        """retina.clipped_share at the fovea's rows; one warning per camera over CLIP_WARN."""
+        if not pair:
+            return {}
+        try:
+            out = retina.clipped_share(*pair, fovea.at()[1], windows.window, params.vsearch)
+        except ValueError as e:  # a figure of the status never stops the capture
+            if "error" not in warned:
+                warned.add("error")
+                log.warning("no clipped shares in the status: %s", e)
+            return {}
+        for cam, share in out.items():
+            if share >= retina.CLIP_WARN and cam not in warned:
+                warned.add(cam)
+                log.warning("the %s camera shows %.0f %% of the fovea's rows black or saturated where the other "
+                            "camera sees texture: that texture is lost to the match; set both cameras' exposure "
+                            "and gain alike (README, Two real cameras)", cam, 100 * share)
+        return {cam: round(share, 3) for cam, share in out.items()}
+
+    def fields() -> dict:
+        return dict(window=windows.window, workers=len(plan), excluded=members.excluded(), **rates.fields(),
+                    roster=dict(members.counters), clipped=clipped(), **fovea.fields(), **clock.fields(),
+                    **({"source": source.status()} if hasattr(source, "status") else {}))
+
+    node = Node("capture", rig, conf, stop, log=log, fields=fields,
+                final_fields=lambda: dict(window=windows.window, workers=len(plan)))
+    health, cid = node.health, node.ident
+    fovea = Fovea(x, y, (ht, wd), params, health)
+
+    def on_motor(sample):
+        try:
+            st = MotorState.from_bytes(sample.payload.to_bytes())
+            why = motor_state_implausible(st, settings.actuator.motor, time.time_ns(), lim.max_skew_s)
+            if why is not None:
+                raise MessageError(why)
+            with history_lock:
+                remember(history, st, time.time_ns())
+            health.count("motor_states")
+        except MessageError as e:
+            health.reject("motor_state", e)
+
+    def on_token(sample):
+        wid = keys.parse(str(sample.key_expr)).ident
+        members.token(wid, sample.kind == zenoh.SampleKind.PUT)
+        log.info("workers: %s", sorted(members.tokens))
+
+    def on_report(sample):
+        try:
+            rep = json.loads(sample.payload.to_bytes())
+            if not isinstance(rep, dict) or not isinstance(rep.get("workers"), dict):
+                raise ValueError("not a report")
+        except ValueError as e:
+            health.reject("workers", e)
+            return
+        for wid in members.on_report(rep):
+            log.warning("worker %s left the plan: its shards stopped arriving at the reducer", wid)
+        if isinstance(rep.get("complete"), int):
+            rates.decided = rep["complete"]
+
+    def on_decision(sample):
+        try:
+            v = Verdict.from_bytes(sample.payload.to_bytes())
+        except MessageError as e:
+            health.reject("decision", e)
+            return
+        windows.update(v.window, v.confident, v.frame not in unclipped)
+
+    period = 1.0 / cs.rate_hz if cs.rate_hz > 0 else 0.0
+    preview_period = 1.0 / cs.preview_hz if cs.preview_hz > 0 else 0.0
+    pw = min(cs.preview_width, wd) if cs.preview_width > 0 else wd
+    ph = max(1, round(ht * pw / wd))
+    with contextlib.closing(source), node:
+        pub_frame = node.publisher(keys.frame(rig), express=True)
+        pub_preview = node.publisher(keys.preview(rig))
+        node.subscriber(keys.motor_state(rig), on_motor)
+        node.subscriber(keys.workers(rig), on_report)
+        node.liveliness_subscriber(keys.alives(rig, "worker"), on_token, history=True)
+        if len(windows.states) > 1:  # a dynamic window (max_window, clip_fallback): the decisions drive it
+            node.subscriber(keys.decision(rig), on_decision)
+        node.subscriber(keys.fixate(rig), lambda sm: fovea.on_fixate(sm.payload.to_bytes()))
+        retina.warm_up()
+        node.ready()
+        log.info("capture %s: %s (%d x %d, f=%.1f px) at %s Hz on %s", cid, cs.source, wd, ht,
+                 focal, cs.rate_hz or "max", keys.frame(rig))
+        if not source.follows_pan:
+            log.info("the source's images do not move with the slave motor: every frame carries the pan they were "
+                     "taken at, %.1f deg, so the commands hold the motor at one pan instead of winding it to a limit "
+                     "(the loop closes with camera and sim sources)",
+                     math.degrees(source.start_pan_rad))
+        plan_key = None
+        fid = 0
+        next_t = time.monotonic()
+        next_preview = next_t
+        while not stop.is_set() and (frames <= 0 or rates.published < frames):
+            if period:
+                delay = next_t - time.monotonic()
+                if delay > 0:
+                    stop.wait(delay)
+                    if stop.is_set():
+                        break
+                # keep the schedule, but never try to catch up more than one period late
+                next_t = max(next_t + period, time.monotonic() - period)
+            pan_at = PanLookup(history, history_lock, source)
+            try:
+                master, slave = source.read(pan_at)
+            except SourceError as e:
+                if getattr(e, "transient", False):  # a live stream with no new image yet (ros2): try again
+                    node.tick()
+                    continue
+                print(f"vergence capture: {e}", file=sys.stderr)
+                return 2
+            t_read = time.time_ns()
+            t_ns, t_slave = clock.stamp(t_read, source.exposure_ns)
+            p_now, stale = pan_at.frame(t_slave)
+            if stale:
+                health.count("pan_unknown")
+            pair[:] = master, slave
+            w, clip = windows.state
+            changes, ids = members.snapshot()
+            if (changes, w) != plan_key:
+                plan_key = (changes, w)
+                plan = plan_shards(ids, wd - w + 1)
+            fid += 1
+            health.count("frames")
+            if plan and not pub_frame.matching_status.matching:
+                # workers are alive but the router has not yet told this session about their
+                # subscriptions (just after start): a frame now would go nowhere
+                health.count("unrouted")
+            elif plan:
+                try:
+                    frame = make_frame(master, slave, rig=rig, frame=fid, pan_rad=p_now, focal_px=focal,
+                                       params=params, plan=plan, at=fovea.at(), window=w,
+                                       t_capture_ns=t_ns, clip=clip)
+                    frame.master_pan_rad, frame.tilt_rad = master_pan, tilt
+                    frame.skew_ns, frame.t_read_ns, frame.pan_stale = t_slave - t_ns, t_read, stale
+                except retina.BorderError:  # a grown window that no longer fits: back to the base one
+                    windows.reset()
+                    continue
+                if len(windows.states) > len(windows.sizes):  # clip_fallback: the decision's state is ours
+                    if clip:
+                        if not windows.was_clipped:  # once set, it stays until a confident decision: no re-check
+                            windows.clipped(retina.master_clipped(master, slave, frame.y, w, params))
+                    else:
+                        unclipped[fid] = None
+                        while len(unclipped) > 1024:
+                            del unclipped[next(iter(unclipped))]
+                frame.truth_pan_rad = source.truth_pan_rad  # the simulator's ground truth, else None
+                pub_frame.put(frame.to_bytes())
+                rates.published += 1
+                health.count("published")
+            else:
+                health.count("no_workers")
+            now = time.monotonic()
+            if preview_period and now >= next_preview:
+                next_preview = now + preview_period
+                m = cv2.resize(master, (pw, ph), interpolation=cv2.INTER_AREA)
+                sl = cv2.resize(slave, (pw, ph), interpolation=cv2.INTER_AREA)
+                pub_preview.put(Preview(rig=rig, frame=fid, t_capture_ns=t_ns, width=pw, height=ph,
+                                        scale=pw / wd, master=m.tobytes(), slave=sl.tobytes(), pan_rad=p_now,
+                                        truth_pan_rad=source.truth_pan_rad).to_bytes())
+            node.tick(now)
+    return 0
+
+
+def settings_from_args(args: argparse.Namespace):
+    st = load(args.config)
+    cs = st.capture
+    changes = {k: v for k, v in (("source", args.source), ("rate_hz", args.rate), ("focal_px", args.focal))
+               if v is not None}
+    cs = dataclasses.replace(cs, **changes)
+    return dataclasses.replace(st, capture=cs, **({"rig": args.rig} if args.rig else {}))
+
+
+def run(args: argparse.Namespace) -> int:
+    settings = settings_from_args(args)
+    stop = session.Stop()
+    return main(settings, session.config_from_args(args), stop, frames=args.frames, at=args.at)

@@ -1,0 +1,340 @@
+"""`vergence reducer`: gathers the shards of each frame, decides, publishes the profile and the command.
+
+Subscribes to vergence/<rig>/frame and vergence/<rig>/correlation/*; vergence.gather.Gatherer assembles
+each frame by the plan the frame carries, drops (and counts) a frame whose shards miss the deadline
+([reducer] deadline_ms), and reduces a complete one with vergence.decide.decide_scores and the controller.
+Messages that are not plausible ([limits]: capture time, frame id, frame size) are counted and change
+nothing. Messages arrive in zenoh RingChannels (bounded, the oldest go); one thread takes everything that
+arrived, newest frame first, so an overloaded reducer serves the newest frame instead of queueing.
+Every REPORT_S it publishes the membership evidence on vergence/<rig>/workers (JSON: per worker, seconds
+since its latest partial and the frames it missed in a row), from which the capture drops silent workers
+from the plan.
+Publishes messages.Profile on vergence/<rig>/profile and, when the controller moves the slave,
+messages.Command on vergence/<rig>/command; never from an incomplete profile. Counters go out as JSON on
+vergence/<rig>/status/reducer/<id> every second and at exit. The profile is only encoded and published while
+someone subscribes to it. Each decision carries the fovea centre (x, y) it was made for and the fixated
+point's depth (vergence.depth, with the [rig] table's baseline, gimbal and master). Every SUMMARY_S seconds
+with frames, one log line says what the loop is doing (summary()).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import json
+import logging
+import math
+import threading
+import time
+
+import zenoh
+
+from vergence import depth, kernel, keys
+from vergence.config import load
+from vergence.frames import frame_too_large, make_frame
+from vergence.gather import FrameDecision, Gatherer
+from vergence.messages import MAX_HOLD_S, Frame, Hold, MessageError, MotorState, Partial, replace as replace_message
+from vergence.shards import compute_partial
+
+from services.runtime import session
+from services.runtime.node import Node
+
+log = logging.getLogger("vergence.reducer")
+SUMMARY_S = 5.0
+EXPIRE_S = 0.05  # the longest sleep between deadline checks (frames also expire as messages arrive)
+REPORT_S = 0.1  # the membership evidence (vergence/<rig>/workers) goes out this often
+# zenoh RingChannels: the newest messages kept while the forwarders wait for the interpreter (what they drop
+# is not counted, so they are larger than the inbox, whose sheds are)
+FRAME_RING, PARTIAL_RING = 32, 128
+KEEP_FRAMES = 2  # the newest valid frames of one batch that are decoded and gathered
+WAKE = "_wake"  # the key segment of the local sample that wakes the partials' forwarder at exit
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    session.add_options(p)
+    p.add_argument("--deadline-ms", type=float, default=None, help="drop a frame whose shards are not all in "
+                                                                   "by then (default: settings, 50)")
+
+
+def warm_up(settings) -> None:
+    """Decide once on a synthetic textured frame (left-right check included), so the first real frame
+    does not pay for loading the compiled kernels."""
+    import numpy as np
+
+    kernel.warm_up()
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (64, 128), np.uint8)
+    p = dataclasses.replace(settings.network, window=15, vsearch=min(settings.network.vsearch, 2))
+    g = Gatherer(p, settings.control)
+    f = make_frame(img, img, rig="warm", frame=0, pan_rad=0.0, focal_px=100.0, params=p,
+                   plan=[["w", 0, 128 - 15 + 1]])
+    g.add_frame(f)
+    g.add_partial(compute_partial(f, "w"))
+
+
+def summary(seconds: float, frames: int, lost: int, commands: int, last: FrameDecision) -> str:
+    """The reducer's periodic log line: what came through in the last `seconds`, and the latest decision."""
+    d, f = last.decision, last.frame
+    return (f"last {seconds:.0f} s: frames {frames} decided, {lost} dropped, commands {commands}; frame {f.frame}: "
+            f"offset {d.offset_px:+.2f} px, {'confident' if d.confident else 'abstains'} (margin {d.confidence:.2f}, "
+            f"w {f.window}), slave pan at capture {math.degrees(f.pan_rad):+.3f} deg")
+
+
+class Inbox:
+    """Bounded mailboxes between the forwarders and the reducer's thread: the oldest goes when a box is full
+    (counted in `shed`, per kind), so nothing queues when the reducer cannot keep up; the thread takes
+    everything at once (drain)."""
+
+    def __init__(self, frames: int = 8, partials: int = 64):
+        self.cond = threading.Condition()
+        self.boxes = {"frame": collections.deque(maxlen=frames), "partial": collections.deque(maxlen=partials)}
+        self.shed = {"frame": 0, "partial": 0}
+
+    def put(self, kind: str, item) -> None:
+        with self.cond:
+            box = self.boxes[kind]
+            if len(box) == box.maxlen:
+                self.shed[kind] += 1
+            box.append(item)
+            self.cond.notify()
+
+    def count_shed(self, kind: str, n: int) -> None:
+        with self.cond:
+            self.shed[kind] += n
+
+    def drain(self, timeout: float) -> list[tuple[str, object]]:
+        with self.cond:
+            if not any(self.boxes.values()):
+                self.cond.wait(timeout)
+            out = [(k, x) for k, box in self.boxes.items() for x in box]
+            for box in self.boxes.values():
+                box.clear()
+            return out
+
+
+class MotorPresence:
+    """What the actuator says of its motor (messages.MotorState on vergence/<rig>/motor/state): while its latest
+    state, less than FRESH_S old, says the motor is absent (status "absent": it has not answered for
+    [actuator.motor] absent_s), the reducer sends no command (counted under motor_absent) and its status says
+    motor: absent. A state that does not decode is counted under bad.motor_state; no fresh state (an actuator
+    gone, or a forged "absent" not repeated) lets the commands go again by itself."""
+
+    FRESH_S = 1.0
+
+    def __init__(self, health, clock=time.monotonic):
+        self.health, self.clock = health, clock
+        self.lock = threading.Lock()
+        self.status, self.at = "", -1e9
+
+    def on_state(self, payload: bytes) -> None:
+        try:
+            st = MotorState.from_bytes(payload)
+        except MessageError as e:
+            self.health.reject("motor_state", e)
+            return
+        with self.lock:
+            if st.status == "absent" and self.status != "absent":
+                log.warning("the motor is absent (%s): no command is sent until it answers again", st.note or
+                            "no answer")
+            elif st.status != "absent" and self.status == "absent":
+                log.info("the motor answers again (%s): commands resume", st.status)
+            self.status, self.at = st.status, self.clock()
+
+    def absent(self) -> bool:
+        with self.lock:
+            return self.status == "absent" and self.clock() - self.at < self.FRESH_S
+
+    def fields(self) -> dict:
+        return {"motor": "absent" if self.absent() else (self.status or "unknown")}
+
+
+class Lease:
+    """A hold on the reducer's commands (messages.Hold, vergence/<rig>/hold): none goes out until its until_ns.
+    A hold further than MAX_HOLD_S ahead is not believed (counted under bad.hold, nothing held), so a client
+    that stops renewing it (killed, or a forgery) leaves the loop commanding again within MAX_HOLD_S."""
+
+    def __init__(self, health, clock=time.time_ns):
+        self.health, self.clock = health, clock
+        self.lock = threading.Lock()
+        self.until_ns = 0
+
+    def on_hold(self, payload: bytes) -> None:
+        try:
+            h = Hold.from_bytes(payload)
+            if h.until_ns > self.clock() + MAX_HOLD_S * 1e9:
+                raise MessageError(f"hold until {(h.until_ns - self.clock()) / 1e9:.3g} s from now: more than "
+                                   f"{MAX_HOLD_S:g} s")
+        except MessageError as e:
+            self.health.reject("hold", e)
+            return
+        with self.lock:
+            if not self.until_ns > self.clock() and h.until_ns > self.clock():
+                log.info("commands held%s", f" for {h.source}" if h.source else "")
+            self.until_ns = h.until_ns
+
+    def held(self) -> bool:
+        with self.lock:
+            return self.clock() < self.until_ns
+
+
+def newest_first(msgs: list) -> list:
+    """Decoded messages (Frame or Partial) in the order the gatherer should see them: the newest frame id
+    first, its Frame before its partials. Then the newest frame that is complete is reduced and every older
+    message of the batch is late (cheap): under overload the reducer serves the newest frame."""
+    return sorted(msgs, key=lambda m: (-m.frame, not isinstance(m, Frame)))
+
+
+def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | None = None) -> int:
+    rig = settings.rig
+    warm_up(settings)
+    deadline = (deadline_ms if deadline_ms is not None else settings.reducer.deadline_ms) / 1000.0
+    limits = settings.limits
+    gatherer = Gatherer(settings.network, settings.control, deadline, limits, motor=settings.actuator.motor)
+    lock = threading.Lock()  # the gatherer: the loop thread and the status
+    inbox = Inbox()
+
+    presence: list[MotorPresence] = []
+
+    def fields() -> dict:
+        with lock:
+            return dict(gatherer=dict(gatherer.counters), pending=len(gatherer.pending), shed=dict(inbox.shed),
+                        **(presence[0].fields() if presence else {}))
+
+    with Node("reducer", rig, conf, stop, log=log, fields=fields) as node:
+        health, rid = node.health, node.ident
+        presence.append(MotorPresence(health))
+        node.subscriber(keys.motor_state(rig), lambda sm: presence[0].on_state(sm.payload.to_bytes()))
+        pub_decision = node.publisher(keys.decision(rig), express=True)
+        pub_profile = node.publisher(keys.profile(rig), express=True)
+        pub_command = node.publisher(keys.command(rig), express=True)
+        pub_workers = node.publisher(keys.workers(rig), express=True)
+
+        last: list[FrameDecision] = []
+        geo = settings.geometry
+        hold = Lease(health)
+        node.subscriber(keys.hold(rig), lambda sm: hold.on_hold(sm.payload.to_bytes()))
+
+        def publish(results) -> None:
+            if results:
+                last[:] = results[-1:]
+            for r in results:
+                if r.command is not None and hold.held():
+                    health.count("held")  # a client moves the slave itself (`vergence latency`)
+                elif r.command is not None and presence[0].absent():
+                    health.count("motor_absent")  # nothing would execute it: the actuator has lost its motor
+                elif r.command is not None:  # the command first: the actuator waits for it
+                    pub_command.put(r.command.to_bytes())
+                    health.count("commands")
+                where = depth.decision_fields(r.frame, r.decision, r.scores, geo.baseline_m, geo.gimbal,
+                                              geo.master or settings.capture.master)
+                pub_decision.put(replace_message(r.verdict, **where).to_bytes())
+                if pub_profile.matching_status.matching:  # up to 65 KB at 640 px: only encoded when wanted
+                    pub_profile.put(replace_message(r.profile, **where).to_bytes())
+                health.count("profiles")
+
+        def decode(kind: str, item):
+            """A Frame or Partial from (key, bytes), or None (counted by reason)."""
+            key, data = item
+            if kind == "frame":
+                why = frame_too_large(None, len(data), limits)
+                try:
+                    if why is not None:
+                        raise MessageError(why)
+                    frame = Frame.from_bytes(data)
+                    why = frame_too_large(frame, len(data), limits)
+                    if why is not None:
+                        raise MessageError(why)
+                    return frame
+                except MessageError as e:
+                    health.reject("frame", e)
+                    return None
+            try:
+                part = Partial.from_bytes(data)
+                k = keys.parse(key)
+                if k is None or k.ident != part.worker:
+                    raise MessageError(f"partial from worker {part.worker!r} on key {key}")
+                return part
+            except MessageError as e:
+                health.reject("partial", e)
+                return None
+
+        def handle(batch) -> None:
+            # frames newest (last arrived) first, and only until KEEP_FRAMES valid ones: the older ones of a
+            # backlog would be superseded anyway, so they are let go (shed) without the cost of decoding them
+            frames = [x for k, x in batch if k == "frame"]
+            msgs = []
+            for i, item in enumerate(reversed(frames)):
+                if len(msgs) >= KEEP_FRAMES:
+                    inbox.count_shed("frame", len(frames) - i)
+                    break
+                m = decode("frame", item)
+                if m is not None:
+                    msgs.append(m)
+            msgs += [m for m in (decode(k, x) for k, x in batch if k == "partial") if m is not None]
+            with lock:
+                for m in newest_first(msgs):
+                    try:
+                        if isinstance(m, Frame):
+                            publish(gatherer.add_frame(m))
+                        else:
+                            publish(gatherer.add_partial(m))
+                    except Exception as e:  # a message that validates but cannot be decided on: never fatal
+                        health.reject(m.KIND, e)
+
+        # zenoh's receiving threads only push into rings (Rust, no Python, no GIL: they never wait for this
+        # process, so no queue builds up in the network; the oldest go when a ring is full); one forwarder
+        # thread per ring hands the payloads to the inbox; this thread decodes, gathers, decides and
+        # publishes, expires deadlines, and publishes the status and the membership evidence
+        def forward(kind: str, sub) -> None:
+            for smp in node.samples(sub):
+                inbox.put(kind, (str(smp.key_expr), smp.payload.to_bytes()))
+
+        node.thread(forward, "frame", node.ring(keys.frame(rig), FRAME_RING), name="reducer-frame")
+        node.thread(forward, "partial", node.ring(keys.correlations(rig), PARTIAL_RING,
+                                                  wake=keys.correlation(rig, WAKE)), name="reducer-partial")
+        node.ready()
+        log.info("reducer %s on %s and %s, deadline %.0f ms", rid, keys.frame(rig), keys.correlations(rig),
+                 deadline * 1e3)
+
+        def workers_report() -> bytes:
+            with lock:
+                return json.dumps(dict(gatherer.report(), rig=rig, id=rid, t_ns=time.time_ns(),
+                                       complete=gatherer.counters["complete"])).encode()
+
+        next_report = time.monotonic() + REPORT_S
+        next_summary, seen = time.monotonic() + SUMMARY_S, (0, 0, 0)
+        sleep = EXPIRE_S
+        while not stop.is_set():
+            batch = inbox.drain(sleep)
+            if batch:
+                handle(batch)
+            with lock:
+                gatherer.expire()
+                due = gatherer.next_deadline()
+            now = time.monotonic()
+            # wake at the next deadline (every 5 ms before: 200 wake-ups a second for nothing)
+            sleep = EXPIRE_S if due is None else min(EXPIRE_S, max(0.001, due - now))
+            if now >= next_report:
+                pub_workers.put(workers_report())
+                next_report = now + REPORT_S
+            node.tick(now)
+            if now >= next_summary:
+                with lock:
+                    c = gatherer.counters
+                    counts = (c["complete"], c["dropped"] + c["superseded"], health.counters.get("commands", 0))
+                    if counts[0] > seen[0]:
+                        log.info("%s", summary(SUMMARY_S, *(a - b for a, b in zip(counts, seen)), last[0]))
+                seen, next_summary = counts, now + SUMMARY_S
+    return 0
+
+
+def settings_from_args(args: argparse.Namespace):
+    st = load(args.config)
+    return dataclasses.replace(st, **({"rig": args.rig} if args.rig else {}))
+
+
+def run(args: argparse.Namespace) -> int:
+    settings = settings_from_args(args)
+    stop = session.Stop()
+    return main(settings, session.config_from_args(args), stop, args.deadline_ms)

@@ -1,0 +1,259 @@
+"""`vergence up` and `vergence router` on a port that is already taken: a clear error, nothing started; and
+up's supervision of its children (back-off, counts, shutdown) on small real processes. The SIGKILL of each
+child of a real `vergence up` is in tests/scenarios/test_supervise.py."""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import re
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from procs import Procs, wait_for
+
+pytestmark = pytest.mark.slow  # every test here runs real processes
+
+
+def test_busy_port_is_refused_with_a_hint(tmp_path):
+    with Procs(tmp_path) as P:
+        P.router()
+        up = subprocess.run([sys.executable, "-m", "services.ops.cli", "up", "--listen", P.endpoint],
+                            capture_output=True, text=True, timeout=30)
+        assert up.returncode == 2 and f"{P.endpoint} is already in use" in up.stderr
+        assert "started" not in up.stderr  # no child was started
+        router = subprocess.run([sys.executable, "-m", "services.ops.cli", "router", "--listen", P.endpoint],
+                                capture_output=True, text=True, timeout=30)
+        assert router.returncode == 2
+        assert router.stderr.startswith("vergence router: cannot start on")
+        assert "Address already in use" in router.stderr
+        assert "Traceback" not in router.stderr
+
+
+RUNS_ON = "import time; time.sleep(60)"  # a child's code, not a wait of the test: a service that runs on
+
+
+def _child(name: str, code: str):
+    from services.ops import up
+
+    return up.Child(name, [sys.executable, "-c", code])
+
+
+def _supervise_until(children, stop, cond, timeout: float) -> int:
+    """Run up.supervise in this thread until cond() holds (checked from a timer thread) or timeout."""
+    from services.ops import up
+
+    def watch():
+        try:
+            wait_for(lambda: cond() or stop.is_set(), timeout, "the condition")
+        except TimeoutError:
+            pass
+        stop.set()
+
+    threading.Thread(target=watch, daemon=True).start()
+    try:
+        return up.supervise(children, stop, poll_s=0.01)
+    finally:
+        up.stop_all(children)
+
+
+def test_a_dead_child_is_restarted_with_a_doubling_back_off(caplog):
+    from services.runtime import session
+
+    starts = []
+    c = _child("flaky", "import sys; sys.exit(1)")
+    c.start()
+    orig = c.start
+
+    def start():
+        orig()
+        starts.append(time.monotonic())
+
+    c.start = start
+    stop = session.Stop(install=False)
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until([c], stop, lambda: len(starts) >= 4, 20) == 0
+    assert c.restarts == len(starts) >= 4
+    gaps = [b - a for a, b in itertools.pairwise(starts)]
+    for gap, backoff in zip(gaps, (0.4, 0.8, 1.6)):  # each wait after its predecessor's exit, doubled
+        assert backoff <= gap < backoff + 1.0, gaps  # + the child's own run (a python start)
+    lines = [r.getMessage() for r in caplog.records]
+    assert sum("flaky (pid" in m and "exited with 1" in m for m in lines) >= 4
+    assert [m.rsplit("restarting in ", 1)[1] for m in lines if "restarting in" in m][:4] == \
+        ["0.2 s", "0.4 s", "0.8 s", "1.6 s"]
+    assert [m.split("restart ", 1)[1].split(";")[0] for m in lines if m.startswith("restarted flaky")] == \
+        [str(i) for i in range(1, c.restarts + 1)]  # one line per restart, counted
+
+
+def test_the_back_off_caps_and_resets_after_a_stable_run(monkeypatch, caplog):
+    from services.runtime import session
+    from services.ops import up
+
+    monkeypatch.setattr(up, "BACKOFF_S", (0.1, 0.4))  # scaled down from (0.2, 5.0)
+    quick = _child("quick", "import sys; sys.exit(1)")
+    quick.start()
+    stop = session.Stop(install=False)
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        _supervise_until([quick], stop, lambda: quick.restarts >= 5, 20)
+    waits = [r.getMessage().rsplit("restarting in ", 1)[1] for r in caplog.records if "restarting in" in r.getMessage()]
+    assert waits[:5] == ["0.1 s", "0.2 s", "0.4 s", "0.4 s", "0.4 s"]  # doubled, then capped
+
+    monkeypatch.setattr(up, "STABLE_S", 0.3)  # a child that ran 0.3 s has been stable
+    caplog.clear()
+    steady = _child("steady", "import sys, time; time.sleep(0.4); sys.exit(1)")  # time under test: runs 0.4 s
+    steady.start()
+    steady.backoff = 0.4  # as after several quick deaths
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        _supervise_until([steady], session.Stop(install=False), lambda: steady.restarts >= 2, 20)
+    waits = [r.getMessage().rsplit("restarting in ", 1)[1] for r in caplog.records if "restarting in" in r.getMessage()]
+    assert waits[:2] == ["0.1 s", "0.1 s"]  # every exit after a stable run: the first back-off again
+
+
+def test_no_restart_during_shutdown_and_exit_2_at_first_start_stops_up(caplog):
+    from services.runtime import session
+
+    runner = _child("runner", RUNS_ON)
+    runner.start()
+    stop = session.Stop(install=False)
+    stop.set()  # SIGINT already received: supervise returns, stop_all stops the child, nothing restarted
+    assert _supervise_until([runner], stop, lambda: True, 5) == 0
+    assert runner.restarts == 0 and runner.p.returncode is not None
+    bad = _child("bad", "import sys; sys.exit(2)")
+    other = _child("other", RUNS_ON)
+    bad.start()
+    other.start()
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until([bad, other], session.Stop(install=False), lambda: False, 20) == 2
+    assert bad.restarts == 0 and other.p.returncode is not None  # all stopped
+    assert any("bad (pid" in r.getMessage() and "refused its options" in r.getMessage() for r in caplog.records)
+
+
+def test_a_standby_takes_over_at_once_and_leaves_when_up_stops(monkeypatch, caplog):
+    from services.runtime import session
+    from services.ops import up
+
+    monkeypatch.setattr(up, "STANDBY_DELAY_S", 0.2)
+    # a child that, as every service, waits in session.open_session's standby hook before its work
+    c = _child("svc", "from services.runtime import session; session._standby(); " + RUNS_ON)
+    c.standby_due = 0.0
+    c.start()
+    stop = session.Stop(install=False)
+    first = c.p
+    killed = []
+
+    def cond():
+        if c.standby is not None and c.standby.ready and not killed:
+            killed.append(c.standby.p.pid)
+            first.kill()
+        return killed and c.p.pid == killed[0] and c.standby is not None and c.standby.ready
+
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until([c], stop, cond, 30) == 0
+    lines = [r.getMessage() for r in caplog.records]
+    assert any(f"svc (pid {first.pid}) exited with -9" in m and f"its standby (pid {killed[0]}, ready) takes over, "
+               "restart 1; restarts: svc 1" in m for m in lines), lines
+    assert c.restarts == 1 and not any(m.startswith("restarted svc") for m in lines)  # no fresh start
+    assert sum(m.startswith("started a standby of svc") for m in lines) == 2  # and another standby after it
+    assert not any("did not stop" in m for m in lines)  # the waiting standby left when its pipe closed
+    assert c.p.returncode is not None
+
+
+BEATS = "from services.runtime import heartbeat; heartbeat.start(); "  # what cli.main does first
+
+
+def test_a_child_whose_heartbeat_stops_is_killed_and_restarted(caplog):
+    """Liveness by heartbeat (issue #29): a child that SIGSTOPs itself after 0.5 s, one that never beats (past
+    start_grace_s) and one whose loop stops turning (past stall_s) are each SIGKILLed and restarted, the log
+    saying why; the stopped one is gone (not left stopped)."""
+    from vergence.config import SuperviseSettings
+    from services.runtime import session
+    from services.ops import up
+
+    sup = SuperviseSettings(heartbeat_s=0.3, start_grace_s=1.0, stall_s=0.6)
+    stops = up.Child("stops", [sys.executable, "-c", BEATS + "import os, signal, time; time.sleep(0.5); "
+                                                            "os.kill(os.getpid(), signal.SIGSTOP)"], sup=sup)
+    mute = up.Child("mute", [sys.executable, "-c", RUNS_ON], sup=sup)
+    stalls = up.Child("stalls", [sys.executable, "-c", BEATS + "heartbeat.progress(); " + RUNS_ON], sup=sup)
+    children = [stops, mute, stalls]
+    for c in children:
+        c.start()
+    first = {c.name: c.p for c in children}
+    stop = session.Stop(install=False)
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until(children, stop, lambda: all(c.restarts >= 1 for c in children), 30) == 0
+    lines = [r.getMessage() for r in caplog.records]
+    print("\n".join(lines))
+    pid = {n: p.pid for n, p in first.items()}
+    for name, why in (("stops", r"no heartbeat for 0\.[3-6] s \(stopped or hung\)"),
+                      ("mute", r"no first heartbeat within 1\.[0-3] s of its start"),
+                      ("stalls", r"no heartbeat for 0\.[3-6] s \(stopped or hung\)")):
+        assert any(re.fullmatch(rf"{name} \(pid {pid[name]}\): {why}: SIGKILL", m) for m in lines), (name, lines)
+        assert any(re.match(rf"{name} \(pid {pid[name]}\) was killed by up \({why}\) after [\d.]+ s: restarting "
+                            r"in 0\.2 s", m) for m in lines), (name, lines)
+        assert first[name].returncode == -9  # reaped: no stopped process left behind
+    ran = {n: float(re.search(rf"{n} \(pid {pid[n]}\) was killed by up \(.*\) after ([\d.]+) s", "\n".join(lines))[1])
+           for n in pid}
+    # killed heartbeat_s after its last beat, which came up to one BEAT_S (0.1 s) before it stopped (and the log
+    # rounds to 0.1 s)
+    assert 0.5 + 0.3 - 0.15 <= ran["stops"] < 0.5 + 0.3 + 1.0
+    assert 1.0 <= ran["mute"] < 2.0
+    assert 0.6 + 0.3 - 0.15 <= ran["stalls"] < 0.6 + 0.3 + 1.0  # stall_s after its progress, then heartbeat_s
+
+
+def test_a_busy_child_that_beats_is_not_killed(caplog):
+    """A child busy in Python (a compile, a heavy frame: the main thread never sleeps) for 2 s, 6 times its
+    heartbeat_s, keeps beating from its thread: it ends by itself, never killed."""
+    from vergence.config import SuperviseSettings
+    from services.runtime import session
+    from services.ops import up
+
+    sup = SuperviseSettings(heartbeat_s=0.3, start_grace_s=5.0, stall_s=0)
+    busy = up.Child("busy", [sys.executable, "-c", BEATS + "import time\nt = time.monotonic()\n"
+                                                           "while time.monotonic() - t < 2.0: sum(range(10000))"],
+                    sup=sup)
+    busy.start()
+    stop = session.Stop(install=False)
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until([busy], stop, lambda: busy.restarts >= 1, 30) == 0
+    lines = [r.getMessage() for r in caplog.records]
+    assert any(re.match(r"busy \(pid \d+\) exited with 0 after 2\.\d s", m) for m in lines), lines
+    assert not any("heartbeat" in m for m in lines), lines
+
+
+def test_a_hung_standby_is_killed_and_another_started(monkeypatch, caplog):
+    """A standby beats while it waits its turn; one SIGSTOPped is SIGKILLed (it could not take over) and a
+    fresh one follows after the back-off, while the child itself runs on."""
+    import os
+    import signal
+
+    from vergence.config import SuperviseSettings
+    from services.runtime import session
+    from services.ops import up
+
+    monkeypatch.setattr(up, "STANDBY_DELAY_S", 0.2)
+    monkeypatch.setattr(up, "BACKOFF_S", (0.2, 0.5))
+    sup = SuperviseSettings(heartbeat_s=0.3, start_grace_s=5.0, stall_s=0)
+    c = up.Child("svc", [sys.executable, "-c", BEATS + "from services.runtime import session; session._standby(); "
+                         + RUNS_ON], sup=sup)
+    c.standby_due = 0.0
+    c.start()
+    stop = session.Stop(install=False)
+    stopped = []
+
+    def cond():
+        if c.standby is not None and c.standby.ready and not stopped:
+            stopped.append(c.standby.p.pid)
+            os.kill(stopped[0], signal.SIGSTOP)
+        return stopped and c.standby is not None and c.standby.p.pid != stopped[0] and c.standby.ready
+
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until([c], stop, cond, 30) == 0
+    lines = [r.getMessage() for r in caplog.records]
+    assert any(re.fullmatch(rf"standby of svc \(pid {stopped[0]}\): no heartbeat for 0\.[3-6] s \(stopped or hung\): "
+                            "SIGKILL", m) for m in lines), lines
+    assert any(m.startswith(f"standby of svc (pid {stopped[0]}) exited with -9") for m in lines), lines
+    assert sum(m.startswith("started a standby of svc") for m in lines) == 2 and c.restarts == 0

@@ -1,0 +1,88 @@
+"""The capture's time model in its own process (no router): the exposure stamps it gives each frame and what its
+status says of them, and the slave's pan it gives a frame from the motor's history."""
+
+import logging
+import threading
+
+import pytest
+
+from vergence.timing import CameraTiming, PanHistory
+from services.pipeline.capture import ExposureClock, PanLookup
+
+MS = 1_000_000
+
+
+class Source:
+    follows_pan = True
+    start_pan_rad = 0.25
+
+
+def test_the_status_reports_the_latency_and_skew_it_sees_and_the_stamps_it_did_not_believe(caplog):
+    clock = ExposureClock(CameraTiming(0.03, skew_s=0.002), frame_s=1 / 60)
+    with caplog.at_level(logging.WARNING, "vergence.capture"):
+        assert clock.stamp(5000 * MS, (4950 * MS, 4951 * MS)) == (4950 * MS, 4951 * MS)
+        assert clock.stamp(5017 * MS, (4967 * MS, 4968 * MS)) == (4967 * MS, 4968 * MS)
+        for k in range(3):  # from the future: the configured timing instead, one warning for all three
+            assert clock.stamp((5034 + k) * MS, (9000 * MS, 9000 * MS)) == ((5002 + k) * MS, (5004 + k) * MS)
+    assert [r.getMessage().count("not believed") for r in caplog.records] == [1]
+    f = clock.fields()
+    assert f["stamps_rejected"] == {"future": 3, "old": 0, "backwards": 0}
+    assert f["latency_ms"] == 32.0 and f["skew_ms"] == 2.0
+    assert "latency_ms" not in clock.fields()  # each status speaks of its own period
+
+
+def test_a_skew_over_half_a_frame_is_warned_of_once(caplog):
+    clock = ExposureClock(CameraTiming(0.0), frame_s=1 / 30)
+    with caplog.at_level(logging.WARNING, "vergence.capture"):
+        for k in range(3):
+            clock.stamp((1000 + 33 * k) * MS, ((980 + 33 * k) * MS, (1000 + 33 * k) * MS))
+            clock.fields()
+    assert sum("over half a frame" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_frame_gets_the_slave_pan_at_its_exposure_or_none_where_the_history_cannot_tell():
+    h = PanHistory(max_gap_s=0.1)
+    lock = threading.Lock()
+    look = PanLookup(h, lock, Source())
+    assert look.frame(10**9) == (0.25, False)  # no motor state yet: the source's start pan
+    for t, p in ((1.00, 0.10), (1.02, 0.12), (1.04, 0.14)):
+        h.add(t, p)
+    look = PanLookup(h, lock, Source())
+    assert look.frame(1010 * MS) == (pytest.approx(0.11), False)
+    assert look.frame(500 * MS) == (pytest.approx(0.14), True)  # older than the history: stale, its newest
+    src = Source()
+    src.follows_pan = False
+    assert PanLookup(h, lock, src).frame(1010 * MS) == (0.25, False)  # a still pair keeps its own pan
+
+
+def test_a_rendering_source_waits_for_the_motors_report_of_its_instant_but_not_for_ever():
+    h = PanHistory(max_gap_s=0.1)
+    lock = threading.Lock()
+    h.add(1.0, 0.1)
+    look = PanLookup(h, lock, Source())
+    later = threading.Timer(0.005, lambda: h.add(1.02, 0.12))
+    later.start()
+    look.settle(1010 * MS, timeout=1.0)
+    assert h.t[-1] == 1.02
+    look.settle(5000 * MS, timeout=0.02)  # a motor that stopped reporting: returns after the timeout
+    assert look(1010 * MS) == pytest.approx(0.11)
+
+
+def test_a_motor_state_from_our_future_is_forgotten_when_the_true_ones_come():
+    from vergence.messages import MessageError, MotorState
+    from services.pipeline.capture import remember
+
+    def state(t_ns, pan):
+        return MotorState(rig="r", t_ns=t_ns, pan_rad=pan, goal_rad=pan, min_rad=-1, max_rad=1, status="ok")
+
+    h = PanHistory(max_gap_s=0.1)
+    now = 10**18
+    remember(h, state(now - 20 * MS, 0.1), now)
+    with pytest.raises(MessageError, match="not newer"):
+        remember(h, state(now - 30 * MS, 0.2), now)  # older than the newest: refused
+    remember(h, state(now + 1500 * MS, 0.7), now)  # a forgery 1.5 s ahead, within max_skew_s
+    remember(h, state(now, 0.11), now)  # the next true state: the forgery is forgotten
+    assert list(h.pan) == [0.11]
+    remember(h, state(now + 30 * MS, 0.12), now)  # 30 ms ahead: clock skew, kept
+    with pytest.raises(MessageError):
+        remember(h, state(now + 10 * MS, 0.13), now)
