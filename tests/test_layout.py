@@ -260,3 +260,21 @@ def test_the_tests_mirror_the_tree():
                and not (tests / "vergence" / f"test_{m.removeprefix('vergence.')}.py").is_file()]
     assert missing == [], f"library modules with no test file: {missing}"
     assert not [p for p in tests.rglob("__init__.py") if p.parent.name != "emulators"]
+
+
+MAX_FUNCTION_LINES = 80
+
+
+def _long_functions(source: str) -> list[tuple[str, int]]:
+    tree = ast.parse(source)
+    lengths = [(n.name, n.end_lineno - n.lineno + 1) for n in ast.walk(tree)
+               if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))]
+    return [(name, n) for name, n in lengths if n > MAX_FUNCTION_LINES]
+
+
+def test_no_function_in_the_product_is_over_80_lines():
+    """A process's main reads as a few named steps: no function of vergence/ or services/ is longer than 80 lines
+    (a process's state lives in a class with named methods, not in closures of one main)."""
+    long = {f"{m} {name}": n for m in _modules() for name, n in _long_functions(_path(m).read_text())}
+    assert long == {}
+    assert _long_functions("def f():\n" + "    x = 1\n" * 80) == [("f", 81)]  # the check can fail
