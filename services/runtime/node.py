@@ -1,4 +1,5 @@
-"""The life every pipeline service shares (capture, worker, reducer), so that each module is mostly its job:
+"""The life every process shares (the pipeline's, the observers', the clients', the bridge), so that each module
+is mostly its job:
 
     with Node("worker", rig, conf, stop, name=name, log=log, fields=lambda: {"busy_s": busy()}) as node:
         sub = node.ring(keys.frame(rig), 1)     # a RingChannel subscriber, woken at exit
@@ -7,10 +8,11 @@
         node.ready()                            # the liveliness token: the others may count on us from now
         node.run_status()                       # a status every STATUS_S until stop (or the thread ends)
 
-Entering opens the session (session.open_session: a SIGINT/SIGTERM before a router answers exits cleanly)
-and declares the status publisher. The id is session.alive_key's (<name or host>-<pid>); the token is
-vergence/<rig>/alive/<role>/<id>; the status, JSON of health.Health.status() plus fields(), goes out on
-vergence/<rig>/status/<role>/<id> every STATUS_S (run_status, or tick() from the service's own loop).
+Entering opens the session (session.open_session: a SIGINT/SIGTERM before a router answers exits cleanly;
+past `timeout` seconds without one, ConnectionError) and declares the status publisher. The id is
+session.alive_key's (<name or host>-<pid>); the token is vergence/<rig>/alive/<role>/<id>; the status, JSON of
+health.Health.status() plus fields(), goes out on vergence/<rig>/status/<role>/<id> every STATUS_S (run_status,
+or tick() from the service's own loop).
 
 Leaving, however the block ends: the token goes first (nobody plans on us any more), then the stop is set
 and each ring woken by a local empty sample, the threads are joined, the subscribers undeclared (no callback
@@ -38,8 +40,9 @@ JOIN_S = 5.0  # the longest wait for each thread at exit
 
 class Node:
     def __init__(self, role: str, rig: str, conf: zenoh.Config, stop: session.Stop, *, name: str | None = None,
-                 log: logging.Logger | None = None, fields=None, final_fields=None):
+                 log: logging.Logger | None = None, fields=None, final_fields=None, timeout: float | None = None):
         self.role, self.rig, self.conf, self.stop = role, rig, conf, stop
+        self.timeout = timeout  # the longest wait for a router (None: as long as it takes; a client's --wait)
         self.alive = session.alive_key(rig, role, name)
         self.ident = keys.parse(self.alive).ident
         self.log = log or logging.getLogger(f"vergence.{role}")
@@ -56,7 +59,7 @@ class Node:
     # -- the block --------------------------------------------------------------------------------------------
 
     def __enter__(self) -> Node:
-        self.session = session.open_session(self.conf)
+        self.session = session.open_session(self.conf, timeout=self.timeout)
         try:
             self._status = self.session.declare_publisher(keys.status(self.rig, self.role, self.ident))
         except BaseException:
