@@ -67,20 +67,35 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="run at this niceness, so that the loop's processes come first on a busy CPU (default 10)")
 
 
-def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, port: int = 9090,
-         grpc_port: int = 9876, spawn: bool = False, bind: str = "0.0.0.0", timeout: float | None = None,
-         nice: int = 10) -> int:
-    import time
+class _Inbox:
+    """The samples of the zenoh threads, queued for the main thread (which decodes and logs them)."""
 
-    import zenoh
+    def __init__(self, prefix: str, maxlen: int = 20000):
+        self.prefix = prefix  # what the callbacks strip: the cockpit takes the rest of the key
+        self.queue: collections.deque = collections.deque(maxlen=maxlen)
+        self.ready = threading.Event()
+        self.full = 0  # samples pushed out of a full inbox (the viewer fell behind)
 
-    from services.runtime import session
+    def on_sample(self, sample) -> None:
+        import time
 
-    if nice:
-        try:  # before rerun's and zenoh's threads start: they inherit it
-            os.nice(nice)
-        except OSError:
-            pass
+        if len(self.queue) == self.queue.maxlen:
+            self.full += 1
+        self.queue.append((str(sample.key_expr)[len(self.prefix):], sample.payload.to_bytes(), time.time_ns()))
+        self.ready.set()
+
+    def on_alive(self, sample) -> None:
+        import time
+
+        import zenoh
+
+        self.queue.append((str(sample.key_expr)[len(self.prefix):], sample.kind == zenoh.SampleKind.PUT,
+                           time.time_ns()))
+        self.ready.set()
+
+
+def _open_rerun(rig: str, save, web, port, grpc_port, spawn, bind):
+    """The rerun module and the web viewer's URL (None when not serving), or an exit code (2) once said why."""
     try:
         rr = import_rerun()
     except MissingExtra as e:
@@ -94,26 +109,15 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
         return 2
     if url:
         print(f"vergence view: the cockpit of rig {rig} is at {url}", file=sys.stderr, flush=True)
-    cockpit = Cockpit(rr)
-    inbox: collections.deque = collections.deque(maxlen=20000)  # zenoh threads -> this thread
-    ready = threading.Event()
-    prefix = keys.prefix(rig)  # what the callbacks strip: the cockpit takes the rest of the key
+    return rr, url
 
-    full = [0]  # samples pushed out of a full inbox (the viewer fell behind)
 
-    def on_sample(sample) -> None:
-        if len(inbox) == inbox.maxlen:
-            full[0] += 1
-        inbox.append((str(sample.key_expr)[len(prefix):], sample.payload.to_bytes(), time.time_ns()))
-        ready.set()
+def _open_session(rr, conf, timeout: float | None):
+    """The zenoh session, or an exit code once said why (1: no router within timeout, 2: a bad config)."""
+    from services.runtime import session
 
-    def on_alive(sample) -> None:
-        inbox.append((str(sample.key_expr)[len(prefix):], sample.kind == zenoh.SampleKind.PUT, time.time_ns()))
-        ready.set()
-
-    end = time.monotonic() + timeout if timeout is not None else None
     try:
-        s = session.open_session(conf, timeout=timeout)
+        return session.open_session(conf, timeout=timeout)
     except SystemExit:  # Ctrl-C before a router answered
         rr.disconnect()
         raise
@@ -125,39 +129,74 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
         print(f"vergence view: cannot open a zenoh session: {e}", file=sys.stderr)
         rr.disconnect()
         return 2
+
+
+def _drain(cockpit: Cockpit, inbox: _Inbox) -> None:
+    """Log what the inbox holds; no message may end the cockpit."""
+    while inbox.queue:
+        rest, payload, t_ns = inbox.queue.popleft()
+        try:
+            if isinstance(payload, bool):
+                cockpit.alive(rest, payload, t_ns)
+            else:
+                cockpit.feed(rest, payload, t_ns)
+        except Exception as e:  # no message may end the cockpit
+            cockpit.bad["error"] += 1
+            log.warning("message on %s not logged: %s", rest, e)
+
+
+def _loop(cockpit: Cockpit, inbox: _Inbox, watch: SaveWatch, stop, end: float | None) -> None:
+    """Log the samples as they come until stopped, past `end` (monotonic), or --save can no longer be written."""
+    import time
+
+    while not stop.is_set() and (end is None or time.monotonic() < end):
+        inbox.ready.wait(0.1)
+        inbox.ready.clear()
+        if watch.fault():  # --save can no longer be written: say it once, stop (exit 1)
+            print(f"vergence view: {watch.fault()}; stopped", file=sys.stderr)
+            break
+        _drain(cockpit, inbox)
+
+
+def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, port: int = 9090,
+         grpc_port: int = 9876, spawn: bool = False, bind: str = "0.0.0.0", timeout: float | None = None,
+         nice: int = 10) -> int:
+    import time
+
+    if nice:
+        try:  # before rerun's and zenoh's threads start: they inherit it
+            os.nice(nice)
+        except OSError:
+            pass
+    opened = _open_rerun(rig, save, web, port, grpc_port, spawn, bind)
+    if isinstance(opened, int):
+        return opened
+    rr, url = opened
+    cockpit = Cockpit(rr)
+    inbox = _Inbox(keys.prefix(rig))
+    end = time.monotonic() + timeout if timeout is not None else None
+    s = _open_session(rr, conf, timeout)
+    if isinstance(s, int):
+        return s
     with s:
         # frames (30 KB each at 640 px) too, for what decisions may not carry: the fovea's point (older reducers)
         # and the simulator's truth
-        subs = [s.declare_subscriber(k(rig), on_sample) for k in WATCHED]
-        subs.append(s.liveliness().declare_subscriber(keys.alives(rig), on_alive, history=True))
+        subs = [s.declare_subscriber(k(rig), inbox.on_sample) for k in WATCHED]
+        subs.append(s.liveliness().declare_subscriber(keys.alives(rig), inbox.on_alive, history=True))
         log.info("view: rig %s -> %s", rig, ", ".join(x for x in (save and f"file {save}", url, spawn and "viewer")
                                                        if x))
         watch = SaveWatch(save)
         try:
-            while not stop.is_set() and (end is None or time.monotonic() < end):
-                ready.wait(0.1)
-                ready.clear()
-                if watch.fault():  # --save can no longer be written: say it once, stop (exit 1)
-                    print(f"vergence view: {watch.fault()}; stopped", file=sys.stderr)
-                    break
-                while inbox:
-                    rest, payload, t_ns = inbox.popleft()
-                    try:
-                        if isinstance(payload, bool):
-                            cockpit.alive(rest, payload, t_ns)
-                        else:
-                            cockpit.feed(rest, payload, t_ns)
-                    except Exception as e:  # no message may end the cockpit
-                        cockpit.bad["error"] += 1
-                        log.warning("message on %s not logged: %s", rest, e)
+            _loop(cockpit, inbox, watch, stop, end)
         finally:
             for sub in subs:
                 sub.undeclare()
-    while inbox:  # what arrived before the subscriptions closed
-        rest, payload, t_ns = inbox.popleft()
+    while inbox.queue:  # what arrived before the subscriptions closed
+        rest, payload, t_ns = inbox.queue.popleft()
         (cockpit.alive if isinstance(payload, bool) else cockpit.feed)(rest, payload, t_ns)
     rr.disconnect()  # flushes the file
-    log.info("view exits: logged %s, bad %s, dropped %d (behind)", dict(cockpit.counts), dict(cockpit.bad), full[0])
+    log.info("view exits: logged %s, bad %s, dropped %d (behind)", dict(cockpit.counts), dict(cockpit.bad),
+             inbox.full)
     return 1 if watch.fault() else 0
 
 
