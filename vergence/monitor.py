@@ -29,11 +29,31 @@ from . import keys
 from . import messages as m
 from .retina import CLIP_WARN
 
-__all__ = ["Monitor", "Snapshot", "Rate", "render_text", "profile_bars", "fixation_line"]
+__all__ = ["Monitor", "Snapshot", "Rate", "decode", "MESSAGES", "WATCHED", "render_text", "profile_bars",
+           "fixation_line"]
 
-# kind (vergence.keys) -> message class (correlation/<id> handled apart)
-_KEYS: dict[str, type[m.Message]] = {keys.FRAME: m.Frame, keys.PROFILE: m.Profile, keys.COMMAND: m.Command,
-                                     keys.MOTOR_STATE: m.MotorState, keys.PREVIEW: m.Preview}
+# The one place where a message's kind (vergence.messages) differs from its key's kind (vergence.keys): delete it
+# once they are named alike.
+_KEY_KIND = {"partial": keys.CORRELATION, "motor_state": keys.MOTOR_STATE}
+# key kind -> the message class its payload decodes to
+MESSAGES: dict[str, type[m.Message]] = {_KEY_KIND.get(kind, kind): cls for kind, cls in m.KINDS.items()}
+# the key kinds the model keeps (the others are ignored)
+WATCHED = (keys.FRAME, keys.PROFILE, keys.COMMAND, keys.MOTOR_STATE, keys.PREVIEW, keys.CORRELATION, keys.STATUS)
+
+
+def decode(kind: str, payload: bytes) -> m.Message | dict:
+    """The payload of a key of this kind (vergence.keys), decoded: a message (vergence.messages), or for a
+    status the JSON object of a process's counters. The one decoding of the wire for `vergence monitor` and
+    `vergence view`; m.MessageError when it is malformed, KeyError for a kind that carries no payload."""
+    if kind != keys.STATUS:
+        return MESSAGES[kind].from_bytes(payload)
+    try:
+        d = json.loads(bytes(payload).decode("utf-8"))
+        if not isinstance(d, dict) or not isinstance(d.get("counters", {}), dict):
+            raise ValueError("not a JSON object with a counters object")
+    except (ValueError, UnicodeDecodeError) as e:
+        raise m.MessageError(str(e)) from None
+    return d
 
 
 class Rate:
@@ -165,23 +185,22 @@ class Monitor:
         never raised)."""
         t_ns = self.clock() if t_ns is None else t_ns
         k = keys.parse(key)
-        if k is None or (self.rig is not None and k.rig != self.rig) or \
-                k.kind not in (*_KEYS, keys.CORRELATION, keys.STATUS):
+        if k is None or (self.rig is not None and k.rig != self.rig) or k.kind not in WATCHED:
             with self._lock:
                 self.ignored += 1
             return None
         kind = k.kind
-        if kind == keys.STATUS:
-            return self._on_status(k.name, payload, t_ns)
-        cls = m.Partial if kind == keys.CORRELATION else _KEYS[kind]
         try:
-            msg = cls.from_bytes(payload)
+            msg = decode(kind, payload)
         except m.MessageError as e:
             with self._lock:
                 self.malformed[kind] = self.malformed.get(kind, 0) + 1
-                self.last_error[kind] = str(e)
+                self.last_error[kind] = f"status/{k.name}: {e}" if kind == keys.STATUS else str(e)
             return None
-        self.add(msg, t_ns)
+        if kind == keys.STATUS:
+            self._on_status(k.name, msg, t_ns)
+        else:
+            self.add(msg, t_ns)
         return msg
 
     def add(self, msg: m.Message, t_ns: int | None = None) -> None:
@@ -203,25 +222,15 @@ class Monitor:
         for fn in self.listeners:
             fn(msg.KIND, msg)
 
-    def _on_status(self, name: str, payload: bytes, t_ns: int) -> dict | None:
+    def _on_status(self, name: str, d: dict, t_ns: int) -> None:
         """vergence/<rig>/status/<role>/<id>: a process's JSON counters; the latest one per process is
         kept (the reducer's give the dropped frames), an `"exiting": true` one removes the process."""
-        try:
-            d = json.loads(bytes(payload).decode("utf-8"))
-            if not isinstance(d, dict) or not isinstance(d.get("counters", {}), dict):
-                raise ValueError("not a JSON object with a counters object")
-        except (ValueError, UnicodeDecodeError) as e:
-            with self._lock:
-                self.malformed["status"] = self.malformed.get("status", 0) + 1
-                self.last_error["status"] = f"status/{name}: {e}"
-            return None
         with self._lock:
             if d.get("exiting"):
                 self._status.pop(name, None)
             else:
                 self._status[name] = d
             self._trim(t_ns)
-        return d
 
     def liveliness(self, key: str, present: bool) -> None:
         """A liveliness token vergence/<rig>/alive/<role>/<id> appeared (present) or went away."""

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import collections
-import json
 import logging
 import math
 
@@ -12,10 +11,13 @@ import numpy as np
 
 from vergence import keys
 from vergence.messages import Command, Frame, MessageError, MotorState, Preview, Profile, Verdict
+from vergence.monitor import decode
 
 log = logging.getLogger("vergence.view")
 # what the cockpit subscribes to under vergence/<rig>/
 WATCHED = (keys.preview, keys.frame, keys.decision, keys.profile, keys.command, keys.motor_state, keys.statuses)
+# the key kinds the cockpit logs (vergence.monitor.decode decodes them)
+SHOWN = (keys.PREVIEW, keys.FRAME, keys.DECISION, keys.PROFILE, keys.COMMAND, keys.MOTOR_STATE, keys.STATUS)
 ENTITIES = {
     "rig/master": "the master's preview image",
     "rig/master/fovea": "the fovea, a box on the master image",
@@ -89,23 +91,14 @@ class Cockpit:
         """Log one message whose key is vergence/<rig>/<rest>; returns its kind (vergence.keys), or None when
         skipped."""
         kind = keys.kind_of(rest)
+        if kind not in SHOWN:
+            return None
         try:
-            if kind == keys.PREVIEW:
-                self._preview(Preview.from_bytes(payload))
-            elif kind == keys.FRAME:
-                self._frame(Frame.from_bytes(payload))
-            elif kind == keys.DECISION:
-                self._decision(Verdict.from_bytes(payload))
-            elif kind == keys.PROFILE:
-                self._profile(Profile.from_bytes(payload))
-            elif kind == keys.COMMAND:
-                self._command(Command.from_bytes(payload))
-            elif kind == keys.MOTOR_STATE:
-                self._motor(MotorState.from_bytes(payload))
-            elif kind == keys.STATUS:
-                self._status(rest, payload, t_ns)
+            msg = decode(kind, payload)  # the decoding `vergence monitor`'s model uses too
+            if kind == keys.STATUS:
+                self._status(rest, payload, t_ns)  # the text as it came
             else:
-                return None
+                self._loggers()[kind](msg)
         except (MessageError, ValueError, TypeError) as e:
             self.bad[kind] += 1
             if sum(self.bad.values()) <= 10:
@@ -113,6 +106,11 @@ class Cockpit:
             return None
         self.counts[kind] += 1
         return kind
+
+    def _loggers(self) -> dict:
+        """Key kind (vergence.keys) -> what logs its decoded message; the kinds the cockpit shows."""
+        return {keys.PREVIEW: self._preview, keys.FRAME: self._frame, keys.DECISION: self._decision,
+                keys.PROFILE: self._profile, keys.COMMAND: self._command, keys.MOTOR_STATE: self._motor}
 
     def alive(self, rest: str, present: bool, t_ns: int | None = None) -> None:
         """A liveliness token vergence/<rig>/<rest> (alive/<role>/<id>) appeared or went away."""
@@ -211,7 +209,6 @@ class Cockpit:
                                                       level="ERROR" if fault else "INFO"))
 
     def _status(self, rest: str, payload: bytes, t_ns: int | None) -> None:
-        text = bytes(payload).decode("utf-8")
-        json.loads(text)  # a status is a JSON object: anything else is malformed
+        text = bytes(payload).decode("utf-8")  # decode() found it a JSON object
         self._time(None, t_ns)
         self._log(rest, self.rr.TextLog(text))
