@@ -3,8 +3,8 @@
 Subscribes (callbacks only queue the samples; the main thread decodes and logs them) to vergence/<rig>/
 preview, frame, decision, profile, command, motor/state, status/** and the liveliness tokens alive/**, and
 logs them to Rerun on two timelines, `frame` (the frame id) and `capture` (its capture time). It publishes
-nothing and declares no token; its subscription to the profile key is what makes the reducer publish
-profiles (as for `vergence monitor`).
+only its status (services.runtime.node.Node: vergence/<rig>/status/view/<id>) and declares no token; its
+subscription to the profile key is what makes the reducer publish profiles (as for `vergence monitor`).
 
 Entity paths (ENTITIES below): the preview images rig/master and rig/slave, the fovea as a box on the master
 image (rig/master/fovea) and its match as a box on the slave image (rig/slave/match), layer 4's winning row
@@ -38,6 +38,7 @@ from services.observe.playback import log_sim_step, parse_target, view_recording
 from services.observe.rerun_sdk import APP_ID, INSTALL_HINT, MissingExtra, analytics_off, blueprint, import_rerun
 from services.observe.sinks import SaveWatch, host_address, start
 from services.observe.web import ASSETS, csp, serve_offline, viewer_assets
+from services.runtime.node import Node
 
 # the names the other modules and the tests take from here (`from services.observe import view`)
 __all__ = ["APP_ID", "ASSETS", "ENTITIES", "INSTALL_HINT", "WATCHED", "Cockpit", "MissingExtra", "SaveWatch",
@@ -112,12 +113,12 @@ def _open_rerun(rig: str, save, web, port, grpc_port, spawn, bind):
     return rr, url
 
 
-def _open_session(rr, conf, timeout: float | None):
-    """The zenoh session, or an exit code once said why (1: no router within timeout, 2: a bad config)."""
-    from services.runtime import session
-
+def _open_node(rr, rig: str, conf, stop, timeout: float | None):
+    """The view's node (services.runtime.node: the session, and the status it publishes), entered; or an exit
+    code once said why (1: no router within timeout, 2: a bad config)."""
+    node = Node("view", rig, conf, stop, log=log, timeout=timeout)
     try:
-        return session.open_session(conf, timeout=timeout)
+        return node.__enter__()
     except SystemExit:  # Ctrl-C before a router answered
         rr.disconnect()
         raise
@@ -145,7 +146,7 @@ def _drain(cockpit: Cockpit, inbox: _Inbox) -> None:
             log.warning("message on %s not logged: %s", rest, e)
 
 
-def _loop(cockpit: Cockpit, inbox: _Inbox, watch: SaveWatch, stop, end: float | None) -> None:
+def _loop(node: Node, cockpit: Cockpit, inbox: _Inbox, watch: SaveWatch, stop, end: float | None) -> None:
     """Log the samples as they come until stopped, past `end` (monotonic), or --save can no longer be written."""
     import time
 
@@ -156,6 +157,7 @@ def _loop(cockpit: Cockpit, inbox: _Inbox, watch: SaveWatch, stop, end: float | 
             print(f"vergence view: {watch.fault()}; stopped", file=sys.stderr)
             break
         _drain(cockpit, inbox)
+        node.tick()
 
 
 def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, port: int = 9090,
@@ -175,22 +177,21 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
     cockpit = Cockpit(rr)
     inbox = _Inbox(keys.prefix(rig))
     end = time.monotonic() + timeout if timeout is not None else None
-    s = _open_session(rr, conf, timeout)
-    if isinstance(s, int):
-        return s
-    with s:
+    node = _open_node(rr, rig, conf, stop, timeout)
+    if isinstance(node, int):
+        return node
+    try:
         # frames (30 KB each at 640 px) too, for what decisions may not carry: the fovea's point (older reducers)
-        # and the simulator's truth
-        subs = [s.declare_subscriber(k(rig), inbox.on_sample) for k in WATCHED]
-        subs.append(s.liveliness().declare_subscriber(keys.alives(rig), inbox.on_alive, history=True))
+        # and the simulator's truth; the node undeclares the subscriptions at exit, then closes the session
+        for k in WATCHED:
+            node.subscriber(k(rig), inbox.on_sample)
+        node.liveliness_subscriber(keys.alives(rig), inbox.on_alive, history=True)
         log.info("view: rig %s -> %s", rig, ", ".join(x for x in (save and f"file {save}", url, spawn and "viewer")
                                                        if x))
         watch = SaveWatch(save)
-        try:
-            _loop(cockpit, inbox, watch, stop, end)
-        finally:
-            for sub in subs:
-                sub.undeclare()
+        _loop(node, cockpit, inbox, watch, stop, end)
+    finally:
+        node.__exit__(None, None, None)
     while inbox.queue:  # what arrived before the subscriptions closed
         rest, payload, t_ns = inbox.queue.popleft()
         (cockpit.alive if isinstance(payload, bool) else cockpit.feed)(rest, payload, t_ns)
