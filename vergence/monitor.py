@@ -29,11 +29,31 @@ from . import keys
 from . import messages as m
 from .retina import CLIP_WARN
 
-__all__ = ["Monitor", "Snapshot", "Rate", "render_text", "profile_bars", "fixation_line"]
+__all__ = ["Monitor", "Snapshot", "Rate", "decode", "MESSAGES", "WATCHED", "render_text", "profile_bars",
+           "fixation_line"]
 
-# kind (vergence.keys) -> message class (correlation/<id> handled apart)
-_KEYS: dict[str, type[m.Message]] = {keys.FRAME: m.Frame, keys.PROFILE: m.Profile, keys.COMMAND: m.Command,
-                                     keys.MOTOR_STATE: m.MotorState, keys.PREVIEW: m.Preview}
+# The one place where a message's kind (vergence.messages) differs from its key's kind (vergence.keys): delete it
+# once they are named alike.
+_KEY_KIND = {"partial": keys.CORRELATION, "motor_state": keys.MOTOR_STATE}
+# key kind -> the message class its payload decodes to
+MESSAGES: dict[str, type[m.Message]] = {_KEY_KIND.get(kind, kind): cls for kind, cls in m.KINDS.items()}
+# the key kinds the model keeps (the others are ignored)
+WATCHED = (keys.FRAME, keys.PROFILE, keys.COMMAND, keys.MOTOR_STATE, keys.PREVIEW, keys.CORRELATION, keys.STATUS)
+
+
+def decode(kind: str, payload: bytes) -> m.Message | dict:
+    """The payload of a key of this kind (vergence.keys), decoded: a message (vergence.messages), or for a
+    status the JSON object of a process's counters. The one decoding of the wire for `vergence monitor` and
+    `vergence view`; m.MessageError when it is malformed, KeyError for a kind that carries no payload."""
+    if kind != keys.STATUS:
+        return MESSAGES[kind].from_bytes(payload)
+    try:
+        d = json.loads(bytes(payload).decode("utf-8"))
+        if not isinstance(d, dict) or not isinstance(d.get("counters", {}), dict):
+            raise ValueError("not a JSON object with a counters object")
+    except (ValueError, UnicodeDecodeError) as e:
+        raise m.MessageError(str(e)) from None
+    return d
 
 
 class Rate:
@@ -165,23 +185,22 @@ class Monitor:
         never raised)."""
         t_ns = self.clock() if t_ns is None else t_ns
         k = keys.parse(key)
-        if k is None or (self.rig is not None and k.rig != self.rig) or \
-                k.kind not in (*_KEYS, keys.CORRELATION, keys.STATUS):
+        if k is None or (self.rig is not None and k.rig != self.rig) or k.kind not in WATCHED:
             with self._lock:
                 self.ignored += 1
             return None
         kind = k.kind
-        if kind == keys.STATUS:
-            return self._on_status(k.name, payload, t_ns)
-        cls = m.Partial if kind == keys.CORRELATION else _KEYS[kind]
         try:
-            msg = cls.from_bytes(payload)
+            msg = decode(kind, payload)
         except m.MessageError as e:
             with self._lock:
                 self.malformed[kind] = self.malformed.get(kind, 0) + 1
-                self.last_error[kind] = str(e)
+                self.last_error[kind] = f"status/{k.name}: {e}" if kind == keys.STATUS else str(e)
             return None
-        self.add(msg, t_ns)
+        if kind == keys.STATUS:
+            self._on_status(k.name, msg, t_ns)
+        else:
+            self.add(msg, t_ns)
         return msg
 
     def add(self, msg: m.Message, t_ns: int | None = None) -> None:
@@ -203,25 +222,15 @@ class Monitor:
         for fn in self.listeners:
             fn(msg.KIND, msg)
 
-    def _on_status(self, name: str, payload: bytes, t_ns: int) -> dict | None:
+    def _on_status(self, name: str, d: dict, t_ns: int) -> None:
         """vergence/<rig>/status/<role>/<id>: a process's JSON counters; the latest one per process is
         kept (the reducer's give the dropped frames), an `"exiting": true` one removes the process."""
-        try:
-            d = json.loads(bytes(payload).decode("utf-8"))
-            if not isinstance(d, dict) or not isinstance(d.get("counters", {}), dict):
-                raise ValueError("not a JSON object with a counters object")
-        except (ValueError, UnicodeDecodeError) as e:
-            with self._lock:
-                self.malformed["status"] = self.malformed.get("status", 0) + 1
-                self.last_error["status"] = f"status/{name}: {e}"
-            return None
         with self._lock:
             if d.get("exiting"):
                 self._status.pop(name, None)
             else:
                 self._status[name] = d
             self._trim(t_ns)
-        return d
 
     def liveliness(self, key: str, present: bool) -> None:
         """A liveliness token vergence/<rig>/alive/<role>/<id> appeared (present) or went away."""
@@ -408,14 +417,31 @@ def fixation_line(s: Snapshot, pm: str = "±") -> str:
     return f"{where}   converged, depth {p.depth_m:.3f} m {pm} {p.depth_sigma_m:.3f}"
 
 
+def _paint(color: bool):
+    """c(code, text): the text in an ANSI colour when color, else as it is."""
+    def c(code: str, text: str) -> str:
+        return f"{code}{text}{RESET}" if color else text
+
+    return c
+
+
 def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool = True) -> str:
     """The monitor's screen as text lines (ANSI colours when color). The profile bars mark the winner
     (red, ▲) and the centre neuron (cyan, ┴); everything else is a labelled figure."""
     width = max(40, width)
+    out = _head_lines(s, color)
+    out.append("")
+    out += _profile_lines(s, width, bar_rows, color)
+    out.append("")
+    out += _motor_lines(s, width, color)
+    out.append("")
+    out += _process_lines(s, width, color)
+    return "\n".join(part for line in out for part in _fit(line, width))
 
-    def c(code: str, text: str) -> str:
-        return f"{code}{text}{RESET}" if color else text
 
+def _head_lines(s: Snapshot, color: bool) -> list[str]:
+    """The title, the rates, the counts with the drops and the latencies."""
+    c = _paint(color)
     out = []
     when = time.strftime("%H:%M:%S", time.localtime(s.now_ns / 1e9))
     bad = sum(s.malformed.values())
@@ -431,47 +457,63 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
     out.append(f"latency capture→command p50 {_ms(s.latency_p50_ms)}  p99 {_ms(s.latency_p99_ms)}  "
                f"(n {s.latency_n}, last {s.window_s:g} s)   capture→profile p50 {_ms(s.reduce_p50_ms)}  "
                f"p99 {_ms(s.reduce_p99_ms)}")
-    out.append("")
+    return out
+
+
+def _profile_lines(s: Snapshot, width: int, bar_rows: int, color: bool) -> list[str]:
+    """The latest profile: its decision, the fixation and the winner's row as bars."""
+    c = _paint(color)
     p = s.profile
     if p is None:
-        out.append(c(DIM, "no profile yet (waiting on %s)" % keys.profile(s.rig or "*")))
-    else:
-        side = {-1: "◀ left", 0: "● centre", 1: "right ▶"}.get(p.direction, "?")
-        conf = c(GREEN, "moves") if p.confident else c(YELLOW, "abstains")
-        age = (s.now_ns - p.t_capture_ns) / 1e9 if p.t_capture_ns else math.nan
-        out.append(f"profile frame {p.frame}  (age {age:.1f} s, w {p.window}, K {p.width - p.window + 1}, "
-                   f"rows {p.rows}, v {p.v_shift:+d}, workers {len(p.workers)})")
-        out.append(f"decision k*={p.k} (sub-px {p.k_sub:.2f})  k_c={p.k_centre}  offset {p.offset_px:+.2f} px  "
-                   f"{side} {p.magnitude} px   confidence {p.confidence:.3f} {conf}   texture {p.texture:.1f}")
-        out.append(fixation_line(s))
-        try:
-            y = _winning_row(p)
-            lines, wc, cc = profile_bars(p, width - 8, bar_rows)
-        except (m.MessageError, ValueError) as e:
-            out.append(c(RED, f"profile not drawable: {e}"))
-        else:
-            ytop, ybot = f"{y.max():.0f}", f"{y.min():.0f}"
-            for i, line in enumerate(lines):
-                if line[cc] == " ":  # the centre column stays visible where its bar is low
-                    line = line[:cc] + "┊" + line[cc + 1:]
-                label = ytop if i == 0 else ybot if i == len(lines) - 1 else ""
-                if color:
-                    line = "".join(
-                        (RED + ch + RESET) if j == wc else (CYAN + ch + RESET) if j == cc else ch
-                        for j, ch in enumerate(line))
-                out.append(f"{label:>7} {line}")
-            marks = [" "] * len(lines[0])
-            marks[cc] = "┴"
-            marks[wc] = "▲"
-            mark = "".join(marks)
-            if color:
-                mark = mark.replace("▲", RED + "▲" + RESET).replace("┴", CYAN + "┴" + RESET)
-            out.append(" " * 8 + mark)
-            kk = len(y)
-            axis = f"k=0{' ' * max(1, len(lines[0]) - len(str(kk - 1)) - 5)}k={kk - 1}"
-            out.append(" " * 8 + axis)
-            out.append(" " * 8 + f"▲ winner k*={p.k}   ┴ centre k_c={p.k_centre}")
-    out.append("")
+        return [c(DIM, "no profile yet (waiting on %s)" % keys.profile(s.rig or "*"))]
+    side = {-1: "◀ left", 0: "● centre", 1: "right ▶"}.get(p.direction, "?")
+    conf = c(GREEN, "moves") if p.confident else c(YELLOW, "abstains")
+    age = (s.now_ns - p.t_capture_ns) / 1e9 if p.t_capture_ns else math.nan
+    out = [f"profile frame {p.frame}  (age {age:.1f} s, w {p.window}, K {p.width - p.window + 1}, "
+           f"rows {p.rows}, v {p.v_shift:+d}, workers {len(p.workers)})",
+           f"decision k*={p.k} (sub-px {p.k_sub:.2f})  k_c={p.k_centre}  offset {p.offset_px:+.2f} px  "
+           f"{side} {p.magnitude} px   confidence {p.confidence:.3f} {conf}   texture {p.texture:.1f}",
+           fixation_line(s)]
+    try:
+        y = _winning_row(p)
+        lines, wc, cc = profile_bars(p, width - 8, bar_rows)
+    except (m.MessageError, ValueError) as e:
+        out.append(c(RED, f"profile not drawable: {e}"))
+        return out
+    return out + _bar_lines(p, y, lines, wc, cc, color)
+
+
+def _bar_lines(p: m.Profile, y: np.ndarray, lines: list[str], wc: int, cc: int, color: bool) -> list[str]:
+    """The bars labelled with the row's maximum and minimum, the winner's and the centre's marks, the k axis."""
+    out = []
+    ytop, ybot = f"{y.max():.0f}", f"{y.min():.0f}"
+    for i, line in enumerate(lines):
+        if line[cc] == " ":  # the centre column stays visible where its bar is low
+            line = line[:cc] + "┊" + line[cc + 1:]
+        label = ytop if i == 0 else ybot if i == len(lines) - 1 else ""
+        if color:
+            line = "".join(
+                (RED + ch + RESET) if j == wc else (CYAN + ch + RESET) if j == cc else ch
+                for j, ch in enumerate(line))
+        out.append(f"{label:>7} {line}")
+    marks = [" "] * len(lines[0])
+    marks[cc] = "┴"
+    marks[wc] = "▲"
+    mark = "".join(marks)
+    if color:
+        mark = mark.replace("▲", RED + "▲" + RESET).replace("┴", CYAN + "┴" + RESET)
+    out.append(" " * 8 + mark)
+    kk = len(y)
+    axis = f"k=0{' ' * max(1, len(lines[0]) - len(str(kk - 1)) - 5)}k={kk - 1}"
+    out.append(" " * 8 + axis)
+    out.append(" " * 8 + f"▲ winner k*={p.k}   ┴ centre k_c={p.k_centre}")
+    return out
+
+
+def _motor_lines(s: Snapshot, width: int, color: bool) -> list[str]:
+    """The pans (measured, goal, target, limits), the motor's status and faults, the truth, the pan history."""
+    c = _paint(color)
+    out = []
     lim = ""
     if math.isfinite(s.min_rad) and math.isfinite(s.max_rad):
         lim = f"   limits {math.degrees(s.min_rad):+.1f}°..{math.degrees(s.max_rad):+.1f}°"
@@ -490,7 +532,13 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
         lo, hi = min(pans), max(pans)
         out.append(f"pan history ({len(pans)} states, {math.degrees(lo):+.2f}°..{math.degrees(hi):+.2f}°) "
                    + sparkline(pans, width - 50))
-    out.append("")
+    return out
+
+
+def _process_lines(s: Snapshot, width: int, color: bool) -> list[str]:
+    """The workers and their shards, the other live processes, their statuses' figures, the malformed kinds."""
+    c = _paint(color)
+    out = []
     if s.workers:
         ws = "   ".join(f"{w} k {r[0]}..{r[1] - 1}" if r else f"{w} (no shard yet)"
                        for w, r in s.workers.items())
@@ -500,24 +548,31 @@ def render_text(s: Snapshot, width: int = 100, bar_rows: int = 10, color: bool =
     others = [f"{role} {', '.join(ids)}" for role, ids in s.alive.items() if role != "worker"]
     out.append("alive  " + ("   ".join(others) if others else "(no other process seen)"))
     for name, d in s.status.items():
-        if name.startswith("reducer/") and isinstance(d.get("gatherer"), dict):
-            g = d["gatherer"]
-            out.append(f"{name}: " + "  ".join(f"{k} {g[k]}" for k in ("frames", "complete", "dropped",
-                                                                       "superseded", "late", "unexpected")
-                                               if k in g) + f"  pending {d.get('pending', '?')}")
-        clipped = d.get("clipped") if name.startswith("capture/") and isinstance(d.get("clipped"), dict) else {}
-        # a status is a claim: only the two cameras' shares, numbers in 0..1 (a huge JSON integer would not even
-        # format as a float)
-        shares = {cam: float(v) for cam, v in clipped.items() if cam in ("master", "slave") and _plausible(v, 0, 1)}
-        if shares:
-            line = f"{name}: clipped " + ", ".join(f"{cam} {100 * v:.0f} %" for cam, v in sorted(shares.items()))
-            if any(v >= CLIP_WARN for v in shares.values()):
-                out.append(c(YELLOW, line + " of the fovea's rows: set both cameras' exposure alike"))
-            else:
-                out.append(line)
+        out += _status_lines(name, d, c)
     for kind, n in sorted(s.malformed.items()):
         out.append(c(RED, f"malformed {kind}: {n} (last: {s.last_error.get(kind, '')[:width - 30]})"))
-    return "\n".join(part for line in out for part in _fit(line, width))
+    return out
+
+
+def _status_lines(name: str, d: dict, c) -> list[str]:
+    """A process's status: a reducer's gatherer counters, a capture's clipped shares (warned when high)."""
+    out = []
+    if name.startswith("reducer/") and isinstance(d.get("gatherer"), dict):
+        g = d["gatherer"]
+        out.append(f"{name}: " + "  ".join(f"{k} {g[k]}" for k in ("frames", "complete", "dropped",
+                                                                   "superseded", "late", "unexpected")
+                                           if k in g) + f"  pending {d.get('pending', '?')}")
+    clipped = d.get("clipped") if name.startswith("capture/") and isinstance(d.get("clipped"), dict) else {}
+    # a status is a claim: only the two cameras' shares, numbers in 0..1 (a huge JSON integer would not even
+    # format as a float)
+    shares = {cam: float(v) for cam, v in clipped.items() if cam in ("master", "slave") and _plausible(v, 0, 1)}
+    if shares:
+        line = f"{name}: clipped " + ", ".join(f"{cam} {100 * v:.0f} %" for cam, v in sorted(shares.items()))
+        if any(v >= CLIP_WARN for v in shares.values()):
+            out.append(c(YELLOW, line + " of the fovea's rows: set both cameras' exposure alike"))
+        else:
+            out.append(line)
+    return out
 
 
 def _plausible(v, lo: float, hi: float, kinds: type | tuple = (int, float)) -> bool:

@@ -3,9 +3,9 @@
 Subscribes (zenoh callbacks only: the network threads never wait on the screen) to vergence/<rig>/frame,
 profile, command, motor/state and status/**, and to the liveliness tokens vergence/<rig>/alive/**; feeds
 them to vergence.monitor.Monitor, which counts and skips malformed messages. The main thread redraws the
-screen (ANSI, vergence.monitor.render_text) every --refresh seconds. It publishes nothing and declares no
-token, but its subscription to the profile key is what makes the reducer publish profiles (it encodes them
-only while someone subscribes).
+screen (ANSI, vergence.monitor.render_text) every --refresh seconds. It publishes only its status (through
+services.runtime.node.Node: vergence/<rig>/status/monitor/<id>) and declares no token, but its subscription
+to the profile key is what makes the reducer publish profiles (it encodes them only while someone subscribes).
 
     --once         wait for a profile (at most --timeout s, default 10), print one screen, exit
                    (exit code 1 when no profile came)
@@ -32,6 +32,7 @@ from vergence.monitor import Monitor, render_text
 from vergence.plots import monitor_png
 
 from services.runtime import session
+from services.runtime.node import Node
 
 log = logging.getLogger("vergence.monitor")
 # the keys the monitor watches under vergence/<rig>/: not the partials (their shards come from the frames'
@@ -67,13 +68,13 @@ def configure(p: argparse.ArgumentParser) -> None:
 class Watch:
     """The monitor's subscriptions on an open session, feeding `model` from zenoh's callback threads."""
 
-    def __init__(self, s: zenoh.Session, rig: str, model: Monitor):
+    def __init__(self, node: Node, rig: str, model: Monitor):
         self.model = model
         self.profiles = threading.Condition()
         self.n_profiles = 0
-        self.subs = [s.declare_subscriber(k(rig), self._on_sample) for k in WATCHED]
-        self.subs.append(s.liveliness().declare_subscriber(keys.alives(rig), self._on_alive,
-                                                           history=True))
+        # the node undeclares them at exit
+        self.subs = [node.subscriber(k(rig), self._on_sample) for k in WATCHED]
+        self.subs.append(node.liveliness_subscriber(keys.alives(rig), self._on_alive, history=True))
 
     def _on_sample(self, sample) -> None:
         try:
@@ -100,14 +101,6 @@ class Watch:
                 self.profiles.wait(min(left, 0.1))
         return True
 
-    def close(self) -> None:
-        for sub in self.subs:
-            try:
-                sub.undeclare()
-            except Exception:
-                pass
-
-
 def _size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
@@ -120,46 +113,60 @@ def _size(text: str) -> tuple[int, int]:
 
 def main(rig: str, conf: zenoh.Config, stop: session.Stop, args: argparse.Namespace, out=sys.stdout) -> int:
     model = Monitor(rig, window_s=args.window)
-    tty = out.isatty()
-    color = args.color == "always" or (args.color == "auto" and tty)
     once = args.png or args.once
+    node = Node("monitor", rig, conf, stop, log=log,
+                timeout=(args.timeout if args.timeout is not None else 10.0) if once else args.timeout)
     try:
-        s = session.open_session(conf, timeout=(args.timeout if args.timeout is not None else 10.0) if once
-                                 else args.timeout)
+        node.__enter__()
     except ConnectionError as e:
         print(f"vergence monitor: {e}", file=sys.stderr)
         return 1
-    with s:
-        watch = Watch(s, rig, model)
-        try:
-            if args.png:
-                return _png(watch, model, args, stop)
-            if args.once:
-                wait = args.timeout if args.timeout is not None else 10.0
-                t0 = time.monotonic()
-                got = watch.wait_profile(0, t0 + wait, stop)
-                # a second of rates and latencies beyond the first profile (bounded by the timeout)
-                stop.wait(max(0.0, min(1.0, t0 + wait - time.monotonic())))
-                cols = _columns(out) if tty else 100
-                print(render_text(model.snapshot(), width=cols, color=color), file=out, flush=True)
-                if not got:
-                    print(f"vergence monitor: no profile on {keys.profile(rig)} within {wait:g} s "
-                          f"(is a reducer running with workers and a capture on this router?)", file=sys.stderr)
-                return 0 if got else 1
-            end = time.monotonic() + args.timeout if args.timeout is not None else None
-            while not stop.wait(args.refresh):
-                cols = _columns(out) if tty else 100
-                text = render_text(model.snapshot(), width=cols, color=color)
-                if color:
-                    out.write("\x1b[H\x1b[2J" + text + "\n")
-                else:
-                    out.write(text + "\n\n")
-                out.flush()
-                if end is not None and time.monotonic() >= end:
-                    break
-            return 0
-        finally:
-            watch.close()
+    try:
+        watch = Watch(node, rig, model)
+        if args.png:
+            return _png(watch, model, args, stop)
+        if args.once:
+            return _once(watch, model, args, stop, out)
+        return _live(node, model, args, stop, out)
+    finally:
+        node.__exit__(None, None, None)
+
+
+def _color(args: argparse.Namespace, out) -> bool:
+    return args.color == "always" or (args.color == "auto" and out.isatty())
+
+
+def _once(watch: Watch, model: Monitor, args: argparse.Namespace, stop: session.Stop, out) -> int:
+    """--once: wait for a profile, print one screen; 1 when no profile came."""
+    wait = args.timeout if args.timeout is not None else 10.0
+    t0 = time.monotonic()
+    got = watch.wait_profile(0, t0 + wait, stop)
+    # a second of rates and latencies beyond the first profile (bounded by the timeout)
+    stop.wait(max(0.0, min(1.0, t0 + wait - time.monotonic())))
+    cols = _columns(out) if out.isatty() else 100
+    print(render_text(model.snapshot(), width=cols, color=_color(args, out)), file=out, flush=True)
+    if not got:
+        print(f"vergence monitor: no profile on {keys.profile(model.rig)} within {wait:g} s "
+              f"(is a reducer running with workers and a capture on this router?)", file=sys.stderr)
+    return 0 if got else 1
+
+
+def _live(node: Node, model: Monitor, args: argparse.Namespace, stop: session.Stop, out) -> int:
+    """The live view: the screen every --refresh s until stopped or --timeout; the node's status between."""
+    tty, color = out.isatty(), _color(args, out)
+    end = time.monotonic() + args.timeout if args.timeout is not None else None
+    while not stop.wait(args.refresh):
+        cols = _columns(out) if tty else 100
+        text = render_text(model.snapshot(), width=cols, color=color)
+        if color:
+            out.write("\x1b[H\x1b[2J" + text + "\n")
+        else:
+            out.write(text + "\n\n")
+        out.flush()
+        node.tick()
+        if end is not None and time.monotonic() >= end:
+            break
+    return 0
 
 
 def _png(watch: Watch, model: Monitor, args: argparse.Namespace, stop: session.Stop) -> int:

@@ -34,6 +34,7 @@ from vergence.mcap_file import McapWriter, is_mcap
 from vergence.recording import RecordingError, Writer
 
 from services.runtime import session
+from services.runtime.node import Node
 
 log = logging.getLogger("vergence.record")
 QUEUE_MB = 32.0  # the default bound of the queue between the subscribers and the writer, in MB of payload
@@ -132,16 +133,15 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, path: str, duration: 
     t0 = time.monotonic()
     key = keys.everything(rig)
     try:
-        with session.open_session(conf) as s:
-            subs = [s.declare_subscriber(key, on_sample),
-                    s.liveliness().declare_subscriber(keys.alives(rig), on_alive, history=True)]
+        # the node undeclares the token, then the subscriptions, at exit; it publishes no status while recording
+        # (the file would hold the recorder's own), only its last one, once the subscriptions are gone
+        with Node("record", rig, conf, stop, log=log) as node:
+            node.subscriber(key, on_sample)
+            node.liveliness_subscriber(keys.alives(rig), on_alive, history=True)
             # a token says the recorder listens (tests and tools wait for it before starting a capture)
-            token = s.liveliness().declare_token(session.alive_key(rig, "record"))
+            node.ready()
             log.info("recording %s into %s", key, path)
             stop.wait(duration)
-            token.undeclare()
-            for sub in subs:
-                sub.undeclare()
     finally:
         done.set()
         th.join(10.0)

@@ -105,50 +105,67 @@ def configure(p: argparse.ArgumentParser) -> None:
                    "and match boxes, the profile, pan against truth (the [view] extra)")
 
 
+def _setup(args: argparse.Namespace):
+    """The settings, the network's parameters, the control, the delay, the camera timing, the rig, the baseline
+    and the fixations the options ask for; ValueError or ConfigError when they do not go together."""
+    settings = load(args.config)
+    params = Params.paper(window=settings.network.window) if args.faithful else settings.network
+    static = dict(left=args.left, right=args.right, disparity=args.disparity, dscale=args.dscale,
+                  fixate=args.fixate, gain=args.gain, offset=args.offset, blur=args.blur, vmis=args.vmis,
+                  gimbal=args.gimbal)
+    control = settings.control if args.mode is None else dataclasses.replace(settings.control, mode=args.mode)
+    delay = DELAY_S if args.delay_ms is None else args.delay_ms / 1000.0
+    timing = camera_timing(args)
+    rig = _rig(args, static)
+    if args.frames < 0 or not args.rate > 0:
+        raise ValueError(f"--frames must be >= 0 and --rate > 0, got {args.frames} and {args.rate}")
+    if args.start_off is not None:
+        if args.start_pan is not None:
+            raise ValueError("give --start-pan or --start-off, not both")
+        if not math.isfinite(rig.truth_pan_rad):
+            raise ValueError("--start-off needs the ground truth: --disparity FILE "
+                             "(or the generated scene)")
+        rig.start_pan_rad = rig.pan_off_truth(args.start_off)
+    baseline = args.baseline if args.baseline is not None else (
+        rig.head.baseline_m if args.motion is not None else settings.geometry.baseline_m)
+    if not (math.isfinite(baseline) and baseline > 0):
+        raise ValueError(f"--baseline {baseline}: must be a positive number of metres")
+    fixations = _fixations(args, rig)
+    return settings, params, control, delay, timing, rig, baseline, fixations
+
+
+def _rig(args: argparse.Namespace, static: dict):
+    """The moving rig of --motion, else the static one of the scene's options."""
+    if args.motion is not None:
+        given = sorted(k for k, v in static.items() if v is not None)
+        if given:
+            raise ValueError(f"--{given[0]} does not go with --motion (the moving scene is generated)")
+        return MovingRig.from_options(motion=args.motion, baseline=args.baseline, focal=args.focal,
+                                      size=args.size, noise=args.noise, seed=args.seed, pan=args.start_pan,
+                                      texture=args.texture)
+    if args.texture is not None:
+        raise ValueError("--texture goes with --motion")
+    return Rig.from_options(focal=args.focal, size=args.size, noise=args.noise, pan=args.start_pan,
+                            seed=args.seed, **static)
+
+
+def _fixations(args: argparse.Namespace, rig) -> dict:
+    """--fixate-at as {frame: (x, y)}, each inside the view and no later than the last frame."""
+    fixations = dict(args.fixate_at)
+    if fixations and args.motion is not None:
+        raise ValueError("--fixate-at does not go with --motion (the moving target is on the master's axis)")
+    for f, (x, y) in fixations.items():
+        if not (0 <= x < rig.size[0] and 0 <= y < rig.size[1]):
+            raise ValueError(f"--fixate-at {f}:{x},{y}: outside the {rig.size[0]} x {rig.size[1]} view")
+        if f > args.frames:
+            raise ValueError(f"--fixate-at {f}:{x},{y}: after the last frame (--frames {args.frames}); "
+                             f"run at least --frames {f}")
+    return fixations
+
+
 def run(args: argparse.Namespace) -> int:
     try:
-        settings = load(args.config)
-        params = Params.paper(window=settings.network.window) if args.faithful else settings.network
-        static = dict(left=args.left, right=args.right, disparity=args.disparity, dscale=args.dscale,
-                      fixate=args.fixate, gain=args.gain, offset=args.offset, blur=args.blur, vmis=args.vmis,
-                      gimbal=args.gimbal)
-        control = settings.control if args.mode is None else dataclasses.replace(settings.control, mode=args.mode)
-        delay = DELAY_S if args.delay_ms is None else args.delay_ms / 1000.0
-        timing = camera_timing(args)
-        if args.motion is not None:
-            given = sorted(k for k, v in static.items() if v is not None)
-            if given:
-                raise ValueError(f"--{given[0]} does not go with --motion (the moving scene is generated)")
-            rig = MovingRig.from_options(motion=args.motion, baseline=args.baseline, focal=args.focal,
-                                         size=args.size, noise=args.noise, seed=args.seed, pan=args.start_pan,
-                                         texture=args.texture)
-        elif args.texture is not None:
-            raise ValueError("--texture goes with --motion")
-        else:
-            rig = Rig.from_options(focal=args.focal, size=args.size, noise=args.noise, pan=args.start_pan,
-                                   seed=args.seed, **static)
-        if args.frames < 0 or not args.rate > 0:
-            raise ValueError(f"--frames must be >= 0 and --rate > 0, got {args.frames} and {args.rate}")
-        if args.start_off is not None:
-            if args.start_pan is not None:
-                raise ValueError("give --start-pan or --start-off, not both")
-            if not math.isfinite(rig.truth_pan_rad):
-                raise ValueError("--start-off needs the ground truth: --disparity FILE "
-                                 "(or the generated scene)")
-            rig.start_pan_rad = rig.pan_off_truth(args.start_off)
-        baseline = args.baseline if args.baseline is not None else (
-            rig.head.baseline_m if args.motion is not None else settings.geometry.baseline_m)
-        if not (math.isfinite(baseline) and baseline > 0):
-            raise ValueError(f"--baseline {baseline}: must be a positive number of metres")
-        fixations = dict(args.fixate_at)
-        if fixations and args.motion is not None:
-            raise ValueError("--fixate-at does not go with --motion (the moving target is on the master's axis)")
-        for f, (x, y) in fixations.items():
-            if not (0 <= x < rig.size[0] and 0 <= y < rig.size[1]):
-                raise ValueError(f"--fixate-at {f}:{x},{y}: outside the {rig.size[0]} x {rig.size[1]} view")
-            if f > args.frames:
-                raise ValueError(f"--fixate-at {f}:{x},{y}: after the last frame (--frames {args.frames}); "
-                                 f"run at least --frames {f}")
+        settings, params, control, delay, timing, rig, baseline, fixations = _setup(args)
     except (ValueError, ConfigError) as e:
         print(f"vergence sim: {e}", file=sys.stderr)
         return 2
@@ -179,30 +196,42 @@ def run(args: argparse.Namespace) -> int:
         steps.append(s)
         if saving:
             saving(s, args.rate)
-        dep = depth.fixated_depth(x=at[0], y=at[1], width=rig.size[0], height=rig.size[1], focal_px=rig.focal_px,
-                                  slave_pan_rad=pan, offset_px=s.offset_px, v_shift=s.v, confident=s.confident,
-                                  sigma_d_px=depth.disparity_sigma(s.scores, s.k, s.window), baseline_m=baseline,
-                                  master_pan_rad=rig.master_pan_rad, tilt_rad=rig.tilt_rad, gimbal=rig.gimbal)
-        if args.motion is not None:
-            truth_z = rig.motion.z(s.t_s)
-        else:
-            truth_z = depth.depth_from_disparity(rig.disparity if truth is None else truth[1], baseline, rig.focal_px)
-        if args.json:
-            row = s.to_dict()
-            row.update(x=at[0], y=at[1], converged=dep.converged,
-                       depth_m=dep.depth_m if math.isfinite(dep.depth_m) else None,
-                       depth_sigma_m=dep.depth_sigma_m if math.isfinite(dep.depth_sigma_m) else None,
-                       truth_depth_m=truth_z if math.isfinite(truth_z) else None)
-            print(json.dumps(row), flush=True)
-        else:
-            tgt = "-" if s.target_deg is None else f"{s.target_deg:+8.3f}"
-            z = f"{dep.depth_m:.4f} +- {dep.depth_sigma_m:.4f} m" if math.isfinite(dep.depth_m) else "-"
-            print(f"frame {s.frame:3d}  ({at[0]}, {at[1]})  pan {s.pan_deg:+8.3f} deg  error {s.error_px:+8.2f} px  "
-                  f"offset {s.offset_px:+8.2f} px  {'confident' if s.confident else 'abstains '}  "
-                  f"w={s.window}  target {tgt}  depth {z}", flush=True)
+        _print_step(args, s, rig, at, truth, baseline)
     if saving:
         saving.rr.disconnect()  # flushes the file
         print(f"wrote {args.save} ({len(steps)} frames): `rerun {args.save}` shows it", file=sys.stderr)
+    _summary(args, steps, segments, rig, timing, control)
+    return 0
+
+
+def _print_step(args: argparse.Namespace, s, rig, at: tuple[int, int], truth, baseline: float) -> None:
+    """One frame's line (or JSON row with --json): the pan, the error, the decision and the fixated depth."""
+    pan = math.radians(s.pan_deg)
+    dep = depth.fixated_depth(x=at[0], y=at[1], width=rig.size[0], height=rig.size[1], focal_px=rig.focal_px,
+                              slave_pan_rad=pan, offset_px=s.offset_px, v_shift=s.v, confident=s.confident,
+                              sigma_d_px=depth.disparity_sigma(s.scores, s.k, s.window), baseline_m=baseline,
+                              master_pan_rad=rig.master_pan_rad, tilt_rad=rig.tilt_rad, gimbal=rig.gimbal)
+    if args.motion is not None:
+        truth_z = rig.motion.z(s.t_s)
+    else:
+        truth_z = depth.depth_from_disparity(rig.disparity if truth is None else truth[1], baseline, rig.focal_px)
+    if args.json:
+        row = s.to_dict()
+        row.update(x=at[0], y=at[1], converged=dep.converged,
+                   depth_m=dep.depth_m if math.isfinite(dep.depth_m) else None,
+                   depth_sigma_m=dep.depth_sigma_m if math.isfinite(dep.depth_sigma_m) else None,
+                   truth_depth_m=truth_z if math.isfinite(truth_z) else None)
+        print(json.dumps(row), flush=True)
+    else:
+        tgt = "-" if s.target_deg is None else f"{s.target_deg:+8.3f}"
+        z = f"{dep.depth_m:.4f} +- {dep.depth_sigma_m:.4f} m" if math.isfinite(dep.depth_m) else "-"
+        print(f"frame {s.frame:3d}  ({at[0]}, {at[1]})  pan {s.pan_deg:+8.3f} deg  error {s.error_px:+8.2f} px  "
+              f"offset {s.offset_px:+8.2f} px  {'confident' if s.confident else 'abstains '}  "
+              f"w={s.window}  target {tgt}  depth {z}", flush=True)
+
+
+def _summary(args: argparse.Namespace, steps: list, segments: list, rig, timing, control) -> None:
+    """The plot (--plot), and the tracking error (--motion) or each fixation's convergence."""
     moving = args.motion is not None
     skip = int(round(args.rate)) if len(steps) > args.rate else 0  # the statistics after the first second
     if args.plot:
@@ -219,21 +248,25 @@ def run(args: argparse.Namespace) -> int:
         print(f"from frame {skip} ({e['frames']} frames): RMS {e['rms_px']:.2f} px ({e['rms_deg']:.3f} deg), "
               f"max {e['max_px']:.2f} px ({e['max_deg']:.3f} deg)")
     elif not args.json:
-        for i, (first, (x, y)) in enumerate(segments):
-            end = segments[i + 1][0] if i + 1 < len(segments) else len(steps)
-            seg = steps[first:end]
-            n = frames_to_converge(seg)
-            where = "" if len(segments) == 1 else f"fixation ({x}, {y}) from frame {first}: "
-            if not seg or not math.isfinite(seg[0].truth_pan_deg):
-                last = seg[-1] if seg else None
-                print(where + "no ground truth (give --disparity FILE --dscale S); "
-                      + (f"last offset {last.offset_px:+.2f} px at pan {last.pan_deg:+.3f} deg" if last
-                         else "no frame"))
-            else:
-                print(where + f"converged pan {seg[0].truth_pan_deg:+.3f} deg; "
-                      + ("within 1 px from frame %d on (%d frames after the fixation)" % (n, n - first)
-                         if n is not None else "not within 1 px at the end"))
-    return 0
+        _convergence(steps, segments)
+
+
+def _convergence(steps: list, segments: list) -> None:
+    """Each fixation's converged pan and from which frame on the pan is within 1 px of it."""
+    for i, (first, (x, y)) in enumerate(segments):
+        end = segments[i + 1][0] if i + 1 < len(segments) else len(steps)
+        seg = steps[first:end]
+        n = frames_to_converge(seg)
+        where = "" if len(segments) == 1 else f"fixation ({x}, {y}) from frame {first}: "
+        if not seg or not math.isfinite(seg[0].truth_pan_deg):
+            last = seg[-1] if seg else None
+            print(where + "no ground truth (give --disparity FILE --dscale S); "
+                  + (f"last offset {last.offset_px:+.2f} px at pan {last.pan_deg:+.3f} deg" if last
+                     else "no frame"))
+        else:
+            print(where + f"converged pan {seg[0].truth_pan_deg:+.3f} deg; "
+                  + ("within 1 px from frame %d on (%d frames after the fixation)" % (n, n - first)
+                     if n is not None else "not within 1 px at the end"))
 
 
 def _start_save(path: str, rig: Rig):

@@ -1,0 +1,214 @@
+"""The live cockpit: the rig's messages logged to a Rerun recording stream under the entity paths of ENTITIES
+(see services/observe/view.py for the paths and the timelines)."""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+
+import numpy as np
+
+from vergence import keys
+from vergence.messages import Command, Frame, MessageError, MotorState, Preview, Profile, Verdict
+from vergence.monitor import decode
+
+log = logging.getLogger("vergence.view")
+# what the cockpit subscribes to under vergence/<rig>/
+WATCHED = (keys.preview, keys.frame, keys.decision, keys.profile, keys.command, keys.motor_state, keys.statuses)
+# the key kinds the cockpit logs (vergence.monitor.decode decodes them)
+SHOWN = (keys.PREVIEW, keys.FRAME, keys.DECISION, keys.PROFILE, keys.COMMAND, keys.MOTOR_STATE, keys.STATUS)
+ENTITIES = {
+    "rig/master": "the master's preview image",
+    "rig/master/fovea": "the fovea, a box on the master image",
+    "rig/slave": "the slave's preview image",
+    "rig/slave/match": "where the fovea matched, a box on the slave image",
+    "rig/correlation": "layer 4's scores along k on the winning row (bar chart)",
+    "pan/slave": "the slave pan at capture, degrees",
+    "pan/motor": "the pan the motor reports, degrees",
+    "pan/goal": "the motor's goal, degrees",
+    "pan/command": "the pan commanded, degrees",
+    "pan/truth": "the converged pan, degrees (frames that carry the truth)",
+    "depth": "the fixated distance, metres (decisions that carry it); depth/sigma its uncertainty",
+    "decision/confidence": "the decision's confidence, 0..1",
+    "decision/confident": "1 when the camera may move, else 0",
+    "decision/offset_px": "how far right of the fovea's column its match lies in the slave, px",
+    "decision/window": "the fovea side the frame was decided with, px",
+    "latency/decision_ms": "capture to decision, ms",
+    "workers/alive": "the number of live workers",
+    "workers/<id>": "1 while worker <id> is alive, 0 after",
+    "status/<role>/<id>": "each process's status message (text log)",
+}
+
+def _finite(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+class Cockpit:
+    """Decodes the rig's messages and logs them to a Rerun recording stream. Malformed messages are counted
+    (bad) and skipped; fields that newer messages carry (truth, depth, x/y on the decision) are read with
+    defaults, so older and newer peers both work."""
+
+    def __init__(self, rr, recording=None):
+        self.rr, self.rec = rr, recording
+        self.counts: collections.Counter = collections.Counter()
+        self.bad: collections.Counter = collections.Counter()
+        self.scale: float | None = None  # preview px per image px (latest preview)
+        self.size: tuple[int, int] | None = None  # the full image (width, height), from the frames
+        self.at: dict[int, tuple[int, int]] = {}  # frame id -> fovea (x, y), recent frames
+        self.point: tuple[int, int] | None = None  # the latest frame's fovea point (the capture keeps it)
+        self.decided: set[int] = set()  # frames whose decision was logged (recent)
+        self.workers: set[str] = set()
+        self.motor_status: str | None = None  # the latest motor state's status (logged as text when it changes)
+
+    # -- helpers -------------------------------------------------------------------------------------------
+
+    def _log(self, path: str, what) -> None:
+        self.rr.log(path, what, recording=self.rec)
+
+    def _time(self, frame: int | None, t_ns: int | None) -> None:
+        rr = self.rr
+        if frame is not None and frame >= 0:
+            rr.set_time("frame", sequence=int(frame), recording=self.rec)
+        else:
+            rr.reset_time(recording=self.rec)
+        if t_ns:
+            rr.set_time("capture", timestamp=np.datetime64(int(t_ns), "ns"), recording=self.rec)
+
+    def _scalar(self, path: str, value) -> None:
+        if _finite(value):
+            self._log(path, self.rr.Scalars(float(value)))
+
+    def _remember(self, d: dict, key: int, value) -> None:
+        d[key] = value
+        if len(d) > 512:  # recent frames only
+            for k in sorted(d)[:256]:
+                del d[k]
+
+    # -- one sample ----------------------------------------------------------------------------------------
+
+    def feed(self, rest: str, payload: bytes, t_ns: int | None = None) -> str | None:
+        """Log one message whose key is vergence/<rig>/<rest>; returns its kind (vergence.keys), or None when
+        skipped."""
+        kind = keys.kind_of(rest)
+        if kind not in SHOWN:
+            return None
+        try:
+            msg = decode(kind, payload)  # the decoding `vergence monitor`'s model uses too
+            if kind == keys.STATUS:
+                self._status(rest, payload, t_ns)  # the text as it came
+            else:
+                self._loggers()[kind](msg)
+        except (MessageError, ValueError, TypeError) as e:
+            self.bad[kind] += 1
+            if sum(self.bad.values()) <= 10:
+                log.warning("malformed message on %s skipped: %s", rest, e)
+            return None
+        self.counts[kind] += 1
+        return kind
+
+    def _loggers(self) -> dict:
+        """Key kind (vergence.keys) -> what logs its decoded message; the kinds the cockpit shows."""
+        return {keys.PREVIEW: self._preview, keys.FRAME: self._frame, keys.DECISION: self._decision,
+                keys.PROFILE: self._profile, keys.COMMAND: self._command, keys.MOTOR_STATE: self._motor}
+
+    def alive(self, rest: str, present: bool, t_ns: int | None = None) -> None:
+        """A liveliness token vergence/<rig>/<rest> (alive/<role>/<id>) appeared or went away."""
+        k = keys.Key("", keys.kind_of(rest), rest)
+        if k.kind != keys.ALIVE or k.role != "worker" or "/" in k.ident:
+            return
+        (self.workers.add if present else self.workers.discard)(k.ident)
+        self._time(None, t_ns)
+        self._scalar(f"workers/{k.ident}", 1.0 if present else 0.0)
+        self._scalar("workers/alive", len(self.workers))
+
+    def _preview(self, p: Preview) -> None:
+        master, slave = p.images()
+        self.scale = p.scale
+        if self.size is None and p.scale > 0:  # until a frame says
+            self.size = (round(p.width / p.scale), round(p.height / p.scale))
+        self._time(p.frame, p.t_capture_ns)
+        self._log("rig/master", self.rr.Image(master))
+        self._log("rig/slave", self.rr.Image(slave))
+
+    def _frame(self, f: Frame) -> None:
+        self.size = (f.width, f.height)
+        self._remember(self.at, f.frame, (f.x, f.y))
+        self.point = (f.x, f.y)
+        truth = getattr(f, "truth_pan_rad", None)
+        if _finite(truth):
+            self._time(f.frame, f.t_capture_ns)
+            self._scalar("pan/truth", math.degrees(truth))
+
+    def _boxes(self, v: Verdict) -> None:
+        at = (getattr(v, "x", None), getattr(v, "y", None))
+        if not all(isinstance(c, int) and c >= 0 for c in at):  # -1: a decision that does not say
+            at = self.at.get(v.frame) or self.point
+        if at is None:  # the capture's default point: the centre (k_centre = x - w // 2)
+            height = self.size[1] if self.size else None
+            if height is None:
+                return
+            at = (v.k_centre + v.window // 2, height // 2)
+        if self.scale is None:  # no image to draw them on yet (no preview so far)
+            return
+        s = self.scale
+        x, y = at
+        half = (v.window * s / 2, v.window * s / 2)
+        # pixel centres: pixel i covers [i, i + 1) in Rerun's image space
+        self._log("rig/master/fovea", self.rr.Boxes2D(centers=[((x + 0.5) * s, (y + 0.5) * s)], half_sizes=[half],
+                                                      labels=[f"fovea {v.window} px"]))
+        mx, my = x + v.offset_px, y + v.v_shift
+        color = (40, 220, 60) if v.confident else (230, 150, 30)
+        self._log("rig/slave/match", self.rr.Boxes2D(centers=[((mx + 0.5) * s, (my + 0.5) * s)], half_sizes=[half],
+                                                     colors=[color],
+                                                     labels=[f"{v.offset_px:+.1f} px, c={v.confidence:.2f}"]))
+
+    def _decision(self, v: Verdict) -> None:
+        if v.frame in self.decided:  # its profile came first and logged it
+            return
+        self._time(v.frame, v.t_capture_ns)
+        self._boxes(v)
+        self._scalar("pan/slave", math.degrees(v.pan_rad))
+        self._scalar("decision/confidence", v.confidence)
+        self._scalar("decision/confident", 1.0 if v.confident else 0.0)
+        self._scalar("decision/offset_px", v.offset_px)
+        self._scalar("decision/window", v.window)
+        if v.t_reduced_ns and v.t_capture_ns:
+            self._scalar("latency/decision_ms", (v.t_reduced_ns - v.t_capture_ns) / 1e6)
+        depth = getattr(v, "depth_m", None)
+        if _finite(depth):
+            self._scalar("depth", depth)
+            self._scalar("depth/sigma", getattr(v, "depth_sigma_m", None))
+        truth = getattr(v, "truth_pan_rad", None)
+        if _finite(truth):
+            self._scalar("pan/truth", math.degrees(truth))
+        self.decided.add(v.frame)
+        if len(self.decided) > 512:
+            self.decided = set(sorted(self.decided)[256:])
+
+    def _profile(self, p: Profile) -> None:
+        if p.frame not in self.decided:  # a rig (or a recording) without decision messages
+            self._decision(p)
+        self._time(p.frame, p.t_capture_ns)
+        scores = p.array()
+        row = scores[min(max(p.v_shift + (p.rows - 1) // 2, 0), p.rows - 1)]
+        self._log("rig/correlation", self.rr.BarChart(np.asarray(row, np.float64)))
+
+    def _command(self, c: Command) -> None:
+        self._time(c.frame, c.t_capture_ns)
+        self._scalar("pan/command", math.degrees(c.pan_rad))
+
+    def _motor(self, m: MotorState) -> None:
+        self._time(m.frame, m.t_capture_ns or m.t_ns)
+        self._scalar("pan/motor", math.degrees(m.pan_rad))
+        self._scalar("pan/goal", math.degrees(m.goal_rad))
+        if m.status != self.motor_status:  # a change of status is an event: disconnected, absent (issue #29), back
+            self.motor_status = m.status
+            fault = m.status in ("disconnected", "absent")
+            self._log("motor/status", self.rr.TextLog(f"motor {m.status}" + (f": {m.note}" if m.note else ""),
+                                                      level="ERROR" if fault else "INFO"))
+
+    def _status(self, rest: str, payload: bytes, t_ns: int | None) -> None:
+        text = bytes(payload).decode("utf-8")  # decode() found it a JSON object
+        self._time(None, t_ns)
+        self._log(rest, self.rr.TextLog(text))
