@@ -16,18 +16,18 @@ import argparse
 import logging
 import time
 
-import numpy as np
 import zenoh
 
-from vergence import kernel, keys
+from vergence import keys
 from vergence.config import LimitSettings, load
-from vergence.frames import frame_too_large, make_frame
-from vergence.messages import Frame, MessageError
+from vergence.frames import check_frame
+from vergence.messages import MessageError
 from vergence.params import Params
 from vergence.shards import compute_partial
 
 from services.runtime import session
 from services.runtime.node import Node
+from services.runtime.warm import warm_up
 
 log = logging.getLogger("vergence.worker")
 
@@ -35,30 +35,6 @@ log = logging.getLogger("vergence.worker")
 def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
     p.add_argument("--name", default=None, help="worker id prefix (default: the host name); -<pid> is appended")
-
-
-def warm_up(params: Params) -> None:
-    """Run the kernel once on a small synthetic frame, so the first real frame is not late."""
-    kernel.warm_up()
-    rng = np.random.default_rng(0)
-    img = rng.integers(0, 256, (64, 96), np.uint8)
-    p = Params(window=15, vsearch=min(params.vsearch, 2), circular=params.circular, support=params.support)
-    f = make_frame(img, img, rig="warm", frame=0, pan_rad=0.0, focal_px=80.0, params=p,
-                   plan=[["w", 0, 96 - 15 + 1]])
-    compute_partial(f, "w")
-
-
-def check_frame(data: bytes, limits: LimitSettings, now_ns: int) -> Frame:
-    """The frame in a message, if it is one a worker should compute; MessageError says why not."""
-    why = frame_too_large(None, len(data), limits)
-    if why is None:
-        frame = Frame.from_bytes(data)
-        why = frame_too_large(frame, len(data), limits)
-        if why is None and abs(frame.t_capture_ns - now_ns) > limits.max_skew_s * 1e9:
-            why = f"frame {frame.frame} captured {(frame.t_capture_ns - now_ns) / 1e9:+.3g} s from our clock"
-    if why is not None:
-        raise MessageError(why)
-    return frame
 
 
 class Gaps:
