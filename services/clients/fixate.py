@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import sys
 import threading
@@ -21,6 +22,9 @@ from vergence.messages import Fixate, MessageError, Verdict
 
 from services.runtime import session
 from services.runtime.args import master_point
+from services.runtime.node import Node
+
+log = logging.getLogger("vergence.fixate")
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -72,29 +76,26 @@ def main(rig: str, conf, x: float, y: float, source: str, wait: float) -> int:
             refused.append(why)
             seen.set()
 
-    with session.open_session(conf) as s:
-        subs = [s.declare_subscriber(keys.decision(rig), on_decision),
-                s.declare_subscriber(keys.status(rig, "capture", "*"), on_status)] if wait > 0 else []
-        try:
-            t0 = time.monotonic()
-            s.put(keys.fixate(rig), Fixate(x=x, y=y, t_ns=t_ns, source=source).to_bytes())
-            if not subs:
-                print(f"fixate ({x:g}, {y:g}) sent on {keys.fixate(rig)}")
-                return 0
-            if not seen.wait(wait):
-                print(f"vergence fixate: no decision at ({target[0]}, {target[1]}) within {wait:g} s (is a "
-                      "capture running on this rig?)", file=sys.stderr)
-                return 1
-            if refused:
-                print(f"vergence fixate: the capture refused {refused[0]}; the fovea stays where it was",
-                      file=sys.stderr)
-                return 2
-            print(f"{describe(got[0])}  ({(time.monotonic() - t0) * 1e3:.0f} ms after the request)")
+    with Node("fixate", rig, conf, session.Stop(install=False), log=log, quiet=True) as node:
+        if wait > 0:
+            node.subscriber(keys.decision(rig), on_decision)
+            node.subscriber(keys.status(rig, "capture", "*"), on_status)
+        t0 = time.monotonic()
+        node.session.put(keys.fixate(rig), Fixate(x=x, y=y, t_ns=t_ns, source=source).to_bytes())
+        node.health.count("sent")
+        if wait <= 0:
+            print(f"fixate ({x:g}, {y:g}) sent on {keys.fixate(rig)}")
             return 0
-        finally:
-            for sub in subs:
-                sub.undeclare()
-
+        if not seen.wait(wait):
+            print(f"vergence fixate: no decision at ({target[0]}, {target[1]}) within {wait:g} s (is a "
+                  "capture running on this rig?)", file=sys.stderr)
+            return 1
+        if refused:
+            print(f"vergence fixate: the capture refused {refused[0]}; the fovea stays where it was",
+                  file=sys.stderr)
+            return 2
+        print(f"{describe(got[0])}  ({(time.monotonic() - t0) * 1e3:.0f} ms after the request)")
+        return 0
 
 def run(args: argparse.Namespace) -> int:
     rig = args.rig or load(args.config).rig
