@@ -54,32 +54,41 @@ def refusal(payload: bytes, t_ns: int) -> str | None:
     return None
 
 
-def main(rig: str, conf, x: float, y: float, source: str, wait: float) -> int:
-    target = (int(round(x)), int(round(y)))
-    t_ns = time.time_ns()
-    got: list[Verdict] = []
-    refused: list[str] = []
-    seen = threading.Event()
+class Answer:
+    """The first answer to the request sent at t_ns (zenoh callback threads): a decision at the target, or the
+    capture's refusal in its status."""
 
-    def on_decision(sample):
+    def __init__(self, target: tuple[int, int], t_ns: int):
+        self.target, self.t_ns = target, t_ns
+        self.got: list[Verdict] = []
+        self.refused: list[str] = []
+        self.seen = threading.Event()
+
+    def on_decision(self, sample) -> None:
         try:
             v = Verdict.from_bytes(sample.payload.to_bytes())
         except MessageError:
             return
-        if (v.x, v.y) == target and not seen.is_set():
-            got.append(v)
-            seen.set()
+        if (v.x, v.y) == self.target and not self.seen.is_set():
+            self.got.append(v)
+            self.seen.set()
 
-    def on_status(sample):
-        why = refusal(sample.payload.to_bytes(), t_ns)
-        if why is not None and not seen.is_set():
-            refused.append(why)
-            seen.set()
+    def on_status(self, sample) -> None:
+        why = refusal(sample.payload.to_bytes(), self.t_ns)
+        if why is not None and not self.seen.is_set():
+            self.refused.append(why)
+            self.seen.set()
 
+
+def main(rig: str, conf, x: float, y: float, source: str, wait: float) -> int:
+    target = (int(round(x)), int(round(y)))
+    t_ns = time.time_ns()
+    answer = Answer(target, t_ns)
+    got, refused, seen = answer.got, answer.refused, answer.seen
     with Node("fixate", rig, conf, session.Stop(install=False), log=log, quiet=True) as node:
         if wait > 0:
-            node.subscriber(keys.decision(rig), on_decision)
-            node.subscriber(keys.status(rig, "capture", "*"), on_status)
+            node.subscriber(keys.decision(rig), answer.on_decision)
+            node.subscriber(keys.status(rig, "capture", "*"), answer.on_status)
         t0 = time.monotonic()
         node.session.put(keys.fixate(rig), Fixate(x=x, y=y, t_ns=t_ns, source=source).to_bytes())
         node.health.count("sent")
