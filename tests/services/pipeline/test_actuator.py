@@ -177,11 +177,11 @@ def test_the_actuator_status_counts_what_it_did(tmp_path):
             assert (c["commands"], c["applied"], c["refused"], c.get("clamped", 0)) == (5, 3, 1, 0)
             assert st["bad"] == {"command": 1}
             assert c["motor_states"] >= 5 and st["motor"] == "ok" and st["driver"] == "dynamixel"
-            n = len(stats)
             act.signal(signal.SIGINT)
             assert act.wait(10) == 0
-            last = json.loads(stats.wait(n + 1, 5)[-1][1])
-            assert last["exiting"] is True and last["counters"]["commands"] == 5 and last["motor"] == "stopped"
+            last = wait_for(lambda: next((d for d in (json.loads(b) for _, b, _ in stats.snapshot())
+                                          if d.get("exiting")), None), 5, "the status at exit", logs=P.logs)
+            assert last["counters"]["commands"] == 5 and last["motor"] == "stopped"
             # every state it published counted: the start, one per command, the ticks and the stop
             assert last["counters"]["motor_states"] >= len(states(col))
     finally:
