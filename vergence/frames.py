@@ -11,7 +11,7 @@ import numpy as np
 
 from . import retina
 from .config import LimitSettings
-from .messages import Frame
+from .messages import Frame, MessageError
 from .params import Params
 
 __all__ = ["plan_shards", "make_frame", "Roster", "WindowControl", "frame_cost", "frame_too_large"]
@@ -72,6 +72,21 @@ def frame_too_large(frame: Frame | None, size: int, limits: LimitSettings) -> st
                 f"operations, more than max_frame_ops {limits.max_frame_ops}")
     return None
 
+
+
+def check_frame(data: bytes, limits: LimitSettings, now_ns: int | None = None) -> Frame:
+    """The frame in a message, if it is within the settings' bounds (frame_too_large, before decoding and
+    after) and, given now_ns, captured within [limits] max_skew_s of that clock; MessageError says why not.
+    The worker checks all three, the reducer the bounds (the worker and the reducer share this check)."""
+    why = frame_too_large(None, len(data), limits)
+    if why is None:
+        frame = Frame.from_bytes(data)
+        why = frame_too_large(frame, len(data), limits)
+        if why is None and now_ns is not None and abs(frame.t_capture_ns - now_ns) > limits.max_skew_s * 1e9:
+            why = f"frame {frame.frame} captured {(frame.t_capture_ns - now_ns) / 1e9:+.3g} s from our clock"
+    if why is not None:
+        raise MessageError(why)
+    return frame
 
 class Roster:
     """The workers the capture plans with: the live liveliness tokens (an invitation, not a guarantee),

@@ -284,6 +284,23 @@ class Bridge:
         log.info("look_at (%.3f, %.3f, %.3f) m -> fovea (%d, %d)", msg.point.x, msg.point.y, msg.point.z, x, y)
 
 
+class ProfileSwitch:
+    """The bridge's profiles(on) (from the rclpy thread, once a second at most): the subscriber to the profiles
+    declared while ROS 2 subscribes to them, undeclared when it no longer does (and at exit)."""
+
+    def __init__(self, node: Node):
+        self.node, self.bridge = node, None
+        self.subs: list = []
+
+    def __call__(self, on: bool) -> None:
+        if on:
+            self.subs.append(self.node.session.declare_subscriber(
+                keys.profile(self.node.rig), lambda s: self.bridge.on_profile(s.payload.to_bytes())))
+        else:
+            while self.subs:
+                self.subs.pop().undeclare()
+
+
 def main(settings, conf, stop: session.Stop, namespace: str, joint: str, frame_id: str,
          domain: int | None = None) -> int:
     rig = settings.rig
@@ -295,17 +312,9 @@ def main(settings, conf, stop: session.Stop, namespace: str, joint: str, frame_i
     try:
         with Node("ros2", rig, conf, stop, log=log) as node:
             pub_fixate = node.publisher(keys.fixate(rig))
-            sub_profile: list = []
-
-            def profiles(on: bool) -> None:  # from the rclpy thread, once a second at most
-                if on:
-                    sub_profile.append(node.session.declare_subscriber(keys.profile(rig),
-                                                                       lambda s: b.on_profile(s.payload.to_bytes())))
-                else:
-                    while sub_profile:
-                        sub_profile.pop().undeclare()
-
+            profiles = ProfileSwitch(node)
             b = Bridge(ros, rig, joint, frame_id, settings, node.health, pub_fixate.put, profiles)
+            profiles.bridge = b
             node.subscriber(keys.motor_state(rig), lambda s: b.on_motor(s.payload.to_bytes()))
             node.subscriber(keys.frame(rig), lambda s: b.on_frame(s.payload.to_bytes()))
             node.subscriber(keys.decision(rig), lambda s: b.on_decision(s.payload.to_bytes()))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import sys
 import threading
@@ -21,6 +22,9 @@ from vergence.messages import Fixate, MessageError, Verdict
 
 from services.runtime import session
 from services.runtime.args import master_point
+from services.runtime.node import Node
+
+log = logging.getLogger("vergence.fixate")
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -50,51 +54,57 @@ def refusal(payload: bytes, t_ns: int) -> str | None:
     return None
 
 
-def main(rig: str, conf, x: float, y: float, source: str, wait: float) -> int:
-    target = (int(round(x)), int(round(y)))
-    t_ns = time.time_ns()
-    got: list[Verdict] = []
-    refused: list[str] = []
-    seen = threading.Event()
+class Answer:
+    """The first answer to the request sent at t_ns (zenoh callback threads): a decision at the target, or the
+    capture's refusal in its status."""
 
-    def on_decision(sample):
+    def __init__(self, target: tuple[int, int], t_ns: int):
+        self.target, self.t_ns = target, t_ns
+        self.got: list[Verdict] = []
+        self.refused: list[str] = []
+        self.seen = threading.Event()
+
+    def on_decision(self, sample) -> None:
         try:
             v = Verdict.from_bytes(sample.payload.to_bytes())
         except MessageError:
             return
-        if (v.x, v.y) == target and not seen.is_set():
-            got.append(v)
-            seen.set()
+        if (v.x, v.y) == self.target and not self.seen.is_set():
+            self.got.append(v)
+            self.seen.set()
 
-    def on_status(sample):
-        why = refusal(sample.payload.to_bytes(), t_ns)
-        if why is not None and not seen.is_set():
-            refused.append(why)
-            seen.set()
+    def on_status(self, sample) -> None:
+        why = refusal(sample.payload.to_bytes(), self.t_ns)
+        if why is not None and not self.seen.is_set():
+            self.refused.append(why)
+            self.seen.set()
 
-    with session.open_session(conf) as s:
-        subs = [s.declare_subscriber(keys.decision(rig), on_decision),
-                s.declare_subscriber(keys.status(rig, "capture", "*"), on_status)] if wait > 0 else []
-        try:
-            t0 = time.monotonic()
-            s.put(keys.fixate(rig), Fixate(x=x, y=y, t_ns=t_ns, source=source).to_bytes())
-            if not subs:
-                print(f"fixate ({x:g}, {y:g}) sent on {keys.fixate(rig)}")
-                return 0
-            if not seen.wait(wait):
-                print(f"vergence fixate: no decision at ({target[0]}, {target[1]}) within {wait:g} s (is a "
-                      "capture running on this rig?)", file=sys.stderr)
-                return 1
-            if refused:
-                print(f"vergence fixate: the capture refused {refused[0]}; the fovea stays where it was",
-                      file=sys.stderr)
-                return 2
-            print(f"{describe(got[0])}  ({(time.monotonic() - t0) * 1e3:.0f} ms after the request)")
+
+def main(rig: str, conf, x: float, y: float, source: str, wait: float) -> int:
+    target = (int(round(x)), int(round(y)))
+    t_ns = time.time_ns()
+    answer = Answer(target, t_ns)
+    got, refused, seen = answer.got, answer.refused, answer.seen
+    with Node("fixate", rig, conf, session.Stop(install=False), log=log, quiet=True) as node:
+        if wait > 0:
+            node.subscriber(keys.decision(rig), answer.on_decision)
+            node.subscriber(keys.status(rig, "capture", "*"), answer.on_status)
+        t0 = time.monotonic()
+        node.session.put(keys.fixate(rig), Fixate(x=x, y=y, t_ns=t_ns, source=source).to_bytes())
+        node.health.count("sent")
+        if wait <= 0:
+            print(f"fixate ({x:g}, {y:g}) sent on {keys.fixate(rig)}")
             return 0
-        finally:
-            for sub in subs:
-                sub.undeclare()
-
+        if not seen.wait(wait):
+            print(f"vergence fixate: no decision at ({target[0]}, {target[1]}) within {wait:g} s (is a "
+                  "capture running on this rig?)", file=sys.stderr)
+            return 1
+        if refused:
+            print(f"vergence fixate: the capture refused {refused[0]}; the fovea stays where it was",
+                  file=sys.stderr)
+            return 2
+        print(f"{describe(got[0])}  ({(time.monotonic() - t0) * 1e3:.0f} ms after the request)")
+        return 0
 
 def run(args: argparse.Namespace) -> int:
     rig = args.rig or load(args.config).rig

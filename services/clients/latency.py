@@ -13,6 +13,7 @@ Exit 1 when no rig answers, 2 when the scene or the motor does not allow the mea
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import sys
 import threading
@@ -24,6 +25,9 @@ from vergence.latency import LatencyError, fit_latency, motion_plan
 from vergence.messages import Command, Hold, MessageError, MotorState, Verdict
 
 from services.runtime import session
+from services.runtime.node import Node
+
+log = logging.getLogger("vergence.latency")
 
 RENEW_S = 0.5  # the hold is renewed this often, each for twice as long
 
@@ -104,6 +108,33 @@ class Mover:
             self.command(pan)
 
 
+def record(node: Node, rec: Recorder, rig: str, amplitude_deg: float, hold_s: float, wait: float):
+    """In the node's block: the rig's decisions and motor states while the slave steps through the plan, as
+    (decisions, states, t_start); or the exit code (1) when the rig does not answer."""
+    node.subscriber(keys.decision(rig), rec.on_decision)
+    node.subscriber(keys.motor_state(rig), rec.on_state)
+    mover = Mover(node.session, rig, rec)
+    try:
+        if not _wait(lambda: all(rec.snapshot()), wait):
+            d, m = rec.snapshot()
+            print(f"vergence latency: no {'decisions' if not d else 'motor states'} on rig {rig!r} within "
+                  f"{wait:g} s: start the rig first (vergence up), with a still textured scene", file=sys.stderr)
+            return 1
+        state = rec.snapshot()[1][-1]
+        p0 = state.pan_rad
+        plan = motion_plan(p0, state.min_rad, state.max_rad, math.radians(amplitude_deg), hold_s)
+        print(f"holding the reducer, stepping the slave +-{amplitude_deg:g} deg about {math.degrees(p0):+.2f} "
+              f"deg for {len(plan) * hold_s:.1f} s ...", file=sys.stderr)
+        t_start = time.time_ns()
+        mover.renew()
+        mover.run(plan, hold_s)
+        decisions, states = rec.snapshot()
+        node.health.count("commands", len(plan) + 1)
+    finally:
+        mover.renew(release=True)
+    return decisions, states, t_start
+
+
 def main(rig: str, conf, amplitude_deg: float, hold_s: float, wait: float) -> int:
     if not (0 < amplitude_deg <= 1.0) or not (0.1 <= hold_s <= 5.0) or not wait > 0:
         print("vergence latency: --amplitude must be in (0, 1] degrees, --hold-s in [0.1, 5] s, --wait > 0",
@@ -111,35 +142,14 @@ def main(rig: str, conf, amplitude_deg: float, hold_s: float, wait: float) -> in
         return 2
     rec = Recorder()
     try:
-        s = session.open_session(conf, timeout=wait)
+        with Node("latency", rig, conf, session.Stop(install=False), log=log, timeout=wait, quiet=True) as node:
+            got = record(node, rec, rig, amplitude_deg, hold_s, wait)
     except ConnectionError as e:
         print(f"vergence latency: {e}", file=sys.stderr)
         return 1
-    with s:
-        subs = [s.declare_subscriber(keys.decision(rig), rec.on_decision),
-                s.declare_subscriber(keys.motor_state(rig), rec.on_state)]
-        mover = Mover(s, rig, rec)
-        try:
-            if not _wait(lambda: all(rec.snapshot()), wait):
-                d, m = rec.snapshot()
-                print(f"vergence latency: no {'decisions' if not d else 'motor states'} on rig {rig!r} within "
-                      f"{wait:g} s: start the rig first (vergence up), with a still textured scene", file=sys.stderr)
-                return 1
-            state = rec.snapshot()[1][-1]
-            p0 = state.pan_rad
-            plan = motion_plan(p0, state.min_rad, state.max_rad, math.radians(amplitude_deg), hold_s)
-            print(f"holding the reducer, stepping the slave +-{amplitude_deg:g} deg about {math.degrees(p0):+.2f} "
-                  f"deg for {len(plan) * hold_s:.1f} s ...", file=sys.stderr)
-            t_start = time.time_ns()
-            mover.renew()
-            mover.run(plan, hold_s)
-            decisions, states = rec.snapshot()
-        finally:
-            try:
-                mover.renew(release=True)
-            finally:
-                for sub in subs:
-                    sub.undeclare()
+    if isinstance(got, int):
+        return got
+    decisions, states, t_start = got
     used = [(d.t_capture_ns + d.skew_ns, d.t_read_ns or d.t_capture_ns, d.offset_px) for d in decisions
             if d.confident and d.t_capture_ns >= t_start]
     try:

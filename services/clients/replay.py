@@ -33,6 +33,7 @@ from vergence.mcap_file import McapReader, is_mcap
 from vergence.recording import Reader, RecordingError
 
 from services.runtime import session
+from services.runtime.node import Node
 
 log = logging.getLogger("vergence.replay")
 # the kinds (vergence.keys) a replay publishes again; REPLAY_RIG: where by default (no actuator listens there)
@@ -93,16 +94,16 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
     rig = rig or REPLAY_RIG
     sent = skipped = bad = 0
     pubs_early: dict[str, zenoh.Publisher] = {}
-    with reader, session.open_session(conf) as s:
+    with reader, Node("replay", rig, conf, stop, log=log, quiet=True) as node:
+        s, health = node.session, node.health
         if any(r.ok for r in s.liveliness().get(keys.alives(rig, "actuator"), timeout=1.0)):
             print(f"vergence replay: an actuator is alive on {keys.prefix(rig)}: a reducer there would turn the "
                   f"replayed frames into motor commands. Replay under another rig (--rig; default "
                   f"{REPLAY_RIG}) and run workers and a reducer with that --rig", file=sys.stderr)
             return 2
         workers = Workers()
-        members = s.liveliness().declare_subscriber(keys.alives(rig, "worker"), workers.on_sample,
-                                                    history=True)
-        token = s.liveliness().declare_token(session.alive_key(rig, "replay"))
+        node.liveliness_subscriber(keys.alives(rig, "worker"), workers.on_sample, history=True)
+        node.ready()
         if "frame" in kinds:
             deadline = time.monotonic() + wait_workers
             while not workers.snapshot() and time.monotonic() < deadline and not stop.wait(0.05):
@@ -129,6 +130,7 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
                 kind = k.kind if k is not None else None
                 if rec.event != "put" or kind not in kinds:
                     skipped += 1
+                    health.count("skipped")
                     continue
                 if t0_rec is None:
                     t0_rec, t0_now = rec.t_ns, time.monotonic()
@@ -143,6 +145,7 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
                         payload = replan(payload, workers.snapshot(), shift)
                     except MessageError as e:
                         bad += 1
+                        health.count("bad_frames")
                         log.warning("recorded frame skipped: %s", e)
                         continue
                 key = k.under(rig)
@@ -151,12 +154,10 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
                     pub = pubs[key] = s.declare_publisher(key)
                 pub.put(payload)
                 sent += 1
+                health.count("sent")
         except RecordingError as e:
             print(f"vergence replay: {e}", file=sys.stderr)
             return 2
-        finally:
-            members.undeclare()  # no callback may still run while the session closes
-            token.undeclare()
         note = " (the last record was truncated)" if reader.truncated else ""
         log.info("replayed %d messages to %s, skipped %d, bad %d%s", sent, keys.prefix(rig), skipped, bad, note)
     return 0

@@ -3,7 +3,10 @@
 Subscribes to vergence/<rig>/command (messages.Command: pan_rad is the absolute target pan of the slave) and
 publishes messages.MotorState on vergence/<rig>/motor/state at [actuator] state_hz and after each command.
 The Zenoh callback only keeps the newest command (a flood is coalesced, never queued); one thread runs
-vergence.motors.runner.MotorLoop, which owns every decision (safety, watchdog, reconnection).
+vergence.motors.runner.MotorLoop, which owns every decision (safety, watchdog, reconnection). Counters go out as
+JSON on vergence/<rig>/status/actuator/<id> every second and at exit: commands (received, a flood's superseded
+ones included), applied, refused, clamped, superseded, motor_states (published); a malformed command under
+bad.command.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from vergence.motors import DRIVERS, PortError, make_driver
 from vergence.motors.runner import MotorLoop
 
 from services.runtime import heartbeat, session
+from services.runtime.node import Node
 
 log = logging.getLogger("vergence.actuator")
 
@@ -62,8 +66,44 @@ class Latest:
             return item
 
 
-def serve(loop: MotorLoop, publish, inbox: Latest, stop: session.Stop, state_hz: float) -> None:
-    """Run the motor loop until stop: commands as they come, a state every 1/state_hz."""
+class Actuator:
+    """The motor loop's side of the process: each command or superseded flood counted in the Node's health
+    (commands, applied, refused, clamped; a malformed one under bad.command), each state published and
+    counted (motor_states), the status from the motor thread's own loop (serve)."""
+
+    def __init__(self, loop: MotorLoop, node: Node, publisher):
+        self.loop, self.node, self.health, self.pub = loop, node, node.health, publisher
+
+    def publish(self, state) -> None:
+        self.pub.put(state.to_bytes())
+        self.health.count("motor_states")
+
+    def superseded(self, n: int) -> None:
+        self.loop.superseded(n)
+        self.health.count("commands", n)
+        self.health.count("superseded", n)
+
+    def command(self, data: bytes) -> None:
+        loop, health = self.loop, self.health
+        before = (loop.malformed, loop.safety.ignored, loop.safety.clamped)
+        state = loop.command(data)
+        health.count("commands")
+        if loop.malformed > before[0]:
+            health.reject("command", loop.note)
+        elif loop.safety.ignored > before[1]:
+            health.count("refused")
+        else:
+            health.count("applied")
+            if loop.safety.clamped > before[2]:
+                health.count("clamped")
+        self.publish(state)
+
+    def fields(self) -> dict:
+        return {"motor": self.loop.status, "driver": self.loop.driver.name}
+
+
+def serve(act: Actuator, inbox: Latest, stop: session.Stop, state_hz: float) -> None:
+    """Run the motor loop until stop: commands as they come, a state every 1/state_hz, the status when due."""
     period = 1.0 / state_hz if state_hz > 0 else 0.02
     next_tick = time.monotonic()
     seen = 0
@@ -71,14 +111,15 @@ def serve(loop: MotorLoop, publish, inbox: Latest, stop: session.Stop, state_hz:
         data = inbox.take(max(0.0, min(0.1, next_tick - time.monotonic())))
         if inbox.superseded != seen:
             n, seen = inbox.superseded - seen, inbox.superseded
-            loop.superseded(n)
+            act.superseded(n)
         if data is not None:
-            publish(loop.command(data))
+            act.command(data)
         now = time.monotonic()
         if now >= next_tick:
             heartbeat.progress()  # the motor loop turns (services/runtime/heartbeat.py)
-            publish(loop.tick())
+            act.publish(act.loop.tick())
             next_tick = max(next_tick + period, now - period)
+        act.node.tick(now)
 
 
 def main(settings, conf, stop: session.Stop) -> int:
@@ -95,28 +136,19 @@ def main(settings, conf, stop: session.Stop) -> int:
     except PortError as e:
         print(f"vergence actuator: {e}", file=sys.stderr)
         return 2
-    s = session.open_session(conf)
-    try:
-        pub = s.declare_publisher(keys.motor_state(rig))
+    acts: list[Actuator] = []
+    with Node("actuator", rig, conf, stop, log=log, fields=lambda: acts[0].fields() if acts else {}) as node:
+        act = Actuator(loop, node, node.publisher(keys.motor_state(rig)))
+        acts.append(act)
         inbox = Latest()
-        sub = s.declare_subscriber(keys.command(rig),
-                                   lambda sample: inbox.put(sample.payload.to_bytes()))
-        token = s.liveliness().declare_token(session.alive_key(rig, "actuator"))
-
-        def publish(state):
-            pub.put(state.to_bytes())
-
+        node.subscriber(keys.command(rig), lambda sample: inbox.put(sample.payload.to_bytes()))
+        node.ready()
         log.info("actuator %s on %s: %s", driver.describe(), keys.command(rig), first.status)
-        publish(first)
+        act.publish(first)
         try:
-            serve(loop, publish, inbox, stop, a.state_hz)
+            serve(act, inbox, stop, a.state_hz)
         finally:
-            publish(loop.stop())
-            token.undeclare()
-            sub.undeclare()
-            pub.undeclare()
-    finally:
-        s.close()
+            act.publish(loop.stop())
     return 0
 
 

@@ -259,9 +259,226 @@ class ExposureClock:
         return out
 
 
+class Capture:
+    """One capture process: the source, what moves the frames (the fovea, the windows, the workers' roster, the
+    motor's history), the callbacks that feed them, and the loop that reads, plans and publishes (run)."""
+
+    def __init__(self, settings, source, focal: float, at: tuple[int, int], conf: zenoh.Config, stop: session.Stop):
+        self.settings, self.source, self.focal, self.stop = settings, source, focal, stop
+        self.rig, self.cs, self.params, self.limits = settings.rig, settings.capture, settings.network, settings.limits
+        self.wd, self.ht = source.size
+        # the master's pan and the common tilt (the simulated rig aims its master; a real master is fixed: 0, 0)
+        self.master_pan, self.tilt = getattr(source, "master_pan_rad", 0.0), getattr(source, "tilt_rad", 0.0)
+        self.windows = WindowControl(self.params)
+        lim = self.limits
+        self.members = Roster(lim.miss_s, lim.probation_s, lim.miss_frames)
+        hz = settings.actuator.state_hz
+        self.history = PanHistory(max_gap_s=max(0.1, 3.0 / hz if hz > 0 else 0.1))
+        self.history_lock = threading.Lock()
+        rate = self.cs.rate_hz
+        self.clock = ExposureClock(settings.camera.timing(), 1.0 / rate if rate > 0 else 0.0)
+        self.rates = Rates()
+        self.plan: list = []
+        self.plan_key = None
+        self.fid = 0
+        self.unclipped: dict[int, None] = {}  # the recent frames published with the master unclipped (clip_fallback)
+        self.pair: list = []  # the latest (master, slave), for the clipped shares of the status
+        self.warned: set[str] = set()
+        self.node = Node("capture", self.rig, conf, stop, log=log, fields=self.fields, final_fields=lambda: dict(
+            window=self.windows.window, workers=len(self.plan)))
+        self.health = self.node.health
+        self.fovea = Fovea(*at, (self.ht, self.wd), self.params, self.health)
+        self.period = 1.0 / rate if rate > 0 else 0.0
+        self.preview_period = 1.0 / self.cs.preview_hz if self.cs.preview_hz > 0 else 0.0
+        self.pw = min(self.cs.preview_width, self.wd) if self.cs.preview_width > 0 else self.wd
+        self.ph = max(1, round(self.ht * self.pw / self.wd))
+
+    # -- the status ---------------------------------------------------------------------------------------------
+
+    def clipped(self) -> dict:
+        """retina.clipped_share at the fovea's rows; one warning per camera over CLIP_WARN."""
+        if not self.pair:
+            return {}
+        try:
+            out = retina.clipped_share(*self.pair, self.fovea.at()[1], self.windows.window, self.params.vsearch)
+        except ValueError as e:  # a figure of the status never stops the capture
+            if "error" not in self.warned:
+                self.warned.add("error")
+                log.warning("no clipped shares in the status: %s", e)
+            return {}
+        for cam, share in out.items():
+            if share >= retina.CLIP_WARN and cam not in self.warned:
+                self.warned.add(cam)
+                log.warning("the %s camera shows %.0f %% of the fovea's rows black or saturated where the other "
+                            "camera sees texture: that texture is lost to the match; set both cameras' exposure "
+                            "and gain alike (README, Two real cameras)", cam, 100 * share)
+        return {cam: round(share, 3) for cam, share in out.items()}
+
+    def fields(self) -> dict:
+        source = self.source
+        return dict(window=self.windows.window, workers=len(self.plan), excluded=self.members.excluded(),
+                    **self.rates.fields(), roster=dict(self.members.counters), clipped=self.clipped(),
+                    **self.fovea.fields(), **self.clock.fields(),
+                    **({"source": source.status()} if hasattr(source, "status") else {}))
+
+    # -- the callbacks (zenoh's threads) ------------------------------------------------------------------------
+
+    def on_motor(self, sample) -> None:
+        try:
+            st = MotorState.from_bytes(sample.payload.to_bytes())
+            why = motor_state_implausible(st, self.settings.actuator.motor, time.time_ns(), self.limits.max_skew_s)
+            if why is not None:
+                raise MessageError(why)
+            with self.history_lock:
+                remember(self.history, st, time.time_ns())
+            self.health.count("motor_states")
+        except MessageError as e:
+            self.health.reject("motor_state", e)
+
+    def on_token(self, sample) -> None:
+        wid = keys.parse(str(sample.key_expr)).ident
+        self.members.token(wid, sample.kind == zenoh.SampleKind.PUT)
+        log.info("workers: %s", sorted(self.members.tokens))
+
+    def on_report(self, sample) -> None:
+        try:
+            rep = json.loads(sample.payload.to_bytes())
+            if not isinstance(rep, dict) or not isinstance(rep.get("workers"), dict):
+                raise ValueError("not a report")
+        except ValueError as e:
+            self.health.reject("workers", e)
+            return
+        for wid in self.members.on_report(rep):
+            log.warning("worker %s left the plan: its shards stopped arriving at the reducer", wid)
+        if isinstance(rep.get("complete"), int):
+            self.rates.decided = rep["complete"]
+
+    def on_decision(self, sample) -> None:
+        try:
+            v = Verdict.from_bytes(sample.payload.to_bytes())
+        except MessageError as e:
+            self.health.reject("decision", e)
+            return
+        self.windows.update(v.window, v.confident, v.frame not in self.unclipped)
+
+    # -- the loop -----------------------------------------------------------------------------------------------
+
+    def open(self) -> None:
+        """In the Node's block: the publishers and subscriptions, the warm-up, then the liveliness token."""
+        node, rig = self.node, self.rig
+        self.pub_frame = node.publisher(keys.frame(rig), express=True)
+        self.pub_preview = node.publisher(keys.preview(rig))
+        node.subscriber(keys.motor_state(rig), self.on_motor)
+        node.subscriber(keys.workers(rig), self.on_report)
+        node.liveliness_subscriber(keys.alives(rig, "worker"), self.on_token, history=True)
+        if len(self.windows.states) > 1:  # a dynamic window (max_window, clip_fallback): the decisions drive it
+            node.subscriber(keys.decision(rig), self.on_decision)
+        node.subscriber(keys.fixate(rig), lambda sm: self.fovea.on_fixate(sm.payload.to_bytes()))
+        retina.warm_up()
+        node.ready()
+        log.info("capture %s: %s (%d x %d, f=%.1f px) at %s Hz on %s", node.ident, self.cs.source, self.wd, self.ht,
+                 self.focal, self.cs.rate_hz or "max", keys.frame(rig))
+        if not self.source.follows_pan:
+            log.info("the source's images do not move with the slave motor: every frame carries the pan they were "
+                     "taken at, %.1f deg, so the commands hold the motor at one pan instead of winding it to a limit "
+                     "(the loop closes with camera and sim sources)",
+                     math.degrees(self.source.start_pan_rad))
+
+    def run(self, frames: int = 0) -> int:
+        """Read, plan and publish until the stop or `frames` published (0: never); 2 when the source fails."""
+        stop, period = self.stop, self.period
+        next_t = time.monotonic()
+        self.next_preview = next_t
+        while not stop.is_set() and (frames <= 0 or self.rates.published < frames):
+            if period:
+                delay = next_t - time.monotonic()
+                if delay > 0:
+                    stop.wait(delay)
+                    if stop.is_set():
+                        break
+                # keep the schedule, but never try to catch up more than one period late
+                next_t = max(next_t + period, time.monotonic() - period)
+            pan_at = PanLookup(self.history, self.history_lock, self.source)
+            try:
+                master, slave = self.source.read(pan_at)
+            except SourceError as e:
+                if getattr(e, "transient", False):  # a live stream with no new image yet (ros2): try again
+                    self.node.tick()
+                    continue
+                print(f"vergence capture: {e}", file=sys.stderr)
+                return 2
+            self.step(master, slave, pan_at)
+        return 0
+
+    def step(self, master, slave, pan_at: PanLookup) -> None:
+        """One pair read: stamped, planned, published (when some worker is alive), previewed; the status."""
+        t_read = time.time_ns()
+        t_ns, t_slave = self.clock.stamp(t_read, self.source.exposure_ns)
+        p_now, stale = pan_at.frame(t_slave)
+        if stale:
+            self.health.count("pan_unknown")
+        self.pair[:] = master, slave
+        w, clip = self.windows.state
+        changes, ids = self.members.snapshot()
+        if (changes, w) != self.plan_key:
+            self.plan_key = (changes, w)
+            self.plan = plan_shards(ids, self.wd - w + 1)
+        self.fid += 1
+        self.health.count("frames")
+        if self.plan and not self.pub_frame.matching_status.matching:
+            # workers are alive but the router has not yet told this session about their
+            # subscriptions (just after start): a frame now would go nowhere
+            self.health.count("unrouted")
+        elif self.plan:
+            if not self.publish(master, slave, w, clip, t_ns, t_slave, t_read, p_now, stale):
+                return  # a grown window that no longer fits: back to the base one, and the next pair
+        else:
+            self.health.count("no_workers")
+        now = time.monotonic()
+        if self.preview_period and now >= self.next_preview:
+            self.next_preview = now + self.preview_period
+            self.preview(master, slave, t_ns, p_now)
+        self.node.tick(now)
+
+    def publish(self, master, slave, w: int, clip: bool, t_ns: int, t_slave: int, t_read: int, p_now: float,
+                stale: bool) -> bool:
+        """The frame of this pair, published; False when the window no longer fits (reset to the base one)."""
+        windows, fid = self.windows, self.fid
+        try:
+            frame = make_frame(master, slave, rig=self.rig, frame=fid, pan_rad=p_now, focal_px=self.focal,
+                               params=self.params, plan=self.plan, at=self.fovea.at(), window=w,
+                               t_capture_ns=t_ns, clip=clip)
+            frame.master_pan_rad, frame.tilt_rad = self.master_pan, self.tilt
+            frame.skew_ns, frame.t_read_ns, frame.pan_stale = t_slave - t_ns, t_read, stale
+        except retina.BorderError:
+            windows.reset()
+            return False
+        if len(windows.states) > len(windows.sizes):  # clip_fallback: the decision's state is ours
+            if clip:
+                if not windows.was_clipped:  # once set, it stays until a confident decision: no re-check
+                    windows.clipped(retina.master_clipped(master, slave, frame.y, w, self.params))
+            else:
+                self.unclipped[fid] = None
+                while len(self.unclipped) > 1024:
+                    del self.unclipped[next(iter(self.unclipped))]
+        frame.truth_pan_rad = self.source.truth_pan_rad  # the simulator's ground truth, else None
+        self.pub_frame.put(frame.to_bytes())
+        self.rates.published += 1
+        self.health.count("published")
+        return True
+
+    def preview(self, master, slave, t_ns: int, p_now: float) -> None:
+        pw, ph = self.pw, self.ph
+        m = cv2.resize(master, (pw, ph), interpolation=cv2.INTER_AREA)
+        sl = cv2.resize(slave, (pw, ph), interpolation=cv2.INTER_AREA)
+        self.pub_preview.put(Preview(rig=self.rig, frame=self.fid, t_capture_ns=t_ns, width=pw, height=ph,
+                                     scale=pw / self.wd, master=m.tobytes(), slave=sl.tobytes(), pan_rad=p_now,
+                                     truth_pan_rad=self.source.truth_pan_rad).to_bytes())
+
+
 def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
          at: tuple[int, int] | None = None) -> int:
-    rig, cs, params, geo = settings.rig, settings.capture, settings.network, settings.geometry
+    cs, params, geo = settings.capture, settings.network, settings.geometry
     try:
         source = open_source(cs.source, geo.master or cs.master)
     except SourceError as e:
@@ -269,8 +486,6 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         return 2
     wd, ht = source.size
     focal = geo.focal_px or cs.focal_px or source.focal_px or 0.8 * wd
-    # the master's pan and the common tilt (the simulated rig aims its master; a real master is fixed: 0, 0)
-    master_pan, tilt = getattr(source, "master_pan_rad", 0.0), getattr(source, "tilt_rad", 0.0)
     if getattr(source, "gimbal", geo.gimbal) != geo.gimbal:
         log.warning("the source's gimbal is %s, [rig] gimbal %s: the reducer's depth assumes the latter",
                     source.gimbal, geo.gimbal)
@@ -281,182 +496,10 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         print(f"vergence capture: {e}", file=sys.stderr)
         source.close()
         return 2
-    windows = WindowControl(params)
-    lim = settings.limits
-    members = Roster(lim.miss_s, lim.probation_s, lim.miss_frames)
-    history = PanHistory(max_gap_s=max(0.1, 3.0 / settings.actuator.state_hz if settings.actuator.state_hz > 0
-                                        else 0.1))
-    history_lock = threading.Lock()
-    clock = ExposureClock(settings.camera.timing(), 1.0 / cs.rate_hz if cs.rate_hz > 0 else 0.0)
-    rates = Rates()
-    plan: list = []
-    unclipped: dict[int, None] = {}  # the recent frames published with the master unclipped (clip_fallback)
-
-    pair: list = []  # the latest (master, slave), for the clipped shares of the status
-    warned: set[str] = set()
-
-    def clipped() -> dict:
-        """retina.clipped_share at the fovea's rows; one warning per camera over CLIP_WARN."""
-        if not pair:
-            return {}
-        try:
-            out = retina.clipped_share(*pair, fovea.at()[1], windows.window, params.vsearch)
-        except ValueError as e:  # a figure of the status never stops the capture
-            if "error" not in warned:
-                warned.add("error")
-                log.warning("no clipped shares in the status: %s", e)
-            return {}
-        for cam, share in out.items():
-            if share >= retina.CLIP_WARN and cam not in warned:
-                warned.add(cam)
-                log.warning("the %s camera shows %.0f %% of the fovea's rows black or saturated where the other "
-                            "camera sees texture: that texture is lost to the match; set both cameras' exposure "
-                            "and gain alike (README, Two real cameras)", cam, 100 * share)
-        return {cam: round(share, 3) for cam, share in out.items()}
-
-    def fields() -> dict:
-        return dict(window=windows.window, workers=len(plan), excluded=members.excluded(), **rates.fields(),
-                    roster=dict(members.counters), clipped=clipped(), **fovea.fields(), **clock.fields(),
-                    **({"source": source.status()} if hasattr(source, "status") else {}))
-
-    node = Node("capture", rig, conf, stop, log=log, fields=fields,
-                final_fields=lambda: dict(window=windows.window, workers=len(plan)))
-    health, cid = node.health, node.ident
-    fovea = Fovea(x, y, (ht, wd), params, health)
-
-    def on_motor(sample):
-        try:
-            st = MotorState.from_bytes(sample.payload.to_bytes())
-            why = motor_state_implausible(st, settings.actuator.motor, time.time_ns(), lim.max_skew_s)
-            if why is not None:
-                raise MessageError(why)
-            with history_lock:
-                remember(history, st, time.time_ns())
-            health.count("motor_states")
-        except MessageError as e:
-            health.reject("motor_state", e)
-
-    def on_token(sample):
-        wid = keys.parse(str(sample.key_expr)).ident
-        members.token(wid, sample.kind == zenoh.SampleKind.PUT)
-        log.info("workers: %s", sorted(members.tokens))
-
-    def on_report(sample):
-        try:
-            rep = json.loads(sample.payload.to_bytes())
-            if not isinstance(rep, dict) or not isinstance(rep.get("workers"), dict):
-                raise ValueError("not a report")
-        except ValueError as e:
-            health.reject("workers", e)
-            return
-        for wid in members.on_report(rep):
-            log.warning("worker %s left the plan: its shards stopped arriving at the reducer", wid)
-        if isinstance(rep.get("complete"), int):
-            rates.decided = rep["complete"]
-
-    def on_decision(sample):
-        try:
-            v = Verdict.from_bytes(sample.payload.to_bytes())
-        except MessageError as e:
-            health.reject("decision", e)
-            return
-        windows.update(v.window, v.confident, v.frame not in unclipped)
-
-    period = 1.0 / cs.rate_hz if cs.rate_hz > 0 else 0.0
-    preview_period = 1.0 / cs.preview_hz if cs.preview_hz > 0 else 0.0
-    pw = min(cs.preview_width, wd) if cs.preview_width > 0 else wd
-    ph = max(1, round(ht * pw / wd))
-    with contextlib.closing(source), node:
-        pub_frame = node.publisher(keys.frame(rig), express=True)
-        pub_preview = node.publisher(keys.preview(rig))
-        node.subscriber(keys.motor_state(rig), on_motor)
-        node.subscriber(keys.workers(rig), on_report)
-        node.liveliness_subscriber(keys.alives(rig, "worker"), on_token, history=True)
-        if len(windows.states) > 1:  # a dynamic window (max_window, clip_fallback): the decisions drive it
-            node.subscriber(keys.decision(rig), on_decision)
-        node.subscriber(keys.fixate(rig), lambda sm: fovea.on_fixate(sm.payload.to_bytes()))
-        retina.warm_up()
-        node.ready()
-        log.info("capture %s: %s (%d x %d, f=%.1f px) at %s Hz on %s", cid, cs.source, wd, ht,
-                 focal, cs.rate_hz or "max", keys.frame(rig))
-        if not source.follows_pan:
-            log.info("the source's images do not move with the slave motor: every frame carries the pan they were "
-                     "taken at, %.1f deg, so the commands hold the motor at one pan instead of winding it to a limit "
-                     "(the loop closes with camera and sim sources)",
-                     math.degrees(source.start_pan_rad))
-        plan_key = None
-        fid = 0
-        next_t = time.monotonic()
-        next_preview = next_t
-        while not stop.is_set() and (frames <= 0 or rates.published < frames):
-            if period:
-                delay = next_t - time.monotonic()
-                if delay > 0:
-                    stop.wait(delay)
-                    if stop.is_set():
-                        break
-                # keep the schedule, but never try to catch up more than one period late
-                next_t = max(next_t + period, time.monotonic() - period)
-            pan_at = PanLookup(history, history_lock, source)
-            try:
-                master, slave = source.read(pan_at)
-            except SourceError as e:
-                if getattr(e, "transient", False):  # a live stream with no new image yet (ros2): try again
-                    node.tick()
-                    continue
-                print(f"vergence capture: {e}", file=sys.stderr)
-                return 2
-            t_read = time.time_ns()
-            t_ns, t_slave = clock.stamp(t_read, source.exposure_ns)
-            p_now, stale = pan_at.frame(t_slave)
-            if stale:
-                health.count("pan_unknown")
-            pair[:] = master, slave
-            w, clip = windows.state
-            changes, ids = members.snapshot()
-            if (changes, w) != plan_key:
-                plan_key = (changes, w)
-                plan = plan_shards(ids, wd - w + 1)
-            fid += 1
-            health.count("frames")
-            if plan and not pub_frame.matching_status.matching:
-                # workers are alive but the router has not yet told this session about their
-                # subscriptions (just after start): a frame now would go nowhere
-                health.count("unrouted")
-            elif plan:
-                try:
-                    frame = make_frame(master, slave, rig=rig, frame=fid, pan_rad=p_now, focal_px=focal,
-                                       params=params, plan=plan, at=fovea.at(), window=w,
-                                       t_capture_ns=t_ns, clip=clip)
-                    frame.master_pan_rad, frame.tilt_rad = master_pan, tilt
-                    frame.skew_ns, frame.t_read_ns, frame.pan_stale = t_slave - t_ns, t_read, stale
-                except retina.BorderError:  # a grown window that no longer fits: back to the base one
-                    windows.reset()
-                    continue
-                if len(windows.states) > len(windows.sizes):  # clip_fallback: the decision's state is ours
-                    if clip:
-                        if not windows.was_clipped:  # once set, it stays until a confident decision: no re-check
-                            windows.clipped(retina.master_clipped(master, slave, frame.y, w, params))
-                    else:
-                        unclipped[fid] = None
-                        while len(unclipped) > 1024:
-                            del unclipped[next(iter(unclipped))]
-                frame.truth_pan_rad = source.truth_pan_rad  # the simulator's ground truth, else None
-                pub_frame.put(frame.to_bytes())
-                rates.published += 1
-                health.count("published")
-            else:
-                health.count("no_workers")
-            now = time.monotonic()
-            if preview_period and now >= next_preview:
-                next_preview = now + preview_period
-                m = cv2.resize(master, (pw, ph), interpolation=cv2.INTER_AREA)
-                sl = cv2.resize(slave, (pw, ph), interpolation=cv2.INTER_AREA)
-                pub_preview.put(Preview(rig=rig, frame=fid, t_capture_ns=t_ns, width=pw, height=ph,
-                                        scale=pw / wd, master=m.tobytes(), slave=sl.tobytes(), pan_rad=p_now,
-                                        truth_pan_rad=source.truth_pan_rad).to_bytes())
-            node.tick(now)
-    return 0
+    capture = Capture(settings, source, focal, (x, y), conf, stop)
+    with contextlib.closing(source), capture.node:
+        capture.open()
+        return capture.run(frames)
 
 
 def settings_from_args(args: argparse.Namespace):

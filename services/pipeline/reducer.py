@@ -30,15 +30,15 @@ import time
 
 import zenoh
 
-from vergence import depth, kernel, keys
+from vergence import depth, keys
 from vergence.config import load
-from vergence.frames import frame_too_large, make_frame
+from vergence.frames import check_frame
 from vergence.gather import FrameDecision, Gatherer
 from vergence.messages import MAX_HOLD_S, Frame, Hold, MessageError, MotorState, Partial, replace as replace_message
-from vergence.shards import compute_partial
 
 from services.runtime import session
 from services.runtime.node import Node
+from services.runtime.warm import warm_up
 
 log = logging.getLogger("vergence.reducer")
 SUMMARY_S = 5.0
@@ -55,22 +55,6 @@ def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
     p.add_argument("--deadline-ms", type=float, default=None, help="drop a frame whose shards are not all in "
                                                                    "by then (default: settings, 50)")
-
-
-def warm_up(settings) -> None:
-    """Decide once on a synthetic textured frame (left-right check included), so the first real frame
-    does not pay for loading the compiled kernels."""
-    import numpy as np
-
-    kernel.warm_up()
-    rng = np.random.default_rng(0)
-    img = rng.integers(0, 256, (64, 128), np.uint8)
-    p = dataclasses.replace(settings.network, window=15, vsearch=min(settings.network.vsearch, 2))
-    g = Gatherer(p, settings.control)
-    f = make_frame(img, img, rig="warm", frame=0, pan_rad=0.0, focal_px=100.0, params=p,
-                   plan=[["w", 0, 128 - 15 + 1]])
-    g.add_frame(f)
-    g.add_partial(compute_partial(f, "w"))
 
 
 def summary(seconds: float, frames: int, lost: int, commands: int, last: FrameDecision) -> str:
@@ -185,147 +169,158 @@ def newest_first(msgs: list) -> list:
     return sorted(msgs, key=lambda m: (-m.frame, not isinstance(m, Frame)))
 
 
-def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | None = None) -> int:
-    rig = settings.rig
-    warm_up(settings)
-    deadline = (deadline_ms if deadline_ms is not None else settings.reducer.deadline_ms) / 1000.0
-    limits = settings.limits
-    gatherer = Gatherer(settings.network, settings.control, deadline, limits, motor=settings.actuator.motor)
-    lock = threading.Lock()  # the gatherer: the loop thread and the status
-    inbox = Inbox()
+class Reducer:
+    """One reducer process: the gatherer, the inbox its forwarders fill, and its loop (run) in the Node's block.
 
-    presence: list[MotorPresence] = []
+    zenoh's receiving threads only push into rings (Rust, no Python, no GIL: they never wait for this process,
+    so no queue builds up in the network; the oldest go when a ring is full); one forwarder thread per ring
+    hands the payloads to the inbox; the loop's thread decodes, gathers, decides and publishes, expires
+    deadlines, and publishes the status and the membership evidence."""
 
-    def fields() -> dict:
-        with lock:
-            return dict(gatherer=dict(gatherer.counters), pending=len(gatherer.pending), shed=dict(inbox.shed),
-                        **(presence[0].fields() if presence else {}))
+    def __init__(self, settings, deadline_s: float):
+        self.settings, self.rig, self.limits, self.deadline = settings, settings.rig, settings.limits, deadline_s
+        self.gatherer = Gatherer(settings.network, settings.control, deadline_s, self.limits,
+                                 motor=settings.actuator.motor)
+        self.lock = threading.Lock()  # the gatherer: the loop thread and the status
+        self.inbox = Inbox()
+        self.presence: MotorPresence | None = None
+        self.last: list[FrameDecision] = []
 
-    with Node("reducer", rig, conf, stop, log=log, fields=fields) as node:
-        health, rid = node.health, node.ident
-        presence.append(MotorPresence(health))
-        node.subscriber(keys.motor_state(rig), lambda sm: presence[0].on_state(sm.payload.to_bytes()))
-        pub_decision = node.publisher(keys.decision(rig), express=True)
-        pub_profile = node.publisher(keys.profile(rig), express=True)
-        pub_command = node.publisher(keys.command(rig), express=True)
-        pub_workers = node.publisher(keys.workers(rig), express=True)
+    def fields(self) -> dict:
+        with self.lock:
+            return dict(gatherer=dict(self.gatherer.counters), pending=len(self.gatherer.pending),
+                        shed=dict(self.inbox.shed), **(self.presence.fields() if self.presence else {}))
 
-        last: list[FrameDecision] = []
-        geo = settings.geometry
-        hold = Lease(health)
-        node.subscriber(keys.hold(rig), lambda sm: hold.on_hold(sm.payload.to_bytes()))
-
-        def publish(results) -> None:
-            if results:
-                last[:] = results[-1:]
-            for r in results:
-                if r.command is not None and hold.held():
-                    health.count("held")  # a client moves the slave itself (`vergence latency`)
-                elif r.command is not None and presence[0].absent():
-                    health.count("motor_absent")  # nothing would execute it: the actuator has lost its motor
-                elif r.command is not None:  # the command first: the actuator waits for it
-                    pub_command.put(r.command.to_bytes())
-                    health.count("commands")
-                where = depth.decision_fields(r.frame, r.decision, r.scores, geo.baseline_m, geo.gimbal,
-                                              geo.master or settings.capture.master)
-                pub_decision.put(replace_message(r.verdict, **where).to_bytes())
-                if pub_profile.matching_status.matching:  # up to 65 KB at 640 px: only encoded when wanted
-                    pub_profile.put(replace_message(r.profile, **where).to_bytes())
-                health.count("profiles")
-
-        def decode(kind: str, item):
-            """A Frame or Partial from (key, bytes), or None (counted by reason)."""
-            key, data = item
-            if kind == "frame":
-                why = frame_too_large(None, len(data), limits)
-                try:
-                    if why is not None:
-                        raise MessageError(why)
-                    frame = Frame.from_bytes(data)
-                    why = frame_too_large(frame, len(data), limits)
-                    if why is not None:
-                        raise MessageError(why)
-                    return frame
-                except MessageError as e:
-                    health.reject("frame", e)
-                    return None
-            try:
-                part = Partial.from_bytes(data)
-                k = keys.parse(key)
-                if k is None or k.ident != part.worker:
-                    raise MessageError(f"partial from worker {part.worker!r} on key {key}")
-                return part
-            except MessageError as e:
-                health.reject("partial", e)
-                return None
-
-        def handle(batch) -> None:
-            # frames newest (last arrived) first, and only until KEEP_FRAMES valid ones: the older ones of a
-            # backlog would be superseded anyway, so they are let go (shed) without the cost of decoding them
-            frames = [x for k, x in batch if k == "frame"]
-            msgs = []
-            for i, item in enumerate(reversed(frames)):
-                if len(msgs) >= KEEP_FRAMES:
-                    inbox.count_shed("frame", len(frames) - i)
-                    break
-                m = decode("frame", item)
-                if m is not None:
-                    msgs.append(m)
-            msgs += [m for m in (decode(k, x) for k, x in batch if k == "partial") if m is not None]
-            with lock:
-                for m in newest_first(msgs):
-                    try:
-                        if isinstance(m, Frame):
-                            publish(gatherer.add_frame(m))
-                        else:
-                            publish(gatherer.add_partial(m))
-                    except Exception as e:  # a message that validates but cannot be decided on: never fatal
-                        health.reject(m.KIND, e)
-
-        # zenoh's receiving threads only push into rings (Rust, no Python, no GIL: they never wait for this
-        # process, so no queue builds up in the network; the oldest go when a ring is full); one forwarder
-        # thread per ring hands the payloads to the inbox; this thread decodes, gathers, decides and
-        # publishes, expires deadlines, and publishes the status and the membership evidence
-        def forward(kind: str, sub) -> None:
-            for smp in node.samples(sub):
-                inbox.put(kind, (str(smp.key_expr), smp.payload.to_bytes()))
-
-        node.thread(forward, "frame", node.ring(keys.frame(rig), FRAME_RING), name="reducer-frame")
-        node.thread(forward, "partial", node.ring(keys.correlations(rig), PARTIAL_RING,
-                                                  wake=keys.correlation(rig, WAKE)), name="reducer-partial")
+    def open(self, node: Node) -> None:
+        """The subscriptions, the publishers and the forwarder threads, then the liveliness token."""
+        rig = self.rig
+        self.node, self.health = node, node.health
+        self.presence = MotorPresence(self.health)
+        node.subscriber(keys.motor_state(rig), lambda sm: self.presence.on_state(sm.payload.to_bytes()))
+        self.pub_decision = node.publisher(keys.decision(rig), express=True)
+        self.pub_profile = node.publisher(keys.profile(rig), express=True)
+        self.pub_command = node.publisher(keys.command(rig), express=True)
+        self.pub_workers = node.publisher(keys.workers(rig), express=True)
+        self.hold = Lease(self.health)
+        node.subscriber(keys.hold(rig), lambda sm: self.hold.on_hold(sm.payload.to_bytes()))
+        node.thread(self.forward, "frame", node.ring(keys.frame(rig), FRAME_RING), name="reducer-frame")
+        node.thread(self.forward, "partial", node.ring(keys.correlations(rig), PARTIAL_RING,
+                                                       wake=keys.correlation(rig, WAKE)), name="reducer-partial")
         node.ready()
-        log.info("reducer %s on %s and %s, deadline %.0f ms", rid, keys.frame(rig), keys.correlations(rig),
-                 deadline * 1e3)
+        log.info("reducer %s on %s and %s, deadline %.0f ms", node.ident, keys.frame(rig), keys.correlations(rig),
+                 self.deadline * 1e3)
 
-        def workers_report() -> bytes:
-            with lock:
-                return json.dumps(dict(gatherer.report(), rig=rig, id=rid, t_ns=time.time_ns(),
-                                       complete=gatherer.counters["complete"])).encode()
+    def forward(self, kind: str, sub) -> None:
+        """A forwarder thread: one ring's payloads, with their keys, into the inbox."""
+        for smp in self.node.samples(sub):
+            self.inbox.put(kind, (str(smp.key_expr), smp.payload.to_bytes()))
 
+    def publish(self, results) -> None:
+        if results:
+            self.last[:] = results[-1:]
+        geo, health = self.settings.geometry, self.health
+        for r in results:
+            if r.command is not None and self.hold.held():
+                health.count("held")  # a client moves the slave itself (`vergence latency`)
+            elif r.command is not None and self.presence.absent():
+                health.count("motor_absent")  # nothing would execute it: the actuator has lost its motor
+            elif r.command is not None:  # the command first: the actuator waits for it
+                self.pub_command.put(r.command.to_bytes())
+                health.count("commands")
+            where = depth.decision_fields(r.frame, r.decision, r.scores, geo.baseline_m, geo.gimbal,
+                                          geo.master or self.settings.capture.master)
+            self.pub_decision.put(replace_message(r.verdict, **where).to_bytes())
+            if self.pub_profile.matching_status.matching:  # up to 65 KB at 640 px: only encoded when wanted
+                self.pub_profile.put(replace_message(r.profile, **where).to_bytes())
+            health.count("profiles")
+
+    def decode(self, kind: str, item):
+        """A Frame or Partial from (key, bytes), or None (counted by reason)."""
+        key, data = item
+        if kind == "frame":
+            try:
+                return check_frame(data, self.limits)
+            except MessageError as e:
+                self.health.reject("frame", e)
+                return None
+        try:
+            part = Partial.from_bytes(data)
+            k = keys.parse(key)
+            if k is None or k.ident != part.worker:
+                raise MessageError(f"partial from worker {part.worker!r} on key {key}")
+            return part
+        except MessageError as e:
+            self.health.reject("partial", e)
+            return None
+
+    def handle(self, batch) -> None:
+        # frames newest (last arrived) first, and only until KEEP_FRAMES valid ones: the older ones of a
+        # backlog would be superseded anyway, so they are let go (shed) without the cost of decoding them
+        frames = [x for k, x in batch if k == "frame"]
+        msgs = []
+        for i, item in enumerate(reversed(frames)):
+            if len(msgs) >= KEEP_FRAMES:
+                self.inbox.count_shed("frame", len(frames) - i)
+                break
+            m = self.decode("frame", item)
+            if m is not None:
+                msgs.append(m)
+        msgs += [m for m in (self.decode(k, x) for k, x in batch if k == "partial") if m is not None]
+        with self.lock:
+            for m in newest_first(msgs):
+                try:
+                    if isinstance(m, Frame):
+                        self.publish(self.gatherer.add_frame(m))
+                    else:
+                        self.publish(self.gatherer.add_partial(m))
+                except Exception as e:  # a message that validates but cannot be decided on: never fatal
+                    self.health.reject(m.KIND, e)
+
+    def workers_report(self) -> bytes:
+        with self.lock:
+            return json.dumps(dict(self.gatherer.report(), rig=self.rig, id=self.node.ident, t_ns=time.time_ns(),
+                                   complete=self.gatherer.counters["complete"])).encode()
+
+    def counts(self) -> tuple[int, int, int]:
+        """For the summary: frames complete, frames lost (dropped or superseded), commands sent."""
+        with self.lock:
+            c = self.gatherer.counters
+            return c["complete"], c["dropped"] + c["superseded"], self.health.counters.get("commands", 0)
+
+    def run(self, stop: session.Stop) -> None:
+        """The loop, until stop: what arrived, the deadlines, the membership evidence, the status, the summary."""
         next_report = time.monotonic() + REPORT_S
         next_summary, seen = time.monotonic() + SUMMARY_S, (0, 0, 0)
         sleep = EXPIRE_S
         while not stop.is_set():
-            batch = inbox.drain(sleep)
+            batch = self.inbox.drain(sleep)
             if batch:
-                handle(batch)
-            with lock:
-                gatherer.expire()
-                due = gatherer.next_deadline()
+                self.handle(batch)
+            with self.lock:
+                self.gatherer.expire()
+                due = self.gatherer.next_deadline()
             now = time.monotonic()
             # wake at the next deadline (every 5 ms before: 200 wake-ups a second for nothing)
             sleep = EXPIRE_S if due is None else min(EXPIRE_S, max(0.001, due - now))
             if now >= next_report:
-                pub_workers.put(workers_report())
+                self.pub_workers.put(self.workers_report())
                 next_report = now + REPORT_S
-            node.tick(now)
+            self.node.tick(now)
             if now >= next_summary:
-                with lock:
-                    c = gatherer.counters
-                    counts = (c["complete"], c["dropped"] + c["superseded"], health.counters.get("commands", 0))
-                    if counts[0] > seen[0]:
-                        log.info("%s", summary(SUMMARY_S, *(a - b for a, b in zip(counts, seen)), last[0]))
+                counts = self.counts()
+                if counts[0] > seen[0]:
+                    with self.lock:
+                        log.info("%s", summary(SUMMARY_S, *(a - b for a, b in zip(counts, seen)), self.last[0]))
                 seen, next_summary = counts, now + SUMMARY_S
+
+
+def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | None = None) -> int:
+    warm_up(settings.network, settings.control)
+    deadline = (deadline_ms if deadline_ms is not None else settings.reducer.deadline_ms) / 1000.0
+    reducer = Reducer(settings, deadline)
+    with Node("reducer", settings.rig, conf, stop, log=log, fields=reducer.fields) as node:
+        reducer.open(node)
+        reducer.run(stop)
     return 0
 
 

@@ -16,18 +16,18 @@ import argparse
 import logging
 import time
 
-import numpy as np
 import zenoh
 
-from vergence import kernel, keys
+from vergence import keys
 from vergence.config import LimitSettings, load
-from vergence.frames import frame_too_large, make_frame
-from vergence.messages import Frame, MessageError
+from vergence.frames import check_frame
+from vergence.messages import MessageError
 from vergence.params import Params
 from vergence.shards import compute_partial
 
 from services.runtime import session
 from services.runtime.node import Node
+from services.runtime.warm import warm_up
 
 log = logging.getLogger("vergence.worker")
 
@@ -35,30 +35,6 @@ log = logging.getLogger("vergence.worker")
 def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
     p.add_argument("--name", default=None, help="worker id prefix (default: the host name); -<pid> is appended")
-
-
-def warm_up(params: Params) -> None:
-    """Run the kernel once on a small synthetic frame, so the first real frame is not late."""
-    kernel.warm_up()
-    rng = np.random.default_rng(0)
-    img = rng.integers(0, 256, (64, 96), np.uint8)
-    p = Params(window=15, vsearch=min(params.vsearch, 2), circular=params.circular, support=params.support)
-    f = make_frame(img, img, rig="warm", frame=0, pan_rad=0.0, focal_px=80.0, params=p,
-                   plan=[["w", 0, 96 - 15 + 1]])
-    compute_partial(f, "w")
-
-
-def check_frame(data: bytes, limits: LimitSettings, now_ns: int) -> Frame:
-    """The frame in a message, if it is one a worker should compute; MessageError says why not."""
-    why = frame_too_large(None, len(data), limits)
-    if why is None:
-        frame = Frame.from_bytes(data)
-        why = frame_too_large(frame, len(data), limits)
-        if why is None and abs(frame.t_capture_ns - now_ns) > limits.max_skew_s * 1e9:
-            why = f"frame {frame.frame} captured {(frame.t_capture_ns - now_ns) / 1e9:+.3g} s from our clock"
-    if why is not None:
-        raise MessageError(why)
-    return frame
 
 
 class Gaps:
@@ -75,43 +51,53 @@ class Gaps:
         return gap if 0 < gap <= self.window else 0
 
 
+class Worker:
+    """One worker's loop (a thread of its Node): the newest frame, checked, its shard computed and published."""
+
+    def __init__(self, node: Node, limits: LimitSettings):
+        self.node, self.health, self.limits = node, node.health, limits
+        self.gaps = Gaps(limits.frame_window)
+        self.busy_ns = 0
+        self.sub = node.ring(keys.frame(node.rig), 1)
+        self.pub = node.publisher(keys.correlation(node.rig, node.ident), express=True)
+
+    def loop(self) -> None:
+        health = self.health
+        for sample in self.node.samples(self.sub):
+            t0 = time.perf_counter_ns()
+            try:
+                frame = check_frame(sample.payload.to_bytes(), self.limits, time.time_ns())
+            except MessageError as e:
+                health.reject("frame", e)
+                continue
+            skipped = self.gaps.seen(frame.frame)
+            if skipped:
+                health.count("skipped", skipped)
+            try:
+                part = compute_partial(frame, self.node.ident)
+            except Exception as e:  # a frame that validates but cannot be computed: never fatal
+                health.reject("frame", e)
+                continue
+            if part is None:
+                health.count("not_in_plan")
+                continue
+            self.pub.put(part.to_bytes())
+            health.count("partials")
+            self.busy_ns += time.perf_counter_ns() - t0
+
+
 def main(rig: str, conf: zenoh.Config, stop: session.Stop, name: str | None = None,
          params: Params | None = None, limits: LimitSettings | None = None) -> int:
     limits = limits or LimitSettings()
     warm_up(params or Params())
-    busy_ns = [0]
-    gaps = Gaps(limits.frame_window)
-    with Node("worker", rig, conf, stop, name=name, log=log, fields=lambda: {"busy_s": busy_ns[0] / 1e9}) as node:
-        health, wid = node.health, node.ident
-        sub = node.ring(keys.frame(rig), 1)
-        pub = node.publisher(keys.correlation(rig, wid), express=True)
-
-        def loop():
-            for sample in node.samples(sub):
-                t0 = time.perf_counter_ns()
-                try:
-                    frame = check_frame(sample.payload.to_bytes(), limits, time.time_ns())
-                except MessageError as e:
-                    health.reject("frame", e)
-                    continue
-                skipped = gaps.seen(frame.frame)
-                if skipped:
-                    health.count("skipped", skipped)
-                try:
-                    part = compute_partial(frame, wid)
-                except Exception as e:  # a frame that validates but cannot be computed: never fatal
-                    health.reject("frame", e)
-                    continue
-                if part is None:
-                    health.count("not_in_plan")
-                    continue
-                pub.put(part.to_bytes())
-                health.count("partials")
-                busy_ns[0] += time.perf_counter_ns() - t0
-
-        node.thread(loop, name="worker-loop")
+    workers: list[Worker] = []
+    with Node("worker", rig, conf, stop, name=name, log=log,
+              fields=lambda: {"busy_s": workers[0].busy_ns / 1e9 if workers else 0.0}) as node:
+        worker = Worker(node, limits)
+        workers.append(worker)
+        node.thread(worker.loop, name="worker-loop")
         node.ready()  # only now: the subscriber is up and the kernel warm
-        log.info("worker %s on %s", wid, keys.frame(rig))
+        log.info("worker %s on %s", node.ident, keys.frame(rig))
         node.run_status()
     return 0
 

@@ -17,7 +17,8 @@ or tick() from the service's own loop).
 Leaving, however the block ends: the token goes first (nobody plans on us any more), then the stop is set
 and each ring woken by a local empty sample, the threads are joined, the subscribers undeclared (no callback
 runs while the session closes), the last status goes out with final_fields() (default: fields()) and
-"exiting": true, one log line gives the counters, and the session closes.
+"exiting": true, one log line gives the counters (at debug level for a quiet node: a client), and the session
+closes.
 """
 
 from __future__ import annotations
@@ -40,9 +41,11 @@ JOIN_S = 5.0  # the longest wait for each thread at exit
 
 class Node:
     def __init__(self, role: str, rig: str, conf: zenoh.Config, stop: session.Stop, *, name: str | None = None,
-                 log: logging.Logger | None = None, fields=None, final_fields=None, timeout: float | None = None):
+                 log: logging.Logger | None = None, fields=None, final_fields=None, timeout: float | None = None,
+                 quiet: bool = False):
         self.role, self.rig, self.conf, self.stop = role, rig, conf, stop
         self.timeout = timeout  # the longest wait for a router (None: as long as it takes; a client's --wait)
+        self.quiet = quiet  # the exit's log line at debug level (a client's output is what it prints)
         self.alive = session.alive_key(rig, role, name)
         self.ident = keys.parse(self.alive).ident
         self.log = log or logging.getLogger(f"vergence.{role}")
@@ -83,8 +86,8 @@ class Node:
                 sub.undeclare()
             final = self.final_fields()
             self._status.put(json.dumps(self.health.status(**final, exiting=True)))
-            self.log.info("%s %s exits: %s bad %s %s", self.role, self.ident, self.health.counters, self.health.bad,
-                          final)
+            self.log.log(logging.DEBUG if self.quiet else logging.INFO, "%s %s exits: %s bad %s %s", self.role,
+                         self.ident, self.health.counters, self.health.bad, final)
         finally:
             s.close()
 

@@ -6,6 +6,7 @@ through a symlink, which the test re-points to a new pty to simulate unplugging 
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import signal
@@ -144,6 +145,47 @@ def test_dynamixel_actuator_bytes_state_and_replug(tmp_path):
     finally:
         dev.close()
 
+
+
+def test_the_actuator_status_counts_what_it_did(tmp_path):
+    """The actuator runs on services.runtime.node.Node: a status every second on
+    vergence/<rig>/status/actuator/<id> whose counters say what came and what went (and one at exit)."""
+    emu = DynamixelEmulator(present=2048)
+    dev = PtyDevice(emu, str(tmp_path / "ttyDXL"))
+    try:
+        with Procs(tmp_path) as P:
+            act, s, col = _dynamixel_actuator(P, dev)
+            stats = P.collect(s, P.key("status/actuator/*"))
+            pub = s.declare_publisher(P.key("command"))
+            # one at a time, each counted before the next: 3 applied, 1 refused (not finite), 1 malformed
+            for i, pan in enumerate([0.05, 0.1, math.nan, -0.02], start=1):
+                pub.put(command(P.rig, pan, i))
+                wait_state(col, lambda m, i=i: m.commands >= i, 5, f"{i} commands counted", P.logs)
+            pub.put(b"\x00garbage")
+            wait_state(col, lambda m: m.commands >= 5, 5, "5 commands counted", P.logs)
+
+            def counted():
+                for _, b, _ in reversed(stats.snapshot()):
+                    st = json.loads(b)
+                    if st["counters"].get("commands") == 5:
+                        return st
+                return None
+
+            st = wait_for(counted, 5, "a status with 5 commands", logs=P.logs)
+            c = st["counters"]
+            assert st["role"] == "actuator" and st["id"] == P.wait_alive(s, "actuator")[0]
+            assert (c["commands"], c["applied"], c["refused"], c.get("clamped", 0)) == (5, 3, 1, 0)
+            assert st["bad"] == {"command": 1}
+            assert c["motor_states"] >= 5 and st["motor"] == "ok" and st["driver"] == "dynamixel"
+            act.signal(signal.SIGINT)
+            assert act.wait(10) == 0
+            last = wait_for(lambda: next((d for d in (json.loads(b) for _, b, _ in stats.snapshot())
+                                          if d.get("exiting")), None), 5, "the status at exit", logs=P.logs)
+            assert last["counters"]["commands"] == 5 and last["motor"] == "stopped"
+            # every state it published counted: the start, one per command, the ticks and the stop
+            assert last["counters"]["motor_states"] >= len(states(col))
+    finally:
+        dev.close()
 
 def test_line_actuator(tmp_path):
     emu = LineEmulator(position=0)
