@@ -107,7 +107,7 @@ class Procs:
         return s
 
     def key(self, suffix: str) -> str:
-        """vergence/<rig>/<suffix> (the suffix as vergence.keys names it: frame, motor/state, status/** ...)."""
+        """vergence/<rig>/<suffix> (the suffix as vergence.keys names it: frame, motor_state, status/** ...)."""
         return keys.prefix(self.rig) + suffix
 
     def collect(self, session, key: str) -> "Collector":

@@ -113,7 +113,7 @@ class ReducerSettings:
 @dataclass(frozen=True)
 class ActuatorSettings:
     """driver: sim | dynamixel | line. port: a pyserial URL (/dev/ttyUSB0, socket://host:port, loop://).
-    state_hz: rate of vergence/<rig>/motor/state. motor: the motor ([actuator.motor], vergence.motors)."""
+    state_hz: rate of vergence/<rig>/motor_state. motor: the motor ([actuator.motor], vergence.motors)."""
 
     driver: str = "sim"
     port: str = ""

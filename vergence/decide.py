@@ -2,8 +2,8 @@
 check on a decision (correlation, left-right, halves: decide_scores, apply_checks).
 
 Decision is the network's decision for one fovea, the one concept the others carry: vergence.match.Match
-(one point, in one process), vergence.gather.FrameDecision (one distributed frame, in the reducer),
-messages.Verdict (that on the wire, where Decision.v is called v_shift: `v` is the schema version) and
+(one point, in one process), vergence.gather.Reduced (one distributed frame, in the reducer),
+messages.Decision (that on the wire, where Decision.v is called v_shift: `v` is the schema version) and
 vergence.sim.loop.Step (one frame of the simulated loop). See docs/SERVICE.md, "One decision, five names"."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 from . import kernel, retina
 from .params import Params
 
-__all__ = ["Decision", "decide", "centre_offset", "texture", "decide_scores", "apply_checks", "correlation",
+__all__ = ["Decision", "decide", "centre_offset", "texture", "decide_scores", "apply_checks", "pearson",
            "lr_consistent", "halves_consistent", "HALVES_TOLERANCE"]
 
 
@@ -24,7 +24,7 @@ class Decision:
     """One decision of the network for one fovea.
 
     k is the winning offset (integer, layer 4), k_sub the sub-pixel winner (k when sub-pixel is off),
-    v the vertical shift of the winning window (0 without vertical search; v_shift in messages.Verdict), k_centre
+    v the vertical shift of the winning window (0 without vertical search; v_shift in messages.Decision), k_centre
     the centre neuron,
     direction and magnitude the two layer-5 neurons: sign(k - k_centre) and |k - k_centre| pixels.
     offset_px = k_sub - k_centre: how far right of the fovea's column its match lies in the slave.
@@ -150,7 +150,7 @@ def apply_checks(d: Decision, fovea: np.ndarray, x: int, params: Params, master_
     The first check that fails makes it not confident, and the later ones are not asked."""
     if not d.confident or slave_band is None:
         return d
-    if params.min_correlation > 0 and not correlation(fovea, slave_band, d) >= params.min_correlation:
+    if params.min_correlation > 0 and not pearson(fovea, slave_band, d) >= params.min_correlation:
         return replace(d, confident=False)
     if params.lr_check and master_rows is not None and not lr_consistent(master_rows, slave_band, x, d, params):
         return replace(d, confident=False)
@@ -159,7 +159,7 @@ def apply_checks(d: Decision, fovea: np.ndarray, x: int, params: Params, master_
     return d
 
 
-def correlation(fovea: np.ndarray, slave_band: np.ndarray, d: Decision) -> float:
+def pearson(fovea: np.ndarray, slave_band: np.ndarray, d: Decision) -> float:
     """Pearson correlation of the fovea's intensities with those of the winning slave window (rows shifted
     by v, columns k..k+w-1 of the band): near 1 for a real match, near 0 for two fields of independent
     noise; 0 when either is flat."""

@@ -138,7 +138,7 @@ def fixated_depth(*, x: float, y: float, width: int, height: int, focal_px: floa
 
 def decision_fields(frame, decision, scores: np.ndarray, baseline_m: float, gimbal: str = "helmholtz",
                     master: str = "left") -> dict:
-    """The fields the reducer adds to a decision's Verdict and Profile: the fovea centre x, y it was decided
+    """The fields the reducer adds to a decision's Decision and Profile: the fovea centre x, y it was decided
     for, converged, depth_m and depth_sigma_m. frame: a messages.Frame; decision: its vergence.decide.Decision;
     scores: its layer-4 scores (rows x K, row v + R the winning one)."""
     y2 = np.atleast_2d(scores)

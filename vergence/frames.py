@@ -93,7 +93,7 @@ class Roster:
     minus those the reducer's evidence (Gatherer.report) shows missing.
 
     A worker in the plan for at least miss_s that the latest report (no older than 4 x miss_s) shows with
-    at least miss_frames expired frames in a row without its partial, and no partial for miss_s (or none
+    at least miss_frames expired frames in a row without its correlation, and no correlation for miss_s (or none
     ever), leaves the plan for probation_s, doubling on each exclusion in a row (up to 32 x); it is then
     tried again. One that answers is back to a clean record. Without reports (no reducer), the plan is the
     tokens, as before. counters: excluded, readmitted, reports."""

@@ -1,11 +1,11 @@
-"""Reducer side: workers' Partials -> a complete profile (Gatherer, with the plausibility rules every message
+"""Reducer side: workers' Correlations -> a complete profile (Gatherer, with the plausibility rules every message
 must pass), a complete profile -> its decision (decide_frame: the very decision of vergence.match()) ->
-FrameDecision, the Verdict and Profile messages and the Command (through vergence.control.Controller).
+Reduced, the Decision and Profile messages and the Command (through vergence.control.Controller).
 
 The decision's names (docs/SERVICE.md, "One decision, five names"): vergence.decide.Decision is the network's
 decision for one fovea (winner, confidence); vergence.match.Match is one point's Decision in one process
-(with its x, y, window and scores); FrameDecision (here) is one distributed frame's Decision in the reducer
-(with its Frame, its Command and its scores); messages.Verdict is a FrameDecision on the wire
+(with its x, y, window and scores); Reduced (here) is one distributed frame's Decision in the reducer
+(with its Frame, its Command and its scores); messages.Decision is a Reduced on the wire
 (vergence/<rig>/decision: the Decision's fields, Decision.v as v_shift since `v` is the schema version);
 vergence.sim.loop.Step is one frame of the simulated loop (the state, and its Match's Decision, flattened)."""
 
@@ -23,10 +23,11 @@ from .config import LimitSettings
 from .control import ControlSettings, Controller
 from .motors.base import MotorSettings, Safety
 from .decide import Decision, apply_checks, decide_scores
-from .messages import Command, Frame, Partial, Profile, Verdict
+from . import messages
+from .messages import Command, Frame, Correlation, Profile
 from .params import Params
 
-__all__ = ["frame_params", "decide_frame", "reduce", "make_profile", "make_verdict", "Gatherer", "FrameDecision"]
+__all__ = ["frame_params", "decide_frame", "reduce", "make_profile", "decision_message", "Gatherer", "Reduced"]
 
 
 def frame_params(frame: Frame, params: Params) -> Params:
@@ -61,18 +62,19 @@ def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
     return d
 
 
-def make_verdict(frame: Frame, d: Decision, t_reduced_ns: int) -> Verdict:
-    """The Verdict message of a reduced frame: its decision, without the scores."""
-    return Verdict(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, t_reduced_ns=t_reduced_ns,
-                   window=frame.window, k=d.k, k_sub=d.k_sub, v_shift=d.v, k_centre=d.k_centre,
-                   direction=d.direction, magnitude=d.magnitude, offset_px=d.offset_px, confidence=d.confidence,
-                   confident=d.confident, texture=d.texture if math.isfinite(d.texture) else 0.0,
-                   pan_rad=frame.pan_rad, t_read_ns=frame.t_read_ns, skew_ns=frame.skew_ns)
+def decision_message(frame: Frame, d: Decision, t_reduced_ns: int) -> messages.Decision:
+    """The Decision message of a reduced frame: its decision, without the scores."""
+    return messages.Decision(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns,
+                             t_reduced_ns=t_reduced_ns, window=frame.window, k=d.k, k_sub=d.k_sub, v_shift=d.v,
+                             k_centre=d.k_centre, direction=d.direction, magnitude=d.magnitude,
+                             offset_px=d.offset_px, confidence=d.confidence, confident=d.confident,
+                             texture=d.texture if math.isfinite(d.texture) else 0.0, pan_rad=frame.pan_rad,
+                             t_read_ns=frame.t_read_ns, skew_ns=frame.skew_ns)
 
 
 def make_profile(frame: Frame, scores: np.ndarray, d: Decision, t_reduced_ns: int) -> Profile:
-    """The Profile message of a reduced frame: its Verdict with the whole layer-4 vector."""
-    return Profile(**msgspec.structs.asdict(make_verdict(frame, d, t_reduced_ns)), width=frame.width,
+    """The Profile message of a reduced frame: its Decision with the whole layer-4 vector."""
+    return Profile(**msgspec.structs.asdict(decision_message(frame, d, t_reduced_ns)), width=frame.width,
                    rows=scores.shape[0], scores=np.ascontiguousarray(scores, "<f8").tobytes(),
                    workers=[str(e[0]) for e in frame.plan])
 
@@ -97,13 +99,13 @@ def _command(frame: Frame, d: Decision, controller: Controller, now_ns: int | No
 def reduce(frame: Frame, scores: np.ndarray, params: Params, controller: Controller,
            t_reduced_ns: int | None = None) -> tuple[Profile, Command | None]:
     """A complete profile -> (Profile, Command or None when the controller says not to move)."""
-    r = FrameDecision.of(frame, scores, params, controller, t_reduced_ns)
+    r = Reduced.of(frame, scores, params, controller, t_reduced_ns)
     return r.profile, r.command
 
 
 @dataclass
-class FrameDecision:
-    """A complete frame, reduced: its decision (a vergence.decide.Decision; its Verdict message), its command
+class Reduced:
+    """A complete frame, reduced: its decision (a vergence.decide.Decision; its Decision message), its command
     (None: do not move) and, built when first asked for (a 65 KB message at 640 px with vertical search: only
     when someone subscribes to it), its profile. The distributed counterpart of vergence.match.Match."""
 
@@ -116,14 +118,14 @@ class FrameDecision:
 
     @classmethod
     def of(cls, frame: Frame, scores: np.ndarray, params: Params, controller: Controller,
-           t_reduced_ns: int | None = None) -> "FrameDecision":
+           t_reduced_ns: int | None = None) -> "Reduced":
         d = decide_frame(frame, scores, params)
         now = time.time_ns() if t_reduced_ns is None else t_reduced_ns
         return cls(frame, d, _command(frame, d, controller, now), scores, now)
 
     @property
-    def verdict(self) -> Verdict:
-        return make_verdict(self.frame, self.decision, self.t_reduced_ns)
+    def message(self) -> messages.Decision:
+        return decision_message(self.frame, self.decision, self.t_reduced_ns)
 
     @property
     def profile(self) -> Profile:
@@ -139,13 +141,13 @@ class _Pending:
     t_first: float
     t_capture_ns: int = 0
     frame: Frame | None = None
-    partials: dict[str, Partial] = field(default_factory=dict)
+    correlations: dict[str, Correlation] = field(default_factory=dict)
 
 
 class Gatherer:
-    """Assembles workers' Partials into complete profiles, by the plan each Frame carries.
+    """Assembles workers' Correlations into complete profiles, by the plan each Frame carries.
 
-    A frame is complete when its Frame and one Partial per plan entry (same worker, same k-range) are in;
+    A frame is complete when its Frame and one Correlation per plan entry (same worker, same k-range) are in;
     it is then reduced at once. A frame not complete `deadline_s` after its first message is dropped and
     counted; so is every older frame still pending once a newer one completes (a command is never older
     than one already sent). Nothing is ever published from an incomplete profile.
@@ -153,23 +155,23 @@ class Gatherer:
     A message is a claim: it moves no state unless it is plausible (LimitSettings). Its capture time must be
     within max_skew_s of this host's clock (wall_ns); its frame id at most frame_window ahead of the newest
     completed frame. Only a completed frame moves the "done up to" mark (a frame, a time) that makes older
-    messages late; a frame that expires is remembered as done only when its Frame was in, and partials whose
+    messages late; a frame that expires is remembered as done only when its Frame was in, and correlations whose
     Frame never came (`orphaned`) are forgotten. When nothing completes for reanchor_s, the mark is
     forgotten (`reanchors`) and any plausible frame is taken again: the gatherer recovers by itself.
 
-    counters: frames (Frames accepted), partials, complete, dropped (a Frame whose shards missed the deadline),
-    superseded, orphaned (partials whose Frame never came: counted apart from dropped, a forged partial
-    cannot inflate `dropped`), no_plan, unexpected (a Partial for no shard of its frame's plan, or a
-    duplicate), late (for a frame already done or dropped), bad (a Partial that does not fit its frame),
+    counters: frames (Frames accepted), correlations, complete, dropped (a Frame whose shards missed the deadline),
+    superseded, orphaned (correlations whose Frame never came: counted apart from dropped, a forged correlation
+    cannot inflate `dropped`), no_plan, unexpected (a Correlation for no shard of its frame's plan, or a
+    duplicate), late (for a frame already done or dropped), bad (a Correlation that does not fit its frame),
     restarts (a Frame whose id went back with a newer capture time: a new capture process), reanchors,
     implausible_time, implausible_frame (rejected claims, nothing changed).
 
-    answered: per worker, (monotonic time, frame id) of its latest partial that fitted a Frame's plan, and
-    misses: frames naming it that expired without its partial, in a row (the evidence for membership,
+    answered: per worker, (monotonic time, frame id) of its latest correlation that fitted a Frame's plan, and
+    misses: frames naming it that expired without its correlation, in a row (the evidence for membership,
     report())."""
 
     MAX_PENDING = 256
-    MAX_PARTIALS = 64  # partials kept for one frame whose Frame is not in yet
+    MAX_CORRELATIONS = 64  # correlations kept for one frame whose Frame is not in yet
     MAX_FINISHED = 1024
 
     def __init__(self, params: Params, control: ControlSettings | None = None, deadline_s: float = 0.05,
@@ -188,7 +190,7 @@ class Gatherer:
         self.newest = -1  # the newest frame id whose Frame was accepted
         self.answered: dict[str, tuple[float, int]] = {}
         self.misses: dict[str, int] = {}
-        self.counters = dict(frames=0, partials=0, complete=0, dropped=0, superseded=0, orphaned=0, no_plan=0,
+        self.counters = dict(frames=0, correlations=0, complete=0, dropped=0, superseded=0, orphaned=0, no_plan=0,
                              unexpected=0, late=0, bad=0, restarts=0, reanchors=0, implausible_time=0,
                              implausible_frame=0)
 
@@ -233,7 +235,7 @@ class Gatherer:
         return e
 
     # -- inputs --------------------------------------------------------------------------------------------
-    def add_frame(self, frame: Frame, now: float | None = None) -> list[FrameDecision]:
+    def add_frame(self, frame: Frame, now: float | None = None) -> list[Reduced]:
         now = time.monotonic() if now is None else now
         if not frame.plan:
             self.counters["no_plan"] += 1
@@ -247,45 +249,45 @@ class Gatherer:
         self.counters["frames"] += 1
         e.frame = frame
         self.newest = max(self.newest, frame.frame)
-        # partials that came first: those that do not fit this plan go, the others are evidence
-        for wid, p in list(e.partials.items()):
+        # correlations that came first: those that do not fit this plan go, the others are evidence
+        for wid, p in list(e.correlations.items()):
             if frame.shard(wid) != (p.k0, p.k1):
-                del e.partials[wid]
+                del e.correlations[wid]
                 self.counters["unexpected"] += 1
             else:
                 self._answer(wid, frame.frame, now)
         return self._try(frame.frame, e, now)
 
-    def add_partial(self, partial: Partial, now: float | None = None) -> list[FrameDecision]:
+    def add_correlation(self, correlation: Correlation, now: float | None = None) -> list[Reduced]:
         now = time.monotonic() if now is None else now
-        e = self._entry(partial.frame, partial.t_capture_ns, now, False)
+        e = self._entry(correlation.frame, correlation.t_capture_ns, now, False)
         if e is None:
             return self.expire(now)
-        self.counters["partials"] += 1
-        if partial.worker in e.partials or (e.frame is not None and
-                                            e.frame.shard(partial.worker) != (partial.k0, partial.k1)) or (
-                e.frame is None and len(e.partials) >= self.MAX_PARTIALS):
+        self.counters["correlations"] += 1
+        if correlation.worker in e.correlations or (e.frame is not None and
+                                            e.frame.shard(correlation.worker) != (correlation.k0, correlation.k1)) or (
+                e.frame is None and len(e.correlations) >= self.MAX_CORRELATIONS):
             self.counters["unexpected"] += 1
             return self.expire(now)
-        e.partials[partial.worker] = partial
+        e.correlations[correlation.worker] = correlation
         if e.frame is not None:
-            self._answer(partial.worker, partial.frame, now)
-        return self._try(partial.frame, e, now)
+            self._answer(correlation.worker, correlation.frame, now)
+        return self._try(correlation.frame, e, now)
 
     def _answer(self, wid: str, fid: int, now: float) -> None:
         self.answered[wid] = (now, fid)
         self.misses[wid] = 0
 
     # -- assembling ----------------------------------------------------------------------------------------
-    def _try(self, fid: int, e: _Pending, now: float) -> list[FrameDecision]:
+    def _try(self, fid: int, e: _Pending, now: float) -> list[Reduced]:
         out = self.expire(now)
         f = e.frame
-        if f is None or len(e.partials) != len(f.plan) or fid not in self.pending:
+        if f is None or len(e.correlations) != len(f.plan) or fid not in self.pending:
             return out
         rows = 2 * f.vsearch + 1
         parts = []
         for wid, k0, k1 in f.plan:
-            p = e.partials[wid]
+            p = e.correlations[wid]
             a = p.array()
             if a.shape != (rows, k1 - k0):
                 self.counters["bad"] += 1
@@ -295,7 +297,7 @@ class Gatherer:
         scores = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
         self._finish(fid, now)
         self.counters["complete"] += 1
-        out.append(FrameDecision.of(f, scores, self.params, self.controller))
+        out.append(Reduced.of(f, scores, self.params, self.controller))
         return out
 
     def _expired(self, fid: int, e: _Pending) -> None:
@@ -306,7 +308,7 @@ class Gatherer:
             return
         self.counters["dropped"] += 1
         for wid, _, _ in e.frame.plan:
-            if wid not in e.partials:
+            if wid not in e.correlations:
                 self.misses[wid] = self.misses.get(wid, 0) + 1
         self.expired.add(fid)
         if len(self.expired) > self.MAX_FINISHED:
@@ -324,7 +326,7 @@ class Gatherer:
             o = self.pending.pop(old)
             self.counters["superseded" if o.frame is not None else "orphaned"] += 1
 
-    def expire(self, now: float | None = None) -> list[FrameDecision]:
+    def expire(self, now: float | None = None) -> list[Reduced]:
         """Drop the frames whose deadline has passed; returns [] (a uniform return for the callers)."""
         now = time.monotonic() if now is None else now
         limit = now - self.deadline_s
@@ -340,8 +342,8 @@ class Gatherer:
 
     def report(self, now: float | None = None, forget_s: float = 60.0) -> dict:
         """The membership evidence the reducer publishes (vergence/<rig>/workers): the newest frame it has a
-        Frame of, and per worker heard of in the last forget_s: seconds since its latest fitting partial
-        (None: never) and the frames naming it that expired without its partial, in a row."""
+        Frame of, and per worker heard of in the last forget_s: seconds since its latest fitting correlation
+        (None: never) and the frames naming it that expired without its correlation, in a row."""
         now = time.monotonic() if now is None else now
         for wid in [w for w, (t, _) in self.answered.items() if now - t > forget_s]:
             del self.answered[wid]

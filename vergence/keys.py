@@ -6,12 +6,12 @@ A rig's keys all live under vergence/<rig>/:
     preview                 messages.Preview, from the capture
     fixate                  messages.Fixate, from a user (`vergence fixate`)
     hold                    messages.Hold, from a user (`vergence latency`): the reducer commands nothing
-    correlation/<worker>    messages.Partial, from worker <worker>
-    decision                messages.Verdict, from the reducer
+    correlation/<worker>    messages.Correlation, from worker <worker>
+    decision                messages.Decision, from the reducer
     profile                 messages.Profile, from the reducer
     command                 messages.Command, from the reducer
     workers                 the reducer's membership evidence (JSON)
-    motor/state             messages.MotorState, from the actuator
+    motor_state             messages.MotorState, from the actuator
     status/<role>/<id>      a process's counters (JSON)
     alive/<role>/<id>       a process's liveliness token (no payload)
 
@@ -31,7 +31,7 @@ ROOT = "vergence"
 REPLAY_RIG = "replay"  # where `vergence replay` publishes by default: no actuator listens there
 
 FRAME, PREVIEW, FIXATE, DECISION, PROFILE = "frame", "preview", "fixate", "decision", "profile"
-COMMAND, WORKERS, MOTOR_STATE, HOLD = "command", "workers", "motor/state", "hold"
+COMMAND, WORKERS, MOTOR_STATE, HOLD = "command", "workers", "motor_state", "hold"
 CORRELATION, STATUS, ALIVE = "correlation", "status", "alive"
 # kinds whose key is exactly vergence/<rig>/<kind>
 SIMPLE = (FRAME, PREVIEW, FIXATE, DECISION, PROFILE, COMMAND, WORKERS, MOTOR_STATE, HOLD)
@@ -95,12 +95,12 @@ def motor_state(rig: str) -> str:
 
 
 def correlation(rig: str, worker: str) -> str:
-    """vergence/<rig>/correlation/<worker>: one worker's partials."""
+    """vergence/<rig>/correlation/<worker>: one worker's correlations."""
     return f"{prefix(rig)}{CORRELATION}/{_chunk('worker id', worker)}"
 
 
 def correlations(rig: str) -> str:
-    """vergence/<rig>/correlation/*: every worker's partials."""
+    """vergence/<rig>/correlation/*: every worker's correlations."""
     return correlation(rig, "*")
 
 

@@ -2,7 +2,7 @@
 
 Match is one point's vergence.decide.Decision in one process, with where (x, y), the window that made it
 and its scores; its distributed counterpart, one frame's Decision in the reducer, is
-vergence.gather.FrameDecision (docs/SERVICE.md, "One decision, five names")."""
+vergence.gather.Reduced (docs/SERVICE.md, "One decision, five names")."""
 
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ dependencies, as rosbag2 writes them) and its messages CDR, serialised by rosbag
 `ros2 bag`, Foxglove, PlotJuggler and any MCAP reader open it. Under /vergence/<rig>/, as the bridge
 (services/bridges/ros2.py) publishes them:
 
-    joint_states          sensor_msgs/msg/JointState       each motor/state (stamp: its t_ns)
+    joint_states          sensor_msgs/msg/JointState       each motor_state (stamp: its t_ns)
     fixation              geometry_msgs/msg/PointStamped   each converged decision (stamp: its capture time)
     fixation/covariance   geometry_msgs/msg/PoseWithCovarianceStamped
     correlation           std_msgs/msg/Float32MultiArray   each profile's layer 4
@@ -33,7 +33,7 @@ import numpy as np
 
 from . import keys
 from . import ros2 as conv
-from .messages import MessageError, MotorState, Preview, Profile, Verdict
+from .messages import MessageError, MotorState, Preview, Profile, Decision
 from .recording import EVENTS, Record, RecordingError
 
 __all__ = ["McapWriter", "McapReader", "is_mcap", "RAW_TYPE"]
@@ -154,7 +154,7 @@ class McapWriter:
         elif kind == keys.FRAME:
             self.view = conv.view_of_frame(payload, self.gimbal)
         elif kind == keys.DECISION:
-            self._fixation(Verdict.from_bytes(payload), t_ns)
+            self._fixation(Decision.from_bytes(payload), t_ns)
         elif kind == keys.PROFILE:
             self._correlation(Profile.from_bytes(payload), t_ns)
         elif kind == keys.PREVIEW:
@@ -171,7 +171,7 @@ class McapWriter:
                                                    effort=np.zeros(0))
         self._put(f"{self.ns}/joint_states", "sensor_msgs/msg/JointState", msg, t_ns, st.t_ns)
 
-    def _fixation(self, v: Verdict, t_ns: int) -> None:
+    def _fixation(self, v: Decision, t_ns: int) -> None:
         if not v.converged or self.view is None:
             return
         p = conv.fixation_point(v.x, v.y, v.depth_m, self.view)

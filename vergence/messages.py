@@ -16,7 +16,7 @@ from typing import ClassVar
 import msgspec
 import numpy as np
 
-__all__ = ["SCHEMA", "MessageError", "Message", "Frame", "Partial", "Verdict", "Profile", "Command", "MotorState",
+__all__ = ["SCHEMA", "MessageError", "Message", "Frame", "Correlation", "Decision", "Profile", "Command", "MotorState",
            "Preview", "Fixate", "Hold", "MAX_HOLD_S", "KINDS", "replace"]
 
 SCHEMA = 1
@@ -207,10 +207,10 @@ class Frame(Message):
         return None
 
 
-class Partial(Message):
+class Correlation(Message):
     """vergence/<rig>/correlation/<worker>: one worker's layer-4 scores y(v, k) for k0..k1-1, float64."""
 
-    KIND: ClassVar[str] = "partial"
+    KIND: ClassVar[str] = "correlation"
     rig: str
     frame: int
     t_capture_ns: int
@@ -222,11 +222,11 @@ class Partial(Message):
     t_done_ns: int = 0
 
     def array(self) -> np.ndarray:
-        return _array("partial.scores", self.scores, "<f8", (self.rows, self.k1 - self.k0))
+        return _array("correlation.scores", self.scores, "<f8", (self.rows, self.k1 - self.k0))
 
     def validate(self) -> None:
         if self.k1 <= self.k0 or self.k0 < 0 or self.rows < 1:
-            raise MessageError(f"partial: bad range k0={self.k0} k1={self.k1} rows={self.rows}")
+            raise MessageError(f"correlation: bad range k0={self.k0} k1={self.k1} rows={self.rows}")
         self.array()
 
 
@@ -242,11 +242,11 @@ class _Where(Message, kw_only=True):
     depth_sigma_m: float = math.nan
 
 
-class Verdict(_Where):
+class Decision(_Where):
     """vergence/<rig>/decision: the reducer's decision on every frame, a Profile without its scores (under 300
     bytes, where a profile is 65 KB at 640 px with vertical search), for whoever needs only the decision (the
     capture's dynamic window, a user's own logic). window: the fovea side it was decided with. It is a
-    vergence.gather.FrameDecision on the wire (a vergence.decide.Decision's fields, its v as v_shift: `v` is
+    vergence.gather.Reduced on the wire (a vergence.decide.Decision's fields, its v as v_shift: `v` is
     the schema version; docs/SERVICE.md, "One decision, five names").
 
     x, y: the fovea centre in master pixels the decision was made for (-1: unknown, an older reducer), so a
@@ -279,8 +279,8 @@ class Verdict(_Where):
             _finite(f"{self.KIND}.{name}", getattr(self, name))
 
 
-class Profile(Verdict):
-    """vergence/<rig>/profile: the decision (Verdict's fields) with the full layer-4 scores of the frame
+class Profile(Decision):
+    """vergence/<rig>/profile: the decision (Decision's fields) with the full layer-4 scores of the frame
     (rows x K float64), its width and the plan's workers."""
 
     KIND: ClassVar[str] = "profile"
@@ -315,7 +315,7 @@ class Command(Message):
 
 
 class MotorState(Message):
-    """vergence/<rig>/motor/state: where the slave pan is, where it is going, and what safety did."""
+    """vergence/<rig>/motor_state: where the slave pan is, where it is going, and what safety did."""
 
     KIND: ClassVar[str] = "motor_state"
     rig: str
@@ -401,7 +401,7 @@ class Hold(Message):
 MAX_HOLD_S = 5.0  # the longest hold one message may claim
 
 
-KINDS: dict[str, type[Message]] = {c.KIND: c for c in (Frame, Partial, Verdict, Profile, Command, MotorState,
+KINDS: dict[str, type[Message]] = {c.KIND: c for c in (Frame, Correlation, Decision, Profile, Command, MotorState,
                                                          Preview, Fixate, Hold)}
 
 for _cls in KINDS.values():

@@ -32,11 +32,8 @@ from .retina import CLIP_WARN
 __all__ = ["Monitor", "Snapshot", "Rate", "decode", "MESSAGES", "WATCHED", "render_text", "profile_bars",
            "fixation_line"]
 
-# The one place where a message's kind (vergence.messages) differs from its key's kind (vergence.keys): delete it
-# once they are named alike.
-_KEY_KIND = {"partial": keys.CORRELATION, "motor_state": keys.MOTOR_STATE}
-# key kind -> the message class its payload decodes to
-MESSAGES: dict[str, type[m.Message]] = {_KEY_KIND.get(kind, kind): cls for kind, cls in m.KINDS.items()}
+# key kind -> the message class its payload decodes to (a message's kind is its key's kind: docs/NAMES.md)
+MESSAGES: dict[str, type[m.Message]] = m.KINDS
 # the key kinds the model keeps (the others are ignored)
 WATCHED = (keys.FRAME, keys.PROFILE, keys.COMMAND, keys.MOTOR_STATE, keys.PREVIEW, keys.CORRELATION, keys.STATUS)
 
@@ -166,7 +163,7 @@ class Monitor:
         self._plan_frame = -1
         self._fovea: tuple[int, int] | None = None
         self._truth: tuple[float, float] | None = None  # (truth, error px) of the latest frame with a truth
-        self._partials: dict[str, tuple[int, int]] = {}
+        self._correlations: dict[str, tuple[int, int]] = {}
         self._motor: m.MotorState | None = None
         self._status: dict[str, dict] = {}
         self._profile: m.Profile | None = None
@@ -216,8 +213,8 @@ class Monitor:
             elif isinstance(msg, m.MotorState):
                 self._motor = msg
                 self._pan_hist.append((t_ns, msg.pan_rad))
-            elif isinstance(msg, m.Partial):
-                self._partials[msg.worker] = (msg.k0, msg.k1)
+            elif isinstance(msg, m.Correlation):
+                self._correlations[msg.worker] = (msg.k0, msg.k1)
             self._trim(t_ns)
         for fn in self.listeners:
             fn(msg.KIND, msg)
@@ -244,7 +241,7 @@ class Monitor:
                 ids.add(ident)
             else:
                 ids.discard(ident)
-                self._partials.pop(ident, None)
+                self._correlations.pop(ident, None)
 
     def _on_frame(self, f: m.Frame, t: int) -> None:
         self._rates["frame"].add(t)
@@ -322,7 +319,7 @@ class Monitor:
             s.status = {n: dict(d) for n, d in sorted(self._status.items())}
             s.alive = {r: sorted(ids) for r, ids in sorted(self._alive.items()) if ids}
             live = set(self._alive.get("worker", set()))
-            shards = dict(self._partials)
+            shards = dict(self._correlations)
             shards.update(self._plan)
             s.workers = {w: shards.get(w) for w in sorted(live | set(self._plan))
                          if w in live or not self._alive.get("worker")}

@@ -132,7 +132,7 @@ class Writer:
             with contextlib.suppress(OSError):
                 self._f.close()  # tries to flush the buffer once more, and fails as the write did
             with contextlib.suppress(OSError):
-                os.ftruncate(fd, self.durable[1])  # the bytes after the last whole flush: a partial tail
+                os.ftruncate(fd, self.durable[1])  # the bytes after the last whole flush: a correlation tail
         finally:
             os.close(fd)
         raise RecordingError(self.error)

@@ -191,7 +191,7 @@ def _border_columns(s):
 @numba.njit(cache=True, nogil=True)
 def _histogram(s, a, b):
     """The 256-level histogram (as float64 counts) of a gray strip's columns a .. width - b - 1 (what
-    cv2.calcHist counts), four partial histograms interleaved so that repeated levels do not wait on each other."""
+    cv2.calcHist counts), four correlation histograms interleaved so that repeated levels do not wait on each other."""
     h = np.zeros((4, 256), np.int64)
     j1 = s.shape[1] - b
     for i in range(s.shape[0]):

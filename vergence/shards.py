@@ -1,4 +1,4 @@
-"""Worker side: a Frame and this worker's k-range of its plan -> one messages.Partial (layer 4 on that range)."""
+"""Worker side: a Frame and this worker's k-range of its plan -> one messages.Correlation (layer 4 on that range)."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import time
 import numpy as np
 
 from . import kernel, retina
-from .messages import Frame, Partial
+from .messages import Frame, Correlation
 
-__all__ = ["compute_partial"]
+__all__ = ["compute_correlation"]
 
 
-def compute_partial(frame: Frame, worker: str, t_done: bool = True) -> Partial | None:
+def compute_correlation(frame: Frame, worker: str, t_done: bool = True) -> Correlation | None:
     """Layer 4 on this worker's k-range of the frame (None when the plan gives it nothing).
 
     Only the band columns the range reads are turned into features (planes are local, so the result is
@@ -28,6 +28,6 @@ def compute_partial(frame: Frame, worker: str, t_done: bool = True) -> Partial |
     band = retina.planes(sub)
     weights = kernel.support_weights(fovea, frame.support_gamma, frame.support_radius) if frame.support else None
     scores = np.atleast_2d(kernel.correlate(fovea, band, circular=frame.circular, weights=weights))
-    return Partial(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, worker=worker, k0=k0, k1=k1,
+    return Correlation(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, worker=worker, k0=k0, k1=k1,
                    rows=scores.shape[0], scores=scores.astype("<f8", copy=False).tobytes(),
                    t_done_ns=time.time_ns() if t_done else 0)

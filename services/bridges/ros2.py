@@ -4,7 +4,7 @@ A real rclpy node (vergence.ros2_node; rclpy from a sourced ROS 2 or the `ros2` 
 namespace NS (default /vergence/<rig>), publishing:
 
     joint_states          sensor_msgs/msg/JointState       the slave pan (position, velocity) of every
-                                                            vergence/<rig>/motor/state, stamped with its t_ns
+                                                            vergence/<rig>/motor_state, stamped with its t_ns
     fixation              geometry_msgs/msg/PointStamped   the fixated point in the master's optical frame
                                                             (REP 103), only while converged, stamped with the
                                                             frame's capture (exposure) time
@@ -38,7 +38,7 @@ import time
 from vergence import keys
 from vergence import ros2 as conv
 from vergence.config import load
-from vergence.messages import Fixate, MessageError, MotorState, Profile, Verdict
+from vergence.messages import Fixate, MessageError, MotorState, Profile, Decision
 from vergence.ros2_node import RosNode, RosUnavailable
 
 from services.runtime import session
@@ -135,7 +135,7 @@ class Bridge:
         from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 
         try:
-            v = Verdict.from_bytes(payload)
+            v = Decision.from_bytes(payload)
         except MessageError as e:
             self.health.reject("decision", e)
             return

@@ -18,7 +18,7 @@ import time
 
 from vergence import keys
 from vergence.config import load
-from vergence.messages import Fixate, MessageError, Verdict
+from vergence.messages import Fixate, MessageError, Decision
 
 from services.runtime import session
 from services.runtime.args import master_point
@@ -35,7 +35,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="wait up to S seconds for the first decision at the new point (0: only send)")
 
 
-def describe(v: Verdict) -> str:
+def describe(v: Decision) -> str:
     depth = (f"depth {v.depth_m:.4f} m +- {v.depth_sigma_m:.4f}" if math.isfinite(v.depth_m) else "no depth")
     return (f"frame {v.frame} at ({v.x}, {v.y}): offset {v.offset_px:+.2f} px, "
             f"{'converged' if v.converged else 'confident' if v.confident else 'abstains'}, {depth}")
@@ -60,13 +60,13 @@ class Answer:
 
     def __init__(self, target: tuple[int, int], t_ns: int):
         self.target, self.t_ns = target, t_ns
-        self.got: list[Verdict] = []
+        self.got: list[Decision] = []
         self.refused: list[str] = []
         self.seen = threading.Event()
 
     def on_decision(self, sample) -> None:
         try:
-            v = Verdict.from_bytes(sample.payload.to_bytes())
+            v = Decision.from_bytes(sample.payload.to_bytes())
         except MessageError:
             return
         if (v.x, v.y) == self.target and not self.seen.is_set():

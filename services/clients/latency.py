@@ -4,7 +4,7 @@ With the rig running on a still, textured scene (the master fixed), it holds the
 (messages.Hold on vergence/<rig>/hold, renewed every 0.5 s), steps the slave through a known motion about
 its present pan (+-amplitude and half of it, each step held hold-s; within +-1 degree and the motor's soft
 limits) with its own messages.Command, records the decisions (vergence/<rig>/decision) and the motor's states
-(vergence/<rig>/motor/state), and finds the instant at which the measured offsets follow the motor best
+(vergence/<rig>/motor_state), and finds the instant at which the measured offsets follow the motor best
 (vergence.latency.fit_latency). It prints the slave camera's exposure-to-read latency with its uncertainty and
 the settings line to put in the TOML ([camera] latency_s), then puts the slave back and releases the hold.
 Exit 1 when no rig answers, 2 when the scene or the motor does not allow the measurement (it says why).
@@ -22,7 +22,7 @@ import time
 from vergence import keys
 from vergence.config import load
 from vergence.latency import LatencyError, fit_latency, motion_plan
-from vergence.messages import Command, Hold, MessageError, MotorState, Verdict
+from vergence.messages import Command, Hold, MessageError, MotorState, Decision
 
 from services.runtime import session
 from services.runtime.node import Node
@@ -46,11 +46,11 @@ class Recorder:
 
     def __init__(self):
         self.lock = threading.Lock()
-        self.decisions: list[Verdict] = []
+        self.decisions: list[Decision] = []
         self.states: list[MotorState] = []
 
     def on_decision(self, sample) -> None:
-        self._keep(sample, Verdict, self.decisions)
+        self._keep(sample, Decision, self.decisions)
 
     def on_state(self, sample) -> None:
         self._keep(sample, MotorState, self.states)
@@ -63,7 +63,7 @@ class Recorder:
         with self.lock:
             into.append(msg)
 
-    def snapshot(self) -> tuple[list[Verdict], list[MotorState]]:
+    def snapshot(self) -> tuple[list[Decision], list[MotorState]]:
         with self.lock:
             return list(self.decisions), list(self.states)
 

@@ -10,7 +10,7 @@ import math
 import numpy as np
 
 from vergence import keys
-from vergence.messages import Command, Frame, MessageError, MotorState, Preview, Profile, Verdict
+from vergence.messages import Command, Frame, MessageError, MotorState, Preview, Profile, Decision
 from vergence.monitor import decode
 
 log = logging.getLogger("vergence.view")
@@ -140,7 +140,7 @@ class Cockpit:
             self._time(f.frame, f.t_capture_ns)
             self._scalar("pan/truth", math.degrees(truth))
 
-    def _boxes(self, v: Verdict) -> None:
+    def _boxes(self, v: Decision) -> None:
         at = (getattr(v, "x", None), getattr(v, "y", None))
         if not all(isinstance(c, int) and c >= 0 for c in at):  # -1: a decision that does not say
             at = self.at.get(v.frame) or self.point
@@ -163,7 +163,7 @@ class Cockpit:
                                                      colors=[color],
                                                      labels=[f"{v.offset_px:+.1f} px, c={v.confidence:.2f}"]))
 
-    def _decision(self, v: Verdict) -> None:
+    def _decision(self, v: Decision) -> None:
         if v.frame in self.decided:  # its profile came first and logged it
             return
         self._time(v.frame, v.t_capture_ns)

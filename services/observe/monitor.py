@@ -1,7 +1,7 @@
 """`vergence monitor [--rig NAME] [--png FILE] [--timeout S] [--once]`: a read-only live view of a running rig.
 
 Subscribes (zenoh callbacks only: the network threads never wait on the screen) to vergence/<rig>/frame,
-profile, command, motor/state and status/**, and to the liveliness tokens vergence/<rig>/alive/**; feeds
+profile, command, motor_state and status/**, and to the liveliness tokens vergence/<rig>/alive/**; feeds
 them to vergence.monitor.Monitor, which counts and skips malformed messages. The main thread redraws the
 screen (ANSI, vergence.monitor.render_text) every --refresh seconds. It publishes only its status (through
 services.runtime.node.Node: vergence/<rig>/status/monitor/<id>) and declares no token, but its subscription
@@ -35,7 +35,7 @@ from services.runtime import session
 from services.runtime.node import Node
 
 log = logging.getLogger("vergence.monitor")
-# the keys the monitor watches under vergence/<rig>/: not the partials (their shards come from the frames'
+# the keys the monitor watches under vergence/<rig>/: not the correlations (their shards come from the frames'
 # plans) nor the previews, so a monitor costs the rig little
 WATCHED = (keys.frame, keys.profile, keys.command, keys.motor_state, keys.statuses)
 

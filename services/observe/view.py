@@ -1,7 +1,7 @@
 """`vergence view [--rig R] [--save FILE.rrd] [--web [--port P]] [--spawn]`: the rig's cockpit in Rerun.
 
 Subscribes (callbacks only queue the samples; the main thread decodes and logs them) to vergence/<rig>/
-preview, frame, decision, profile, command, motor/state, status/** and the liveliness tokens alive/**, and
+preview, frame, decision, profile, command, motor_state, status/** and the liveliness tokens alive/**, and
 logs them to Rerun on two timelines, `frame` (the frame id) and `capture` (its capture time). It publishes
 only its status (services.runtime.node.Node: vergence/<rig>/status/view/<id>) and declares no token; its
 subscription to the profile key is what makes the reducer publish profiles (as for `vergence monitor`).

@@ -50,7 +50,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--floor", action="store_true", help="also the messaging floor: CPU per 27 KB message of the "
                                                         "router and of one Python subscriber, at 1 kHz")
     p.add_argument("--actuator", action="store_true", help="also run the sim actuator (commands close the loop "
-                                                           "through motor/state, as in `vergence up`)")
+                                                           "through motor_state, as in `vergence up`)")
     p.add_argument("--json", action="store_true", help="one JSON object per run")
     p.add_argument("--subscriber", metavar="ENDPOINT", help=argparse.SUPPRESS)  # --floor's, in its own process
 

@@ -88,7 +88,7 @@ def _bridge(b: Bench, seconds: float) -> list[dict]:
     from geometry_msgs.msg import PointStamped
     from sensor_msgs.msg import JointState
 
-    from vergence.messages import Frame, MotorState, Verdict
+    from vergence.messages import Frame, MotorState, Decision
 
     lat: dict[str, list[int]] = {k: [] for k in ("zenoh", "joint_states", "fixation", "look_at")}
     stamp = lambda m: m.header.stamp.sec * 10**9 + m.header.stamp.nanosec  # noqa: E731
@@ -98,7 +98,7 @@ def _bridge(b: Bench, seconds: float) -> list[dict]:
     n.create_subscription(PointStamped, f"/vergence/{b.rig}/fixation",
                           lambda m: lat["fixation"].append(time.time_ns() - stamp(m)), 100)
     look = n.create_publisher(PointStamped, f"/vergence/{b.rig}/look_at", 10)
-    sub = b.z.declare_subscriber(b.key("motor/state"), lambda s: lat["zenoh"].append(
+    sub = b.z.declare_subscriber(b.key("motor_state"), lambda s: lat["zenoh"].append(
         time.time_ns() - MotorState.from_bytes(s.payload.to_bytes()).t_ns))
     sent = [0]
     sub_fix = b.z.declare_subscriber(b.key("fixate"), lambda s: lat["look_at"].append(time.time_ns() - sent[0]))
@@ -111,9 +111,9 @@ def _bridge(b: Bench, seconds: float) -> list[dict]:
     while time.monotonic() < end:
         b.z.put(b.key("frame"), frame)  # the master's view, for the fixation (the bridge keeps the latest)
         now = time.time_ns()
-        b.z.put(b.key("motor/state"), MotorState(rig=b.rig, t_ns=now, pan_rad=0.0, goal_rad=0.0, min_rad=-1.0,
+        b.z.put(b.key("motor_state"), MotorState(rig=b.rig, t_ns=now, pan_rad=0.0, goal_rad=0.0, min_rad=-1.0,
                                                   max_rad=1.0, status="ok").to_bytes())
-        b.z.put(b.key("decision"), Verdict(rig=b.rig, frame=i, t_capture_ns=now, t_reduced_ns=now, window=15, k=10,
+        b.z.put(b.key("decision"), Decision(rig=b.rig, frame=i, t_capture_ns=now, t_reduced_ns=now, window=15, k=10,
                                            k_sub=10.0, v_shift=0, k_centre=10, direction=0, magnitude=0,
                                            offset_px=0.0, confidence=1.0, confident=True, texture=1.0,
                                            pan_rad=0.0, x=32, y=24, converged=True, depth_m=1.0,

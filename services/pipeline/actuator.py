@@ -1,7 +1,7 @@
 """`vergence actuator --driver sim|dynamixel|line|ros2 [--port URL] [--id 1] [--baud 57600]`: drive the slave pan.
 
 Subscribes to vergence/<rig>/command (messages.Command: pan_rad is the absolute target pan of the slave) and
-publishes messages.MotorState on vergence/<rig>/motor/state at [actuator] state_hz and after each command.
+publishes messages.MotorState on vergence/<rig>/motor_state at [actuator] state_hz and after each command.
 The Zenoh callback only keeps the newest command (a flood is coalesced, never queued); one thread runs
 vergence.motors.runner.MotorLoop, which owns every decision (safety, watchdog, reconnection). Counters go out as
 JSON on vergence/<rig>/status/actuator/<id> every second and at exit: commands (received, a flood's superseded
@@ -39,7 +39,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "[:mode=forward|trajectory][:joints=A,B][:states=TOPIC] (vergence/motors/ros2.py)")
     p.add_argument("--id", type=int, default=None, help="motor id on the bus (Dynamixel; default 1)")
     p.add_argument("--baud", type=int, default=None, help="serial speed (default 57600)")
-    p.add_argument("--state-hz", type=float, default=None, help="motor/state rate (default 50)")
+    p.add_argument("--state-hz", type=float, default=None, help="motor_state rate (default 50)")
 
 
 class Latest:

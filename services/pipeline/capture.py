@@ -3,12 +3,12 @@
 Publishes on vergence/<rig>/frame a messages.Frame per image pair: only what layer 1 needs (the master fovea and
 the slave band with their Sobel margins, the master band for the left-right check), the exposure times of both
 images and the read time (ExposureClock: the source's stamps where believable, else the read time less [camera]
-latency_s), the slave's pan at its exposure (PanLookup: the messages.MotorState history of vergence/<rig>/motor/state
+latency_s), the slave's pan at its exposure (PanLookup: the messages.MotorState history of vergence/<rig>/motor_state
 interpolated there; the source's start pan before any; always the start pan, 0, for a source whose images do not
 move with the motor: a still pair, videos; pan_stale where the history cannot tell), and the shard plan made from
 the workers' liveliness tokens vergence/<rig>/alive/worker/* at that moment, minus the workers the reducer's
 evidence (vergence/<rig>/workers) shows silent (vergence.frames.Roster: a token is an invitation, not a guarantee).
-A motor/state whose pan is outside the motor's limits or whose time is off our clock by more than [limits]
+A motor_state whose pan is outside the motor's limits or whose time is off our clock by more than [limits]
 max_skew_s is counted and ignored. With no worker alive, frames are counted (no_workers) and not published. A
 downscaled messages.Preview goes on vergence/<rig>/preview at [capture] preview_hz. With [network] max_window > 0 the
 window grows by 8 px while the decisions (vergence/<rig>/decision) are not confident (the dynamic window), and
@@ -41,7 +41,7 @@ import zenoh
 from vergence import keys, retina
 from vergence.config import load
 from vergence.frames import Roster, WindowControl, make_frame, plan_shards
-from vergence.messages import Fixate, MessageError, MotorState, Preview, Verdict
+from vergence.messages import Fixate, MessageError, MotorState, Preview, Decision
 from vergence.sources import SourceError, open_source
 from vergence.timing import PanHistory, Stamper
 
@@ -68,7 +68,7 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def motor_state_implausible(st: MotorState, motor, now_ns: int, max_skew_s: float) -> str | None:
-    """Why a motor/state is not believed (it moves the pan every frame carries, hence the commands): a pan
+    """Why a motor_state is not believed (it moves the pan every frame carries, hence the commands): a pan
     outside the motor's soft limits of our settings, or a time further than max_skew_s from our clock."""
     lo, hi = motor.min_rad, motor.max_rad
     if not lo - 1e-3 <= st.pan_rad <= hi + 1e-3:
@@ -355,7 +355,7 @@ class Capture:
 
     def on_decision(self, sample) -> None:
         try:
-            v = Verdict.from_bytes(sample.payload.to_bytes())
+            v = Decision.from_bytes(sample.payload.to_bytes())
         except MessageError as e:
             self.health.reject("decision", e)
             return

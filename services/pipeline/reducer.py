@@ -7,7 +7,7 @@ Messages that are not plausible ([limits]: capture time, frame id, frame size) a
 nothing. Messages arrive in zenoh RingChannels (bounded, the oldest go); one thread takes everything that
 arrived, newest frame first, so an overloaded reducer serves the newest frame instead of queueing.
 Every REPORT_S it publishes the membership evidence on vergence/<rig>/workers (JSON: per worker, seconds
-since its latest partial and the frames it missed in a row), from which the capture drops silent workers
+since its latest correlation and the frames it missed in a row), from which the capture drops silent workers
 from the plan.
 Publishes messages.Profile on vergence/<rig>/profile and, when the controller moves the slave,
 messages.Command on vergence/<rig>/command; never from an incomplete profile. Counters go out as JSON on
@@ -33,8 +33,8 @@ import zenoh
 from vergence import depth, keys
 from vergence.config import load
 from vergence.frames import check_frame
-from vergence.gather import FrameDecision, Gatherer
-from vergence.messages import MAX_HOLD_S, Frame, Hold, MessageError, MotorState, Partial, replace as replace_message
+from vergence.gather import Reduced, Gatherer
+from vergence.messages import MAX_HOLD_S, Frame, Hold, MessageError, MotorState, Correlation, replace as replace_message
 
 from services.runtime import session
 from services.runtime.node import Node
@@ -46,9 +46,9 @@ EXPIRE_S = 0.05  # the longest sleep between deadline checks (frames also expire
 REPORT_S = 0.1  # the membership evidence (vergence/<rig>/workers) goes out this often
 # zenoh RingChannels: the newest messages kept while the forwarders wait for the interpreter (what they drop
 # is not counted, so they are larger than the inbox, whose sheds are)
-FRAME_RING, PARTIAL_RING = 32, 128
+FRAME_RING, CORRELATION_RING = 32, 128
 KEEP_FRAMES = 2  # the newest valid frames of one batch that are decoded and gathered
-WAKE = "_wake"  # the key segment of the local sample that wakes the partials' forwarder at exit
+WAKE = "_wake"  # the key segment of the local sample that wakes the correlations' forwarder at exit
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -57,7 +57,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                                                                    "by then (default: settings, 50)")
 
 
-def summary(seconds: float, frames: int, lost: int, commands: int, last: FrameDecision) -> str:
+def summary(seconds: float, frames: int, lost: int, commands: int, last: Reduced) -> str:
     """The reducer's periodic log line: what came through in the last `seconds`, and the latest decision."""
     d, f = last.decision, last.frame
     return (f"last {seconds:.0f} s: frames {frames} decided, {lost} dropped, commands {commands}; frame {f.frame}: "
@@ -70,10 +70,10 @@ class Inbox:
     (counted in `shed`, per kind), so nothing queues when the reducer cannot keep up; the thread takes
     everything at once (drain)."""
 
-    def __init__(self, frames: int = 8, partials: int = 64):
+    def __init__(self, frames: int = 8, correlations: int = 64):
         self.cond = threading.Condition()
-        self.boxes = {"frame": collections.deque(maxlen=frames), "partial": collections.deque(maxlen=partials)}
-        self.shed = {"frame": 0, "partial": 0}
+        self.boxes = {"frame": collections.deque(maxlen=frames), "correlation": collections.deque(maxlen=correlations)}
+        self.shed = {"frame": 0, "correlation": 0}
 
     def put(self, kind: str, item) -> None:
         with self.cond:
@@ -98,7 +98,7 @@ class Inbox:
 
 
 class MotorPresence:
-    """What the actuator says of its motor (messages.MotorState on vergence/<rig>/motor/state): while its latest
+    """What the actuator says of its motor (messages.MotorState on vergence/<rig>/motor_state): while its latest
     state, less than FRESH_S old, says the motor is absent (status "absent": it has not answered for
     [actuator.motor] absent_s), the reducer sends no command (counted under motor_absent) and its status says
     motor: absent. A state that does not decode is counted under bad.motor_state; no fresh state (an actuator
@@ -163,8 +163,8 @@ class Lease:
 
 
 def newest_first(msgs: list) -> list:
-    """Decoded messages (Frame or Partial) in the order the gatherer should see them: the newest frame id
-    first, its Frame before its partials. Then the newest frame that is complete is reduced and every older
+    """Decoded messages (Frame or Correlation) in the order the gatherer should see them: the newest frame id
+    first, its Frame before its correlations. Then the newest frame that is complete is reduced and every older
     message of the batch is late (cheap): under overload the reducer serves the newest frame."""
     return sorted(msgs, key=lambda m: (-m.frame, not isinstance(m, Frame)))
 
@@ -184,7 +184,7 @@ class Reducer:
         self.lock = threading.Lock()  # the gatherer: the loop thread and the status
         self.inbox = Inbox()
         self.presence: MotorPresence | None = None
-        self.last: list[FrameDecision] = []
+        self.last: list[Reduced] = []
 
     def fields(self) -> dict:
         with self.lock:
@@ -204,8 +204,8 @@ class Reducer:
         self.hold = Lease(self.health)
         node.subscriber(keys.hold(rig), lambda sm: self.hold.on_hold(sm.payload.to_bytes()))
         node.thread(self.forward, "frame", node.ring(keys.frame(rig), FRAME_RING), name="reducer-frame")
-        node.thread(self.forward, "partial", node.ring(keys.correlations(rig), PARTIAL_RING,
-                                                       wake=keys.correlation(rig, WAKE)), name="reducer-partial")
+        node.thread(self.forward, "correlation", node.ring(keys.correlations(rig), CORRELATION_RING,
+                                                       wake=keys.correlation(rig, WAKE)), name="reducer-correlation")
         node.ready()
         log.info("reducer %s on %s and %s, deadline %.0f ms", node.ident, keys.frame(rig), keys.correlations(rig),
                  self.deadline * 1e3)
@@ -229,13 +229,13 @@ class Reducer:
                 health.count("commands")
             where = depth.decision_fields(r.frame, r.decision, r.scores, geo.baseline_m, geo.gimbal,
                                           geo.master or self.settings.capture.master)
-            self.pub_decision.put(replace_message(r.verdict, **where).to_bytes())
+            self.pub_decision.put(replace_message(r.message, **where).to_bytes())
             if self.pub_profile.matching_status.matching:  # up to 65 KB at 640 px: only encoded when wanted
                 self.pub_profile.put(replace_message(r.profile, **where).to_bytes())
             health.count("profiles")
 
     def decode(self, kind: str, item):
-        """A Frame or Partial from (key, bytes), or None (counted by reason)."""
+        """A Frame or Correlation from (key, bytes), or None (counted by reason)."""
         key, data = item
         if kind == "frame":
             try:
@@ -244,13 +244,13 @@ class Reducer:
                 self.health.reject("frame", e)
                 return None
         try:
-            part = Partial.from_bytes(data)
+            part = Correlation.from_bytes(data)
             k = keys.parse(key)
             if k is None or k.ident != part.worker:
-                raise MessageError(f"partial from worker {part.worker!r} on key {key}")
+                raise MessageError(f"correlation from worker {part.worker!r} on key {key}")
             return part
         except MessageError as e:
-            self.health.reject("partial", e)
+            self.health.reject("correlation", e)
             return None
 
     def handle(self, batch) -> None:
@@ -265,14 +265,14 @@ class Reducer:
             m = self.decode("frame", item)
             if m is not None:
                 msgs.append(m)
-        msgs += [m for m in (self.decode(k, x) for k, x in batch if k == "partial") if m is not None]
+        msgs += [m for m in (self.decode(k, x) for k, x in batch if k == "correlation") if m is not None]
         with self.lock:
             for m in newest_first(msgs):
                 try:
                     if isinstance(m, Frame):
                         self.publish(self.gatherer.add_frame(m))
                     else:
-                        self.publish(self.gatherer.add_partial(m))
+                        self.publish(self.gatherer.add_correlation(m))
                 except Exception as e:  # a message that validates but cannot be decided on: never fatal
                     self.health.reject(m.KIND, e)
 

@@ -4,7 +4,7 @@ Subscribes to vergence/<rig>/frame with a RingChannel(1): a slow worker always w
 never builds a queue; the frames its ring replaced before it took them are counted (`skipped`, from the
 gaps in the frame ids). Frames beyond [limits] max_frame_bytes / max_frame_ops, or captured further than
 [limits] max_skew_s from this host's clock, are counted as bad and not computed. For each frame whose plan
-names it, publishes messages.Partial on
+names it, publishes messages.Correlation on
 vergence/<rig>/correlation/<id>. Membership is its liveliness token vergence/<rig>/alive/worker/<id>, declared
 once the kernel is warm; the capture plans shards from these tokens. Counters go out as JSON on
 vergence/<rig>/status/worker/<id> every second and at exit.
@@ -23,7 +23,7 @@ from vergence.config import LimitSettings, load
 from vergence.frames import check_frame
 from vergence.messages import MessageError
 from vergence.params import Params
-from vergence.shards import compute_partial
+from vergence.shards import compute_correlation
 
 from services.runtime import session
 from services.runtime.node import Node
@@ -74,7 +74,7 @@ class Worker:
             if skipped:
                 health.count("skipped", skipped)
             try:
-                part = compute_partial(frame, self.node.ident)
+                part = compute_correlation(frame, self.node.ident)
             except Exception as e:  # a frame that validates but cannot be computed: never fatal
                 health.reject("frame", e)
                 continue
@@ -82,7 +82,7 @@ class Worker:
                 health.count("not_in_plan")
                 continue
             self.pub.put(part.to_bytes())
-            health.count("partials")
+            health.count("correlations")
             self.busy_ns += time.perf_counter_ns() - t0
 
 

@@ -11,7 +11,7 @@ from vergence import kernel
 from vergence.frames import make_frame
 from vergence.gather import Gatherer
 from vergence.params import Params
-from vergence.shards import compute_partial
+from vergence.shards import compute_correlation
 
 WIDTH = 128
 WINDOW = 15
@@ -19,7 +19,7 @@ WINDOW = 15
 
 def warm_up(params: Params, control=None) -> None:
     """Run the kernel once on a small synthetic frame made with `params` (window 15, at most +-2 rows); given
-    the controller's settings (the reducer), the frame and its partial also go through a Gatherer, which
+    the controller's settings (the reducer), the frame and its correlation also go through a Gatherer, which
     decides on them (left-right check included)."""
     kernel.warm_up()
     rng = np.random.default_rng(0)
@@ -27,8 +27,8 @@ def warm_up(params: Params, control=None) -> None:
     p = dataclasses.replace(params, window=WINDOW, vsearch=min(params.vsearch, 2))
     f = make_frame(img, img, rig="warm", frame=0, pan_rad=0.0, focal_px=100.0, params=p,
                    plan=[["w", 0, WIDTH - WINDOW + 1]])
-    part = compute_partial(f, "w")
+    part = compute_correlation(f, "w")
     if control is not None:
         g = Gatherer(p, control)
         g.add_frame(f)
-        g.add_partial(part)
+        g.add_correlation(part)

@@ -90,7 +90,7 @@ def test_router_restart_commands_resume(tmp_path, secrets, variant, down_s):
         P.spawn("capture", [VERGENCE, "capture", "--source", _pair(tmp_path), "--rate", str(RATE), *common,
                             *zenoh_args("capture")])
         commands = P.collect(s, P.key("command"))
-        states = P.collect(s, P.key("motor/state"))
+        states = P.collect(s, P.key("motor_state"))
         status = P.collect(s, P.key("status/**"))
         commands.wait(5, 20)
 

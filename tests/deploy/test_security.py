@@ -27,7 +27,7 @@ from deploy_helpers import (
 )
 from procs import VERGENCE, Procs, textured_pair, wait_for
 
-from vergence.messages import Command, MotorState, Verdict
+from vergence.messages import Command, MotorState, Decision
 
 
 @pytest.fixture(scope="module")
@@ -71,12 +71,12 @@ def test_router_configs_share_one_acl():
         assert json.loads(conf.get_json("mode")) == "router"
         assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
         assert json.loads(conf.get_json("scouting/gossip/enabled")) is False
-    # only the reducer's policy may put on */command, only the actuator's on */motor/state
+    # only the reducer's policy may put on */command, only the actuator's on */motor_state
     rules = {r["id"]: r for r in a["rules"]}
     can = {p["id"]: [k for r in p["rules"] if "put" in rules[r]["messages"] and "ingress" in rules[r]["flows"]
                      for k in rules[r]["key_exprs"]] for p in a["policies"]}
     assert [p for p, keys in can.items() if "vergence/*/command" in keys] == ["reducer"]
-    assert [p for p, keys in can.items() if "vergence/*/motor/state" in keys] == ["actuator"]
+    assert [p for p, keys in can.items() if "vergence/*/motor_state" in keys] == ["actuator"]
     assert not any("**" in k for keys in can.values() for k in keys)
 
 
@@ -138,13 +138,13 @@ def test_only_the_reducer_commands_and_only_the_actuator_reports(tmp_path, secre
         start_router(P, conf, endpoint)
         got = puts_through_acl(secrets, variant, endpoint,
                                ("capture", "worker", "monitor", "replay", "reducer", "actuator"),
-                               ("vergence/r/command", "vergence/r/motor/state", "vergence/r/frame", "vergence/**",
+                               ("vergence/r/command", "vergence/r/motor_state", "vergence/r/frame", "vergence/**",
                                 "vergence/*/command", "vergence/r/*", "vergence/*/motor/*", "vergence/replay/frame",
-                                "vergence/r/workers"), until=("vergence/r/motor/state", b"actuator"))
+                                "vergence/r/workers"), until=("vergence/r/motor_state", b"actuator"))
     assert sorted(got) == sorted([
         ("vergence/r/frame", b"capture"), ("vergence/replay/frame", b"capture"), ("vergence/replay/frame", b"replay"),
         ("vergence/r/command", b"reducer"), ("vergence/*/command", b"reducer"), ("vergence/r/workers", b"reducer"),
-        ("vergence/r/motor/state", b"actuator"),
+        ("vergence/r/motor_state", b"actuator"),
     ])
 
 
@@ -158,7 +158,7 @@ def test_forged_command_never_reaches_the_real_actuator(tmp_path, secrets):
                              "--zenoh-config", str(act_conf), "--state-hz", "20"])
         watch = client_session(secrets, "monitor", "tls", endpoint)
         try:
-            states = P.collect(watch, "vergence/r/motor/state")
+            states = P.collect(watch, "vergence/r/motor_state")
             states.wait(2, 15)  # the actuator is up and reports through the ACL
             for role in ("worker", "capture", "monitor", "replay"):
                 s = client_session(secrets, role, "tls", endpoint)
@@ -217,11 +217,11 @@ def test_services_run_under_the_acl(tmp_path, secrets):
                      "the worker's token", interval=0.2, logs=P.logs)
             cmds = P.collect(watch, "vergence/r/command")
             decisions = P.collect(watch, "vergence/r/decision")
-            states = P.collect(watch, "vergence/r/motor/state")
+            states = P.collect(watch, "vergence/r/motor_state")
             status = P.collect(watch, "vergence/r/status/**")
             start("capture", "--source", source, "--rate", "20")
             cmds.wait(3, 20)
-            verdicts = [Verdict.from_bytes(b) for _, b, _ in decisions.snapshot()]
+            verdicts = [Decision.from_bytes(b) for _, b, _ in decisions.snapshot()]
             assert any(v.window == 23 and v.confident for v in verdicts)
             wait_for(lambda: any(MotorState.from_bytes(b).commands > 0 for _, b, _ in states.snapshot()), 10,
                      "a motor state that counts commands", logs=P.logs)

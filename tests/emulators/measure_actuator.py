@@ -1,4 +1,4 @@
-"""Command -> motor/state round trip through a router, for the sim driver and the Dynamixel driver on the
+"""Command -> motor_state round trip through a router, for the sim driver and the Dynamixel driver on the
 emulator's pseudo-terminal. A measurement, not a test:
 
     python tests/emulators/measure_actuator.py [N]
@@ -39,7 +39,7 @@ def round_trips(tmp: Path, driver_args: list[str], n: int) -> dict:
                 got[m.frame] = time.perf_counter()
                 ev.set()
 
-        s.declare_subscriber(P.key("motor/state"), on)
+        s.declare_subscriber(P.key("motor_state"), on)
         P.wait_alive(s, "actuator")
         pub = s.declare_publisher(P.key("command"))
         wait_for(lambda: pub.matching_status.matching, 10, "the actuator's command subscriber", logs=P.logs)

@@ -152,7 +152,7 @@ def test_clip_fallback_answers_where_the_clipped_master_leaves_too_little():
 
 def test_the_service_dynamic_window_falls_back_as_match_does():
     """The same fovea through the service's steps in process (WindowControl's states, make_frame, a worker's
-    partial, the reducer), one frame per state as the capture publishes them: the clipped windows abstain, the
+    correlation, the reducer), one frame per state as the capture publishes them: the clipped windows abstain, the
     master was clipped, the unclipped windows follow and the first confident decision is match()'s with
     clip_fallback, field for field, reached after as many frames as match() tried windows."""
     from vergence.control import Controller
@@ -160,7 +160,7 @@ def test_the_service_dynamic_window_falls_back_as_match_does():
     from vergence.gather import reduce
     from vergence.retina import master_clipped
     from vergence.messages import Frame
-    from vergence.shards import compute_partial
+    from vergence.shards import compute_correlation
 
     left, _, _ = load("teddy")
     slave = slave_image("teddy", 1.3, 20.0)
@@ -179,7 +179,7 @@ def test_the_service_dynamic_window_falls_back_as_match_does():
         if clip:
             wc.clipped(master_clipped(left, slave, y, w, params))
         f = Frame.from_bytes(f.to_bytes())
-        prof, _ = reduce(f, np.atleast_2d(compute_partial(f, "a").array()), params, Controller())
+        prof, _ = reduce(f, np.atleast_2d(compute_correlation(f, "a").array()), params, Controller())
         seen.append((w, clip, prof.confident))
         if prof.confident:
             break

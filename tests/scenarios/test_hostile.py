@@ -19,9 +19,9 @@ from vergence.config import LimitSettings
 from vergence.control import ControlSettings
 from vergence.frames import Roster, make_frame, plan_shards
 from vergence.gather import Gatherer
-from vergence.messages import Command, Frame, MotorState, Partial, Verdict
+from vergence.messages import Command, Frame, MotorState, Correlation, Decision
 from vergence.params import Params
-from vergence.shards import compute_partial
+from vergence.shards import compute_correlation
 from vergence.motors.base import MotorSettings, Safety
 
 BIG_T = 2**64 - 1  # the capture time of the issue's forged messages
@@ -59,12 +59,12 @@ def run_frame(g: Gatherer, fid: int, t_ns: int, now: float) -> list:
     f = frame(fid, t_ns)
     out = g.add_frame(f, now=now)
     for w in ("a", "b"):
-        out += g.add_partial(compute_partial(f, w), now=now)
+        out += g.add_correlation(compute_correlation(f, w), now=now)
     return out
 
 
-def forged_partial(fid: int, t_ns: int, worker: str = "evil-1") -> Partial:
-    return Partial(rig="r", frame=fid, t_capture_ns=t_ns, worker=worker, k0=0, k1=3, rows=1,
+def forged_correlation(fid: int, t_ns: int, worker: str = "evil-1") -> Correlation:
+    return Correlation(rig="r", frame=fid, t_capture_ns=t_ns, worker=worker, k0=0, k1=3, rows=1,
                    scores=np.zeros(3).tobytes())
 
 
@@ -86,16 +86,16 @@ def test_limit_settings_are_checked():
 
 # -- the gatherer --------------------------------------------------------------------------------------------
 
-def test_one_forged_partial_does_not_stop_the_gatherer():
-    """The issue's item 1: a partial with frame 2^62 and capture time 2^64-1 moved the done mark for good."""
+def test_one_forged_correlation_does_not_stop_the_gatherer():
+    """The issue's item 1: a correlation with frame 2^62 and capture time 2^64-1 moved the done mark for good."""
     wall = Wall(1000 * S)
     g = gatherer(wall)
     assert len(run_frame(g, 10, wall.t, 0.0)) == 1
     for fid, t in ((BIG_FRAME, BIG_T), (BIG_FRAME, wall.t), (12, wall.t + 3 * S), (12, wall.t - 3 * S)):
-        assert g.add_partial(forged_partial(fid, t), now=0.01) == []
+        assert g.add_correlation(forged_correlation(fid, t), now=0.01) == []
     assert g.counters["implausible_time"] == 3 and g.counters["implausible_frame"] == 1
     # within the window and plausible: pending until its deadline, then forgotten (orphaned, not dropped)
-    g.add_partial(forged_partial(15, wall.t), now=0.02)
+    g.add_correlation(forged_correlation(15, wall.t), now=0.02)
     g.expire(now=0.2)
     assert g.counters["orphaned"] == 1 and g.counters["dropped"] == 0 and g.done_upto == 10
     for i, fid in enumerate(range(11, 16)):  # frame 15 too: the orphan left no trace
@@ -128,11 +128,11 @@ def test_the_gatherer_reanchors_by_itself():
     assert len(run_frame(g, 14, wall.t, 1.25)) == 1
 
 
-def test_a_new_capture_restarts_but_a_partial_cannot_restart():
+def test_a_new_capture_restarts_but_a_correlation_cannot_restart():
     wall = Wall(1000 * S)
     g = gatherer(wall)
     run_frame(g, 50, wall.t - 10, 0.0)
-    assert g.add_partial(forged_partial(3, wall.t), now=0.01) == [] and g.counters["late"] == 1
+    assert g.add_correlation(forged_correlation(3, wall.t), now=0.01) == [] and g.counters["late"] == 1
     assert g.counters["restarts"] == 0
     assert len(run_frame(g, 1, wall.t, 0.02)) == 1 and g.counters["restarts"] == 1
 
@@ -143,7 +143,7 @@ def test_the_evidence_names_silent_workers():
     for i in range(4):
         f = frame(10 + i, wall.t, workers=["a", "fake"])
         g.add_frame(f, now=i * 0.1)
-        g.add_partial(compute_partial(f, "a"), now=i * 0.1)
+        g.add_correlation(compute_correlation(f, "a"), now=i * 0.1)
         g.expire(now=i * 0.1 + 0.06)
     rep = g.report(now=0.5)
     assert rep["frame"] == 13 and rep["workers"]["fake"] == {"age_s": None, "misses": 4}
@@ -151,14 +151,14 @@ def test_the_evidence_names_silent_workers():
     assert json.loads(json.dumps(rep)) == rep  # what the reducer publishes
 
 
-def test_pending_is_bounded_against_a_flood_of_partials():
+def test_pending_is_bounded_against_a_flood_of_correlations():
     wall = Wall(1000 * S)
     g = gatherer(wall)
     run_frame(g, 10, wall.t, 0.0)
     for i in range(2000):
-        g.add_partial(forged_partial(11 + i % 900, wall.t, worker=f"e{i}"), now=0.01)
+        g.add_correlation(forged_correlation(11 + i % 900, wall.t, worker=f"e{i}"), now=0.01)
     assert len(g.pending) <= g.MAX_PENDING
-    assert all(len(e.partials) <= g.MAX_PARTIALS for e in g.pending.values())
+    assert all(len(e.correlations) <= g.MAX_CORRELATIONS for e in g.pending.values())
     assert g.counters["dropped"] == 0
 
 
@@ -263,20 +263,20 @@ def test_reducer_serves_the_newest_frame_first():
 
     t = time.time_ns()
     f1, f2 = frame(1, t), frame(2, t + 1)
-    msgs = [f1, compute_partial(f1, "a"), compute_partial(f1, "b"),
-            compute_partial(f2, "a"), f2, compute_partial(f2, "b")]
+    msgs = [f1, compute_correlation(f1, "a"), compute_correlation(f1, "b"),
+            compute_correlation(f2, "a"), f2, compute_correlation(f2, "b")]
     order = newest_first(msgs)
-    assert [(m.frame, type(m).__name__) for m in order[:2]] == [(2, "Frame"), (2, "Partial")]
+    assert [(m.frame, type(m).__name__) for m in order[:2]] == [(2, "Frame"), (2, "Correlation")]
     g = Gatherer(P, ControlSettings(), 0.05)
     out = [r for m in order for r in (g.add_frame(m, now=0.0) if isinstance(m, Frame) else
-                                      g.add_partial(m, now=0.0))]
+                                      g.add_correlation(m, now=0.0))]
     assert [r.frame.frame for r in out] == [2] and g.counters["late"] == 3  # frame 1 is not decided at all
-    box = Inbox(frames=2, partials=3)
+    box = Inbox(frames=2, correlations=3)
     for i in range(5):
         box.put("frame", i)
-        box.put("partial", i)
-    assert box.drain(0.0) == [("frame", 3), ("frame", 4), ("partial", 2), ("partial", 3), ("partial", 4)]
-    assert box.shed == {"frame": 3, "partial": 2} and box.drain(0.0) == []
+        box.put("correlation", i)
+    assert box.drain(0.0) == [("frame", 3), ("frame", 4), ("correlation", 2), ("correlation", 3), ("correlation", 4)]
+    assert box.shed == {"frame": 3, "correlation": 2} and box.drain(0.0) == []
 
 
 # -- the attacks, against real processes ---------------------------------------------------------------------
@@ -284,7 +284,7 @@ def test_reducer_serves_the_newest_frame_first():
 # router, sim actuator, 2 workers, reducer and a capture at 30 Hz on a still textured pair (the slave sees
 # the scene 12 px off whatever the motor does, and its frames carry the pan it was taken at, 0: every frame
 # yields the same command, the motor holds that pan and every command is taken and names its frame in
-# motor/state). The test's own client does the
+# motor_state). The test's own client does the
 # harm at t_a; the Musts: decisions in [t_a + 1 s, t_a + 2 s] at >= 80 % of the rate before, and a motor
 # state naming a real command captured after t_a within 1 s.
 
@@ -309,7 +309,7 @@ def rig(tmp_path):
         P.wait_alive(s, "reducer", 1, timeout=60)
         P.wait_alive(s, "actuator", 1, timeout=60)
         c = dict(decision=P.collect(s, P.key("decision")), command=P.collect(s, P.key("command")),
-                 state=P.collect(s, P.key("motor/state")), status=P.collect(s, P.key("status/**")))
+                 state=P.collect(s, P.key("motor_state")), status=P.collect(s, P.key("status/**")))
         P.start("capture", "capture", "--source", source, "--rate", str(RATE), "--config", str(cfg))
         c["decision"].wait(2 * RATE, 60)  # warm: 2 s of decisions
         def holding():
@@ -370,20 +370,20 @@ def latest_status(c, role: str) -> dict:
 
 
 @pytest.mark.slow
-def test_forged_partials_frames_and_states_stop_nothing(rig):
-    """Item 1 (one forged partial or frame stopped the reducer for good) and item 6 (a forged motor state, a
+def test_forged_correlations_frames_and_states_stop_nothing(rig):
+    """Item 1 (one forged correlation or frame stopped the reducer for good) and item 6 (a forged motor state, a
     valid frame of ~10 MB)."""
     from procs import wait_for
 
     P, s, c = rig
     t_a, base = before(c)
     now = time.time_ns()
-    s.put(P.key("correlation/evil-1"), Partial(rig=P.rig, frame=BIG_FRAME, t_capture_ns=BIG_T, worker="evil-1",
+    s.put(P.key("correlation/evil-1"), Correlation(rig=P.rig, frame=BIG_FRAME, t_capture_ns=BIG_T, worker="evil-1",
                                                 k0=0, k1=3, rows=1, scores=bytes(24)).to_bytes())
-    s.put(P.key("correlation/evil-1"), Partial(rig=P.rig, frame=BIG_FRAME, t_capture_ns=now, worker="evil-1",
+    s.put(P.key("correlation/evil-1"), Correlation(rig=P.rig, frame=BIG_FRAME, t_capture_ns=now, worker="evil-1",
                                                 k0=0, k1=3, rows=1, scores=bytes(24)).to_bytes())
     s.put(P.key("frame"), frame(BIG_FRAME, now, workers=["evil-1"]).to_bytes())
-    s.put(P.key("motor/state"), MotorState(rig=P.rig, t_ns=now, pan_rad=math.radians(80), goal_rad=0.0,
+    s.put(P.key("motor_state"), MotorState(rig=P.rig, t_ns=now, pan_rad=math.radians(80), goal_rad=0.0,
                                            min_rad=-2.0, max_rad=2.0, status="ok").to_bytes())
     wide = np.zeros((40, 250_000), np.uint8)
     big = make_frame(wide, wide, rig=P.rig, frame=BIG_FRAME, pan_rad=0.0, focal_px=100.0, params=P_BIG,
@@ -396,7 +396,7 @@ def test_forged_partials_frames_and_states_stop_nothing(rig):
     cap = latest_status(c, "capture")
     assert cap["bad"].get("motor_state", 0) >= 1, cap
     # the frames after the attack carry the real pan, never the forged 80 deg
-    pans = [Verdict.from_bytes(b).pan_rad for t, b, _ in c["decision"].snapshot() if t > t_a]
+    pans = [Decision.from_bytes(b).pan_rad for t, b, _ in c["decision"].snapshot() if t > t_a]
     assert pans and set(pans) == {0.0}  # the still pair's own pan (on the motor: scenarios/test_pipeline.py)
 
     def counted_it(role: str) -> bool:

@@ -24,7 +24,7 @@ from procs import Procs, free_port, textured_pair, wait_for
 from vergence import kernel, retina
 from vergence.config import load
 from vergence.gather import decide_frame
-from vergence.messages import Command, Frame, MessageError, MotorState, Partial, Preview, Profile, Verdict
+from vergence.messages import Command, Frame, MessageError, MotorState, Correlation, Preview, Profile, Decision
 
 pytestmark = pytest.mark.slow  # every test here runs real processes
 
@@ -113,7 +113,7 @@ def test_profile_equals_correlate_with_1_2_3_workers(tmp_path, pair):
                 assert prof.k - prof.k_centre == 12 and prof.confident
             # the small decision message says what the profile says, field for field
             for prof in seen:
-                _, v = wait_for(lambda: by_frame(decisions.snapshot(), Verdict).get(prof.frame), 5,
+                _, v = wait_for(lambda: by_frame(decisions.snapshot(), Decision).get(prof.frame), 5,
                                 "the decision of a profiled frame", logs=P.logs)
                 assert v.to_dict() == {k: val for k, val in prof.to_dict().items() if k in v.to_dict()}
                 assert len(v.to_bytes()) < 400
@@ -157,7 +157,7 @@ def test_kill_and_add_workers_commands_continue_never_incomplete(tmp_path, pair)
         prof = by_frame(profiles.snapshot(), Profile)
         got = {}
         for t, b, _ in parts.snapshot():
-            p = Partial.from_bytes(b)
+            p = Correlation.from_bytes(b)
             got.setdefault(p.frame, {})[p.worker] = (t, p)
         # never a command from an incomplete profile: every command's frame had every shard of its plan.
         # (This test's own subscriber may miss a message under load: check the commands whose frame it saw.)
@@ -168,12 +168,12 @@ def test_kill_and_add_workers_commands_continue_never_incomplete(tmp_path, pair)
             f = fr[fid][1]
             assert prof[fid][1].array().shape[1] == f.k_count
             if any(wid not in got.get(fid, {}) for wid, _, _ in f.plan):
-                continue  # a partial this test did not see (counted by `checked` below)
+                continue  # a correlation this test did not see (counted by `checked` below)
             for wid, k0, k1 in f.plan:
                 _, p = got[fid][wid]
                 # every shard was computed before the command went out (both stamps from this host's clock;
                 # arrival times at this test's subscriber were not strict enough: a busy test process
-                # stamped a partial 3.5 ms after the command)
+                # stamped a correlation 3.5 ms after the command)
                 assert (p.k0, p.k1) == (k0, k1) and 0 < p.t_done_ns <= c.t_sent_ns
             checked += 1
         assert checked >= 0.9 * len(cmd) > 0
@@ -219,7 +219,7 @@ def test_sigstop_worker_frames_dropped_not_queued(tmp_path, pair):
         fr = by_frame(frames.snapshot(), Frame)
         w1_id = [k for k in P.wait_alive(s, "worker", 2) if k.startswith("w1-")][0]
         stale = [p.frame for _, b, k in parts.snapshot() if k.endswith(w1_id)
-                 for p in [Partial.from_bytes(b)] if fr.get(p.frame) and
+                 for p in [Correlation.from_bytes(b)] if fr.get(p.frame) and
                  t_stop < fr[p.frame][1].t_capture_ns < t_cont - 100_000_000]
         assert len(stale) <= 3, stale
         cmds = by_frame(commands.snapshot(), Command)
@@ -227,7 +227,7 @@ def test_sigstop_worker_frames_dropped_not_queued(tmp_path, pair):
         assert len(resumed) >= 10 and reducer.alive()
 
 
-def _garbage(rng: random.Random, frame: Frame, part: Partial) -> list[bytes]:
+def _garbage(rng: random.Random, frame: Frame, part: Correlation) -> list[bytes]:
     f = frame.to_dict()
     p = part.to_dict()
     out = [bytes(rng.getrandbits(8) for _ in range(rng.randint(0, 300))) for _ in range(5)]
@@ -258,7 +258,7 @@ def test_the_dynamic_window_grows_on_the_decisions_alone(tmp_path):
         commands.wait(3, 20)
         windows = [Frame.from_bytes(b).window for _, b, _ in frames.snapshot()]
         assert windows[0] == 15 and set(windows) == {15, 23}
-        verdicts = [Verdict.from_bytes(b) for _, b, _ in decisions.snapshot()]
+        verdicts = [Decision.from_bytes(b) for _, b, _ in decisions.snapshot()]
         assert {v.window for v in verdicts if v.confident} == {23}
         assert not any(v.confident for v in verdicts if v.window == 15)
         assert all(abs(Command.from_bytes(b).magnitude_px - 12) < 0.1 for _, b, _ in commands.snapshot())
@@ -295,7 +295,7 @@ def test_the_service_falls_back_to_the_unclipped_master_as_match_does(tmp_path):
         cap = P.start("capture", "capture", "--source", f"files:{tmp_path / 'l.png'},{tmp_path / 'r.png'}", "--at",
                       "41,164", "--rate", str(RATE), "--config", str(cfg))
         _, v = wait_for(lambda: next(((t, m) for t, m in (
-            (t, Verdict.from_bytes(b)) for t, b, _ in decisions.snapshot()) if m.confident), None), 30,
+            (t, Decision.from_bytes(b)) for t, b, _ in decisions.snapshot()) if m.confident), None), 30,
             "a confident decision", logs=P.logs)
         fr = {f.frame: f for f in (Frame.from_bytes(b) for _, b, _ in frames.snapshot())}
         d = want.decision
@@ -305,7 +305,7 @@ def test_the_service_falls_back_to_the_unclipped_master_as_match_does(tmp_path):
             g = make_frame(left, slave, rig=f.rig, frame=f.frame, pan_rad=0.0, focal_px=1.0, params=params,
                            plan=f.plan, at=(41, 164), window=f.window, clip=clip)
             assert (g.fovea == f.fovea and g.band == f.band) is not clip  # the unclipped master went out
-        verdicts = [Verdict.from_bytes(b) for _, b, _ in decisions.snapshot()]
+        verdicts = [Decision.from_bytes(b) for _, b, _ in decisions.snapshot()]
         assert not any(m.confident for m in verdicts if m.frame < v.frame)
         assert set(params.windows()) <= {m.window for m in verdicts if m.frame < v.frame}
         # the status says the slave saturates 16 % of the fovea's rows (retina.clipped_share at one of the
@@ -336,10 +336,10 @@ def test_garbage_on_every_key_kills_nothing(tmp_path, pair):
         parts = P.collect(s, P.key("correlation/*"))
         commands.wait(3, 20)
         frame = Frame.from_bytes(frames.snapshot()[-1][1])
-        part = Partial.from_bytes(parts.snapshot()[-1][1])
+        part = Correlation.from_bytes(parts.snapshot()[-1][1])
         rng = random.Random(7)
         junk = _garbage(rng, frame, part)
-        keys = ["frame", "correlation/" + part.worker, "correlation/intruder", "motor/state", "decision", "profile",
+        keys = ["frame", "correlation/" + part.worker, "correlation/intruder", "motor_state", "decision", "profile",
                 "command"]
 
         def valid():
@@ -375,7 +375,7 @@ def test_garbage_on_every_key_kills_nothing(tmp_path, pair):
         assert w["bad"]["frame"] >= 3  # its RingChannel(1) keeps only the newest of a burst
         # every message is counted: rejected, or shed by the reducer's bounded inbox under the burst
         assert r["bad"]["frame"] + r["shed"]["frame"] >= 3 * 10
-        assert r["bad"]["partial"] + r["shed"]["partial"] >= 3 * 2 * 10
+        assert r["bad"]["correlation"] + r["shed"]["correlation"] >= 3 * 2 * 10
         assert c["bad"]["motor_state"] >= 3 * len(junk) and c["bad"]["decision"] >= 3 * len(junk)
         assert c["clipped"] == {"slave": 0.0, "master": 0.0}  # two cameras alike: neither loses texture
         # no garbage frame was ever turned into a command
@@ -475,7 +475,7 @@ def test_sigint_token_goes_then_the_exiting_status(tmp_path):
 def test_a_frame_carries_the_pan_its_slave_image_was_taken_at(tmp_path, kind):
     """A still pair was taken at one pan (0: parallel cameras) whatever the motor does since: its frames carry 0,
     so the commands hold the motor at one pan instead of winding it to a limit, and the log says so. A source
-    that moves with the motor (sim, like a camera on it) carries the latest plausible motor/state; a forged one
+    that moves with the motor (sim, like a camera on it) carries the latest plausible motor_state; a forged one
     (80 deg, outside the motor's +-45 deg) is counted and never carried. The test's client plays the motor."""
     cfg = config(tmp_path)
     spec = textured_pair(tmp_path) if kind == "files" else "sim:size=320x240"
@@ -489,7 +489,7 @@ def test_a_frame_carries_the_pan_its_slave_image_was_taken_at(tmp_path, kind):
         cap = P.start("capture", "capture", "--source", spec, "--rate", str(RATE), "--config", cfg)
         frames.wait(3, 30)
         for deg in (80.0, 3.0):
-            s.put(P.key("motor/state"), MotorState(rig=P.rig, t_ns=time.time_ns(), pan_rad=math.radians(deg),
+            s.put(P.key("motor_state"), MotorState(rig=P.rig, t_ns=time.time_ns(), pan_rad=math.radians(deg),
                                                    goal_rad=math.radians(deg), min_rad=-math.radians(45),
                                                    max_rad=math.radians(45), status="ok").to_bytes())
         t_put = time.time_ns()

@@ -252,7 +252,7 @@ def test_the_reducer_bounds_its_commands_by_the_motor_settings():
     from vergence.config import from_dict
     from vergence.frames import make_frame, plan_shards
     from vergence.gather import Gatherer
-    from vergence.shards import compute_partial
+    from vergence.shards import compute_correlation
 
     rng = np.random.default_rng(1)
     base = cv2.GaussianBlur(rng.integers(0, 256, (120, 240), np.uint8), (5, 5), 1.5)
@@ -263,9 +263,9 @@ def test_the_reducer_bounds_its_commands_by_the_motor_settings():
     for fid, pan in ((1, 0.0), (2, 2.5 * DEG)):
         f = make_frame(master, slave, rig="r", frame=fid, pan_rad=pan, focal_px=100.0, params=s.network,
                        plan=plan_shards(["a"], 200 - s.network.window + 1))
-        part = compute_partial(f, "a")
+        part = compute_correlation(f, "a")
         g.add_frame(f)
-        (r,) = g.add_partial(part)
+        (r,) = g.add_correlation(part)
         assert r.decision.confident and r.decision.offset_px == pytest.approx(12, abs=0.5)
         got.append(r.command.pan_rad)
     assert got == [pytest.approx(1 * DEG), pytest.approx(3 * DEG)]
@@ -413,7 +413,7 @@ def _up_tracking(tmp_path, spec: str) -> tuple[np.ndarray, str]:
     pan at exposure, as the decision says, against the truth the frame carries), and a line saying it and the
     error of the motor itself (the motor states' pan, interpolated at each exposure, against that truth)."""
     from procs import Procs, free_port, wait_for
-    from vergence.messages import Frame, MotorState, Verdict
+    from vergence.messages import Frame, MotorState, Decision
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with Procs(tmp_path) as P:
@@ -423,18 +423,18 @@ def _up_tracking(tmp_path, spec: str) -> tuple[np.ndarray, str]:
         s = P.session()
         frames = P.collect(s, P.key("frame"))
         decisions = P.collect(s, P.key("decision"))
-        states = P.collect(s, P.key("motor/state"))
+        states = P.collect(s, P.key("motor_state"))
 
         def decoded(col, cls):
             return [cls.from_bytes(b) for _, b, _ in col.snapshot()]
 
         # 2 s to converge, then 10 s measured
         wait_for(lambda: len(decisions.snapshot()) > 5, 60, "decisions", logs=P.logs)
-        t_start = decoded(decisions, Verdict)[0].t_capture_ns
-        wait_for(lambda: decoded(decisions, Verdict)[-1].t_capture_ns - t_start > 12.5e9, 60, "12.5 s of decisions",
+        t_start = decoded(decisions, Decision)[0].t_capture_ns
+        wait_for(lambda: decoded(decisions, Decision)[-1].t_capture_ns - t_start > 12.5e9, 60, "12.5 s of decisions",
                  logs=P.logs)
         fr = {f.frame: f for f in decoded(frames, Frame)}
-        ds = [d for d in decoded(decisions, Verdict) if 2e9 <= d.t_capture_ns - t_start <= 12e9 and d.frame in fr]
+        ds = [d for d in decoded(decisions, Decision) if 2e9 <= d.t_capture_ns - t_start <= 12e9 and d.frame in fr]
         ms = sorted(decoded(states, MotorState), key=lambda m: m.t_ns)
     assert len(ds) > 100 and all(fr[d.frame].truth_pan_rad is not None for d in ds)
     truths = [fr[d.frame].truth_pan_rad for d in ds]

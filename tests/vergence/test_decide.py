@@ -63,20 +63,20 @@ def test_margin_is_zero_for_a_tie_and_one_without_rival():
 
 
 def test_correlation_check_tells_a_match_from_two_fields_of_noise():
-    """correlation(): 1 for the same content (whatever the gain and offset between the cameras), 0 for a flat
+    """pearson(): 1 for the same content (whatever the gain and offset between the cameras), 0 for a flat
     window, and below 0.3 (the default min_correlation is 0.35) for independent noise, even at the best offset."""
-    from vergence.decide import correlation
+    from vergence.decide import pearson
 
     rng = np.random.default_rng(4)
     fovea = retina.planes(rng.integers(0, 256, (17, 17)).astype(np.uint8))
     band = np.zeros((3, 15, 40), np.uint8)
     band[:, :, 10:25] = fovea
     win = replace(decide(np.arange(26.0), 15), k=10, v=0)  # the check reads the winner's k and v only
-    assert correlation(fovea, band, win) == pytest.approx(1.0)
+    assert pearson(fovea, band, win) == pytest.approx(1.0)
     band[0, :, 10:25] = np.clip(fovea[0] * 0.5 + 40, 0, 255).astype(np.uint8)
-    assert correlation(fovea, band, win) == pytest.approx(1.0, abs=0.01)
+    assert pearson(fovea, band, win) == pytest.approx(1.0, abs=0.01)
     band[0, :, 10:25] = 90
-    assert correlation(fovea, band, win) == 0.0
+    assert pearson(fovea, band, win) == 0.0
     # a flat wall with sigma-3 sensor noise in each camera: the network's own best offset does not pass
     p = vergence.Params(max_window=0)
     for seed in range(10):
@@ -84,5 +84,5 @@ def test_correlation_check_tells_a_match_from_two_fields_of_noise():
                          .astype(np.uint8) for i in (0, 1))
         m = vergence.match(master, slave, params=replace(p, min_correlation=0.0, lr_check=False, halves_check=False))
         fov, bnd = retina.features(master, slave, None, 15, p.vsearch)
-        assert correlation(fov, bnd, m.decision) < 0.3
+        assert pearson(fov, bnd, m.decision) < 0.3
         assert not vergence.match(master, slave, params=p).confident

@@ -23,7 +23,7 @@ CASES = [
     (keys.profile("head"), "vergence/head/profile", "profile", "profile", "", ""),
     (keys.command("left"), "vergence/left/command", "command", "command", "", ""),
     (keys.workers("head"), "vergence/head/workers", "workers", "workers", "", ""),
-    (keys.motor_state("left"), "vergence/left/motor/state", "motor/state", "motor/state", "", ""),
+    (keys.motor_state("left"), "vergence/left/motor_state", "motor_state", "motor_state", "", ""),
     (keys.correlation("head", "h-12"), "vergence/head/correlation/h-12", "correlation", "correlation/h-12",
      "", "h-12"),
     (keys.status("head", "reducer", "r-3"), "vergence/head/status/reducer/r-3", "status", "status/reducer/r-3",
@@ -128,3 +128,15 @@ def test_the_acl_allows_every_key_a_role_builds_and_only_its_own(transport):
         for other, theirs in roles.items():
             for k in {k for k in theirs if k.startswith(keys.prefix("head"))} - set(built):
                 assert not any(a.includes(zenoh.KeyExpr(k)) for a in ok), f"{role} may publish {other}'s {k}"
+
+
+def test_a_message_kind_is_its_key_kind():
+    """One name per concept (docs/NAMES.md): each message's KIND is the kind of the key it travels on."""
+    from vergence.messages import KINDS as MESSAGE_KINDS
+
+    assert set(MESSAGE_KINDS) <= set(keys.KINDS)
+    for kind, cls in MESSAGE_KINDS.items():
+        assert cls.KIND == kind
+        key = keys.correlation("head", "w-1") if kind == keys.CORRELATION else keys.key("head", kind)
+        assert keys.parse(key).kind == kind, key
+    assert set(keys.KINDS) - set(MESSAGE_KINDS) == {"workers", "status", "alive"}  # JSON, JSON, liveliness

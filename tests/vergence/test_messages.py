@@ -22,9 +22,9 @@ def frame(**kw) -> M.Frame:
 
 SAMPLES = {
     "frame": frame(),
-    "partial": M.Partial(rig="head", frame=7, t_capture_ns=1, worker="a-1", k0=0, k1=4, rows=2,
+    "correlation": M.Correlation(rig="head", frame=7, t_capture_ns=1, worker="a-1", k0=0, k1=4, rows=2,
                          scores=np.arange(8, dtype="<f8").tobytes()),
-    "decision": M.Verdict(rig="head", frame=7, t_capture_ns=1, t_reduced_ns=2, window=5, k=3, k_sub=3.2, v_shift=0,
+    "decision": M.Decision(rig="head", frame=7, t_capture_ns=1, t_reduced_ns=2, window=5, k=3, k_sub=3.2, v_shift=0,
                           k_centre=3, direction=0, magnitude=0, offset_px=0.2, confidence=0.5, confident=True,
                           texture=9.0, pan_rad=0.0, x=320, y=240, converged=True, depth_m=1.25, depth_sigma_m=0.01),
     "profile": M.Profile(rig="head", frame=7, t_capture_ns=1, t_reduced_ns=2, width=10, window=5, rows=1,
@@ -49,12 +49,12 @@ def test_round_trip(kind):
     assert M.KINDS[kind].from_bytes(data) == msg
 
 
-def test_a_partial_of_an_older_worker_still_decodes():
+def test_a_correlation_of_an_older_worker_still_decodes():
     """An older worker sent `texture` (never read, since removed): the field is ignored, the rest decodes."""
-    d = SAMPLES["partial"].to_dict()
+    d = SAMPLES["correlation"].to_dict()
     d["texture"] = 3.5
-    p = M.Partial.from_bytes(msgpack.packb(d, use_bin_type=True))
-    assert p == SAMPLES["partial"] and not hasattr(p, "texture")
+    p = M.Correlation.from_bytes(msgpack.packb(d, use_bin_type=True))
+    assert p == SAMPLES["correlation"] and not hasattr(p, "texture")
     assert p.array().tolist() == [[0.0, 1.0, 2.0, 3.0], [4.0, 5.0, 6.0, 7.0]]
 
 
@@ -91,9 +91,9 @@ def test_fixate_validation_names_the_field(change, says):
 
 
 def test_arrays_travel_as_binary():
-    p = M.Partial.from_bytes(SAMPLES["partial"].to_bytes())
+    p = M.Correlation.from_bytes(SAMPLES["correlation"].to_bytes())
     assert p.array().tolist() == [[0, 1, 2, 3], [4, 5, 6, 7]]
-    raw = msgpack.unpackb(SAMPLES["partial"].to_bytes())
+    raw = msgpack.unpackb(SAMPLES["correlation"].to_bytes())
     assert isinstance(raw["scores"], bytes)
 
 
@@ -120,7 +120,7 @@ def test_decision_validation_names_the_field(change, says):
     d = SAMPLES["decision"].to_dict()
     d.update(change)
     with pytest.raises(M.MessageError, match=says):
-        M.Verdict.from_bytes(msgpack.packb(d, use_bin_type=True))
+        M.Decision.from_bytes(msgpack.packb(d, use_bin_type=True))
 
 
 @pytest.mark.parametrize("kind", list(SAMPLES))

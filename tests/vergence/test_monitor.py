@@ -65,7 +65,7 @@ def run_stream(mon: Monitor, seconds: float = 10.0, hz: float = 100.0, skip=(), 
         if i not in skip:
             mon.feed("vergence/head/profile", profile(i, t).to_bytes(), t + 2 * MS)
             mon.feed("vergence/head/command", command(i, t, latency(i), 0.001 * i).to_bytes(), t + 2 * MS)
-        mon.feed("vergence/head/motor/state", motor(t, 0.001 * i).to_bytes(), t + 3 * MS)
+        mon.feed("vergence/head/motor_state", motor(t, 0.001 * i).to_bytes(), t + 3 * MS)
     return T0 + (n - 1) * step + 3 * MS
 
 
@@ -228,7 +228,7 @@ def test_png_of_profile():
 def test_drops_from_reducer_status():
     mon = Monitor("head")
     run_stream(mon, 1.0, 100.0, skip={5})
-    g = {"frames": 1200, "partials": 2400, "complete": 1190, "dropped": 7, "superseded": 3, "late": 0}
+    g = {"frames": 1200, "correlations": 2400, "complete": 1190, "dropped": 7, "superseded": 3, "late": 0}
     st = {"role": "reducer", "id": "r-9", "pid": 9, "t_ns": T0, "counters": {"profiles": 1190},
           "bad": {}, "gatherer": g, "pending": 1}
     assert mon.feed("vergence/head/status/reducer/r-9", json.dumps(st).encode())["gatherer"] == g

@@ -81,7 +81,7 @@ def test_a_failed_write_names_the_file_and_the_error_and_stops_the_writer():
 
 
 def test_a_failed_write_cuts_the_file_after_its_last_whole_flush(tmp_path, monkeypatch):
-    """The bytes after the last flush are a partial tail: the file is cut to the last whole record, and
+    """The bytes after the last flush are a correlation tail: the file is cut to the last whole record, and
     replays without a truncated end."""
     p = tmp_path / "cut.vrec"
     w = rec.Writer(p, rig="head", flush_every=1000)

@@ -9,9 +9,9 @@ from samples import frame_of, textured
 from vergence import kernel, retina
 from vergence.control import ControlSettings
 from vergence.gather import Gatherer
-from vergence.messages import Frame, Partial
+from vergence.messages import Frame, Correlation
 from vergence.params import Params
-from vergence.shards import compute_partial
+from vergence.shards import compute_correlation
 
 
 def clipping_pair():
@@ -33,7 +33,7 @@ def test_shards_concatenate_to_correlate(params, nworkers, gain):
     m, s = textured()
     s = np.clip(s * gain + (-15 if gain != 1 else 0), 0, 255).astype(np.uint8)  # the slave camera's gain
     f = Frame.from_bytes(frame_of(m, s, params, workers=[f"w{i}" for i in range(nworkers)]).to_bytes())
-    parts = [Partial.from_bytes(compute_partial(f, f"w{i}").to_bytes()) for i in range(nworkers)]
+    parts = [Correlation.from_bytes(compute_correlation(f, f"w{i}").to_bytes()) for i in range(nworkers)]
     got = np.concatenate([p.array() for p in parts], axis=1)
     fovea, band = retina.features(m, s, window=params.window, vsearch=params.vsearch, photometric=params.photometric)
     w = kernel.support_weights(fovea, params.support_gamma, params.support_radius_at(params.window)) \
@@ -41,4 +41,4 @@ def test_shards_concatenate_to_correlate(params, nworkers, gain):
     want = np.atleast_2d(kernel.correlate(fovea, band, circular=params.circular, weights=w))
     assert got.shape == want.shape == (2 * params.vsearch + 1, m.shape[1] - params.window + 1)
     assert np.array_equal(got, want)
-    assert compute_partial(f, "nobody") is None
+    assert compute_correlation(f, "nobody") is None

@@ -220,7 +220,7 @@ class SerialDriver(Driver):
 class Ruling:
     """What the safety layer ruled on one command: goal is the motor's new goal (radians), None when the motor
     must not move (ignored, or inside the dead band); clamped, whether the target was bounded; reason, why it
-    was ignored or clamped. (Not messages.Verdict, the network's decision on a frame.)"""
+    was ignored or clamped. (Not messages.Decision, the network's decision on a frame.)"""
 
     goal: float | None
     clamped: bool = False

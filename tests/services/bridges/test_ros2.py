@@ -19,7 +19,7 @@ import rosnode
 from procs import Procs, free_port, wait_for
 from vergence import keys
 from vergence.frames import make_frame
-from vergence.messages import Fixate, MotorState, Preview, Profile, Verdict
+from vergence.messages import Fixate, MotorState, Preview, Profile, Decision
 from vergence.params import Params
 
 pytestmark = pytest.mark.slow
@@ -38,8 +38,8 @@ def frame_bytes(rig: str) -> bytes:
                       plan=[["w", 0, W - 15 + 1]]).to_bytes()
 
 
-def verdict(rig: str, frame: int, converged: bool, x=200, y=100, depth=0.8, sigma=0.01, t=None) -> Verdict:
-    return Verdict(rig=rig, frame=frame, t_capture_ns=t or time.time_ns(), t_reduced_ns=time.time_ns(), window=15,
+def verdict(rig: str, frame: int, converged: bool, x=200, y=100, depth=0.8, sigma=0.01, t=None) -> Decision:
+    return Decision(rig=rig, frame=frame, t_capture_ns=t or time.time_ns(), t_reduced_ns=time.time_ns(), window=15,
                    k=150, k_sub=150.2, v_shift=0, k_centre=150, direction=0, magnitude=0, offset_px=0.2,
                    confidence=0.9, confident=True, texture=1.0, pan_rad=0.05, x=x, y=y, converged=converged,
                    depth_m=depth if converged else math.nan, depth_sigma_m=sigma if converged else math.nan)
@@ -98,12 +98,12 @@ class Bridged:
 def _joint_states(b: Bridged) -> None:
     """joint_states: the motor's own stamps; velocity from two states 10 ms apart."""
     P, s, joints = b.P, b.s, b.joints
-    put_until(s, P.key("motor/state"), lambda: MotorState(rig=P.rig, t_ns=time.time_ns(), pan_rad=0.1, goal_rad=0.1,
+    put_until(s, P.key("motor_state"), lambda: MotorState(rig=P.rig, t_ns=time.time_ns(), pan_rad=0.1, goal_rad=0.1,
                                                             min_rad=-0.5, max_rad=0.5, status="ok").to_bytes(),
               lambda: joints, what="a joint state", logs=P.logs)
     n, t0 = len(joints), time.time_ns()
     for dt, p in ((0, 0.1), (10_000_000, 0.12)):
-        s.put(P.key("motor/state"), MotorState(rig=P.rig, t_ns=t0 + dt, pan_rad=p, goal_rad=p, min_rad=-0.5,
+        s.put(P.key("motor_state"), MotorState(rig=P.rig, t_ns=t0 + dt, pan_rad=p, goal_rad=p, min_rad=-0.5,
                                                max_rad=0.5, status="ok").to_bytes())
     js = b.t.wait_until(lambda: next((m for _, m in joints[n:] if (m.header.stamp.sec, m.header.stamp.nanosec)
                                       == divmod(t0 + 10_000_000, 10**9)), None), 10, "the second state", P.logs)
@@ -131,7 +131,7 @@ def _fixation_and_correlation(b: Bridged) -> None:
     assert len(b.fixes) == 1  # the unconverged decision published nothing
 
     scores = np.arange(13 * 306, dtype="<f8").reshape(13, 306) / 7.0
-    pr = Profile(**{f: getattr(verdict(P.rig, 4, True), f) for f in Verdict.__struct_fields__},
+    pr = Profile(**{f: getattr(verdict(P.rig, 4, True), f) for f in Decision.__struct_fields__},
                  width=W, rows=13, scores=scores.tobytes())
     # the bridge follows the profiles once it sees our subscription to correlation (within a second)
     put_until(s, P.key("profile"), pr.to_bytes(), lambda: b.corrs, what="a correlation", logs=P.logs)
@@ -198,9 +198,9 @@ def _diagnostics_and_bad_zenoh(b: Bridged) -> None:
     b.diagnostic(f"vergence/{P.rig}/motor", b"\x03", "the motor STALE (no motor state for 3 s)")
 
     before = (len(b.joints), len(b.fixes), len(b.corrs))
-    for key in ("motor/state", "decision", "profile", "frame"):
+    for key in ("motor_state", "decision", "profile", "frame"):
         s.put(P.key(key), b"\xc1 garbage")
-    s.put(P.key("motor/state"), MotorState(rig=P.rig, t_ns=-5, pan_rad=0.0, goal_rad=0.0, min_rad=-1,
+    s.put(P.key("motor_state"), MotorState(rig=P.rig, t_ns=-5, pan_rad=0.0, goal_rad=0.0, min_rad=-1,
                                            max_rad=1, status="ok").to_bytes())  # a time before the epoch
     s.put(keys.status(P.rig, "worker", "x"), b"[1, 2")
     want = {"motor_state": 2, "decision": 1, "profile": 1, "frame": 1, "status": 1}
@@ -241,8 +241,8 @@ def test_bridge_topics_values_stamps_hashes_and_look_at(tmp_path, monkeypatch):
         assert b.bridge.stop() == 0 and f"ros2 {own['id']} exits" in b.bridge.text()
 
 
-def _verdicts(c, after_ns: int = 0) -> list[tuple[int, Verdict]]:
-    return [(t, Verdict.from_bytes(b)) for t, b, _ in c.snapshot() if t >= after_ns]
+def _verdicts(c, after_ns: int = 0) -> list[tuple[int, Decision]]:
+    return [(t, Decision.from_bytes(b)) for t, b, _ in c.snapshot() if t >= after_ns]
 
 
 def _converges_within_3_s(P, t, decisions, fixes, t_first: int, error_px, z_true: float) -> int:
@@ -441,7 +441,7 @@ def test_ros2_source_counts_bad_images_and_goes_on(tmp_path, monkeypatch):
             s = P.session()
             statuses = P.collect(s, P.key("status/capture/*"))
 
-            source = functools.partial(_source_counters, statuses)
+            source = functools.correlation(_source_counters, statuses)
             first = wait_for(source(lambda c: c.get("pairs", 0) >= 5), 30, "pairs counted", logs=P.logs)
             assert not any(k.startswith("bad") for k in first)
             sent = _send_bad_images(t, right, gray, source, P.logs)
@@ -518,13 +518,13 @@ def _check_against_raw(by_topic: dict, ns: str, P) -> dict[str, list[bytes]]:
     for kind in ("motor_state", "decision", "preview"):
         for m in by_topic[f"{ns}/zenoh/{kind}"]:
             raw.setdefault(m.layout.dim[0].label, []).append(bytes(m.data))
-    assert GARBAGE in raw[P.key("motor/state")] and GARBAGE in raw[P.key("decision")]
-    states = [MotorState.from_bytes(b) for b in raw[P.key("motor/state")] if b != GARBAGE]
+    assert GARBAGE in raw[P.key("motor_state")] and GARBAGE in raw[P.key("decision")]
+    states = [MotorState.from_bytes(b) for b in raw[P.key("motor_state")] if b != GARBAGE]
     joints = by_topic[f"{ns}/joint_states"]
     assert len(joints) == len(states) >= 50  # 4 s at 50 Hz, less start-up; the garbage made no joint state
     for st, js in zip(states, joints):
         assert js.position[0] == st.pan_rad and js.header.stamp.sec * 10**9 + js.header.stamp.nanosec == st.t_ns
-    converged = [v for v in (Verdict.from_bytes(b) for b in raw[P.key("decision")] if b != GARBAGE) if v.converged]
+    converged = [v for v in (Decision.from_bytes(b) for b in raw[P.key("decision")] if b != GARBAGE) if v.converged]
     fixes = by_topic[f"{ns}/fixation"]
     assert 10 <= len(fixes) <= len(converged)
     depth = {v.t_capture_ns: v.depth_m for v in converged}
@@ -554,7 +554,7 @@ def test_record_mcap_opens_in_independent_readers_and_replays(tmp_path):
         P.collect(s, P.key("decision")).wait(1, 90)
         rec = P.start("record", "record", str(path), "--duration", "4")
         P.wait_alive(s, "record")
-        for key in ("motor/state", "decision", "profile", "preview", "status/capture/x"):
+        for key in ("motor_state", "decision", "profile", "preview", "status/capture/x"):
             s.put(P.key(key), GARBAGE)
         wait_for(lambda: rec.poll() is not None, 30, "the recorder to finish", logs=P.logs)
         assert rec.returncode == 0
@@ -632,7 +632,7 @@ def test_up_with_the_ros2_driver_against_a_forward_command_controller(tmp_path, 
                     "--rate", "0", "--no-standby", connect=False)
             s = P.session(60)
             decisions = P.collect(s, P.key("decision"))
-            states = P.collect(s, P.key("motor/state"))
+            states = P.collect(s, P.key("motor_state"))
             # from the first decision once the motor is connected (its first joint state can take seconds of DDS
             # discovery; commands meanwhile are not executed)
             t_ok = wait_for(lambda: next((t for t, b, _ in states.snapshot() if MotorState.from_bytes(b).status

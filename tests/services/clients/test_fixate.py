@@ -20,10 +20,10 @@ from services.runtime.health import Health
 from vergence import monitor, plots
 from vergence.control import Controller
 from vergence.frames import make_frame
-from vergence.gather import FrameDecision
+from vergence.gather import Reduced
 from vergence.params import Params
-from vergence.shards import compute_partial
-from vergence.messages import SCHEMA, Fixate, MotorState, Verdict, replace as replace_message
+from vergence.shards import compute_correlation
+from vergence.messages import SCHEMA, Fixate, MotorState, Decision, replace as replace_message
 from vergence.sim import Rig
 from vergence.sim.fixation import truth_at
 
@@ -76,8 +76,8 @@ def test_fixate_command_checks_its_point():
         assert r.returncode == 2 and says in r.stderr
 
 
-def _verdicts(col, since_ns: int = 0) -> list[tuple[int, Verdict]]:
-    return [(t, Verdict.from_bytes(b)) for t, b, _ in col.snapshot() if t >= since_ns]
+def _verdicts(col, since_ns: int = 0) -> list[tuple[int, Decision]]:
+    return [(t, Decision.from_bytes(b)) for t, b, _ in col.snapshot() if t >= since_ns]
 
 
 def _converged_depths(col, xy, since_ns, n):
@@ -103,7 +103,7 @@ def test_fixate_through_vergence_up(tmp_path):
                 "--config", str(cfg), connect=False)
         s = P.session()
         decisions = P.collect(s, P.key("decision"))
-        states = P.collect(s, P.key("motor/state"))
+        states = P.collect(s, P.key("motor_state"))
         status = P.collect(s, P.key("status/capture/*"))
 
         def pan() -> float:
@@ -195,7 +195,7 @@ def test_monitor_shows_the_fovea_and_the_depth():
     p = Params(max_window=0)
     f = make_frame(img, img, rig="head", frame=3, pan_rad=0.0, focal_px=100.0, params=p,
                    plan=[["w", 0, 186]], at=(80, 60))
-    r = FrameDecision.of(f, compute_partial(f, "w").array(), p, Controller())
+    r = Reduced.of(f, compute_correlation(f, "w").array(), p, Controller())
     mon = monitor.Monitor("head")
     mon.feed("vergence/head/frame", f.to_bytes())
     mon.feed("vergence/head/profile", replace_message(r.profile, x=80, y=60, converged=True, depth_m=1.234,

@@ -62,7 +62,7 @@ def cpu_s(pid: int) -> float:
 
 
 def frames_of(items) -> list[int]:
-    return sorted({M.Verdict.from_bytes(b).frame for _, b, _ in items})
+    return sorted({M.Decision.from_bytes(b).frame for _, b, _ in items})
 
 
 def missing(frames: list[int]) -> int:
@@ -104,7 +104,7 @@ def test_view_save_records_3s_of_up(tmp_path):
         v.signal(signal.SIGINT)
         assert v.wait(30) == 0, v.tail()
         assert "Traceback" not in v.text()
-        got = {d.frame: d for d in (M.Verdict.from_bytes(b) for _, b, _ in decisions.snapshot())}
+        got = {d.frame: d for d in (M.Decision.from_bytes(b) for _, b, _ in decisions.snapshot())}
     # the loop's cost: frames left without a decision (gaps in the frame ids), `span` s without and with the view
     lost_before, lost_during = missing(before), missing(during)
     print(f"\nframes without a decision: {lost_before} of {len(before) + lost_before} without the view, "
@@ -175,7 +175,7 @@ def test_sim_save_logs_the_views_the_network_saw(tmp_path):
         assert cx == pytest.approx(320 + offsets[f] + 0.5, abs=1e-3)
 
 
-def _recording(path: Path, rig: str = "rec") -> list[M.Verdict]:
+def _recording(path: Path, rig: str = "rec") -> list[M.Decision]:
     """A small `vergence record` file: 3 frames of preview, frame, decision, profile, a motor state, a worker's
     token, and one malformed decision."""
     rng = np.random.default_rng(0)
@@ -195,12 +195,12 @@ def _recording(path: Path, rig: str = "rec") -> list[M.Verdict]:
                           k_sub=float(k), v_shift=0, k_centre=29, direction=1, magnitude=abs(k - 29),
                           offset_px=float(k - 29), confidence=0.5, confident=True, texture=9.0,
                           pan_rad=0.01 * n)
-            v = M.Verdict(**fields)
+            v = M.Decision(**fields)
             out.append(v)
             wr.write(f"vergence/{rig}/decision", t, v.to_bytes())
             wr.write(f"vergence/{rig}/profile", t, M.Profile(**fields, width=width, rows=1,
                                                              scores=scores.tobytes()).to_bytes())
-            wr.write(f"vergence/{rig}/motor/state", t, M.MotorState(rig=rig, t_ns=t, pan_rad=0.01 * n, goal_rad=0.0,
+            wr.write(f"vergence/{rig}/motor_state", t, M.MotorState(rig=rig, t_ns=t, pan_rad=0.01 * n, goal_rad=0.0,
                                                                     min_rad=-1, max_rad=1, status="ok",
                                                                     frame=n).to_bytes())
         wr.write(f"vergence/{rig}/decision", t, b"\x93garbage")
@@ -240,7 +240,7 @@ def test_replay_view_rejects_a_bad_target(tmp_path):
 def test_newer_fields_are_logged_when_present(tmp_path):
     """Fields other branches add (depth on the decision, the truth on the frame) are read with defaults: logged
     when the message carries them, absent otherwise."""
-    class Deep(M.Verdict, kw_only=True):
+    class Deep(M.Decision, kw_only=True):
         depth_m: float = 1.25
         depth_sigma_m: float = 0.05
         truth_pan_rad: float = 0.02
@@ -253,7 +253,7 @@ def test_newer_fields_are_logged_when_present(tmp_path):
                 k_centre=10, direction=0, magnitude=0, offset_px=0.0, confidence=0.9, confident=True,
                 texture=5.0, pan_rad=0.0)
     c._decision(Deep(**base))
-    c._decision(M.Verdict(**{**base, "frame": 4}))
+    c._decision(M.Decision(**{**base, "frame": 4}))
     assert c.feed("decision", b"not msgpack") is None and c.bad["decision"] == 1
     assert c.feed("status/worker/w1", b"{not json") is None and c.bad["status"] == 1
     rec.disconnect()

@@ -51,7 +51,7 @@ def test_sim_actuator(tmp_path):
         P.router()
         act = P.start("actuator", "actuator", "--driver", "sim")
         s = P.session()
-        col = P.collect(s, P.key("motor/state"))
+        col = P.collect(s, P.key("motor_state"))
         P.wait_alive(s, "actuator")
         col.wait(1, 10)
         n0, t0 = len(col), time.monotonic()
@@ -95,7 +95,7 @@ def _dynamixel_actuator(P, dev):
     act = P.start("actuator", "actuator", "--driver", "dynamixel", "--port", dev.link, "--id", "1",
                   "--baud", "1000000")
     s = P.session()
-    col = P.collect(s, P.key("motor/state"))
+    col = P.collect(s, P.key("motor_state"))
     P.wait_alive(s, "actuator")
     wait_state(col, lambda m: m.status == "ok", 10, "status ok", P.logs)
     return act, s, col
@@ -198,7 +198,7 @@ def test_line_actuator(tmp_path):
             P.router()
             act = P.start("actuator", "actuator", "--config", str(conf))
             s = P.session()
-            col = P.collect(s, P.key("motor/state"))
+            col = P.collect(s, P.key("motor_state"))
             wait_state(col, lambda m: m.status == "ok", 10, "status ok", P.logs)
             pub = s.declare_publisher(P.key("command"))
             pub.put(command(P.rig, 0.15, 1))
@@ -231,7 +231,7 @@ def test_flood_keeps_goal_safe(tmp_path):
         P.router()
         P.start("actuator", "actuator", "--driver", "sim", "--config", str(conf))
         s = P.session()
-        col = P.collect(s, P.key("motor/state"))
+        col = P.collect(s, P.key("motor_state"))
         P.wait_alive(s, "actuator")
         col.wait(1, 10)
         # BLOCK: the burst must reach the actuator whole (what is counted is the actuator's coalescing, not
@@ -273,7 +273,7 @@ def test_reducer_and_actuator_bound_the_pan_by_one_motor_table(tmp_path):
         P.wait_alive(s, "worker", 1)
         P.wait_alive(s, "actuator")
         commands = P.collect(s, P.key("command"))
-        motor = P.collect(s, P.key("motor/state"))
+        motor = P.collect(s, P.key("motor_state"))
         P.start("capture", "capture", "--source", "sim:size=320x240", "--rate", "20", "--config", cfg)
         wait_state(motor, lambda m: abs(m.goal_rad + math.radians(1.0)) < 1e-12, 30, "the goal at min_deg",
                    P.logs)

@@ -12,7 +12,7 @@ def test_health_counts_and_logs_once(caplog):
     with caplog.at_level(logging.WARNING):
         for _ in range(3):
             h.reject("frame", "garbage")
-    h.count("partials")
+    h.count("correlations")
     st = h.status()
-    assert st["bad"] == {"frame": 3} and st["counters"] == {"partials": 1} and st["role"] == "worker"
+    assert st["bad"] == {"frame": 3} and st["counters"] == {"correlations": 1} and st["role"] == "worker"
     assert sum("bad frame" in r.message for r in caplog.records) == 1

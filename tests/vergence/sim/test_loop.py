@@ -332,7 +332,7 @@ def test_cli_pair_without_truth_and_start_off(tmp_path, scene):
 @pytest.mark.slow
 def test_up_with_the_simulated_rig_converges(tmp_path):
     """`vergence up --source sim` (router, sim actuator, 2 workers, reducer, capture as real processes): the
-    slave pan published on motor/state reaches the converged pan within 1 px and stays there."""
+    slave pan published on motor_state reaches the converged pan within 1 px and stays there."""
     rig = Rig.from_spec("")
     truth, tol = rig.truth_pan_rad, rig.one_px_rad
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -341,7 +341,7 @@ def test_up_with_the_simulated_rig_converges(tmp_path):
         up = P.start("up", "up", "--listen", endpoint, "--source", "sim", "--workers", "2", "--rate", "30",
                      connect=False)
         s = P.session()
-        states = P.collect(s, P.key("motor/state"))
+        states = P.collect(s, P.key("motor_state"))
 
         def pans():
             return [MotorState.from_bytes(b).pan_rad for _, b, _ in states.snapshot()]
