@@ -278,3 +278,44 @@ def test_no_function_in_the_product_is_over_80_lines():
     long = {f"{m} {name}": n for m in _modules() for name, n in _long_functions(_path(m).read_text())}
     assert long == {}
     assert _long_functions("def f():\n" + "    x = 1\n" * 80) == [("f", 81)]  # the check can fail
+
+
+DOCS = TREE / "docs"
+README = TREE / "README.md"
+# a path of the tree as docs/ARCHITECTURE.md names it: in backticks, starting at a top-level folder or file
+_NAMED = r"`((?:vergence|services|tests|deploy|docs|\.ci)/[^`\s]*|[A-Za-z_.-]+\.(?:py|md|yml|toml)|Dockerfile)`"
+
+
+def test_architecture_doc_names_every_module_and_only_real_paths():
+    """docs/ARCHITECTURE.md cannot go stale: every module file of vergence/ and services/ (but __init__.py), as
+    the tree has them when the test runs, is named in it by its path, and every path it names exists."""
+    import re
+
+    text = (DOCS / "ARCHITECTURE.md").read_text()
+    named = set(re.findall(_NAMED, text))
+    modules = sorted(p.relative_to(TREE).as_posix() for top in PACKAGES for p in (TREE / top).rglob("*.py")
+                     if p.name != "__init__.py" and "__pycache__" not in p.parts)
+    missing = [m for m in modules if m not in named]
+    assert missing == [], f"docs/ARCHITECTURE.md does not name {missing}: add a row to its folder's table"
+    gone = sorted(n for n in named if not (TREE / n.split("::")[0].rstrip("/")).exists())
+    assert gone == [], f"docs/ARCHITECTURE.md names {gone}, not in the tree"
+
+
+def test_readme_is_short_and_draws_the_data_path():
+    lines = README.read_text().splitlines()
+    assert len(lines) <= 300, f"README.md is {len(lines)} lines (at most 300: the rest belongs in docs/)"
+    assert "```mermaid" in lines, "README.md has no ```mermaid block (the data path)"
+
+
+def test_relative_links_in_readme_and_docs_resolve():
+    import re
+
+    bad = []
+    for doc in [README, *sorted(DOCS.glob("*.md"))]:
+        for target in re.findall(r"\]\(([^)\s]+)\)", doc.read_text()):
+            path = target.split("#")[0]
+            if not path or re.match(r"[a-z]+:", path):
+                continue
+            if not (doc.parent / path).exists():
+                bad.append(f"{doc.relative_to(TREE)}: {target}")
+    assert bad == [], f"broken links: {bad}"
