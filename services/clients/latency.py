@@ -172,7 +172,7 @@ def report(fit) -> str:
     else:
         lines.append(f"the frames' stamps are right (within {abs(fit.delta_s) * ms:.1f} ms); the settings line, "
                      "for a source that does not stamp its images:")
-    lines.append(f"[camera]\nlatency_s = {max(0.0, fit.latency_s):.3f}")
+    lines.append(f"[camera]\nlatency_s = {max(0.0, fit.latency_s):.4f}")
     lines.append("(the skew between the cameras cannot be told with a fixed master on a still scene)")
     return "\n".join(lines)
 

@@ -101,11 +101,14 @@ def secrets(tmp_path_factory):
     return make_secrets(tmp_path_factory.mktemp("secrets"), f"{SUBNET}.1")
 
 
-TESTS = str(Path(__file__).resolve().parents[1])  # the children below import procs and deploy_helpers from there
+# the children below import procs and deploy_helpers from there; vergence and services first, as conftest.py does
+# (on sys.path, tests/vergence/ and tests/services/ would be namespace-package candidates for those names)
+TESTS = str(Path(__file__).resolve().parents[1])
 
 OBSERVER = textwrap.dedent("""
     # records every frame and profile of a rig (the raw bytes) until N profiles from W workers, or a timeout
     import sys, msgpack, zenoh
+    import vergence, services
     sys.path.insert(0, @TESTS@)
     from deploy_helpers import round_trip
     from procs import wait_for
@@ -143,6 +146,7 @@ def test_pub_sub_across_namespaces(tmp_path, hosts, secrets):
     conf, endpoint = router_config("tls", secrets, tmp_path / "router.json5", host=hosts.addr("r"), port=7447)
     script = textwrap.dedent("""
         import sys, zenoh
+        import vergence, services
         sys.path.insert(0, @TESTS@)
         from procs import wait_for
         role, conf_file, n = sys.argv[1], sys.argv[2], int(sys.argv[3])

@@ -441,7 +441,7 @@ def test_ros2_source_counts_bad_images_and_goes_on(tmp_path, monkeypatch):
             s = P.session()
             statuses = P.collect(s, P.key("status/capture/*"))
 
-            source = functools.correlation(_source_counters, statuses)
+            source = functools.partial(_source_counters, statuses)
             first = wait_for(source(lambda c: c.get("pairs", 0) >= 5), 30, "pairs counted", logs=P.logs)
             assert not any(k.startswith("bad") for k in first)
             sent = _send_bad_images(t, right, gray, source, P.logs)
