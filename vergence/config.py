@@ -78,7 +78,7 @@ class CaptureSettings:
     the source gives them). preview_hz: rate of the downscaled preview. focal_px: focal length in pixels
     (0: the source's own, else 0.8 x width). master: which camera is the fixed one, left or right."""
 
-    source: str = "sim"
+    source: str = "sim:motion=sine:z=0.8,amp=0.3,hz=0.2"  # the demo: a target moving in depth; "sim": still
     rate_hz: float = 30.0
     preview_hz: float = 2.0
     preview_width: int = 160

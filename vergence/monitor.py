@@ -119,6 +119,10 @@ class Snapshot:
     # capture, and the frame's pan's error f tan(pan - truth) in pixels (NaN: no truth)
     truth_rad: float = math.nan
     truth_error_px: float = math.nan
+    # the tracking over the last window_s: the frames' pans' errors against their truth (RMS, max |e|, count)
+    tracking_rms_px: float = math.nan
+    tracking_max_px: float = math.nan
+    tracking_n: int = 0
     min_rad: float = math.nan
     max_rad: float = math.nan
     motor_status: str = ""
@@ -128,6 +132,7 @@ class Snapshot:
     command: m.Command | None = None
     pan_history: list[tuple[float, float]] = field(default_factory=list)     # (seconds before now, pan)
     target_history: list[tuple[float, float]] = field(default_factory=list)  # (seconds before now, target)
+    truth_history: list[tuple[float, float]] = field(default_factory=list)   # (seconds before now, truth)
     malformed: dict[str, int] = field(default_factory=dict)
     last_error: dict[str, str] = field(default_factory=dict)
     ignored: int = 0
@@ -163,6 +168,7 @@ class Monitor:
         self._plan_frame = -1
         self._fovea: tuple[int, int] | None = None
         self._truth: tuple[float, float] | None = None  # (truth, error px) of the latest frame with a truth
+        self._truth_hist: deque[tuple[int, float, float]] = deque()  # (arrival, truth, error px)
         self._correlations: dict[str, tuple[int, int]] = {}
         self._motor: m.MotorState | None = None
         self._status: dict[str, dict] = {}
@@ -255,6 +261,7 @@ class Monitor:
             self._plan_frame = f.frame
         if f.truth_pan_rad is not None:
             self._truth = (f.truth_pan_rad, f.focal_px * math.tan(f.pan_rad - f.truth_pan_rad))
+            self._truth_hist.append((t, *self._truth))
 
     def _on_profile(self, p: m.Profile, t: int) -> None:
         self._rates["profile"].add(t)
@@ -279,7 +286,8 @@ class Monitor:
     def _trim(self, now: int) -> None:
         w = int(self.window_s * 1e9)
         h = int(self.history_s * 1e9)
-        for dq, span in ((self._lat, w), (self._red, w), (self._pan_hist, h), (self._target_hist, h)):
+        for dq, span in ((self._lat, w), (self._red, w), (self._pan_hist, h), (self._target_hist, h),
+                         (self._truth_hist, h)):
             while dq and dq[0][0] <= now - span:
                 dq.popleft()
         if self._pending:
@@ -333,6 +341,11 @@ class Monitor:
                 s.target_rad = self._command.pan_rad
             if self._truth is not None:
                 s.truth_rad, s.truth_error_px = self._truth
+            err = np.array([e for t, _, e in self._truth_hist if t > now - self.window_s * 1e9], np.float64)
+            if len(err):
+                s.tracking_rms_px, s.tracking_max_px = float(np.sqrt(np.mean(err ** 2))), float(np.abs(err).max())
+                s.tracking_n = len(err)
+            s.truth_history = [((now - t) / 1e9, v) for t, v, _ in self._truth_hist]
             s.profile, s.command = self._profile, self._command
             s.pan_history = [((now - t) / 1e9, v) for t, v in self._pan_hist]
             s.target_history = [((now - t) / 1e9, v) for t, v in self._target_hist]
@@ -524,12 +537,31 @@ def _motor_lines(s: Snapshot, width: int, color: bool) -> list[str]:
     if math.isfinite(s.truth_rad):
         out.append(f"truth {_deg(s.truth_rad)} (the simulator's converged pan at the last capture; that frame's "
                    f"pan is {s.truth_error_px:+.2f} px off it)")
-    pans = [v for _, v in s.pan_history]
-    if pans:
-        lo, hi = min(pans), max(pans)
-        out.append(f"pan history ({len(pans)} states, {math.degrees(lo):+.2f}°..{math.degrees(hi):+.2f}°) "
-                   + sparkline(pans, width - 50))
+    if s.tracking_n:
+        out.append(f"tracking over the last {s.window_s:g} s: the frames' pans are {s.tracking_rms_px:.2f} px RMS "
+                   f"off the truth (max {s.tracking_max_px:.2f} px, {s.tracking_n} frames)")
+    pans, truths = [v for _, v in s.pan_history], [v for _, v in s.truth_history]
+    if pans:  # the truth's history on the same scales, under the pans': the slave following the target
+        lo, hi = min(pans + truths), max(pans + truths)
+        span = max(a for a, _ in s.pan_history + s.truth_history)
+        scale = f"{math.degrees(lo):+.2f}°..{math.degrees(hi):+.2f}°, {span:.0f} s"
+        out.append(f"pan history   ({scale}) " + timeline(s.pan_history, width - 45, span, lo, hi))
+        if truths:
+            out.append(f"truth history ({scale}) " + timeline(s.truth_history, width - 45, span, lo, hi))
     return out
+
+
+def timeline(history: list[tuple[float, float]], columns: int, span: float, lo: float, hi: float) -> str:
+    """(seconds before now, value) pairs as `columns` cells of ▁..█ between lo and hi, the oldest `span` seconds
+    at the left and now at the right, each cell the latest value of its time (blank where there is none): two
+    histories of one span line up in time."""
+    if not history or columns < 1:
+        return ""
+    cells: list[float | None] = [None] * columns
+    for age, v in sorted(history, reverse=True):  # oldest first: a cell keeps its latest value
+        i = min(columns - 1, max(0, int((1.0 - age / span) * columns))) if span > 0 else columns - 1
+        cells[i] = v
+    return "".join(" " if v is None else sparkline([v], 1, lo, hi) for v in cells)
 
 
 def _process_lines(s: Snapshot, width: int, color: bool) -> list[str]:

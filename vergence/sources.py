@@ -11,7 +11,8 @@
 
 Every source has .size (W, H), .focal_px (0: unknown, the capture picks one), .start_pan_rad, read(pan_at)
 -> (master, slave) uint8 gray arrays (the caller must not modify them), close(), and .truth_pan_rad: the
-converged slave pan of the last read when the source knows it (the simulator), else None. pan_at is the slave's
+converged slave pan of the last read when the source knows it (the simulator, for the point at .fovea, which
+the capture sets where `vergence fixate` moves it), else None. pan_at is the slave's
 pan: a number, or a function of a time (ns, time.time_ns's clock) giving the pan then (the capture's motor
 history); only the simulator uses it. After each read, .exposure_ns is the pair's exposure times (master,
 slave; ns, the middle of each exposure) where the source knows them, else None (the capture then takes the
@@ -63,6 +64,7 @@ class Source:
     truth_pan_rad: float | None = None
     follows_pan: bool = True
     exposure_ns: tuple[int, int] | None = None
+    fovea: tuple[int, int] | None = None  # where the capture's fovea is (None: the centre); the truth's point
 
     def __init__(self, master: str = "left"):
         if master not in ("left", "right"):
@@ -264,6 +266,7 @@ class SimSource(Source):
         self.gimbal = self.rig.gimbal
         self.t0: int | None = None  # the scene's time 0 (ns): the first exposure
         self.rng = np.random.default_rng(0)
+        self._still_truth: tuple = (None, math.nan)  # (fovea, its truth) of the still scene
 
     @classmethod
     def _timing(cls, spec: str) -> tuple[str, dict, bool]:
@@ -303,10 +306,25 @@ class SimSource(Source):
         scene = sub_times((t_master - self.t0) / 1e9, tm.exposure_s)
         slave = [(pan_of(self.t0 + round(t * 1e9)), t)
                  for t in sub_times((t_slave - self.t0) / 1e9, tm.exposure_s)]
-        truth = self.rig.truth_pan((t_master - self.t0) / 1e9)
+        truth = self._truth((t_master - self.t0) / 1e9)
         self.truth_pan_rad = truth if math.isfinite(truth) else None
         self.exposure_ns = (t_master, t_slave) if self.stamps else None
         return expose(self.rig, scene, slave)
+
+
+    def _truth(self, t: float) -> float:
+        """The converged pan at the master's exposure (t s after the first) for the fovea where it is now."""
+        from .sim.fixation import truth_pan_at
+
+        w, h = self.size
+        at = self.fovea
+        if at is None or tuple(at) == (w // 2, h // 2):
+            return self.rig.truth_pan(t)
+        if hasattr(self.rig, "motion"):  # the moving target: its truth changes with t
+            return truth_pan_at(self.rig, at[0], at[1], t)
+        if self._still_truth[0] != at:  # the still scene: once per fovea (a search, some 2 ms)
+            self._still_truth = (at, truth_pan_at(self.rig, at[0], at[1]))
+        return self._still_truth[1]
 
 
 def open_source(spec: str, master: str = "left") -> Source:

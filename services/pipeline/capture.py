@@ -399,6 +399,7 @@ class Capture:
                 # keep the schedule, but never try to catch up more than one period late
                 next_t = max(next_t + period, time.monotonic() - period)
             pan_at = PanLookup(self.history, self.history_lock, self.source)
+            at = self.source.fovea = self.fovea.at()  # this pair's fovea (a simulator's truth is for it)
             try:
                 master, slave = self.source.read(pan_at)
             except SourceError as e:
@@ -407,10 +408,10 @@ class Capture:
                     continue
                 print(f"vergence capture: {e}", file=sys.stderr)
                 return 2
-            self.step(master, slave, pan_at)
+            self.step(master, slave, pan_at, at)
         return 0
 
-    def step(self, master, slave, pan_at: PanLookup) -> None:
+    def step(self, master, slave, pan_at: PanLookup, at: tuple[int, int]) -> None:
         """One pair read: stamped, planned, published (when some worker is alive), previewed; the status."""
         t_read = time.time_ns()
         t_ns, t_slave = self.clock.stamp(t_read, self.source.exposure_ns)
@@ -430,7 +431,7 @@ class Capture:
             # subscriptions (just after start): a frame now would go nowhere
             self.health.count("unrouted")
         elif self.plan:
-            if not self.publish(master, slave, w, clip, t_ns, t_slave, t_read, p_now, stale):
+            if not self.publish(master, slave, w, clip, t_ns, t_slave, t_read, p_now, stale, at):
                 return  # a grown window that no longer fits: back to the base one, and the next pair
         else:
             self.health.count("no_workers")
@@ -441,12 +442,12 @@ class Capture:
         self.node.tick(now)
 
     def publish(self, master, slave, w: int, clip: bool, t_ns: int, t_slave: int, t_read: int, p_now: float,
-                stale: bool) -> bool:
+                stale: bool, at: tuple[int, int]) -> bool:
         """The frame of this pair, published; False when the window no longer fits (reset to the base one)."""
         windows, fid = self.windows, self.fid
         try:
             frame = make_frame(master, slave, rig=self.rig, frame=fid, pan_rad=p_now, focal_px=self.focal,
-                               params=self.params, plan=self.plan, at=self.fovea.at(), window=w,
+                               params=self.params, plan=self.plan, at=at, window=w,
                                t_capture_ns=t_ns, clip=clip)
             frame.master_pan_rad, frame.tilt_rad = self.master_pan, self.tilt
             frame.skew_ns, frame.t_read_ns, frame.pan_stale = t_slave - t_ns, t_read, stale
@@ -461,7 +462,7 @@ class Capture:
                 self.unclipped[fid] = None
                 while len(self.unclipped) > 1024:
                     del self.unclipped[next(iter(self.unclipped))]
-        frame.truth_pan_rad = self.source.truth_pan_rad  # the simulator's ground truth, else None
+        frame.truth_pan_rad = self.source.truth_pan_rad  # the simulator's ground truth at the fovea, else None
         self.pub_frame.put(frame.to_bytes())
         self.rates.published += 1
         self.health.count("published")

@@ -57,12 +57,42 @@ def configure(p: argparse.ArgumentParser) -> None:
                                                                    "by then (default: settings, 50)")
 
 
-def summary(seconds: float, frames: int, lost: int, commands: int, last: Reduced) -> str:
-    """The reducer's periodic log line: what came through in the last `seconds`, and the latest decision."""
+def summary(seconds: float, frames: int, lost: int, commands: int, last: Reduced, window: "Window") -> str:
+    """The reducer's periodic log line: what came through in the last `seconds`, the latest decision, and over
+    the window the slave's pans at capture (their range: one frame's reads like a toggle on a moving target)
+    and, where the frames carry a truth (the simulator), how far those pans were off it."""
     d, f = last.decision, last.frame
-    return (f"last {seconds:.0f} s: frames {frames} decided, {lost} dropped, commands {commands}; frame {f.frame}: "
+    line = (f"last {seconds:.0f} s: frames {frames} decided, {lost} dropped, commands {commands}; frame {f.frame}: "
             f"offset {d.offset_px:+.2f} px, {'confident' if d.confident else 'abstains'} (margin {d.confidence:.2f}, "
-            f"w {f.window}), slave pan at capture {math.degrees(f.pan_rad):+.3f} deg")
+            f"w {f.window})")
+    if window.pans:
+        lo, hi = math.degrees(min(window.pans)), math.degrees(max(window.pans))
+        line += f"; slave pan at capture {lo:+.3f}..{hi:+.3f} deg"
+    if window.errors:
+        e = window.errors
+        rms = math.sqrt(sum(x * x for x in e) / len(e))
+        line += f", {rms:.2f} px RMS off the simulator's truth (max {max(abs(x) for x in e):.2f} px, {len(e)} frames)"
+    return line
+
+
+class Window:
+    """The decided frames' pans at capture and, where a frame carries the simulator's truth, the pan's error
+    f tan(pan - truth) in pixels, since the last summary."""
+
+    def __init__(self):
+        self.pans: list[float] = []
+        self.errors: list[float] = []
+
+    def add(self, f: Frame) -> None:
+        self.pans.append(f.pan_rad)
+        if f.truth_pan_rad is not None:
+            self.errors.append(f.focal_px * math.tan(f.pan_rad - f.truth_pan_rad))
+
+    def take(self) -> "Window":
+        """This window (for the summary), and a new one begun."""
+        out = Window()
+        out.pans, out.errors, self.pans, self.errors = self.pans, self.errors, [], []
+        return out
 
 
 class Inbox:
@@ -185,6 +215,7 @@ class Reducer:
         self.inbox = Inbox()
         self.presence: MotorPresence | None = None
         self.last: list[Reduced] = []
+        self.window = Window()  # the pans and tracking errors for the summary
 
     def fields(self) -> dict:
         with self.lock:
@@ -220,6 +251,7 @@ class Reducer:
             self.last[:] = results[-1:]
         geo, health = self.settings.geometry, self.health
         for r in results:
+            self.window.add(r.frame)
             if r.command is not None and self.hold.held():
                 health.count("held")  # a client moves the slave itself (`vergence latency`)
             elif r.command is not None and self.presence.absent():
@@ -310,7 +342,8 @@ class Reducer:
                 counts = self.counts()
                 if counts[0] > seen[0]:
                     with self.lock:
-                        log.info("%s", summary(SUMMARY_S, *(a - b for a, b in zip(counts, seen)), self.last[0]))
+                        log.info("%s", summary(SUMMARY_S, *(a - b for a, b in zip(counts, seen)), self.last[0],
+                                               self.window.take()))
                 seen, next_summary = counts, now + SUMMARY_S
 
 

@@ -321,3 +321,35 @@ def test_an_absent_motor_is_a_red_line_with_why():
     text = render_text(mon.snapshot(), width=200, color=False)
     assert "status absent" in text and f"MOTOR ABSENT: commands are not executed; {note}" in text
     assert "\x1b[31mMOTOR ABSENT" in render_text(mon.snapshot(), width=200, color=True)
+
+
+def test_the_truth_follows_beside_the_pan_and_the_tracking_error_is_over_the_window():
+    """A simulated source's frames carry the truth at capture: the screen gives the tracking over the window
+    (RMS and max of the frames' pans off it) and the truth's history under the pan's, on one scale and span."""
+    mon = Monitor(rig="head", window_s=5.0, history_s=30.0)
+    f_px = 500.0
+    errs, now, seen = [], T0 + int(299 / 30 * 1e9) + 1, []
+    for i in range(300):  # 10 s at 30 Hz: the truth a sine, the pan a little behind it
+        t = T0 + int(i / 30 * 1e9)
+        truth = -0.06 + 0.02 * np.sin(2 * np.pi * 0.2 * i / 30)
+        pan = truth + np.arctan((0.5 if i % 2 else -1.0) / f_px)
+        fr = frame(i, t)
+        fr.truth_pan_rad, fr.pan_rad = float(truth), float(pan)
+        mon.add(fr, t)
+        mon.add(motor(t, float(pan)), t)
+        seen += [truth, pan]
+        if t > now - 5e9:
+            errs.append(f_px * np.tan(pan - truth))
+    s = mon.snapshot(now)
+    assert s.tracking_n == len(errs) == 150
+    assert s.tracking_rms_px == pytest.approx(float(np.sqrt(np.mean(np.square(errs)))), rel=1e-9)
+    assert s.tracking_max_px == pytest.approx(1.0, rel=1e-6)
+    text = render_text(s, width=100, color=False)
+    assert (f"tracking over the last 5 s: the frames' pans are {s.tracking_rms_px:.2f} px RMS off the truth "
+            f"(max 1.00 px, 150 frames)") in text
+    pan_line = next(ln for ln in text.splitlines() if ln.startswith("pan history"))
+    truth_line = next(ln for ln in text.splitlines() if ln.startswith("truth history"))
+    assert pan_line.index(")") == truth_line.index(")")  # one scale, one span: the cells line up in time
+    assert f"({np.degrees(min(seen)):+.2f}°..{np.degrees(max(seen)):+.2f}°, 10 s)" in truth_line
+    cells = truth_line[truth_line.index(")") + 2:]
+    assert len(cells) == 55 and len(set(cells)) >= 6  # the sine, drawn over the ▁..█ range

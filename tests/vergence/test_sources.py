@@ -1,6 +1,8 @@
 """vergence.sources: each kind of source opens, reads and refuses as it says; the exposure times each gives with
 its images (#25)."""
 
+import math
+
 import cv2
 import numpy as np
 import pytest
@@ -57,6 +59,28 @@ def test_the_sim_source_renders_the_slave_at_the_pan_of_its_exposure():
     src.read(pan_at)
     tm, ts = src.exposure_ns
     assert len(asked) == 2 and all(abs(t - ts) <= 1_000_001 for t in asked)  # two sub-views, +-1 ms
+
+
+def test_the_sim_sources_truth_is_for_the_fovea_the_capture_sets():
+    from vergence.sim.fixation import truth_at, truth_pan_at
+
+    still = open_source("sim")
+    still.read(still.start_pan_rad)
+    centre = still.truth_pan_rad
+    assert centre == still.rig.truth_pan_rad
+    still.fovea = (440, 240)  # where `vergence fixate` moved it
+    still.read(centre)
+    assert still.truth_pan_rad == truth_at(still.rig, 440, 240)[0] and abs(still.truth_pan_rad - centre) > 0.01
+    still.fovea = (320, 240)
+    still.read(centre)
+    assert still.truth_pan_rad == centre
+    # the moving target: the truth at the master's exposure, for the fovea (here off the target: the background)
+    moving = open_source("sim:motion=sine:z=0.8,amp=0.3,hz=0.2")
+    moving.fovea = (610, 240)
+    moving.read(0.0)
+    t = (moving.exposure_ns[0] - moving.t0) / 1e9
+    assert moving.truth_pan_rad == truth_pan_at(moving.rig, 610, 240, t)
+    assert abs(moving.truth_pan_rad - moving.rig.truth_pan(t)) > math.radians(3)
 
 
 @pytest.mark.parametrize("spec,says", [("sim:latency=x", "latency='x' is not a number"),

@@ -1,5 +1,7 @@
 """Ground truth of the simulated rig for a fovea anywhere in the master view (not only at its centre): the
-slave pan that converges on it and the disparity (hence the depth) of the point it shows."""
+slave pan that converges on it and the disparity (hence the depth) of the point it shows; truth_pan_at gives
+the pan for either rig (the still one and the moving target) at a time, which the capture's sim source
+stamps on every frame for the fovea where `vergence fixate` has moved it."""
 
 from __future__ import annotations
 
@@ -8,9 +10,10 @@ import math
 import numpy as np
 
 from .optics import homography
+from .moving import MovingRig
 from .rig import Rig
 
-__all__ = ["truth_at"]
+__all__ = ["truth_at", "truth_pan_at"]
 
 
 def _project(h: np.ndarray, x: float, y: float) -> tuple[float, float]:
@@ -53,3 +56,12 @@ def truth_at(rig: Rig, x: float, y: float) -> tuple[float, float]:
         else:
             hi = mid
     return 0.5 * (lo + hi), d
+
+
+def truth_pan_at(rig: Rig | MovingRig, x: float, y: float, t: float = 0.0) -> float:
+    """The slave pan (radians) that converges on the point the master's pixel (x, y) shows at time t (seconds,
+    the moving target's clock): for the still rig truth_at's, for the moving one the target's point (or the
+    background's, where the fovea is off the target) seen on the slave's column x. NaN where unknown."""
+    if isinstance(rig, MovingRig):
+        return rig.truth_at(x, y, t)
+    return truth_at(rig, x, y)[0]

@@ -150,6 +150,20 @@ class MovingRig:
     def truth_pan_rad(self) -> float:
         return self.truth_pan(0.0)
 
+    def truth_at(self, x: float, y: float, t: float = 0.0) -> float:
+        """The converged slave pan at time t for the fovea at the master's pixel (x, y): the pan at which the
+        slave shows the point there (on the target, or else on the background) on the same column x. With
+        q = P - C (the point from the slave's centre) a pan p puts it at column cx + f tan(atan2(qx, qz) - p);
+        the master's centre pixel gives truth_pan(t)."""
+        w, h = self.size
+        f, cx, cy = self.focal_px, w // 2, h // 2
+        z = self.motion.z(t)
+        u, v = (x - cx) / f, (y - cy) / f
+        th, tw = self.target_tex.shape
+        if not (abs(u * z) <= self.target_s * tw / 2 and abs(v * z) <= self.target_s * th / 2):
+            z = self.bg_m  # off the target: the background behind it
+        return math.atan2(u * z - self.head.baseline_m, z) - math.atan(u)
+
     @property
     def one_px_rad(self) -> float:
         return math.atan(1.0 / self.focal_px)

@@ -23,7 +23,7 @@ from vergence.frames import make_frame
 from vergence.gather import Reduced
 from vergence.params import Params
 from vergence.shards import compute_correlation
-from vergence.messages import SCHEMA, Fixate, MotorState, Decision, replace as replace_message
+from vergence.messages import SCHEMA, Fixate, Frame, MotorState, Decision, replace as replace_message
 from vergence.sim import Rig
 from vergence.sim.fixation import truth_at
 
@@ -105,6 +105,11 @@ def test_fixate_through_vergence_up(tmp_path):
         decisions = P.collect(s, P.key("decision"))
         states = P.collect(s, P.key("motor_state"))
         status = P.collect(s, P.key("status/capture/*"))
+        frames = P.collect(s, P.key("frame"))
+
+        def truths(t0: int) -> list[tuple[tuple[int, int], float]]:  # (fovea, truth) of the frames read after t0
+            return [((f.x, f.y), f.truth_pan_rad) for f in (Frame.from_bytes(b) for t, b, _ in frames.snapshot()
+                                                            if t > t0) if f.t_read_ns > t0]
 
         def pan() -> float:
             return MotorState.from_bytes(states.snapshot()[-1][1]).pan_rad
@@ -127,6 +132,12 @@ def test_fixate_through_vergence_up(tmp_path):
         # camera's image is as old as the motor's newest report of its pan, up to 20 ms)
         assert first.t_read_ns >= t0 and first.t_capture_ns >= t0 - 0.05e9
         wait_for(lambda: abs(pan() - truth) <= rig.one_px_rad, 10, "the slave re-converged", logs=P.logs)
+        # the simulator's truth follows the fovea: every frame read since carries the new point's (the service's,
+        # and so the monitor's and the reducer's tracking error)
+        t_c = time.time_ns()
+        seen = wait_for(lambda: (lambda got: got if len(got) >= 5 else None)(truths(t_c)), 5, "frames", logs=P.logs)
+        assert {at for at, _ in seen} == {(440, 240)}
+        assert [v for _, v in seen] == pytest.approx([truth] * len(seen), abs=1e-9)
         z = wait_for(lambda: _converged_depths(decisions, (440, 240), t0, 10), 10, "converged decisions there",
                      logs=P.logs)
         assert np.median(z) == pytest.approx(0.06 * 512 / 36, rel=0.01)
