@@ -553,14 +553,17 @@ def _motor_lines(s: Snapshot, width: int, color: bool) -> list[str]:
 
 def timeline(history: list[tuple[float, float]], columns: int, span: float, lo: float, hi: float) -> str:
     """(seconds before now, value) pairs as `columns` cells of ▁..█ between lo and hi, the oldest `span` seconds
-    at the left and now at the right, each cell the latest value of its time (blank where there is none): two
-    histories of one span line up in time."""
+    at the left and now at the right, each cell the latest value of its time (a cell with none the one before it;
+    blank before the first): two histories of one span line up in time."""
     if not history or columns < 1:
         return ""
     cells: list[float | None] = [None] * columns
     for age, v in sorted(history, reverse=True):  # oldest first: a cell keeps its latest value
         i = min(columns - 1, max(0, int((1.0 - age / span) * columns))) if span > 0 else columns - 1
         cells[i] = v
+    for i in range(1, columns):
+        if cells[i] is None:
+            cells[i] = cells[i - 1]
     return "".join(" " if v is None else sparkline([v], 1, lo, hi) for v in cells)
 
 

@@ -1,9 +1,19 @@
 """The warm-up the worker and the reducer share: one synthetic textured frame through the kernels before the
-first real one, so that frame does not pay for loading (compiling) them."""
+first real one, so that frame does not pay for loading (compiling) them.
+
+numba keeps what it compiles in a cache (the package's __pycache__, or NUMBA_CACHE_DIR): the first start on a
+machine compiles, some 10 s of one core, and every later one loads, a fraction of a second. compiled() says
+whether the cache holds the kernels; `python -m services.runtime.warm` compiles everything every process uses
+(the worker's, the reducer's and the capture's), once, which `vergence up` runs on a first start before its
+children, rather than have them all compile the same functions at once on the same cores."""
 
 from __future__ import annotations
 
 import dataclasses
+import os
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 
@@ -32,3 +42,33 @@ def warm_up(params: Params, control=None) -> None:
         g = Gatherer(p, control)
         g.add_frame(f)
         g.add_correlation(part)
+
+
+def cache_dirs() -> list[Path]:
+    """Where numba's cache of vergence's kernels may be: NUMBA_CACHE_DIR when set, else the package's
+    __pycache__ and, for a read-only install, the user's cache (~/.cache/numba)."""
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return [Path(os.environ["NUMBA_CACHE_DIR"])]
+    package = Path(__file__).resolve().parents[2] / "vergence"
+    return [package / "__pycache__", Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "numba"]
+
+
+def compiled() -> bool:
+    """Whether numba's cache holds the kernel (a first start on this machine, or after an upgrade, has not)."""
+    return any(next(d.rglob("kernel*.nbi"), None) is not None for d in cache_dirs() if d.is_dir())
+
+
+def main() -> int:
+    """Compile (or load) every kernel the pipeline's processes use; one line with the time it took."""
+    t0 = time.monotonic()
+    from vergence import retina
+    from vergence.control import ControlSettings
+
+    retina.warm_up()
+    warm_up(Params(), ControlSettings())
+    print(f"compiled in {time.monotonic() - t0:.1f} s", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
