@@ -59,7 +59,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
     p.add_argument("--source", default=None, metavar="SPEC",
                    help="files:LEFT,RIGHT | video:LEFT,RIGHT | camera:0,1 | sim[:key=value:...] | ros2:LEFT,RIGHT "
-                        "(default: settings, sim)")
+                        "(default: settings, else the demo: a target moving in depth; sim: a still scene)")
     p.add_argument("--rate", type=float, default=None, metavar="HZ",
                    help="frames per second, 0 = as fast as possible (default: settings, 30)")
     p.add_argument("--frames", type=int, default=0, metavar="N", help="exit after publishing N frames (0: never)")
