@@ -353,13 +353,14 @@ def test_up_with_the_simulated_rig_converges(tmp_path):
         wait_for(lambda: len(pans()) >= n + 25, 10, "more states", logs=P.logs)  # half a second at 50 Hz
         assert all(abs(p - truth) <= tol for p in pans()[n:])
         # `vergence up` says so in its log: the reducer's line every 5 s, once converged, reads a residual
-        # offset within 1 px and the slave pan within 1 px of the truth
+        # offset within 1 px and the window's slave pans within 1 px of the truth
         line = re.compile(r"reducer.*: frames (\d+) decided, (\d+) dropped, commands (\d+); frame \d+: offset "
-                          r"([-+\d.]+) px, confident .* slave pan at capture ([-+\d.]+) deg")
+                          r"([-+\d.]+) px, confident .* slave pan at capture ([-+\d.]+)\.\.([-+\d.]+) deg")
 
         def converged_line():
             for m in line.finditer(up.text()):
-                if abs(float(m[4])) <= 1 and abs(math.radians(float(m[5])) - truth) <= tol and int(m[1]) > 0:
+                if (abs(float(m[4])) <= 1 and int(m[1]) > 0  # the window's pans, lowest and highest, near the truth
+                        and all(abs(math.radians(float(m[i])) - truth) <= tol for i in (5, 6))):
                     return m
             return None
 
