@@ -59,6 +59,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     except Exception as e:
+        # no router within a client's wait (services.runtime.session.NoRouter): its one line, exit 1; looked up
+        # in sys.modules, as below, so that a command without zenoh never imports it
+        session = sys.modules.get("services.runtime.session")
+        if session is not None and isinstance(e, session.NoRouter):
+            print(f"vergence {name}: {e}", file=sys.stderr)
+            return 1
         # a settings file or value that is wrong: the message names the field. Looked up only if the command
         # loaded the settings: importing vergence costs ~1 s (numba), which `vergence router` does without
         # (a router restarted by `vergence up` is back that much sooner)
