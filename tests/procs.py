@@ -31,13 +31,29 @@ from services.ops.launch import Proc, free_port, wait_for, wait_listening
 
 VERGENCE = str(Path(sys.executable).with_name("vergence"))  # the installed command itself
 
-__all__ = ["free_port", "Proc", "Procs", "wait_for", "VERGENCE", "run"]
+__all__ = ["free_port", "Proc", "Procs", "wait_for", "VERGENCE", "run", "gives_up_without_a_router"]
 
 
 def run(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
     """`vergence ARGS...` run to its end (at most timeout s), its stdout and stderr captured as text."""
     return subprocess.run([sys.executable, "-m", "services.ops.cli", *args], capture_output=True, text=True,
                           timeout=timeout)
+
+
+def gives_up_without_a_router(*args: str, within: float, margin: float = 8.0) -> subprocess.CompletedProcess:
+    """`vergence ARGS... --connect <a free port of 127.0.0.1 nobody listens on>` run to its end, checked as a
+    client without a router must end (issue #28): exit 1, one line on stderr naming the endpoint, the wait
+    (`within` s) and what to do, and no later than `within` + margin s (the interpreter's start included)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    t0 = time.monotonic()
+    r = run(*args, "--connect", endpoint, timeout=within + margin + 10)
+    took = time.monotonic() - t0
+    assert r.returncode == 1, (r.returncode, r.stderr[-2000:])
+    assert r.stderr.splitlines() == [
+        f"vergence {args[0]}: no Zenoh router or peer answered at {endpoint} within {within:g} s; start one with "
+        "`vergence up` (or `vergence router`), or pass --connect ENDPOINT"], r.stderr[-2000:]
+    assert took < within + margin, took
+    return r
 
 
 class Procs:

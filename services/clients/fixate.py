@@ -4,7 +4,8 @@ Puts one messages.Fixate on vergence/<rig>/fixate. With --wait S (default 2), wa
 first decision (vergence/<rig>/decision) made for the new point and prints it (x, y, offset, converged,
 depth); exit 2 with the capture's reason when its status says it refused this request (the point where the fovea
 does not fit: status field fixate_rejection, matched by the request's t_ns); exit 1 when nothing came (no
-capture running). --wait 0 only sends."""
+capture running). --wait 0 only sends. The wait counts from the start, the router's included: exit 1 with one
+line when no router answers within it (within session.CLIENT_WAIT_S with --wait 0)."""
 
 from __future__ import annotations
 
@@ -32,7 +33,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("point", type=master_point, metavar="X,Y", help="the new fovea centre in master pixels")
     p.add_argument("--source", default="vergence fixate", help="who asks (free text, logged by the capture)")
     p.add_argument("--wait", type=float, default=2.0, metavar="S",
-                   help="wait up to S seconds for the first decision at the new point (0: only send)")
+                   help="wait up to S seconds (the router's answer included) for the first decision at the new "
+                       f"point (0: only send, after at most {session.CLIENT_WAIT_S:g} s for a router)")
 
 
 def describe(v: Decision) -> str:
@@ -85,7 +87,9 @@ def main(rig: str, conf, x: float, y: float, source: str, wait: float) -> int:
     t_ns = time.time_ns()
     answer = Answer(target, t_ns)
     got, refused, seen = answer.got, answer.refused, answer.seen
-    with Node("fixate", rig, conf, session.Stop(install=False), log=log, quiet=True) as node:
+    t_start = time.monotonic()
+    router_wait = wait if wait > 0 else session.CLIENT_WAIT_S
+    with Node("fixate", rig, conf, session.Stop(install=False), log=log, timeout=router_wait, quiet=True) as node:
         if wait > 0:
             node.subscriber(keys.decision(rig), answer.on_decision)
             node.subscriber(keys.status(rig, "capture", "*"), answer.on_status)
@@ -95,7 +99,7 @@ def main(rig: str, conf, x: float, y: float, source: str, wait: float) -> int:
         if wait <= 0:
             print(f"fixate ({x:g}, {y:g}) sent on {keys.fixate(rig)}")
             return 0
-        if not seen.wait(wait):
+        if not seen.wait(max(0.0, t_start + wait - time.monotonic())):
             print(f"vergence fixate: no decision at ({target[0]}, {target[1]}) within {wait:g} s (is a "
                   "capture running on this rig?)", file=sys.stderr)
             return 1

@@ -4,7 +4,8 @@ Replays frames, previews, correlations, decisions and profiles under the rig `re
 --rig. Never commands or motor states, and never where a motor listens: a replay must not move a motor. It
 refuses (exit 2) a rig with a live actuator (its liveliness token), since a live reducer there would turn
 the replayed frames into commands; under the deploy/ access rules the replay role may publish only under
-vergence/replay/. Status messages and liveliness events are not replayed either.
+vergence/replay/. Status messages and liveliness events are not replayed either. No router within --wait
+seconds (default 5): one line, exit 1.
 
 Frames are re-planned onto the workers alive now (their liveliness tokens), because the recorded plan names
 workers of the recorded run: live workers then compute them, and a live reducer reproduces the recorded
@@ -48,6 +49,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="1 = as recorded, 2 = twice as fast, 0 = as fast as possible (default 1)")
     p.add_argument("--only", action="append", choices=KINDS, metavar="KIND",
                    help=f"replay only these kinds, repeatable: {', '.join(KINDS)} (default: all)")
+    session.add_wait(p)
     p.add_argument("--wait-workers", type=float, default=5.0, metavar="S",
                    help="how long to wait for live workers before replaying frames (default 5)")
     p.add_argument("--view", metavar="FILE.rrd|web[:PORT]|spawn",
@@ -84,7 +86,7 @@ def replan(payload: bytes, workers: list[str], t_shift_ns: int) -> bytes:
 
 
 def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = None, speed: float = 1.0,
-         only: list[str] | None = None, wait_workers: float = 5.0) -> int:
+         only: list[str] | None = None, wait_workers: float = 5.0, wait: float = session.CLIENT_WAIT_S) -> int:
     kinds = set(only or KINDS)
     try:
         reader = McapReader(path) if is_mcap(path) else Reader(path)
@@ -94,7 +96,8 @@ def main(conf: zenoh.Config, stop: session.Stop, path: str, rig: str | None = No
     rig = rig or REPLAY_RIG
     sent = skipped = bad = 0
     pubs_early: dict[str, zenoh.Publisher] = {}
-    with reader, Node("replay", rig, conf, stop, log=log, quiet=True) as node:
+    # no router within --wait: session.NoRouter, said in one line by services/ops/cli.py (exit 1)
+    with reader, Node("replay", rig, conf, stop, log=log, timeout=wait, quiet=True) as node:
         s, health = node.session, node.health
         if any(r.ok for r in s.liveliness().get(keys.alives(rig, "actuator"), timeout=1.0)):
             print(f"vergence replay: an actuator is alive on {keys.prefix(rig)}: a reducer there would turn the "
@@ -172,4 +175,4 @@ def run(args: argparse.Namespace) -> int:
         print("vergence replay: --speed must be >= 0", file=sys.stderr)
         return 2
     return main(session.config_from_args(args), session.Stop(), args.file, args.rig, args.speed, args.only,
-                args.wait_workers)
+                args.wait_workers, args.wait)

@@ -12,6 +12,8 @@ to the profile key is what makes the reducer publish profiles (it encodes them o
     --png FILE     collect --history s of pan history, wait for the next profile, write the paper's figure 5
                    (layer 4 against k, winner and centre marked) with the pan history as a PNG, exit
     --timeout S    live view: exit after S s (default: run until Ctrl-C)
+    --wait S       give up (exit 1, one line) when no router answers within S s (default 5, or --timeout if
+                   shorter); --timeout counts from the start, the wait for the router included
 """
 
 from __future__ import annotations
@@ -58,6 +60,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--once", action="store_true", help="print one screen once a profile came, then exit")
     p.add_argument("--timeout", type=float, default=None, metavar="S",
                    help="exit after S seconds (--once/--png: give up waiting after S s, default 10)")
+    session.add_wait(p)
     p.add_argument("--refresh", type=float, default=0.5, metavar="S", help="screen refresh period (default 0.5)")
     p.add_argument("--window", type=float, default=5.0, metavar="S",
                    help="rates and latency percentiles over the last S seconds (default 5)")
@@ -112,10 +115,10 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def main(rig: str, conf: zenoh.Config, stop: session.Stop, args: argparse.Namespace, out=sys.stdout) -> int:
+    t0 = time.monotonic()  # --timeout counts from here, the wait for a router included
     model = Monitor(rig, window_s=args.window)
-    once = args.png or args.once
     node = Node("monitor", rig, conf, stop, log=log,
-                timeout=(args.timeout if args.timeout is not None else 10.0) if once else args.timeout)
+                timeout=args.wait if args.timeout is None else min(args.wait, args.timeout))
     try:
         node.__enter__()
     except ConnectionError as e:
@@ -124,10 +127,10 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, args: argparse.Namesp
     try:
         watch = Watch(node, rig, model)
         if args.png:
-            return _png(watch, model, args, stop)
+            return _png(watch, model, args, stop, t0)
         if args.once:
-            return _once(watch, model, args, stop, out)
-        return _live(node, model, args, stop, out)
+            return _once(watch, model, args, stop, out, t0)
+        return _live(node, model, args, stop, out, t0)
     finally:
         node.__exit__(None, None, None)
 
@@ -136,10 +139,9 @@ def _color(args: argparse.Namespace, out) -> bool:
     return args.color == "always" or (args.color == "auto" and out.isatty())
 
 
-def _once(watch: Watch, model: Monitor, args: argparse.Namespace, stop: session.Stop, out) -> int:
+def _once(watch: Watch, model: Monitor, args: argparse.Namespace, stop: session.Stop, out, t0: float) -> int:
     """--once: wait for a profile, print one screen; 1 when no profile came."""
     wait = args.timeout if args.timeout is not None else 10.0
-    t0 = time.monotonic()
     got = watch.wait_profile(0, t0 + wait, stop)
     # a second of rates and latencies beyond the first profile (bounded by the timeout)
     stop.wait(max(0.0, min(1.0, t0 + wait - time.monotonic())))
@@ -151,11 +153,11 @@ def _once(watch: Watch, model: Monitor, args: argparse.Namespace, stop: session.
     return 0 if got else 1
 
 
-def _live(node: Node, model: Monitor, args: argparse.Namespace, stop: session.Stop, out) -> int:
+def _live(node: Node, model: Monitor, args: argparse.Namespace, stop: session.Stop, out, t0: float) -> int:
     """The live view: the screen every --refresh s until stopped or --timeout; the node's status between."""
     tty, color = out.isatty(), _color(args, out)
-    end = time.monotonic() + args.timeout if args.timeout is not None else None
-    while not stop.wait(args.refresh):
+    end = t0 + args.timeout if args.timeout is not None else None
+    while not stop.wait(args.refresh if end is None else max(0.0, min(args.refresh, end - time.monotonic()))):
         cols = _columns(out) if tty else 100
         text = render_text(model.snapshot(), width=cols, color=color)
         if color:
@@ -169,10 +171,9 @@ def _live(node: Node, model: Monitor, args: argparse.Namespace, stop: session.St
     return 0
 
 
-def _png(watch: Watch, model: Monitor, args: argparse.Namespace, stop: session.Stop) -> int:
+def _png(watch: Watch, model: Monitor, args: argparse.Namespace, stop: session.Stop, t0: float) -> int:
     w, h = _size(args.size)
     wait = args.timeout if args.timeout is not None else 10.0
-    t0 = time.monotonic()
     stop.wait(max(0.0, min(args.history, wait)))  # the recent pan history
     if not watch.wait_profile(watch.n_profiles, t0 + wait, stop):
         print(f"vergence monitor: no profile on {keys.profile(model.rig)} within {wait:g} s; no PNG written",

@@ -11,6 +11,10 @@ events (empty payload). Note that subscribing to vergence/<rig>/** also subscrib
 reducer publishes them while the recorder runs. Stops after --duration seconds, or on SIGINT/SIGTERM; the
 file is complete either way (a killed recorder leaves at worst a truncated last record, which readers skip).
 
+The file is created once a router answered: with none within --wait (default session.CLIENT_WAIT_S) or
+--duration, whichever is shorter, it exits 1 with one line and writes no file (an existing one stays as it
+was). --duration counts from the start, the wait for the router included.
+
 A write that fails (a full disk, an I/O error) or a file removed or replaced under the recorder stops it at
 once: one line names the file and the error, the exit status is 1, and the file ends with the last record
 flushed whole (it replays up to the failure). The writer flushes at least every FLUSH_S and checks the file
@@ -45,7 +49,9 @@ CHECK_S = 0.5  # ... and checks that its file is still there this often
 def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
     p.add_argument("file", metavar="FILE", help="the recording to write (overwritten)")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: Ctrl-C)")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="stop S seconds after the start, the wait for a router included (default: Ctrl-C)")
+    session.add_wait(p)
     p.add_argument("--queue-mb", type=float, default=QUEUE_MB, metavar="MB",
                    help=f"the most payload waiting for the disk; more is dropped and counted (default {QUEUE_MB:g})")
 
@@ -108,15 +114,10 @@ def write_loop(writer: Writer, q: Bounded, done: threading.Event, failed: list[s
 
 
 def main(rig: str, conf: zenoh.Config, stop: session.Stop, path: str, duration: float | None = None,
-         queue_mb: float = QUEUE_MB) -> int:
-    try:
-        # FILE.mcap: a ROS 2 MCAP file (vergence.mcap_file; the [ros2] extra), else vergence's own format
-        writer = McapWriter(path, rig=rig) if is_mcap(path) else Writer(path, rig=rig)
-    except RecordingError as e:
-        print(f"vergence record: {e}", file=sys.stderr)
-        return 2
+         queue_mb: float = QUEUE_MB, wait: float = session.CLIENT_WAIT_S) -> int:
+    t0 = time.monotonic()
+    end = t0 + duration if duration is not None else None
     q = Bounded(int(queue_mb * 1e6))
-    done = threading.Event()
     failed: list[str] = []
 
     def on_sample(sample) -> None:
@@ -127,30 +128,42 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, path: str, duration: 
         event = "alive" if sample.kind == zenoh.SampleKind.PUT else "dead"
         q.put((str(sample.key_expr), time.time_ns(), b"", event))
 
-    th = threading.Thread(target=write_loop, args=(writer, q, done, failed, stop), name="record-writer",
-                          daemon=True)
-    th.start()
-    t0 = time.monotonic()
     key = keys.everything(rig)
+    done = threading.Event()
+    writer = th = None
     try:
         # the node undeclares the token, then the subscriptions, at exit; it publishes no status while recording
-        # (the file would hold the recorder's own), only its last one, once the subscriptions are gone
-        with Node("record", rig, conf, stop, log=log) as node:
+        # (the file would hold the recorder's own), only its last one, once the subscriptions are gone. No router
+        # within the wait: session.NoRouter (one line, exit 1: services/ops/cli.py), and no file was created
+        with Node("record", rig, conf, stop, log=log, timeout=wait if end is None else min(wait, duration)) as node:
+            try:
+                # FILE.mcap: a ROS 2 MCAP file (vergence.mcap_file; the [ros2] extra), else vergence's own format
+                writer = McapWriter(path, rig=rig) if is_mcap(path) else Writer(path, rig=rig)
+            except RecordingError as e:
+                print(f"vergence record: {e}", file=sys.stderr)
+                return 2
+            th = threading.Thread(target=write_loop, args=(writer, q, done, failed, stop), name="record-writer",
+                                  daemon=True)
+            th.start()
             node.subscriber(key, on_sample)
             node.liveliness_subscriber(keys.alives(rig), on_alive, history=True)
             # a token says the recorder listens (tests and tools wait for it before starting a capture)
             node.ready()
             log.info("recording %s into %s", key, path)
-            stop.wait(duration)
+            stop.wait(None if end is None else max(0.0, end - time.monotonic()))
     finally:
-        done.set()
-        th.join(10.0)
-        if not failed:
-            try:
-                writer.close()
-            except RecordingError as e:
-                failed.append(str(e))
-    secs = time.monotonic() - t0
+        if th is not None:
+            done.set()
+            th.join(10.0)
+            if not failed:
+                try:
+                    writer.close()
+                except RecordingError as e:
+                    failed.append(str(e))
+    return _report(writer, q, failed, path, time.monotonic() - t0, queue_mb)
+
+
+def _report(writer, q: Bounded, failed: list[str], path: str, secs: float, queue_mb: float) -> int:
     drops = f"; {q.dropped} dropped ({q.dropped_bytes / 1e6:.1f} MB: the disk fell behind by {queue_mb:g} MB)" \
         if q.dropped else ""
     if failed:
@@ -167,4 +180,4 @@ def run(args: argparse.Namespace) -> int:
     settings = load(args.config)
     stop = session.Stop()
     return main(args.rig or settings.rig, session.config_from_args(args), stop, args.file, args.duration,
-                args.queue_mb)
+                args.queue_mb, args.wait)

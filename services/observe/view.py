@@ -63,7 +63,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="--web: the address to serve on (default 0.0.0.0: other machines; 127.0.0.1: this one)")
     p.add_argument("--spawn", action="store_true", help="open the native viewer (needs a display); the default "
                                                          "when neither --save nor --web is given")
-    p.add_argument("--timeout", type=float, default=None, metavar="S", help="exit after S seconds")
+    p.add_argument("--timeout", type=float, default=None, metavar="S",
+                   help="exit S seconds after the start, the wait for a router included")
+    session.add_wait(p)
     p.add_argument("--nice", type=int, default=10, metavar="N",
                    help="run at this niceness, so that the loop's processes come first on a busy CPU (default 10)")
 
@@ -122,7 +124,7 @@ def _open_node(rr, rig: str, conf, stop, timeout: float | None):
     except SystemExit:  # Ctrl-C before a router answered
         rr.disconnect()
         raise
-    except ConnectionError as e:  # no router within --timeout
+    except ConnectionError as e:  # no router within --wait
         print(f"vergence view: {e}", file=sys.stderr)
         rr.disconnect()
         return 1
@@ -162,8 +164,10 @@ def _loop(node: Node, cockpit: Cockpit, inbox: _Inbox, watch: SaveWatch, stop, e
 
 def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, port: int = 9090,
          grpc_port: int = 9876, spawn: bool = False, bind: str = "0.0.0.0", timeout: float | None = None,
-         nice: int = 10) -> int:
+         nice: int = 10, wait: float = 5.0) -> int:
     import time
+
+    t0 = time.monotonic()  # --timeout counts from here
 
     if nice:
         try:  # before rerun's and zenoh's threads start: they inherit it
@@ -176,8 +180,9 @@ def main(rig: str, conf, stop, *, save: str | None = None, web: bool = False, po
     rr, url = opened
     cockpit = Cockpit(rr)
     inbox = _Inbox(keys.prefix(rig))
-    end = time.monotonic() + timeout if timeout is not None else None
-    node = _open_node(rr, rig, conf, stop, timeout)
+    end = t0 + timeout if timeout is not None else None
+    # no router within --wait (or --timeout, if shorter): one line, exit 1
+    node = _open_node(rr, rig, conf, stop, wait if timeout is None else min(wait, max(0.0, end - time.monotonic())))
     if isinstance(node, int):
         return node
     try:
@@ -216,4 +221,5 @@ def run(args: argparse.Namespace) -> int:
         print(f"vergence view: bad zenoh options: {str(e).split(' at /')[0]}", file=sys.stderr)
         return 2
     return main(rig, conf, session.Stop(), save=args.save, web=args.web, port=args.port,
-                grpc_port=args.grpc_port, spawn=spawn, bind=args.bind, timeout=args.timeout, nice=args.nice)
+                grpc_port=args.grpc_port, spawn=spawn, bind=args.bind, timeout=args.timeout, nice=args.nice,
+                wait=args.wait)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 from services.runtime import heartbeat
@@ -32,8 +33,21 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+def version() -> str:
+    """The installed distribution's version, else (a source tree not installed) the package's __version__."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("vergence")
+    except metadata.PackageNotFoundError:
+        import vergence
+
+        return vergence.__version__
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="vergence", description="Dynamic vergence control for active stereo vision")
+    p.add_argument("--version", action="store_true", help="print `vergence VERSION` and exit")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for name, (modname, help_) in COMMANDS.items():
         sp = sub.add_parser(name, help=help_, description=help_)
@@ -47,6 +61,9 @@ def main(argv: list[str] | None = None) -> int:
     heartbeat.start()
     argv = sys.argv[1:] if argv is None else argv
     name = next((a for a in argv if not a.startswith("-")), None)
+    if "--version" in argv[:argv.index(name) if name is not None else len(argv)]:
+        print(f"vergence {version()}")
+        return 0
     if name not in COMMANDS:
         build_parser().print_help()
         return 0 if name is None and any(a in ("-h", "--help") for a in argv) else 2
@@ -55,10 +72,20 @@ def main(argv: list[str] | None = None) -> int:
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
     try:
-        return int(mod.run(args) or 0)
+        code = int(mod.run(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's own flush at exit
+        return code
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        return _closed_pipe()
     except Exception as e:
+        # no router within a client's wait (services.runtime.session.NoRouter): its one line, exit 1; looked up
+        # in sys.modules, as below, so that a command without zenoh never imports it
+        session = sys.modules.get("services.runtime.session")
+        if session is not None and isinstance(e, session.NoRouter):
+            print(f"vergence {name}: {e}", file=sys.stderr)
+            return 1
         # a settings file or value that is wrong: the message names the field. Looked up only if the command
         # loaded the settings: importing vergence costs ~1 s (numba), which `vergence router` does without
         # (a router restarted by `vergence up` is back that much sooner)
@@ -67,6 +94,18 @@ def main(argv: list[str] | None = None) -> int:
             print(f"vergence {name}: {e}", file=sys.stderr)
             return 2
         raise
+
+
+def _closed_pipe() -> int:
+    """stdout's reader went away (`vergence sim | head`): end quietly, no traceback, with 141 (128 + SIGPIPE),
+    the status a shell reports for a command killed by SIGPIPE, as `yes | head` gives. stdout is pointed at
+    /dev/null first: the interpreter's flush of it at exit would raise again (Python's documented recipe)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # no real stdout (a test's): nothing to flush at exit either
+        pass
+    return 141
 
 
 if __name__ == "__main__":

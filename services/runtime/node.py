@@ -9,7 +9,8 @@ is mostly its job:
         node.run_status()                       # a status every STATUS_S until stop (or the thread ends)
 
 Entering opens the session (session.open_session: a SIGINT/SIGTERM before a router answers exits cleanly;
-past `timeout` seconds without one, ConnectionError) and declares the status publisher. The id is
+past `timeout` seconds without one, session.NoRouter, which `vergence` prints as one line, exit 1: every
+client passes its wait) and declares the status publisher. The id is
 session.alive_key's (<name or host>-<pid>); the token is vergence/<rig>/alive/<role>/<id>; the status, JSON of
 health.Health.status() plus fields(), goes out on vergence/<rig>/status/<role>/<id> every STATUS_S (run_status,
 or tick() from the service's own loop).

@@ -23,7 +23,9 @@ import zenoh
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 LEASE_MS = 1000
 STANDBY_ENV = "VERGENCE_STANDBY"  # see open_session and services/ops/up.py
-SAY_WAITING_S = 1.0  # open_session says why nothing happens after this long without a router
+SAY_WAITING_S = 1.0  # open_session says why nothing happens after this long without a router ...
+SAY_QUIET_S = 10.0  # ... unless it gives up within this long: a short wait ends with its one line (NoRouter)
+CLIENT_WAIT_S = 5.0  # a client's default wait for a router (record, replay, monitor, view: --wait)
 
 log = logging.getLogger("vergence.session")
 _stops: list[threading.Event] = []  # every Stop's event: open_session gives up when one is set
@@ -40,6 +42,16 @@ def add_options(p: argparse.ArgumentParser, mode: str = "client") -> None:
     g.add_argument("--zenoh-config", metavar="FILE", help="a zenoh JSON5 config file, applied first")
     p.add_argument("--rig", default=None, help="rig name, the key prefix vergence/<rig>/ (default: head)")
     p.add_argument("--config", metavar="FILE", help="vergence settings (TOML)")
+
+
+def add_wait(p: argparse.ArgumentParser, default: float = CLIENT_WAIT_S) -> None:
+    """--wait S: how long a client waits for a router before it gives up (NoRouter: one line, exit 1)."""
+    p.add_argument("--wait", type=float, default=default, metavar="S",
+                   help=f"give up (exit 1) when no Zenoh router answers within S seconds (default {default:g})")
+
+
+class NoRouter(ConnectionError):
+    """No Zenoh router (or peer) answered within a client's wait; `vergence` prints it as one line, exit 1."""
 
 
 def zenoh_config(mode: str = "client", connect: list[str] | None = None, listen: list[str] | None = None,
@@ -95,8 +107,10 @@ def open_session(conf: zenoh.Config, timeout: float | None = None) -> zenoh.Sess
 
     zenoh.open keeps trying while no router answers, and a main thread blocked in it never runs a signal
     handler: it runs in a thread, and a SIGINT/SIGTERM (a Stop) meanwhile ends the process cleanly
-    (SystemExit 0, nothing opened); after SAY_WAITING_S it logs once which endpoints it waits for; past
-    `timeout` seconds it raises ConnectionError.
+    (SystemExit 0, nothing opened); after SAY_WAITING_S it logs once which endpoints it waits for (unless
+    `timeout` is at most SAY_QUIET_S: then the NoRouter is the one line); past `timeout` seconds it raises
+    NoRouter (a ConnectionError). A peer's zenoh.open returns at once, router or not: with a timeout, a peer
+    session must also see a router or a peer within it (else closed, NoRouter), as a client's does.
 
     A standby of `vergence up` (STANDBY_ENV set) waits here first, everything before its session done, until
     up starts it in place of a dead child (or leaves, if up closes the pipe)."""
@@ -120,15 +134,36 @@ def open_session(conf: zenoh.Config, timeout: float | None = None) -> zenoh.Sess
         if any(e.is_set() for e in _stops):
             raise SystemExit(0)  # stopped before a router answered: nothing to close
         waited = time.monotonic() - t0
-        if t.is_alive() and not said and waited >= SAY_WAITING_S:
+        if t.is_alive() and not said and waited >= SAY_WAITING_S and (timeout is None or timeout > SAY_QUIET_S):
             said = True
             log.warning("no Zenoh router or peer answers at %s yet; still trying (Ctrl-C stops)", _endpoints(conf))
         if t.is_alive() and timeout is not None and waited >= timeout:
-            raise ConnectionError(f"no Zenoh router or peer answered at {_endpoints(conf)} within {timeout:g} s "
-                                  "(is `vergence up` or `vergence router` running there? --connect ENDPOINT)")
+            raise _no_router(conf, timeout)
     if isinstance(box[0], Exception):
         raise box[0]
-    return box[0]
+    s = box[0]
+    if timeout is not None and _mode(conf) == "peer":
+        while not (s.info.routers_zid() or s.info.peers_zid()):
+            if any(e.is_set() for e in _stops):
+                s.close()
+                raise SystemExit(0)
+            if time.monotonic() - t0 >= timeout:
+                s.close()
+                raise _no_router(conf, timeout)
+            time.sleep(0.05)
+    return s
+
+
+def _no_router(conf: zenoh.Config, timeout: float) -> NoRouter:
+    return NoRouter(f"no Zenoh router or peer answered at {_endpoints(conf)} within {timeout:g} s; start one with "
+                    "`vergence up` (or `vergence router`), or pass --connect ENDPOINT")
+
+
+def _mode(conf: zenoh.Config) -> str:
+    try:
+        return json.loads(conf.get_json("mode"))
+    except Exception:  # an odd config file: zenoh's default
+        return "peer"
 
 
 def _endpoints(conf: zenoh.Config) -> str:

@@ -13,7 +13,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from procs import VERGENCE, Procs, free_port, wait_for
+from procs import VERGENCE, Procs, free_port, gives_up_without_a_router, wait_for
 from services.pipeline.capture import Fovea
 from services.clients.fixate import refusal
 from services.runtime.health import Health
@@ -196,6 +196,12 @@ def test_fixate_without_a_capture_says_so(tmp_path):
         r = subprocess.run([VERGENCE, "fixate", "100,100", "--connect", P.endpoint, "--rig", P.rig, "--wait", "0"],
                            capture_output=True, text=True, timeout=60)
         assert r.returncode == 0 and f"sent on vergence/{P.rig}/fixate" in r.stdout
+
+
+@pytest.mark.slow
+def test_fixate_without_a_router_gives_up_within_its_wait():
+    """Issue #28: it kept trying, saying "still trying", forever; --wait bounds the router's answer too."""
+    gives_up_without_a_router("fixate", "100,100", "--wait", "1", within=1)
 
 
 def test_monitor_shows_the_fovea_and_the_depth():

@@ -11,9 +11,9 @@ import time
 
 import pytest
 
-from procs import Procs, textured_pair, wait_for
+from procs import Procs, gives_up_without_a_router, textured_pair, wait_for
 from vergence.messages import Frame, Profile
-from vergence.recording import read
+from vergence.recording import Writer, read
 
 pytestmark = pytest.mark.slow  # every test here runs real processes
 
@@ -162,3 +162,10 @@ def test_record_into_a_slow_disk_drops_what_does_not_fit_and_stays_bounded(tmp_p
         out.write_bytes(bytes(got))
         header, records, truncated = read(out)
         assert len(records) == kept and not truncated
+
+
+def test_replay_without_a_router_gives_up_within_its_wait(tmp_path):
+    """Issue #28: it kept trying forever; now --wait (default 5 s) bounds the wait for a router."""
+    path = tmp_path / "empty.vrec"
+    Writer(path, rig="head").close()
+    gives_up_without_a_router("replay", str(path), "--wait", "1", within=1)

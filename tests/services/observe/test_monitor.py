@@ -8,7 +8,7 @@ import shutil
 import cv2
 import pytest
 
-from procs import Procs, free_port, textured_pair
+from procs import Procs, free_port, gives_up_without_a_router, textured_pair
 
 pytestmark = pytest.mark.slow  # every test here runs real processes
 
@@ -102,3 +102,9 @@ def test_live_monitor_in_a_terminal(tmp_path, pair):
             assert "monitor-exit=0" in end, end
         finally:
             _tmux("kill-session", "-t", name, check=False)
+
+
+@pytest.mark.parametrize("argv", [[], ["--once"]], ids=["live", "once"])
+def test_monitor_without_a_router_gives_up_within_its_wait(argv):
+    """Issue #28: the live view kept trying forever, --once for 10 s; --wait (default 5 s) bounds both."""
+    gives_up_without_a_router("monitor", *argv, "--wait", "1", within=1)

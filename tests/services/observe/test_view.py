@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from procs import VERGENCE, Procs, free_port, wait_for
+from procs import VERGENCE, Procs, free_port, gives_up_without_a_router, wait_for
 from vergence import messages as M
 from vergence.recording import Writer
 
@@ -378,6 +378,12 @@ def test_view_without_a_router_gives_up_at_its_timeout(tmp_path):
     assert out.returncode == 1
     assert "vergence view: no Zenoh router or peer answered at tcp/127.0.0.1:" in out.stderr
     assert "Traceback" not in out.stderr
+
+
+@pytest.mark.slow
+def test_view_without_a_router_gives_up_within_its_wait(tmp_path):
+    """Issue #28: without --timeout it kept trying forever; --wait (default 5 s) bounds the wait for a router."""
+    gives_up_without_a_router("view", "--save", str(tmp_path / "x.rrd"), "--wait", "1", within=1)
 
 
 @pytest.mark.slow

@@ -16,7 +16,9 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["term", "int"])
-@pytest.mark.parametrize("argv", [["worker"], ["reducer"], ["record", "{tmp}/x.vrec"], ["monitor"]],
+# a client's wait of at most session.SAY_QUIET_S ends in its one line, with no "still trying" before it: 60 s here
+@pytest.mark.parametrize("argv", [["worker"], ["reducer"], ["record", "{tmp}/x.vrec", "--wait", "60"],
+                                  ["monitor", "--wait", "60"]],
                          ids=["worker", "reducer", "record", "monitor"])
 def test_waiting_for_a_router_stops_on_a_signal(tmp_path, argv, sig):
     log = tmp_path / "err.log"

@@ -1,0 +1,39 @@
+"""The `vergence` command itself (issue #28): --version, no command, and a reader of its stdout that goes away
+(`vergence sim | head`) ending it quietly."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from importlib import metadata
+
+import pytest
+
+from procs import run
+
+pytestmark = pytest.mark.slow  # every test here runs the real command
+
+
+def test_version_prints_the_installed_version_and_exits_0():
+    r = run("--version", timeout=60)
+    assert (r.returncode, r.stdout, r.stderr) == (0, f"vergence {metadata.version('vergence')}\n", "")
+
+
+def test_no_command_prints_the_help_and_exits_2_and_help_exits_0():
+    r = run(timeout=60)
+    assert r.returncode == 2 and r.stdout.startswith("usage: vergence") and "--version" in r.stdout
+    r = run("-h", timeout=60)
+    assert r.returncode == 0 and r.stdout.startswith("usage: vergence") and "COMMAND" in r.stdout
+
+
+@pytest.mark.parametrize("argv", [["--json"], []], ids=["flushed-lines", "buffered"])
+def test_a_closed_pipe_ends_the_command_quietly_with_141(argv):
+    """`vergence sim | head -n 1`: no BrokenPipeError traceback, the status of a command ended by SIGPIPE (141).
+    --json flushes every line (the pipe breaks in the loop); without, the buffer breaks it in the loop or at
+    the last flush."""
+    cmd = " ".join([sys.executable, "-m", "services.ops.cli", "sim", "--frames", "2000", "--size", "160x120", *argv])
+    r = subprocess.run(["bash", "-c", f"{cmd} | head -n 1; exit ${{PIPESTATUS[0]}}"], capture_output=True,
+                       text=True, timeout=120)
+    assert r.stdout.startswith("{" if argv else "frame   0")
+    assert "Traceback" not in r.stderr and "BrokenPipe" not in r.stderr, r.stderr[-2000:]
+    assert r.returncode == 141, (r.returncode, r.stderr[-2000:])
