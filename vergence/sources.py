@@ -252,7 +252,7 @@ class SimSource(Source):
 
         try:
             spec, timing, self.stamps = self._timing(spec)
-            self.timing = CameraTiming(**timing)
+            self.timing = self.camera_timing(timing)
             self.rig = Rig.from_spec(spec)
         except (ValueError, OSError) as e:
             raise SourceError(str(e)) from None
@@ -264,6 +264,16 @@ class SimSource(Source):
         self.gimbal = self.rig.gimbal
         self.t0: int | None = None  # the scene's time 0 (ns): the first exposure
         self.rng = np.random.default_rng(0)
+
+    @classmethod
+    def camera_timing(cls, timing: dict) -> CameraTiming:
+        """CameraTiming from the spec's timing keys; ValueError naming the key as the spec has it (latency)."""
+        try:
+            return CameraTiming(**timing)
+        except ValueError as e:
+            name, _, why = str(e).partition(":")
+            key = {v: k for k, v in cls.TIMING.items()}.get(name, name)
+            raise ValueError(f"sim source: {key}:{why}") from None
 
     @classmethod
     def _timing(cls, spec: str) -> tuple[str, dict, bool]:

@@ -13,6 +13,7 @@ import dataclasses
 import itertools
 import json
 import math
+import re
 import sys
 
 from vergence import Params, depth
@@ -44,7 +45,7 @@ def camera_timing(args: argparse.Namespace) -> CameraTiming:
     try:
         return CameraTiming(args.camera_latency, args.skew, args.exposure, args.jitter)
     except ValueError as e:
-        name = str(e).partition("=")[0]
+        name = re.split("[:=]", str(e), maxsplit=1)[0]
         flag = {"latency_s": "--camera-latency", "skew_s": "--skew", "exposure_s": "--exposure",
                 "jitter_s": "--jitter"}.get(name, name)
         raise ValueError(f"{flag}{str(e)[len(name):]}") from None
