@@ -34,6 +34,7 @@ import msgspec
 
 from .control import ControlSettings
 from .params import Params
+from .motors import DRIVERS
 from .motors.base import MotorSettings
 from .ranges import Range, check
 from .timing import CameraTiming
@@ -144,6 +145,8 @@ class ActuatorSettings:
 
     def __post_init__(self):
         check(self, self.RANGES)
+        if self.driver not in DRIVERS:
+            raise ValueError(f"driver: must be one of {', '.join(DRIVERS)}, got {self.driver!r}")
 
 
 @dataclass(frozen=True)

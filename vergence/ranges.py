@@ -19,6 +19,11 @@ from dataclasses import dataclass
 __all__ = ["Range", "check", "numeric_fields"]
 
 
+def _num(v: float) -> str:
+    """A bound as written: 10000000, not 1e+07; 0.5."""
+    return str(int(v)) if float(v).is_integer() else f"{v:g}"
+
+
 @dataclass(frozen=True)
 class Range:
     """lo <= v <= hi (None: unbounded on that side); lo_open / hi_open: the bound itself excluded; integer: a
@@ -44,10 +49,10 @@ class Range:
 
     def text(self) -> str:
         """'from 0 to 1000', 'above 0 and at most 1000', 'at least 1', ... (and the note)."""
-        lo = None if self.lo is None else f"{'above' if self.lo_open else 'at least'} {self.lo:g}"
-        hi = None if self.hi is None else f"{'below' if self.hi_open else 'at most'} {self.hi:g}"
+        lo = None if self.lo is None else f"{'above' if self.lo_open else 'at least'} {_num(self.lo)}"
+        hi = None if self.hi is None else f"{'below' if self.hi_open else 'at most'} {_num(self.hi)}"
         if lo and hi and not (self.lo_open or self.hi_open):
-            out = f"from {self.lo:g} to {self.hi:g}"
+            out = f"from {_num(self.lo)} to {_num(self.hi)}"
         else:
             out = " and ".join(s for s in (lo, hi) if s) or "a finite number"
         out = ("a whole number " if self.integer else "") + out

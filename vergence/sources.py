@@ -38,7 +38,7 @@ from .images import SourceError, read_image
 from .timing import CameraTiming
 
 __all__ = ["SourceError", "Source", "FilesSource", "VideoSource", "CameraSource", "SimSource",
-           "open_source"]
+           "open_source", "check_source"]
 
 
 def _gray(img: np.ndarray) -> np.ndarray:
@@ -317,6 +317,27 @@ class SimSource(Source):
         self.truth_pan_rad = truth if math.isfinite(truth) else None
         self.exposure_ns = (t_master, t_slave) if self.stamps else None
         return expose(self.rig, scene, slave)
+
+
+def check_source(spec: str) -> None:
+    """SourceError when open_source(spec) would refuse its text, found without opening a camera, a video or a
+    ROS 2 topic (`vergence up` checks its --source before it starts anything): the kind, the LEFT,RIGHT pair,
+    that the files are there, a ros2 spec's options; a sim spec is built (its scene, well under a second)."""
+    kind, _, rest = (spec or "").partition(":")
+    kind = kind.strip()
+    if kind in ("files", "video", "camera"):
+        pair = _pair(rest, kind)
+        for path in pair if kind != "camera" else ():
+            if not os.path.exists(path):
+                raise SourceError(f"source {kind}: {path}: no such file")
+    elif kind == "ros2":
+        from .ros2_source import parse_spec
+
+        parse_spec(rest)
+    elif kind == "sim":
+        SimSource(rest).close()
+    else:
+        open_source(spec)  # the error naming every kind
 
 
 def open_source(spec: str, master: str = "left") -> Source:
