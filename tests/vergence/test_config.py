@@ -130,3 +130,13 @@ def test_geometry_is_not_a_second_name_of_the_rig_table(tmp_path, text):
         load(p)
     p.write_text("[rig]\nbaseline_m = 0.1\n")
     assert load(p).geometry.baseline_m == 0.1
+
+
+def test_docs_settings_lists_every_range():
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "SETTINGS.md").read_text()
+    rows = {line.split(" | ")[0]: line for line in doc.splitlines() if line.startswith("| `")}
+    for table, cls, name in NUMBERS:
+        row = rows.get(f"| `{table}.{name}`", "")
+        assert row.endswith(f" | {cls.RANGES[name].text()} |"), f"docs/SETTINGS.md: {table}.{name}: {row!r}"
