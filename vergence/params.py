@@ -70,7 +70,7 @@ class Params:
         "vsearch": Range(0, 100, integer=True, note="rows"),
         "vshift_cost": Range(0, 255),
         "min_margin": Range(0, 1e6),
-        "min_texture": Range(0, 255),
+        "min_texture": Range(0, 10_000),
         "min_correlation": Range(-1, 1, note="Pearson r"),
         "lr_tolerance": Range(0, 100, note="pixels"),
         "support_gamma": Range(0, 1000, lo_open=True),
