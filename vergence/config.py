@@ -34,7 +34,9 @@ import msgspec
 
 from .control import ControlSettings
 from .params import Params
+from .motors import DRIVERS
 from .motors.base import MotorSettings
+from .ranges import Range, check
 from .timing import CameraTiming
 
 __all__ = ["ConfigError", "MOVED", "RigSettings", "CaptureSettings", "CameraSettings", "ReducerSettings",
@@ -59,13 +61,13 @@ class RigSettings:
     master: str = ""
     gimbal: str = "helmholtz"
 
-    def __post_init__(self):
-        import math
+    RANGES: typing.ClassVar[dict[str, Range]] = {
+        "baseline_m": Range(0, 10, lo_open=True, note="metres"),
+        "focal_px": Range(0, 100_000, note="pixels; 0: the capture's"),
+    }
 
-        if not (math.isfinite(self.baseline_m) and self.baseline_m > 0):
-            raise ValueError(f"baseline_m={self.baseline_m}: must be a positive number of metres")
-        if not (math.isfinite(self.focal_px) and self.focal_px >= 0):
-            raise ValueError(f"focal_px={self.focal_px}: must be a number of pixels >= 0 (0: the capture's)")
+    def __post_init__(self):
+        check(self, self.RANGES)
         if self.master not in ("", "left", "right"):
             raise ValueError(f"master={self.master!r}: must be left or right")
         if self.gimbal not in ("helmholtz", "fick"):
@@ -85,6 +87,18 @@ class CaptureSettings:
     focal_px: float = 0.0
     master: str = "left"
 
+    RANGES: typing.ClassVar[dict[str, Range]] = {
+        "rate_hz": Range(0, 1000, note="0: as fast as the source gives them"),
+        "preview_hz": Range(0, 100, note="0: no preview"),
+        "preview_width": Range(0, 8192, integer=True, note="pixels; 0: the full width"),
+        "focal_px": Range(0, 100_000, note="pixels; 0: the source's"),
+    }
+
+    def __post_init__(self):
+        check(self, self.RANGES)
+        if self.master not in ("left", "right"):
+            raise ValueError(f"master={self.master!r}: must be left or right")
+
 
 @dataclass(frozen=True)
 class CameraSettings:
@@ -96,8 +110,10 @@ class CameraSettings:
     latency_s: float = 0.0
     skew_s: float = 0.0
 
+    RANGES: typing.ClassVar[dict[str, Range]] = {k: CameraTiming.RANGES[k] for k in ("latency_s", "skew_s")}
+
     def __post_init__(self):
-        self.timing()  # its checks, with their messages
+        self.timing()  # its checks (CameraTiming.RANGES), with their messages
 
     def timing(self) -> CameraTiming:
         return CameraTiming(latency_s=self.latency_s, skew_s=self.skew_s)
@@ -109,6 +125,11 @@ class ReducerSettings:
 
     deadline_ms: float = 50.0
 
+    RANGES: typing.ClassVar[dict[str, Range]] = {"deadline_ms": Range(0, 10_000, lo_open=True)}
+
+    def __post_init__(self):
+        check(self, self.RANGES)
+
 
 @dataclass(frozen=True)
 class ActuatorSettings:
@@ -119,6 +140,13 @@ class ActuatorSettings:
     port: str = ""
     state_hz: float = 50.0
     motor: MotorSettings = field(default_factory=MotorSettings)
+
+    RANGES: typing.ClassVar[dict[str, Range]] = {"state_hz": Range(0, 1000, lo_open=True)}
+
+    def __post_init__(self):
+        check(self, self.RANGES)
+        if self.driver not in DRIVERS:
+            raise ValueError(f"driver: must be one of {', '.join(DRIVERS)}, got {self.driver!r}")
 
 
 @dataclass(frozen=True)
@@ -143,14 +171,19 @@ class LimitSettings:
     miss_frames: int = 3
     probation_s: float = 4.0
 
+    RANGES: typing.ClassVar[dict[str, Range]] = {
+        "max_skew_s": Range(0, 3600, lo_open=True),
+        "frame_window": Range(1, 1_000_000_000, integer=True),
+        "reanchor_s": Range(0, 3600, lo_open=True),
+        "max_frame_bytes": Range(1, 1 << 30, integer=True),
+        "max_frame_ops": Range(1, 1e12, integer=True),
+        "miss_s": Range(0, 3600, lo_open=True),
+        "miss_frames": Range(1, 1_000_000, integer=True),
+        "probation_s": Range(0, 3600, lo_open=True),
+    }
+
     def __post_init__(self):
-        for name in ("max_skew_s", "reanchor_s", "miss_s", "probation_s"):
-            v = getattr(self, name)
-            if not (v > 0 and v < float("inf")):
-                raise ValueError(f"{name} must be a positive number, got {v}")
-        for name in ("frame_window", "max_frame_bytes", "max_frame_ops", "miss_frames"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        check(self, self.RANGES)
 
 
 @dataclass(frozen=True)
@@ -168,15 +201,16 @@ class SuperviseSettings:
     start_grace_s: float = 30.0
     stall_s: float = 10.0
 
+    RANGES: typing.ClassVar[dict[str, Range]] = {
+        "heartbeat_s": Range(0, 3600, lo_open=True, note="seconds"),
+        "start_grace_s": Range(0, 3600, lo_open=True, note="seconds"),
+        "stall_s": Range(0, 3600, note="seconds; 0: not checked"),
+    }
+
     def __post_init__(self):
-        for name in ("heartbeat_s", "start_grace_s"):
-            v = getattr(self, name)
-            if not (v > 0 and v < float("inf")):
-                raise ValueError(f"{name} must be a positive number of seconds, got {v}")
-        if not (self.stall_s >= 0 and self.stall_s < float("inf")):
-            raise ValueError(f"stall_s must be >= 0 (0: not checked), got {self.stall_s}")
+        check(self, self.RANGES)
         if 0 < self.stall_s <= self.heartbeat_s:
-            raise ValueError(f"stall_s ({self.stall_s}) must exceed heartbeat_s ({self.heartbeat_s}), or be 0")
+            raise ValueError(f"stall_s: must exceed heartbeat_s ({self.heartbeat_s:g}) or be 0, got {self.stall_s}")
 
 
 @dataclass(frozen=True)
@@ -211,11 +245,11 @@ def _check_type(cls):
 
 def _rig_table(data: dict) -> dict:
     """The TOML's [rig] table (with its optional name) as Settings' rig (the name) and geometry."""
+    if "geometry" in data:  # Settings' field, not a table's name: one name per table
+        raise ConfigError("geometry: unknown setting; the rig's geometry is the [rig] table")
     table = data.get("rig")
     if not isinstance(table, dict):
         return data
-    if "geometry" in data:
-        raise ConfigError("geometry: unknown setting; the rig's geometry is the [rig] table")
     table = dict(table)
     data = dict(data)
     name = table.pop("name", "head")
@@ -259,9 +293,14 @@ def _error(e: msgspec.ValidationError, cls) -> ConfigError:
         if moved:
             return ConfigError(f"{'.'.join(path + [unknown[1]])}: moved to {moved} (the motor's limits have one "
                                "home, which the reducer's controller and the actuator both read)")
-        names = _known(cls, where)
+        names = sorted({"rig" if n == "geometry" and cls is Settings and not where else n for n in _known(cls, where)})
         return ConfigError(f"{'.'.join(path + [unknown[1]])}: unknown setting; known here: {', '.join(names)}")
     what = what.replace("Expected `object`", "expected a table").replace("Expected", "expected")
+    # a table's own check (__post_init__, vergence.ranges) names its field first: capture.rate_hz: must be ...
+    named = re.match(r"(\w+)[:= ]", what)
+    table = _table(cls, ["geometry" if p == "rig" and cls is Settings else p for p in path]) if path else None
+    if named and dataclasses.is_dataclass(table) and named[1] in _known(table, []):
+        return ConfigError(f"{'.'.join(path)}.{what}")
     return ConfigError(f"{'.'.join(path) or 'settings'}: {what}")
 
 

@@ -40,10 +40,12 @@ import logging
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
 from .motors.base import MotorSettings, Safety
+from .ranges import Range, check
 from .timing import MAX_AGE_S
 
 __all__ = ["pixels_to_angle", "ControlSettings", "Controller", "Predictor", "MODES"]
@@ -84,19 +86,23 @@ class ControlSettings:
     max_rate_deg_s: float = 90.0
     min_rate_deg_s: float = 1.0
 
+    RANGES: ClassVar[dict[str, Range]] = {
+        "gain": Range(0, 2, lo_open=True, hi_open=True, note="at 2 and above each correction overshoots by as "
+                      "much as it corrects: the loop never settles"),
+        "dead_band_px": Range(0, 100, note="pixels"),
+        "lead_s": Range(0, 1, note="seconds"),
+        "accel_deg_s2": Range(0, 1e6),
+        "noise_px": Range(0, 1000, lo_open=True),
+        "gate_px": Range(0, 10_000),
+        "coast_s": Range(0, 60),
+        "max_rate_deg_s": Range(0, 10_000),
+        "min_rate_deg_s": Range(0, 10_000),
+    }
+
     def __post_init__(self):
         if self.mode not in MODES:
             raise ValueError(f"mode={self.mode!r}: must be one of {', '.join(MODES)}")
-        for name in ("lead_s", "accel_deg_s2", "noise_px", "gate_px", "coast_s", "max_rate_deg_s",
-                     "min_rate_deg_s"):
-            v = getattr(self, name)
-            if not (v >= 0 and math.isfinite(v)):
-                raise ValueError(f"{name}={v}: must be a finite number >= 0")
-        if not self.noise_px > 0:
-            raise ValueError(f"noise_px={self.noise_px}: must be > 0")
-        if not 0 < self.gain < 2:
-            raise ValueError(f"gain={self.gain}: must be above 0 and below 2 (at 2 and above each correction "
-                             "overshoots by as much as it corrects: the loop never settles)")
+        check(self, self.RANGES)
 
 
 class Predictor:

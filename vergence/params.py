@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
+from typing import ClassVar
 
 from . import retina
+from .ranges import Range, check
 
 __all__ = ["Params", "FAITHFUL", "WINDOW_STEP"]
 
@@ -63,7 +65,24 @@ class Params:
     clip_master: bool = True
     clip_fallback: bool = True
 
+    RANGES: ClassVar[dict[str, Range]] = {
+        "window": Range(1, 501, integer=True, note="pixels, odd"),
+        "vsearch": Range(0, 100, integer=True, note="rows"),
+        "vshift_cost": Range(0, 255),
+        "min_margin": Range(0, 1e6),
+        "min_texture": Range(0, 10_000),
+        "min_correlation": Range(-1, 1, note="Pearson r"),
+        "lr_tolerance": Range(0, 100, note="pixels"),
+        "support_gamma": Range(0, 1000, lo_open=True),
+        "support_radius": Range(0, 1000, lo_open=True, note="pixels"),
+        "halves_range": Range(0, 1000, integer=True, note="pixels"),
+        "max_window": Range(0, 1001, integer=True, note="pixels; 0: no dynamic window"),
+    }
+
     def __post_init__(self):
+        check(self, self.RANGES)
+        if self.window % 2 == 0:
+            raise ValueError(f"window: must be odd, got {self.window}")
         if self.photometric not in retina.PHOTOMETRIC:
             raise ValueError(f"photometric must be one of {', '.join(retina.PHOTOMETRIC)}, got {self.photometric!r}")
 

@@ -39,7 +39,7 @@ from .images import SourceError, read_image
 from .timing import CameraTiming
 
 __all__ = ["SourceError", "Source", "FilesSource", "VideoSource", "CameraSource", "SimSource",
-           "open_source"]
+           "open_source", "check_source"]
 
 
 def _gray(img: np.ndarray) -> np.ndarray:
@@ -254,7 +254,7 @@ class SimSource(Source):
 
         try:
             spec, timing, self.stamps = self._timing(spec)
-            self.timing = CameraTiming(**timing)
+            self.timing = self.camera_timing(timing)
             self.rig = Rig.from_spec(spec)
         except (ValueError, OSError) as e:
             raise SourceError(str(e)) from None
@@ -267,6 +267,16 @@ class SimSource(Source):
         self.t0: int | None = None  # the scene's time 0 (ns): the first exposure
         self.rng = np.random.default_rng(0)
         self._still_truth: tuple = (None, math.nan)  # (fovea, its truth) of the still scene
+
+    @classmethod
+    def camera_timing(cls, timing: dict) -> CameraTiming:
+        """CameraTiming from the spec's timing keys; ValueError naming the key as the spec has it (latency)."""
+        try:
+            return CameraTiming(**timing)
+        except ValueError as e:
+            name, _, why = str(e).partition(":")
+            key = {v: k for k, v in cls.TIMING.items()}.get(name, name)
+            raise ValueError(f"sim source: {key}:{why}") from None
 
     @classmethod
     def _timing(cls, spec: str) -> tuple[str, dict, bool]:
@@ -311,7 +321,6 @@ class SimSource(Source):
         self.exposure_ns = (t_master, t_slave) if self.stamps else None
         return expose(self.rig, scene, slave)
 
-
     def _truth(self, t: float) -> float:
         """The converged pan at the master's exposure (t s after the first) for the fovea where it is now."""
         from .sim.fixation import truth_pan_at
@@ -325,6 +334,27 @@ class SimSource(Source):
         if self._still_truth[0] != at:  # the still scene: once per fovea (a search, some 2 ms)
             self._still_truth = (at, truth_pan_at(self.rig, at[0], at[1]))
         return self._still_truth[1]
+
+
+def check_source(spec: str) -> None:
+    """SourceError when open_source(spec) would refuse its text, found without opening a camera, a video or a
+    ROS 2 topic (`vergence up` checks its --source before it starts anything): the kind, the LEFT,RIGHT pair,
+    that the files are there, a ros2 spec's options; a sim spec is built (its scene, well under a second)."""
+    kind, _, rest = (spec or "").partition(":")
+    kind = kind.strip()
+    if kind in ("files", "video", "camera"):
+        pair = _pair(rest, kind)
+        for path in pair if kind != "camera" else ():
+            if not os.path.exists(path):
+                raise SourceError(f"source {kind}: {path}: no such file")
+    elif kind == "ros2":
+        from .ros2_source import parse_spec
+
+        parse_spec(rest)
+    elif kind == "sim":
+        SimSource(rest).close()
+    else:
+        open_source(spec)  # the error naming every kind
 
 
 def open_source(spec: str, master: str = "left") -> Source:

@@ -22,6 +22,9 @@ import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import ClassVar
+
+from .ranges import Range, check
 
 __all__ = ["CameraTiming", "Stamper", "PanHistory", "MAX_AGE_S", "MAX_AHEAD_S"]
 
@@ -42,13 +45,15 @@ class CameraTiming:
     exposure_s: float = 0.0
     jitter_s: float = 0.0
 
+    RANGES: ClassVar[dict[str, Range]] = {
+        "latency_s": Range(0, MAX_AGE_S, note="seconds"),
+        "skew_s": Range(-0.5, 0.5, note="seconds; negative: the slave first"),
+        "exposure_s": Range(0, MAX_AGE_S, note="seconds"),
+        "jitter_s": Range(0, MAX_AGE_S, note="seconds"),
+    }
+
     def __post_init__(self):
-        for name in ("latency_s", "exposure_s", "jitter_s"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and 0 <= v <= MAX_AGE_S):
-                raise ValueError(f"{name}={v}: must be a number of seconds from 0 to {MAX_AGE_S:g}")
-        if not (math.isfinite(self.skew_s) and abs(self.skew_s) <= 0.5):
-            raise ValueError(f"skew_s={self.skew_s}: must be a number of seconds from -0.5 to 0.5")
+        check(self, self.RANGES)
 
     @property
     def age_s(self) -> float:

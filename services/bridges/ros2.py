@@ -42,6 +42,7 @@ from vergence.messages import Fixate, MessageError, MotorState, Profile, Decisio
 from vergence.ros2_node import RosNode, RosUnavailable
 
 from services.runtime import session
+from services.runtime.args import whole
 from services.runtime.node import Node
 
 log = logging.getLogger("vergence.ros2")
@@ -58,7 +59,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--joint", default=None, metavar="NAME", help="the slave pan's joint name (default <rig>_slave_pan)")
     p.add_argument("--frame-id", default=None, metavar="FRAME",
                    help="the master camera's optical frame (default <rig>_master_optical_frame)")
-    p.add_argument("--domain", type=int, default=None, metavar="ID", help="ROS_DOMAIN_ID (default: the environment's)")
+    p.add_argument("--domain", type=whole(0, 232), default=None, metavar="ID",
+                   help="ROS_DOMAIN_ID (default: the environment's)")
 
 
 def _header(msg, t_ns: int, frame_id: str) -> None:

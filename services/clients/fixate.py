@@ -22,7 +22,7 @@ from vergence.config import load
 from vergence.messages import Fixate, MessageError, Decision
 
 from services.runtime import session
-from services.runtime.args import master_point
+from services.runtime.args import master_point, number
 from services.runtime.node import Node
 
 log = logging.getLogger("vergence.fixate")
@@ -32,9 +32,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
     p.add_argument("point", type=master_point, metavar="X,Y", help="the new fovea centre in master pixels")
     p.add_argument("--source", default="vergence fixate", help="who asks (free text, logged by the capture)")
-    p.add_argument("--wait", type=float, default=2.0, metavar="S",
+    p.add_argument("--wait", type=number(0, 3600, note="0: only send"), default=2.0, metavar="S",
                    help="wait up to S seconds (the router's answer included) for the first decision at the new "
-                       f"point (0: only send, after at most {session.CLIENT_WAIT_S:g} s for a router)")
+                        f"point (0: only send, after at most {session.CLIENT_WAIT_S:g} s for a router)")
 
 
 def describe(v: Decision) -> str:

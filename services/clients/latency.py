@@ -25,6 +25,7 @@ from vergence.latency import LatencyError, fit_latency, motion_plan
 from vergence.messages import Command, Hold, MessageError, MotorState, Decision
 
 from services.runtime import session
+from services.runtime.args import number
 from services.runtime.node import Node
 
 log = logging.getLogger("vergence.latency")
@@ -34,10 +35,11 @@ RENEW_S = 0.5  # the hold is renewed this often, each for twice as long
 
 def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
-    p.add_argument("--amplitude", type=float, default=0.5, metavar="DEG",
+    p.add_argument("--amplitude", type=number(0, 1, lo_open=True), default=0.5, metavar="DEG",
                    help="the steps' size about the present pan, degrees (default 0.5, at most 1)")
-    p.add_argument("--hold-s", type=float, default=0.4, metavar="S", help="how long each step is held (default 0.4)")
-    p.add_argument("--wait", type=float, default=5.0, metavar="S",
+    p.add_argument("--hold-s", type=number(0, 60, lo_open=True), default=0.4, metavar="S",
+                   help="how long each step is held (default 0.4)")
+    p.add_argument("--wait", type=number(0, 3600, lo_open=True), default=5.0, metavar="S",
                    help="how long to wait for the rig's decisions and motor states (default 5)")
 
 

@@ -34,6 +34,7 @@ from vergence.mcap_file import McapReader, is_mcap
 from vergence.recording import Reader, RecordingError
 
 from services.runtime import session
+from services.runtime.args import number
 from services.runtime.node import Node
 
 log = logging.getLogger("vergence.replay")
@@ -45,12 +46,12 @@ REPLAY_RIG = keys.REPLAY_RIG
 def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
     p.add_argument("file", metavar="FILE", help="a recording made by `vergence record` (FILE.mcap: its MCAP file)")
-    p.add_argument("--speed", type=float, default=1.0, metavar="X",
+    p.add_argument("--speed", type=number(0, 1000, note="0: as fast as possible"), default=1.0, metavar="X",
                    help="1 = as recorded, 2 = twice as fast, 0 = as fast as possible (default 1)")
     p.add_argument("--only", action="append", choices=KINDS, metavar="KIND",
                    help=f"replay only these kinds, repeatable: {', '.join(KINDS)} (default: all)")
     session.add_wait(p)
-    p.add_argument("--wait-workers", type=float, default=5.0, metavar="S",
+    p.add_argument("--wait-workers", type=number(0, 3600), default=5.0, metavar="S",
                    help="how long to wait for live workers before replaying frames (default 5)")
     p.add_argument("--view", metavar="FILE.rrd|web[:PORT]|spawn",
                    help="publish nothing: turn the recording into `vergence view`'s Rerun cockpit, saved to "

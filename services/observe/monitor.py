@@ -34,6 +34,7 @@ from vergence.monitor import Monitor, render_text
 from vergence.plots import monitor_png
 
 from services.runtime import session
+from services.runtime.args import number
 from services.runtime.node import Node
 
 log = logging.getLogger("vergence.monitor")
@@ -55,14 +56,15 @@ def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
     p.add_argument("--png", metavar="FILE", help="write a PNG of the next profile with the pan history, then exit")
     p.add_argument("--size", default="960x720", metavar="WxH", help="PNG size in pixels (default 960x720)")
-    p.add_argument("--history", type=float, default=2.0, metavar="S",
+    p.add_argument("--history", type=number(0, 3600, lo_open=True), default=2.0, metavar="S",
                    help="--png: seconds of pan history collected before the profile is taken (default 2)")
     p.add_argument("--once", action="store_true", help="print one screen once a profile came, then exit")
-    p.add_argument("--timeout", type=float, default=None, metavar="S",
+    p.add_argument("--timeout", type=number(0, None, lo_open=True), default=None, metavar="S",
                    help="exit after S seconds (--once/--png: give up waiting after S s, default 10)")
     session.add_wait(p)
-    p.add_argument("--refresh", type=float, default=0.5, metavar="S", help="screen refresh period (default 0.5)")
-    p.add_argument("--window", type=float, default=5.0, metavar="S",
+    p.add_argument("--refresh", type=number(0, 60, lo_open=True), default=0.5, metavar="S",
+                   help="screen refresh period (default 0.5)")
+    p.add_argument("--window", type=number(0, 3600, lo_open=True), default=5.0, metavar="S",
                    help="rates and latency percentiles over the last S seconds (default 5)")
     p.add_argument("--color", choices=["auto", "always", "never"], default="auto",
                    help="ANSI colours and screen redraws (auto: when stdout is a terminal)")

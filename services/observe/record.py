@@ -38,6 +38,7 @@ from vergence.mcap_file import McapWriter, is_mcap
 from vergence.recording import RecordingError, Writer
 
 from services.runtime import session
+from services.runtime.args import number
 from services.runtime.node import Node
 
 log = logging.getLogger("vergence.record")
@@ -49,10 +50,10 @@ CHECK_S = 0.5  # ... and checks that its file is still there this often
 def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
     p.add_argument("file", metavar="FILE", help="the recording to write (overwritten)")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
+    p.add_argument("--duration", type=number(0, None, lo_open=True), default=None, metavar="S",
                    help="stop S seconds after the start, the wait for a router included (default: Ctrl-C)")
     session.add_wait(p)
-    p.add_argument("--queue-mb", type=float, default=QUEUE_MB, metavar="MB",
+    p.add_argument("--queue-mb", type=number(0, 100_000, lo_open=True), default=QUEUE_MB, metavar="MB",
                    help=f"the most payload waiting for the disk; more is dropped and counted (default {QUEUE_MB:g})")
 
 

@@ -38,6 +38,7 @@ from services.observe.playback import log_sim_step, parse_target, view_recording
 from services.observe.rerun_sdk import APP_ID, INSTALL_HINT, MissingExtra, analytics_off, blueprint, import_rerun
 from services.observe.sinks import SaveWatch, host_address, start
 from services.observe.web import ASSETS, csp, serve_offline, viewer_assets
+from services.runtime.args import PORT, number, whole
 from services.runtime.node import Node
 
 # the names the other modules and the tests take from here (`from services.observe import view`)
@@ -56,17 +57,17 @@ def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
     p.add_argument("--save", metavar="FILE.rrd", help="write a Rerun recording")
     p.add_argument("--web", action="store_true", help="serve the web viewer (shipped in the wheel, offline)")
-    p.add_argument("--port", type=int, default=9090, metavar="P", help="--web: the viewer's HTTP port (default 9090)")
-    p.add_argument("--grpc-port", type=int, default=9876, metavar="P",
+    p.add_argument("--port", type=PORT, default=9090, metavar="P", help="--web: the viewer's HTTP port (default 9090)")
+    p.add_argument("--grpc-port", type=PORT, default=9876, metavar="P",
                    help="--web: the port the viewer fetches the data from (default 9876)")
     p.add_argument("--bind", default="0.0.0.0", metavar="IP",
                    help="--web: the address to serve on (default 0.0.0.0: other machines; 127.0.0.1: this one)")
     p.add_argument("--spawn", action="store_true", help="open the native viewer (needs a display); the default "
                                                          "when neither --save nor --web is given")
-    p.add_argument("--timeout", type=float, default=None, metavar="S",
+    p.add_argument("--timeout", type=number(0, None, lo_open=True), default=None, metavar="S",
                    help="exit S seconds after the start, the wait for a router included")
     session.add_wait(p)
-    p.add_argument("--nice", type=int, default=10, metavar="N",
+    p.add_argument("--nice", type=whole(-20, 19), default=10, metavar="N",
                    help="run at this niceness, so that the loop's processes come first on a busy CPU (default 10)")
 
 

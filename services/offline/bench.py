@@ -8,24 +8,27 @@ import importlib
 import json
 import sys
 
+from services.runtime.args import number, whole
+
 
 def configure(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="bench", metavar="WHAT", required=True)
     k = sub.add_parser("kernel", help="correlate vs cv2.matchTemplate vs plain numpy, interleaved")
     k.add_argument("--json", action="store_true", help="one JSON object per case")
-    k.add_argument("--repeats", type=int, default=7, help="interleaved rounds per case (default 7)")
+    k.add_argument("--repeats", type=whole(1, 1_000_000), default=7, help="interleaved rounds per case (default 7)")
     k.add_argument("--quick", action="store_true", help="only the 640 and 3840 extremes")
     m = sub.add_parser("match", help="vergence.match for one point of a 640 x 480 pair")
     m.add_argument("--json", action="store_true")
-    m.add_argument("--repeats", type=int, default=400)
+    m.add_argument("--repeats", type=whole(1, 1_000_000), default=400)
     g = sub.add_parser("messages", help="decode and encode time per message kind vs a bare msgpack parse")
     g.add_argument("--json", action="store_true", help="one JSON object per kind")
-    g.add_argument("--repeats", type=int, default=9)
+    g.add_argument("--repeats", type=whole(1, 1_000_000), default=9)
     t = sub.add_parser("tracking", help="tracking error on a target moving in depth (simulated, virtual time): "
                                         "sine 0.25-2 Hz x 30/60/120 Hz x p/predictive, and a step")
     t.add_argument("--json", action="store_true", help="one JSON object per row")
-    t.add_argument("--seconds", type=float, default=5.0, help="length of each sine run (default 5)")
-    t.add_argument("--seed", type=int, default=0, help="seed of the scene's textures (default 0)")
+    t.add_argument("--seconds", type=number(0, 3600, lo_open=True), default=5.0,
+                   help="length of each sine run (default 5)")
+    t.add_argument("--seed", type=whole(0, 2**32 - 1), default=0, help="seed of the scene's textures (default 0)")
     t.add_argument("--rates", default=None, help="camera rates, Hz (default 30,60,120; --camera: 30,60)")
     t.add_argument("--hz", default=None, help="sine frequencies (default 0.25,0.5,1,2; --camera: 0.5,1)")
     t.add_argument("--camera", action="store_true",

@@ -31,6 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from services.runtime.args import number, whole
 from services.ops.launch import Proc, free_port, stop_all, vergence, wait_for, wait_listening
 
 RATES = [100, 250, 500, 1000, 1500, 2000]
@@ -39,9 +40,12 @@ WARM_FRAMES = 20  # the first frames of a fresh capture process are slow (import
 
 
 def configure(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--workers", type=int, nargs="+", default=[1, 2], metavar="N", help="worker counts (default 1 2)")
-    p.add_argument("--rate", type=float, default=None, metavar="HZ", help="one rate only (default: a ramp)")
-    p.add_argument("--seconds", type=float, default=2.0, help="length of each run (default 2 s)")
+    p.add_argument("--workers", type=whole(1, 64), nargs="+", default=[1, 2], metavar="N",
+                   help="worker counts (default 1 2)")
+    p.add_argument("--rate", type=number(0, 1000, lo_open=True), default=None, metavar="HZ",
+                   help="one rate only (default: a ramp)")
+    p.add_argument("--seconds", type=number(0, 3600, lo_open=True), default=2.0,
+                   help="length of each run (default 2 s)")
     p.add_argument("--heavy", action="store_true", help="also the heavy setting: 3840 wide, w=31, +-16 rows")
     p.add_argument("--faithful", action="store_true", help="the paper's network (no extension)")
     p.add_argument("--client", action="store_true", help="pipeline processes as clients of the router (every "

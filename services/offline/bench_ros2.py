@@ -28,11 +28,13 @@ from pathlib import Path
 
 import numpy as np
 
+from services.runtime.args import number
 from services.ops.launch import Proc, free_port, stop_all, vergence, wait_for, wait_listening
 
 
 def configure(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seconds", type=float, default=5.0, help="length of each measurement (default 5 s)")
+    p.add_argument("--seconds", type=number(0, 3600, lo_open=True), default=5.0,
+                   help="length of each measurement (default 5 s)")
     p.add_argument("--size", default="640x480", metavar="WxH", help="the stereo pair's size (default 640x480)")
     p.add_argument("--json", action="store_true", help="one JSON object per figure")
 

@@ -11,7 +11,7 @@ from vergence import BorderError, Params, depth, match
 from vergence.config import ConfigError, load
 from vergence.images import read_image
 
-from services.runtime.args import pixel, positive
+from services.runtime.args import pixel, positive, whole
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -19,9 +19,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("slave", help="slave (panning camera) image file")
     p.add_argument("--at", type=pixel, action="append", metavar="X,Y",
                    help="fovea centre in the master image, repeatable (default: the image centre)")
-    p.add_argument("--window", type=int, default=None, help="fovea side w in pixels, odd "
+    p.add_argument("--window", type=whole(1, 501), default=None, help="fovea side w in pixels, odd "
                    "(default: the settings' [network] window, 15)")
-    p.add_argument("--vsearch", type=int, default=None, help="rows R searched above and below "
+    p.add_argument("--vsearch", type=whole(0, 100), default=None, help="rows R searched above and below "
                    "(default: the settings' [network] vsearch, 6; 0 with --faithful)")
     p.add_argument("--faithful", action="store_true", help="the paper's network: every extension off")
     p.add_argument("--config", metavar="FILE", help="settings TOML; its [network] table sets the parameters")

@@ -13,6 +13,7 @@ import dataclasses
 import itertools
 import json
 import math
+import re
 import sys
 
 from vergence import Params, depth
@@ -23,7 +24,7 @@ from vergence.sim.loop import DELAY_S, closed_loop, frames_to_converge, tracking
 from vergence.sim.moving import MovingRig
 from vergence.timing import CameraTiming
 
-from services.runtime.args import xy
+from services.runtime.args import number, whole, xy
 
 
 def fixate_at_arg(text: str) -> tuple[int, tuple[int, int]]:
@@ -44,7 +45,7 @@ def camera_timing(args: argparse.Namespace) -> CameraTiming:
     try:
         return CameraTiming(args.camera_latency, args.skew, args.exposure, args.jitter)
     except ValueError as e:
-        name = str(e).partition("=")[0]
+        name = re.split("[:=]", str(e), maxsplit=1)[0]
         flag = {"latency_s": "--camera-latency", "skew_s": "--skew", "exposure_s": "--exposure",
                 "jitter_s": "--jitter"}.get(name, name)
         raise ValueError(f"{flag}{str(e)[len(name):]}") from None
@@ -61,7 +62,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", metavar="WxH",
                    help="size of the rendered views (default: the pair's; generated: 640x480)")
     p.add_argument("--start-pan", metavar="DEG", help="the slave's starting pan in degrees (default 0)")
-    p.add_argument("--start-off", metavar="PX", type=float,
+    p.add_argument("--start-off", metavar="PX", type=number(-10_000, 10_000),
                    help="start the slave PX pixels past the converged pan instead (needs the ground truth)")
     p.add_argument("--noise", metavar="SIGMA", help="Gaussian sensor noise of both cameras")
     p.add_argument("--gain", help="slave = gain * I + offset (photometric difference)")
@@ -78,24 +79,25 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--motion", metavar="SPEC",
                    help="a target moving in depth: still:z=Z | step:z0=Z0,z1=Z1,at=S | ramp:z0=Z0,z1=Z1,speed=M_S | "
                         "sine:z=Z,amp=A,hz=F (metres, seconds)")
-    p.add_argument("--baseline", type=float, default=None, metavar="M",
+    p.add_argument("--baseline", type=number(0, 10, lo_open=True), default=None, metavar="M",
                    help="the rig's baseline in metres: the moving rig's (--motion), and depth_m's (default: "
                    "settings [rig] baseline_m, 0.06)")
     p.add_argument("--texture", metavar="FILE|flat",
                    help="--motion: an image as the target's texture (default procedural; flat: none)")
     p.add_argument("--mode", choices=("p", "predictive"), help="the controller (default: [control] mode)")
-    p.add_argument("--delay-ms", type=float, default=None, metavar="MS",
+    p.add_argument("--delay-ms", type=number(0, 10_000), default=None, metavar="MS",
                    help="read to command, virtual (default 5)")
-    p.add_argument("--camera-latency", type=float, default=0.0, metavar="S",
+    p.add_argument("--camera-latency", type=number(0, 1, note="seconds"), default=0.0, metavar="S",
                    help="the image is S old when read (exposure to read; default 0)")
-    p.add_argument("--skew", type=float, default=0.0, metavar="S",
+    p.add_argument("--skew", type=number(-0.5, 0.5, note="seconds"), default=0.0, metavar="S",
                    help="the slave is exposed S after the master (negative: before; default 0)")
-    p.add_argument("--exposure", type=float, default=0.0, metavar="S",
+    p.add_argument("--exposure", type=number(0, 1, note="seconds"), default=0.0, metavar="S",
                    help="each view integrates the scene and the slave's motion over S (motion blur; default 0)")
-    p.add_argument("--jitter", type=float, default=0.0, metavar="S",
+    p.add_argument("--jitter", type=number(0, 1, note="seconds"), default=0.0, metavar="S",
                    help="exposure times off their schedule, standard deviation S (default 0)")
-    p.add_argument("--frames", type=int, default=20, help="frames to run after the starting one (default 20)")
-    p.add_argument("--rate", type=float, default=30.0,
+    p.add_argument("--frames", type=whole(0, 10_000_000), default=20,
+                   help="frames to run after the starting one (default 20)")
+    p.add_argument("--rate", type=number(0, 1000, lo_open=True), default=30.0,
                    help="frames per second of the virtual clock (default 30)")
     p.add_argument("--faithful", action="store_true", help="the paper's network: every extension off")
     p.add_argument("--config", metavar="FILE", help="settings TOML: [network], [control], [actuator.motor]")

@@ -34,9 +34,13 @@ import signal
 import sys
 import time
 
-from vergence.config import SuperviseSettings, load
+from vergence import keys
+from vergence.config import Settings, SuperviseSettings, load
+from vergence.motors import DRIVERS, check_driver
+from vergence.sources import SourceError, check_source
 
 from services.runtime import heartbeat, session
+from services.runtime.args import number, whole
 from services.ops.launch import GRACE_S, Proc, accepts, vergence, wait_listening
 
 log = logging.getLogger("vergence.up")
@@ -46,14 +50,19 @@ STABLE_S = 10.0  # ... and back to the first once the child has run this long
 STATUS_S = 60.0  # a line with the restart counts this often
 ROUTER_START_S = 10.0  # the router has this long to listen before anything else starts
 STANDBY_DELAY_S = 5.0  # a standby is started this long after its child (not to slow the child's own start)
+MAX_WORKERS = 64  # --workers: more than this many on one machine is a typing error
 
 
 def configure(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--workers", "-n", type=int, default=2, help="number of worker processes (default 2)")
+    p.add_argument("--workers", "-n", type=whole(1, MAX_WORKERS), default=2,
+                   help=f"number of worker processes, 1 to {MAX_WORKERS} (default 2)")
     p.add_argument("--source", default=None, metavar="SPEC", help="capture source (default: settings, sim)")
-    p.add_argument("--driver", default=None, help="actuator driver (default: settings, sim)")
-    p.add_argument("--port", default=None, metavar="URL", help="actuator serial port (real drivers)")
-    p.add_argument("--rate", type=float, default=None, metavar="HZ", help="capture rate (default: settings, 30)")
+    p.add_argument("--driver", choices=DRIVERS, default=None,
+                   help=f"actuator driver: {', '.join(DRIVERS)} (default: settings, sim)")
+    p.add_argument("--port", default=None, metavar="URL",
+                   help="actuator serial port (the real drivers: dynamixel, line; ros2: its controller)")
+    p.add_argument("--rate", type=number(0, 1000, note="0: as fast as possible"), default=None, metavar="HZ",
+                   help="capture rate, 0 to 1000, 0: as fast as the source (default: settings, 30)")
     p.add_argument("--listen", "-l", default=session.DEFAULT_ROUTER, metavar="ENDPOINT",
                    help=f"the embedded router's endpoint, the one every child connects to (default "
                         f"{session.DEFAULT_ROUTER})")
@@ -347,12 +356,36 @@ def supervise(children: list[Child], stop: session.Stop, poll_s: float = POLL_S)
     return 0
 
 
+def check(args: argparse.Namespace, settings: Settings) -> str | None:
+    """What the children would refuse, found before one starts (a refusal then stops everything anyway, after
+    every child started): the settings with the options over them, the rig's name, the source, the driver and
+    its port, and an option that does not apply. The reason, or None."""
+    if args.no_actuator and (args.driver or args.port):
+        return f"--{'driver' if args.driver else 'port'} applies to the actuator, which --no-actuator does not start"
+    try:
+        keys.prefix(args.rig or settings.rig)
+    except ValueError as e:
+        return f"--rig: {e}"
+    if not args.no_actuator:
+        a = settings.actuator
+        try:
+            check_driver(args.driver or a.driver, args.port or a.port, args.port)
+        except ValueError as e:
+            return str(e)
+    try:
+        check_source(args.source or settings.capture.source)
+    except SourceError as e:
+        return f"--source: {e}" if args.source else f"[capture] source: {e}"
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
-    if args.workers < 1:
-        print("vergence up: --workers must be at least 1", file=sys.stderr)
-        return 2
     settings = load(args.config)
     rig = args.rig or settings.rig
+    why = check(args, settings)
+    if why is not None:
+        print(f"vergence up: {why}", file=sys.stderr)
+        return 2
     if accepts(args.listen):
         print(f"vergence up: {args.listen} is already in use (another `vergence up` or router?): stop it, or "
               "give this one another port with --listen", file=sys.stderr)

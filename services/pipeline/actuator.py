@@ -20,10 +20,11 @@ import time
 
 from vergence import keys
 from vergence.config import ConfigError, load
-from vergence.motors import DRIVERS, PortError, make_driver
+from vergence.motors import DRIVERS, PortError, check_driver, make_driver
 from vergence.motors.runner import MotorLoop
 
 from services.runtime import heartbeat, session
+from services.runtime.args import number, whole
 from services.runtime.node import Node
 
 log = logging.getLogger("vergence.actuator")
@@ -37,9 +38,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="serial port or pyserial URL: /dev/ttyUSB0, socket://host:port, loop:// "
                         "(list ports: python -m serial.tools.list_ports -v); ros2: CONTROLLER[:joint=NAME]"
                         "[:mode=forward|trajectory][:joints=A,B][:states=TOPIC] (vergence/motors/ros2.py)")
-    p.add_argument("--id", type=int, default=None, help="motor id on the bus (Dynamixel; default 1)")
-    p.add_argument("--baud", type=int, default=None, help="serial speed (default 57600)")
-    p.add_argument("--state-hz", type=float, default=None, help="motor_state rate (default 50)")
+    p.add_argument("--id", type=whole(0, 252), default=None, help="motor id on the bus (Dynamixel; default 1)")
+    p.add_argument("--baud", type=whole(1200, 10_000_000), default=None, help="serial speed (default 57600)")
+    p.add_argument("--state-hz", type=number(0, 1000, lo_open=True), default=None, help="motor_state rate (default 50)")
 
 
 class Latest:
@@ -164,6 +165,7 @@ def settings_from_args(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     try:
         settings = settings_from_args(args)
+        check_driver(settings.actuator.driver, settings.actuator.port, args.port)  # --port with sim: refused
     except (ConfigError, ValueError) as e:
         print(f"vergence actuator: {e}", file=sys.stderr)
         return 2

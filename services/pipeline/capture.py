@@ -47,7 +47,7 @@ from vergence.timing import PanHistory, Stamper
 
 from services.runtime import session
 from services.runtime.health import Health
-from services.runtime.args import pixel
+from services.runtime.args import number, pixel, whole
 from services.runtime.node import STATUS_S, Node
 
 log = logging.getLogger("vergence.capture")
@@ -60,11 +60,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--source", default=None, metavar="SPEC",
                    help="files:LEFT,RIGHT | video:LEFT,RIGHT | camera:0,1 | sim[:key=value:...] | ros2:LEFT,RIGHT "
                         "(default: settings, else the demo: a target moving in depth; sim: a still scene)")
-    p.add_argument("--rate", type=float, default=None, metavar="HZ",
+    p.add_argument("--rate", type=number(0, 1000, note="0: as fast as possible"), default=None, metavar="HZ",
                    help="frames per second, 0 = as fast as possible (default: settings, 30)")
-    p.add_argument("--frames", type=int, default=0, metavar="N", help="exit after publishing N frames (0: never)")
+    p.add_argument("--frames", type=whole(0, None), default=0, metavar="N",
+                   help="exit after publishing N frames (0: never)")
     p.add_argument("--at", type=pixel, default=None, metavar="X,Y", help="fovea centre (default: image centre)")
-    p.add_argument("--focal", type=float, default=None, help="focal length in pixels (default: the source's)")
+    p.add_argument("--focal", type=number(0, 100_000), default=None,
+                   help="focal length in pixels (default: the source's)")
 
 
 def motor_state_implausible(st: MotorState, motor, now_ns: int, max_skew_s: float) -> str | None:

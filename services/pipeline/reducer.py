@@ -37,6 +37,7 @@ from vergence.gather import Reduced, Gatherer
 from vergence.messages import MAX_HOLD_S, Frame, Hold, MessageError, MotorState, Correlation, replace as replace_message
 
 from services.runtime import session
+from services.runtime.args import number
 from services.runtime.node import Node
 from services.runtime.warm import warm_up
 
@@ -53,8 +54,8 @@ WAKE = "_wake"  # the key segment of the local sample that wakes the correlation
 
 def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
-    p.add_argument("--deadline-ms", type=float, default=None, help="drop a frame whose shards are not all in "
-                                                                   "by then (default: settings, 50)")
+    p.add_argument("--deadline-ms", type=number(0, 10_000, lo_open=True), default=None,
+                   help="drop a frame whose shards are not all in by then (default: settings, 50)")
 
 
 def summary(seconds: float, frames: int, lost: int, commands: int, last: Reduced, window: "Window") -> str:

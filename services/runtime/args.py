@@ -1,12 +1,17 @@
 """The command line's shared value types (argparse `type=`): one X,Y parser for every command that takes a point
-(capture and match --at, fixate's X,Y, sim --fixate-at FRAME:X,Y) and the positive number."""
+(capture and match --at, fixate's X,Y, sim --fixate-at FRAME:X,Y), the positive number, and number() / whole():
+a number within a range (vergence.ranges.Range, the settings' own), so that every numeric option refuses
+nonsense before anything starts: `argument --rate: must be from 0 to 1000 (0: as fast as possible), got '-5'`,
+exit 2."""
 
 from __future__ import annotations
 
 import argparse
 import math
 
-__all__ = ["xy", "pixel", "master_point", "positive"]
+from vergence.ranges import Range
+
+__all__ = ["xy", "pixel", "master_point", "positive", "number", "whole", "PORT"]
 
 
 def xy(text: str, conv=int, what: str = "X,Y in pixels") -> tuple:
@@ -42,3 +47,31 @@ def positive(text: str) -> float:
     if not (math.isfinite(v) and v > 0):
         raise argparse.ArgumentTypeError(f"want a positive number, got {text!r}")
     return v
+
+
+def number(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False, hi_open: bool = False,
+           note: str = "", integer: bool = False):
+    """argparse type for a finite number from lo to hi (None: unbounded; *_open: the bound excluded); its error
+    says the range (argparse puts the option's name first and exits 2). integer: a whole number (int)."""
+    r = Range(lo, hi, lo_open=lo_open, hi_open=hi_open, integer=integer, note=note)
+
+    def parse(text: str):
+        try:
+            v = int(text) if integer else float(text)
+        except ValueError:
+            v = math.nan
+        if v not in r:
+            raise argparse.ArgumentTypeError(f"must be {r.text()}, got {text!r}")
+        return v
+
+    parse.range = r  # for the tests and --help
+    parse.__name__ = "whole number" if integer else "number"
+    return parse
+
+
+def whole(lo: int | None = None, hi: int | None = None, note: str = ""):
+    """argparse type for a whole number (int) from lo to hi."""
+    return number(lo, hi, note=note, integer=True)
+
+
+PORT = whole(1, 65535)  # a TCP port

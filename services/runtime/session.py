@@ -46,7 +46,9 @@ def add_options(p: argparse.ArgumentParser, mode: str = "client") -> None:
 
 def add_wait(p: argparse.ArgumentParser, default: float = CLIENT_WAIT_S) -> None:
     """--wait S: how long a client waits for a router before it gives up (NoRouter: one line, exit 1)."""
-    p.add_argument("--wait", type=float, default=default, metavar="S",
+    from services.runtime.args import number  # here: the router, which has no --wait, never imports vergence
+
+    p.add_argument("--wait", type=number(0, 3600, lo_open=True), default=default, metavar="S",
                    help=f"give up (exit 1) when no Zenoh router answers within S seconds (default {default:g})")
 
 

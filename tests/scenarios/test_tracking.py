@@ -614,7 +614,7 @@ def test_sim_cli_models_the_camera_and_says_which_instant_each_row_is():
     rig = MovingRig.from_options(motion="sine:z=0.8,amp=0.3,hz=1", focal="500")
     assert all(row["truth_pan_deg"] == pytest.approx(math.degrees(rig.truth_pan(row["t_s"])), abs=1e-9)
                for row in rows)
-    for bad, says in [("--camera-latency", "--camera-latency=2.0: must be a number of seconds from 0 to 1"),
-                      ("--skew", "--skew=2.0: must be a number of seconds from -0.5 to 0.5")]:
+    for bad, says in [("--camera-latency", "argument --camera-latency: must be from 0 to 1 (seconds), got '2'"),
+                      ("--skew", "argument --skew: must be from -0.5 to 0.5 (seconds), got '2'")]:
         r = cli("sim", "--frames", "2", bad, "2")
         assert r.returncode == 2 and says in r.stderr

@@ -84,8 +84,9 @@ def test_the_sim_sources_truth_is_for_the_fovea_the_capture_sets():
 
 
 @pytest.mark.parametrize("spec,says", [("sim:latency=x", "latency='x' is not a number"),
-                                       ("sim:latency=2", "latency_s=2.0"), ("sim:stamps=maybe", "stamps='maybe'"),
-                                       ("sim:skew=-0.9", "skew_s=-0.9")])
+                                       ("sim:latency=2", r"sim source: latency: must be from 0 to 1 .*got 2\.0"),
+                                       ("sim:stamps=maybe", "stamps='maybe'"),
+                                       ("sim:skew=-0.9", r"skew: must be from -0.5 to 0.5 .*got -0\.9")])
 def test_a_bad_timing_key_is_refused_naming_it(spec, says):
     with pytest.raises(SourceError, match=says):
         open_source(spec)

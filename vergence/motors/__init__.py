@@ -5,9 +5,24 @@ from .base import Disconnected, Driver, MotorError, MotorSettings, NoAnswer, Por
 
 __all__ = ["Disconnected", "Driver", "MotorError", "MotorSettings", "NoAnswer", "PortError", "Safety",
            "TransientError",
-           "make_driver", "DRIVERS"]
+           "make_driver", "check_driver", "DRIVERS", "PORTED"]
 
 DRIVERS = ("sim", "dynamixel", "line", "ros2")
+PORTED = ("dynamixel", "line", "ros2")  # the drivers that take a port (ros2's: a controller, vergence/motors/ros2.py)
+SERIAL = ("dynamixel", "line")  # ... and those that cannot start without one
+
+
+def check_driver(name: str, port: str = "", given: str | None = None) -> None:
+    """Whether driver `name` can start with `port` (the settings' and the command line's together), before
+    anything starts: ValueError naming the choices, or the option that does not apply. given: the port as the
+    command line gave it (--port), which the sim driver refuses rather than ignores."""
+    if name not in DRIVERS:
+        raise ValueError(f"unknown driver {name!r}; choose one of {', '.join(DRIVERS)}")
+    if given and name not in PORTED:
+        raise ValueError(f"--port applies to a real driver ({', '.join(PORTED)}); the {name} driver has no port")
+    if name in SERIAL and not port:
+        raise ValueError(f"driver {name!r} needs a serial port: pass --port URL (e.g. /dev/ttyUSB0) or set "
+                         "[actuator] port; list ports with `python -m serial.tools.list_ports -v`")
 
 
 def make_driver(name: str, settings: MotorSettings, port: str = "") -> Driver:

@@ -18,6 +18,9 @@ import logging
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from typing import ClassVar
+
+from ..ranges import Range, check
 
 __all__ = ["MotorSettings", "Driver", "SerialDriver", "MotorError", "PortError", "Disconnected", "TransientError",
            "NoAnswer", "Safety", "Ruling"]
@@ -76,26 +79,36 @@ class MotorSettings:
     max_accel_deg_s2: float = 5000.0
     quantise: bool = True
 
+    RANGES: ClassVar[dict[str, Range]] = {
+        "id": Range(0, 252, integer=True),
+        "baud": Range(1200, 10_000_000, integer=True, note="bits per second"),
+        "ticks_per_rev": Range(1, 1 << 24, integer=True),
+        "zero": Range(-(1 << 31), (1 << 31) - 1, integer=True, note="ticks"),
+        "direction": Range(-1, 1, integer=True, note="1 or -1"),
+        "min_deg": Range(-180, 180),
+        "max_deg": Range(-180, 180),
+        "max_speed_deg_s": Range(0, 1e6, note="0: the motor's own maximum"),
+        "max_step_deg": Range(0, 360, lo_open=True),
+        "dead_band_deg": Range(0, 10),
+        "watchdog_s": Range(0, 3600, note="0: never"),
+        "max_age_s": Range(0, 3600, note="0: no check"),
+        "max_skew_s": Range(0, 3600, note="0: no check"),
+        "silent_s": Range(0, 3600),
+        "absent_s": Range(0, 3600),
+        "timeout_s": Range(0, 10, lo_open=True),
+        "retries": Range(1, 100, integer=True),
+        "tau_s": Range(0, 10),
+        "start_deg": Range(-180, 180),
+        "latency_s": Range(0, 1),
+        "max_accel_deg_s2": Range(0, 1e7, note="0: none"),
+    }
+
     def __post_init__(self):
+        check(self, self.RANGES)
         if self.direction not in (1, -1):
-            raise ValueError(f"direction must be 1 or -1, got {self.direction}")
-        if not (math.isfinite(self.min_deg) and math.isfinite(self.max_deg) and self.min_deg <= self.max_deg):
-            raise ValueError(f"min_deg {self.min_deg} must be <= max_deg {self.max_deg}, both finite")
-        if self.ticks_per_rev <= 0:
-            raise ValueError(f"ticks_per_rev must be positive, got {self.ticks_per_rev}")
-        if not (self.max_step_deg > 0 and math.isfinite(self.max_step_deg)):
-            raise ValueError(f"max_step_deg must be a positive number, got {self.max_step_deg}")
-        for name in ("max_speed_deg_s", "dead_band_deg", "watchdog_s", "max_age_s", "max_skew_s", "tau_s",
-                     "latency_s", "max_accel_deg_s2", "silent_s", "absent_s"):
-            v = getattr(self, name)
-            if not (v >= 0 and math.isfinite(v)):
-                raise ValueError(f"{name} must be >= 0, got {v}")
-        if self.retries < 1:
-            raise ValueError(f"retries must be >= 1, got {self.retries}")
-        if not self.timeout_s > 0:
-            raise ValueError(f"timeout_s must be > 0, got {self.timeout_s}")
-        if not 0 <= self.id <= 252:
-            raise ValueError(f"id must be 0..252, got {self.id}")
+            raise ValueError(f"direction: must be 1 or -1, got {self.direction}")
+        if self.min_deg > self.max_deg:
+            raise ValueError(f"min_deg: must be at most max_deg ({self.max_deg:g}), got {self.min_deg}")
 
     @property
     def min_rad(self) -> float:

@@ -257,3 +257,80 @@ def test_a_hung_standby_is_killed_and_another_started(monkeypatch, caplog):
                             "SIGKILL", m) for m in lines), lines
     assert any(m.startswith(f"standby of svc (pid {stopped[0]}) exited with -9") for m in lines), lines
     assert sum(m.startswith("started a standby of svc") for m in lines) == 2 and c.restarts == 0
+
+
+def _up(*args: str, cwd=None) -> tuple[subprocess.CompletedProcess, float]:
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "services.ops.cli", "up", *args], capture_output=True, text=True,
+                       timeout=60, cwd=cwd)
+    return r, time.monotonic() - t0
+
+
+@pytest.mark.parametrize("args,says", [
+    (["--driver", "foo"], "vergence up: error: argument --driver: invalid choice: 'foo' (choose from 'sim', "
+                          "'dynamixel', 'line', 'ros2')"),
+    (["--rate", "-5"], "vergence up: error: argument --rate: must be from 0 to 1000 (0: as fast as possible), "
+                       "got '-5'"),
+    (["--port", "/dev/ttyUSB9"], "vergence up: --port applies to a real driver (dynamixel, line, ros2); the sim "
+                                 "driver has no port"),
+    (["--config", "bad.toml"], "vergence up: bad.toml: capture.rate_hz: must be from 0 to 1000 (0: as fast as "
+                               "the source gives them), got -5.0"),
+])
+def test_nonsense_is_refused_before_any_child_starts(tmp_path, args, says):
+    """Exit 2 within seconds, one line naming the option (or table.key) and what it may be; no child started:
+    nobody listens on up's --listen port, and up logged no start."""
+    from services.ops.launch import accepts, free_port
+
+    (tmp_path / "bad.toml").write_text("[capture]\nrate_hz = -5\n")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    r, took = _up("--listen", endpoint, *args, cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines()[-1] == says
+    assert "started" not in r.stderr and "Traceback" not in r.stderr
+    assert not accepts(endpoint)
+    assert took < 15
+
+
+@pytest.mark.parametrize("argv,toml,says", [
+    (["--source", "foo:x"], "", "--source: unknown source 'foo:x': want files:LEFT,RIGHT"),
+    (["--source", "files:nope_l.png,nope_r.png"], "", "--source: source files: nope_l.png: no such file"),
+    (["--source", "sim:bogus=1"], "", "--source: sim source: unknown key 'bogus'"),
+    (["--source", "sim:latency=5"], "", "--source: sim source: latency: must be from 0 to 1"),
+    (["--source", "ros2:a"], "", "--source: source ros2:'a': want ros2:LEFT_TOPIC,RIGHT_TOPIC"),
+    ([], '[capture]\nsource = "video:nope.mp4"\n', "[capture] source: source video:'nope.mp4': want video:LEFT,RIGHT"),
+    (["--driver", "dynamixel"], "", "driver 'dynamixel' needs a serial port: pass --port URL"),
+    ([], '[actuator]\ndriver = "line"\n', "driver 'line' needs a serial port"),
+    (["--driver", "sim", "--port", "loop://"], "", "--port applies to a real driver (dynamixel, line, ros2)"),
+    (["--no-actuator", "--port", "loop://"], "", "--port applies to the actuator, which --no-actuator does not"),
+    (["--no-actuator", "--driver", "line"], "", "--driver applies to the actuator, which --no-actuator does not"),
+    (["--rig", "a/b"], "", "--rig: rig 'a/b'"),
+])
+def test_up_checks_what_it_would_hand_its_children(tmp_path, monkeypatch, argv, toml, says):
+    """up.check: the source (without opening a camera or a file), the driver and its port, an option that does
+    not apply; up.run refuses with it before it starts anything."""
+    from services.ops import cli, up
+    from vergence.config import load
+
+    monkeypatch.chdir(tmp_path)
+    conf = tmp_path / "v.toml"
+    conf.write_text(toml)
+    args = cli.build_parser("up").parse_args(["up", "--config", str(conf), *argv])
+    assert (up.check(args, load(conf)) or "").startswith(says)
+
+
+def test_up_passes_what_its_children_take():
+    from services.ops import cli, up
+    from vergence.config import load
+
+    for ok in ([], ["--driver", "line", "--port", "loop://", "--source", "camera:0,1"],
+               ["--driver", "ros2", "--port", "ctrl", "--no-standby", "--source", "sim:focal=500", "--rate", "0"],
+               ["--no-actuator", "--source", "ros2:/l,/r"]):
+        assert up.check(cli.build_parser("up").parse_args(["up", *ok]), load(None)) is None, ok
+
+
+def test_a_bad_driver_in_the_settings_is_refused_naming_actuator_driver(tmp_path):
+    from vergence.config import ConfigError, load
+
+    (tmp_path / "v.toml").write_text('[actuator]\ndriver = "foo"\n')
+    with pytest.raises(ConfigError, match=r"actuator\.driver: must be one of sim, dynamixel, line, ros2, got 'foo'"):
+        load(tmp_path / "v.toml")

@@ -358,3 +358,11 @@ def test_a_silent_dynamixel_is_a_visible_fault_and_control_resumes_by_itself(tmp
     finally:
         quit_.set()
         dev.close()
+
+
+def test_a_port_given_to_the_sim_driver_is_refused_not_ignored():
+    r = subprocess.run([VERGENCE, "actuator", "--port", "/dev/ttyUSB9", "--connect", "tcp/127.0.0.1:9"],
+                       capture_output=True, text=True, timeout=20)
+    assert r.returncode == 2
+    assert r.stderr.strip() == ("vergence actuator: --port applies to a real driver (dynamixel, line, ros2); the sim "
+                                "driver has no port")
