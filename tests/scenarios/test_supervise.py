@@ -303,3 +303,8 @@ def test_up_on_a_fresh_install_kills_nothing_while_everything_compiles(tmp_path)
         print(f"fresh install: {len(compiled)} functions compiled, 10 decisions after {first_s:.1f} s, both "
               f"standbys ready after {time.monotonic() - t0:.1f} s")
         assert compiled and "heartbeat" not in up.text() and "restart" not in up.text().replace("no restarts", "")
+        # up said why the first start takes longer, compiled once before any child, and said how long it took
+        text = up.text()
+        assert "first start on this machine: compiling the kernels once (numba" in text, text
+        took = re.search(r"compiled in (\d+\.\d) s; starting the pipeline", text)
+        assert took and float(took[1]) > 2 and text.index(took[0]) < text.index("started router"), text
