@@ -263,6 +263,121 @@ def test_newer_fields_are_logged_when_present(tmp_path):
     assert set(scalar(e["/pan/slave"])) == {3, 4}
 
 
+# ---- what the cockpit shows (issue #28): the profile around its best, one axis per quantity, no tabs -------
+
+def _profile_msg(frame: int = 9, confident: bool = True) -> M.Profile:
+    """A profile as the rig's: a 64-px row, w = 7, K = 58 scores near 255 w^2 (12495) with a spread of 3 % and
+    the winner at k = 40, the fovea's column at k_centre = 29 (offset +11 px); three rows, v_shift 0."""
+    rng = np.random.default_rng(frame)
+    scores = 255 * 49 * (0.97 + 0.02 * rng.random((3, 58)))
+    scores[1, 40] = 255 * 49 * 0.999
+    return M.Profile(rig="r", frame=frame, t_capture_ns=1, t_reduced_ns=2, window=7, k=40, k_sub=40.0, v_shift=0,
+                     k_centre=29, direction=1, magnitude=11, offset_px=11.0, confidence=0.8, confident=confident,
+                     texture=5.0, pan_rad=0.01, width=64, rows=3, scores=scores.tobytes())
+
+
+def _cockpit_rrd(tmp_path, *messages) -> dict[str, list[dict]]:
+    """The entities a Cockpit logs for these messages (profiles or decisions), read back from a file."""
+    rec = rr.RecordingStream("vergence-test")
+    path = tmp_path / "cockpit.rrd"
+    rec.save(str(path))
+    c = view.Cockpit(rr, rec)
+    c.scale, c.size = 1.0, (64, 24)  # as after a preview of the full size
+    for m in messages:
+        c._profile(m) if isinstance(m, M.Profile) else c._decision(m)
+    rec.disconnect()
+    return read_rrd(path)
+
+
+def _buffer(value) -> np.ndarray:
+    return np.asarray((value[0] if isinstance(value, list) else value)["buffer"], np.float64)
+
+
+def test_the_profile_is_logged_relative_to_its_best_so_the_winner_stands_out(tmp_path):
+    """Layer 4's scores sit near 255 w^2 and differ by a few per cent: on the bar chart's axis from 0 every bar
+    looked the same. The cockpit logs them scaled from the row's worst (0) to its best (1), over the offset in
+    px (k - k_centre), and the winner once more as a wide bar of its own, coloured as the match box."""
+    p = _profile_msg()
+    e = _cockpit_rrd(tmp_path, p, M.replace(_profile_msg(10), confident=False))
+    row = e["/rig/correlation"][0]
+    vals = _buffer(row["BarChart:values"])
+    assert len(vals) == 58 and vals.max() == 1.0 and vals.min() == 0.0
+    assert int(np.argmax(vals)) == p.k and np.sort(vals)[-2] < 0.8  # the winner is the one bar at the top
+    raw = p.array()[1]
+    assert vals == pytest.approx((raw - raw.min()) / (raw.max() - raw.min()))
+    assert _buffer(row["BarChart:abscissa"]) == pytest.approx(np.arange(58) - 29.0)
+    winners = e["/rig/correlation/winner"]
+    assert [list(_buffer(r["BarChart:abscissa"])) for r in winners] == [[11.0], [11.0]]
+    assert [list(_buffer(r["BarChart:values"])) for r in winners] == [[1.0], [1.0]]
+    assert winners[0]["BarChart:widths"][0] >= 5  # several pixels wide at 1600 px
+    colours = [r["BarChart:color"][0] for r in winners]
+    assert colours[0] != colours[1] and colours[0] != row["BarChart:color"][0]  # confident, abstaining, the rest
+
+
+def test_a_flat_profile_is_logged_flat_not_divided_by_zero(tmp_path):
+    p = _profile_msg()
+    flat = M.replace(p, scores=np.full((3, 58), 12495.0).tobytes())
+    vals = _buffer(_cockpit_rrd(tmp_path, flat)["/rig/correlation"][0]["BarChart:values"])
+    assert np.all(vals == 0.0)
+
+
+def _walk(node):
+    """Every container and view of a blueprint's tree, depth first."""
+    yield node
+    for child in getattr(node, "contents", None) or []:
+        yield from _walk(child)
+
+
+def _covers(v, path: str) -> bool:
+    """Whether a view's contents (origin and its query: $origin, $origin/sub, $origin/**) take the entity."""
+    contents = [v.contents] if isinstance(v.contents, str) else list(v.contents)
+    for q in contents:
+        q = q.replace("$origin", v.origin.strip("/")).strip("/")
+        if q == path or (q.endswith("/**") and (path == q[:-3] or path.startswith(q[:-2]))):
+            return True
+    return False
+
+
+def test_the_cockpits_blueprint_opens_every_view_at_once_one_quantity_each():
+    """No tabs (depth, latency and workers were tabs behind the first, hidden): one tree of vertical and
+    horizontal containers, every view in it; and each time series one quantity on its own axis (the window,
+    15 px, flattened the confidence and the offset on a shared one)."""
+    bp = view.blueprint(rr)
+    nodes = list(_walk(bp.root_container))
+    containers = [n for n in nodes if hasattr(n, "kind")]
+    views = [n for n in nodes if hasattr(n, "class_identifier")]
+    assert containers and all(str(c.kind) != "Tabs" and "tabs" not in str(c.kind).lower() for c in containers)
+    needed = {"rig/master": "2D", "rig/slave": "2D", "rig/correlation": "BarChart", "rig/readout": "TextDocument",
+              "motor/status": "TextLog", "pan/slave": "TimeSeries", "decision/confidence": "TimeSeries",
+              "decision/offset_px": "TimeSeries", "decision/window": "TimeSeries", "depth": "TimeSeries",
+              "latency/decision_ms": "TimeSeries", "workers/alive": "TimeSeries"}
+    for path, kind in needed.items():
+        assert [v for v in views if kind in v.class_identifier and _covers(v, path)], f"{path}: no {kind} view"
+    quantities = ["decision/confidence", "decision/offset_px", "decision/window", "pan/slave", "depth",
+                  "latency/decision_ms", "workers/alive"]
+    for v in views:
+        if "TimeSeries" in v.class_identifier:
+            shown = [q for q in quantities if _covers(v, q)]
+            assert len(shown) == 1, f"{v.name}: {shown} on one axis"
+    confidence = next(v for v in views if _covers(v, "decision/confidence"))
+    assert _covers(confidence, "decision/confident")  # the 1/0 on the same 0..1 axis
+    assert confidence.properties["ScalarAxis"].range is not None or "axis_y" in confidence.properties
+
+
+def test_the_decision_is_in_large_print_and_the_boxes_labels_are_short(tmp_path):
+    """Rerun draws a box's label in a fixed small font (egui's body text), unreadable over the image at 1600 x
+    1000 with its numbers: the numbers go into the readout, markdown headings (large), one short word stays on
+    each box."""
+    e = _cockpit_rrd(tmp_path, _profile_msg())
+    doc = e["/rig/readout"][0]
+    text = doc["TextDocument:text"][0]
+    assert doc["TextDocument:media_type"][0] == "text/markdown"
+    assert text.startswith("## +11.0 px, confidence 0.80 (confident)")
+    assert "### window 7 px, k 40, pan +0.57 deg" in text
+    assert e["/rig/master/fovea"][0]["Boxes2D:labels"] == ["fovea"]
+    assert e["/rig/slave/match"][0]["Boxes2D:labels"] == ["match"]
+
+
 @pytest.mark.slow
 def test_a_missing_extra_says_how_to_install_it(tmp_path):
     code = ("import sys; sys.modules['rerun_cli'] = None; sys.modules['rerun'] = None\n"
