@@ -45,6 +45,7 @@ ENTITIES = {
 
 CONFIDENT, ABSTAINING = (40, 220, 60), (230, 150, 30)  # the match box's and the winner's bar's colours
 PROFILE_COLOUR = (120, 135, 160)  # the profile's other bars: grey-blue, so that the winner's stands out
+READOUT_NS = 100_000_000  # the readout at most every 0.1 s of capture time: read by a person, not a plot
 WINNER_WIDTH = 7.0  # the winner's bar, in k (a k is about a pixel of the view at 1600 px)
 
 
@@ -85,6 +86,7 @@ class Cockpit:
         self.point: tuple[int, int] | None = None  # the latest frame's fovea point (the capture keeps it)
         self.decided: set[int] = set()  # frames whose decision was logged (recent)
         self.workers: set[str] = set()
+        self.readout_ns: int | None = None  # the capture time of the decision last put in the readout
         self.motor_status: str | None = None  # the latest motor state's status (logged as text when it changes)
 
     # -- helpers -------------------------------------------------------------------------------------------
@@ -199,7 +201,10 @@ class Cockpit:
         self._scalar("decision/confident", 1.0 if v.confident else 0.0)
         self._scalar("decision/offset_px", v.offset_px)
         self._scalar("decision/window", v.window)
-        self._log("rig/readout", self.rr.TextDocument(readout(v), media_type=self.rr.MediaType.MARKDOWN))
+        t = v.t_capture_ns
+        if self.readout_ns is None or not t or not 0 <= t - self.readout_ns < READOUT_NS:
+            self.readout_ns = t
+            self._log("rig/readout", self.rr.TextDocument(readout(v), media_type=self.rr.MediaType.MARKDOWN))
         if v.t_reduced_ns and v.t_capture_ns:
             self._scalar("latency/decision_ms", (v.t_reduced_ns - v.t_capture_ns) / 1e6)
         depth = getattr(v, "depth_m", None)
