@@ -520,7 +520,7 @@ def test_web_viewer_shows_the_cockpit_in_headless_chromium(tmp_path):
             b = Browser(exe, "about:blank", devtools, str(tmp_path / "profile"), log, width=1600, height=1000)
             try:
                 b.connect()
-                b.call("Network.enable")
+                b.call("Network.enable", maxTotalBufferSize=4096, maxResourceBufferSize=1024)  # no bodies kept
                 b.call("Page.navigate", url=url)  # once the requests are watched
                 shots, first, times = [], [], []
 
