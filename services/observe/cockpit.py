@@ -23,7 +23,10 @@ ENTITIES = {
     "rig/master/fovea": "the fovea, a box on the master image",
     "rig/slave": "the slave's preview image",
     "rig/slave/match": "where the fovea matched, a box on the slave image",
-    "rig/correlation": "layer 4's scores along k on the winning row (bar chart)",
+    "rig/correlation": "layer 4's scores on the winning row, relative: 0 at the row's worst k, 1 at its best "
+                       "(bar chart over the offset k - k_centre, px)",
+    "rig/correlation/winner": "the winner's bar, wide, green when confident, orange when abstaining",
+    "rig/readout": "the decision in large print: offset, confidence, window, pan (markdown)",
     "pan/slave": "the slave pan at capture, degrees",
     "pan/motor": "the pan the motor reports, degrees",
     "pan/goal": "the motor's goal, degrees",
@@ -39,6 +42,30 @@ ENTITIES = {
     "workers/<id>": "1 while worker <id> is alive, 0 after",
     "status/<role>/<id>": "each process's status message (text log)",
 }
+
+CONFIDENT, ABSTAINING = (40, 220, 60), (230, 150, 30)  # the match box's and the winner's bar's colours
+PROFILE_COLOUR = (120, 135, 160)  # the profile's other bars: grey-blue, so that the winner's stands out
+READOUT_NS = 100_000_000  # the readout at most every 0.1 s of capture time: read by a person, not a plot
+WINNER_WIDTH = 7.0  # the winner's bar, in k (a k is about a pixel of the view at 1600 px)
+
+
+def relative(row) -> np.ndarray:
+    """A profile row scaled from its worst score (0) to its best (1): layer 4's scores sit near 255 w^2 with a
+    spread of a few per cent, so on an axis from 0 every bar looks the same; relative, the winner is the one
+    bar at 1. A flat row (no texture) is all 0."""
+    row = np.asarray(row, np.float64)
+    lo, hi = float(row.min()), float(row.max())
+    return (row - lo) / (hi - lo) if hi > lo else np.zeros_like(row)
+
+
+def readout(v) -> str:
+    """The decision in large print (markdown: a heading is the one text Rerun draws large; the boxes' labels
+    have a fixed small font)."""
+    mark = "confident" if v.confident else "abstains"
+    return (f"## {v.offset_px:+.1f} px, confidence {v.confidence:.2f} ({mark})\n\n"
+            f"### window {v.window} px, k {v.k}, pan {math.degrees(v.pan_rad):+.2f} deg\n\n"
+            f"frame {v.frame}")
+
 
 def _finite(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
@@ -59,6 +86,7 @@ class Cockpit:
         self.point: tuple[int, int] | None = None  # the latest frame's fovea point (the capture keeps it)
         self.decided: set[int] = set()  # frames whose decision was logged (recent)
         self.workers: set[str] = set()
+        self.readout_ns: int | None = None  # the capture time of the decision last put in the readout
         self.motor_status: str | None = None  # the latest motor state's status (logged as text when it changes)
 
     # -- helpers -------------------------------------------------------------------------------------------
@@ -155,13 +183,13 @@ class Cockpit:
         x, y = at
         half = (v.window * s / 2, v.window * s / 2)
         # pixel centres: pixel i covers [i, i + 1) in Rerun's image space
+        # the numbers are in the readout, large; the boxes keep one short word each
         self._log("rig/master/fovea", self.rr.Boxes2D(centers=[((x + 0.5) * s, (y + 0.5) * s)], half_sizes=[half],
-                                                      labels=[f"fovea {v.window} px"]))
+                                                      colors=[(60, 200, 255)], radii=[-1.5], labels=["fovea"]))
         mx, my = x + v.offset_px, y + v.v_shift
-        color = (40, 220, 60) if v.confident else (230, 150, 30)
+        color = CONFIDENT if v.confident else ABSTAINING
         self._log("rig/slave/match", self.rr.Boxes2D(centers=[((mx + 0.5) * s, (my + 0.5) * s)], half_sizes=[half],
-                                                     colors=[color],
-                                                     labels=[f"{v.offset_px:+.1f} px, c={v.confidence:.2f}"]))
+                                                     colors=[color], radii=[-1.5], labels=["match"]))
 
     def _decision(self, v: Decision) -> None:
         if v.frame in self.decided:  # its profile came first and logged it
@@ -173,6 +201,10 @@ class Cockpit:
         self._scalar("decision/confident", 1.0 if v.confident else 0.0)
         self._scalar("decision/offset_px", v.offset_px)
         self._scalar("decision/window", v.window)
+        t = v.t_capture_ns
+        if self.readout_ns is None or not t or not 0 <= t - self.readout_ns < READOUT_NS:
+            self.readout_ns = t
+            self._log("rig/readout", self.rr.TextDocument(readout(v), media_type=self.rr.MediaType.MARKDOWN))
         if v.t_reduced_ns and v.t_capture_ns:
             self._scalar("latency/decision_ms", (v.t_reduced_ns - v.t_capture_ns) / 1e6)
         depth = getattr(v, "depth_m", None)
@@ -192,7 +224,11 @@ class Cockpit:
         self._time(p.frame, p.t_capture_ns)
         scores = p.array()
         row = scores[min(max(p.v_shift + (p.rows - 1) // 2, 0), p.rows - 1)]
-        self._log("rig/correlation", self.rr.BarChart(np.asarray(row, np.float64)))
+        at = np.arange(len(row), dtype=np.float64) - p.k_centre  # the offset each k stands for, px
+        self._log("rig/correlation", self.rr.BarChart(relative(row), abscissa=at, color=PROFILE_COLOUR))
+        self._log("rig/correlation/winner", self.rr.BarChart(
+            [1.0], abscissa=[float(p.k - p.k_centre)], widths=[WINNER_WIDTH],
+            color=CONFIDENT if p.confident else ABSTAINING))
 
     def _command(self, c: Command) -> None:
         self._time(c.frame, c.t_capture_ns)

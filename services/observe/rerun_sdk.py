@@ -52,18 +52,41 @@ def import_rerun():
     return rr
 
 
+# the cockpit's views, one quantity each (time series: one axis, one unit): (origin, contents, name, y range)
+SERIES = {
+    "pan": ("pan", "$origin/**", "pan, degrees", None),
+    "confidence": ("decision", ["$origin/confidence", "$origin/confident"], "confidence (0..1; confident 1/0)",
+                   (0.0, 1.05)),
+    "offset": ("decision/offset_px", "$origin", "offset, px", None),
+    "window": ("decision/window", "$origin", "window, px", None),
+    "depth": ("depth", "$origin/**", "depth, m", None),
+    "latency": ("latency", "$origin/**", "latency, ms", None),
+    "workers": ("workers", "$origin/**", "workers", None),
+}
+
+
 def blueprint(rr):
-    """The cockpit's layout: the two images with their boxes above, the curves below."""
+    """The cockpit's layout, every view open at once (no tabs): the two images with their boxes and the decision
+    in large print above; the profile (relative to its best: the winner stands out), the pan and the offset in
+    the middle; confidence, window, depth, latency and workers below, each on its own axis."""
     rrb = rr.blueprint
+
+    def series(key):
+        origin, contents, name, y = SERIES[key]
+        return rrb.TimeSeriesView(origin=origin, contents=contents, name=name,
+                                  axis_y=rrb.ScalarAxis(range=y) if y else None)
+
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(rrb.Spatial2DView(origin="rig/master", name="master (fovea)"),
-                           rrb.Spatial2DView(origin="rig/slave", name="slave (match)")),
-            rrb.Horizontal(rrb.BarChartView(origin="rig/correlation", name="layer 4 (winning row)"),
-                           rrb.TimeSeriesView(origin="pan", name="pan, degrees"),
-                           rrb.TimeSeriesView(origin="decision", name="decision")),
-            row_shares=[3, 2]),
-        rrb.TimeSeriesView(origin="depth", name="depth, m"), rrb.TimeSeriesView(origin="latency", name="latency"),
-        rrb.TimeSeriesView(origin="workers", name="workers"),
-        rrb.TextLogView(origin="motor", name="motor status (faults in red)"),
+                           rrb.Spatial2DView(origin="rig/slave", name="slave (match)"),
+                           rrb.Vertical(rrb.TextDocumentView(origin="rig/readout", name="decision"),
+                                        rrb.TextLogView(origin="motor", name="motor status (faults in red)"),
+                                        row_shares=[3, 2]),
+                           column_shares=[3, 3, 2]),
+            rrb.Horizontal(rrb.BarChartView(origin="rig/correlation",
+                                            name="layer 4, winning row: 1 = best k, 0 = worst (x: offset, px)"),
+                           series("pan"), series("offset"), column_shares=[2, 1, 1]),
+            rrb.Horizontal(*(series(k) for k in ("confidence", "window", "depth", "latency", "workers"))),
+            row_shares=[4, 3, 2]),
         collapse_panels=True)

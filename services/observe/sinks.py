@@ -12,6 +12,9 @@ from services.observe.rerun_sdk import blueprint
 from services.observe.web import serve_offline, viewer_assets
 
 
+SERVER_MEMORY = "256MiB"  # --web: the backlog kept for viewers that connect later
+
+
 def host_address() -> str:
     """An address other machines can reach this one on (the hostname's, else 127.0.0.1)."""
     try:
@@ -63,7 +66,10 @@ def start(rr, app: str, *, save: str | None = None, web: bool = False, port: int
     if save:
         sinks.append(rr.FileSink(save))
     if web:
-        server = rr.GrpcServerSink(bind_ip=bind, port=grpc_port)
+        # a viewer that connects late gets the newest data first (its first picture is now, not the backlog's
+        # start), and the backlog kept for it is bounded (rerun's default, 1 GiB, takes minutes to send)
+        server = rr.GrpcServerSink(bind_ip=bind, port=grpc_port, server_memory_limit=SERVER_MEMORY,
+                                   newest_first=True)
         sinks.append(server)
     if spawn and sys.platform.startswith("linux") and not (os.environ.get("DISPLAY")
                                                          or os.environ.get("WAYLAND_DISPLAY")):
