@@ -1,4 +1,4 @@
-"""`vergence bench kernel|match|messages|pipeline|tracking|ros2`: benchmarks that print ratios against baselines run
+"""`vergence bench kernel|match|messages|pipeline|tracking|ros2|start`: benchmarks that print ratios against baselines run
 alongside (tracking: the p controller is the predictive one's baseline, in the same virtual-time runs)."""
 
 from __future__ import annotations
@@ -43,6 +43,9 @@ def configure(p: argparse.ArgumentParser) -> None:
         pass
     importlib.import_module("services.offline.bench_ros2").configure(
         sub.add_parser("ros2", help="the latency the ROS 2 bridge and source add (the [ros2] extra)"))
+    importlib.import_module("services.offline.bench_start").configure(
+        sub.add_parser("start", help="`vergence up`'s first start (it compiles) against the later ones: the "
+                                     "seconds to the first decision and to the slave following"))
 
 
 def _kernel(args) -> int:
@@ -178,5 +181,7 @@ def run(args: argparse.Namespace) -> int:
         return _match(args)
     if args.bench == "ros2":
         return importlib.import_module("services.offline.bench_ros2").run(args)
+    if args.bench == "start":
+        return importlib.import_module("services.offline.bench_start").run(args)
     return importlib.import_module("services.offline.bench_pipeline").run(args)
 
