@@ -1,5 +1,6 @@
-"""`vergence bench kernel|match|messages|pipeline|tracking|ros2|start`: benchmarks that print ratios against baselines run
-alongside (tracking: the p controller is the predictive one's baseline, in the same virtual-time runs)."""
+"""`vergence bench kernel|match|messages|pipeline|tracking|ros2|start`: benchmarks that print ratios against
+baselines run alongside (tracking: the p controller is the predictive one's baseline, in the same virtual-time
+runs; start: the later starts are the first's)."""
 
 from __future__ import annotations
 
