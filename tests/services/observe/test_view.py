@@ -506,8 +506,9 @@ def test_web_viewer_shows_the_cockpit_in_headless_chromium(tmp_path):
     web, grpc, devtools = free_port(), free_port(), free_port()
     with Procs(tmp_path) as P:
         P.endpoint = endpoint
-        P.start("up", "up", "--listen", endpoint, "--source", "sim", "--workers", "1", "--rate", "20",
-                "--config", str(cfg), connect=False)
+        # the default source, README's demo: the target moving in depth (the pan panel: the slave and the truth)
+        P.start("up", "up", "--listen", endpoint, "--workers", "1", "--rate", "20", "--config", str(cfg),
+                connect=False)
         s = P.session()
         decisions = P.collect(s, P.key("decision"))
         wait_for(lambda: len(decisions) >= 3, 180, "the loop's first decisions", logs=P.logs)
