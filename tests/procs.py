@@ -56,6 +56,14 @@ def gives_up_without_a_router(*args: str, within: float, margin: float = 8.0) ->
     return r
 
 
+def tmux(*args: str, check: bool = True) -> str:
+    """`tmux ARGS...` (a terminal a test reads as a person would), its stdout; RuntimeError when it fails."""
+    r = subprocess.run(["tmux", *args], capture_output=True, text=True, timeout=10)
+    if check and r.returncode != 0:
+        raise RuntimeError(f"tmux {' '.join(args)}: {r.stderr.strip()}")
+    return r.stdout
+
+
 class Procs:
     """A set of processes for one test around one router; a context manager that tears everything down."""
 

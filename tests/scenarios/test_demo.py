@@ -12,20 +12,13 @@ import time
 
 import pytest
 
-from procs import VERGENCE, Procs, free_port, wait_for
+from procs import VERGENCE, Procs, free_port, tmux, wait_for
 
 pytestmark = pytest.mark.slow
 
 PAN_HISTORY = re.compile(r"pan history +\(([-+]\d+\.\d+)°\.\.([-+]\d+\.\d+)°, \d+ s\)")
 TRACKING = re.compile(r"tracking over the last 5 s: the frames' pans are (\d+\.\d+) px RMS off the truth")
 TRUTH = re.compile(r"truth +([-+]\d+\.\d+)° \(")
-
-
-def _tmux(*args: str, check: bool = True) -> str:
-    r = subprocess.run(["tmux", *args], capture_output=True, text=True, timeout=10)
-    if check and r.returncode != 0:
-        raise RuntimeError(f"tmux {' '.join(args)}: {r.stderr.strip()}")
-    return r.stdout
 
 
 @pytest.mark.skipif(shutil.which("tmux") is None, reason="needs tmux (apt-get install tmux)")
@@ -37,11 +30,11 @@ def test_up_with_no_options_follows_a_target_moving_in_depth(tmp_path):
         t0 = time.monotonic()
         up = P.start("up", "up", "--listen", endpoint, connect=False, rig=False)
         P.wait_port(20)
-        _tmux("new-session", "-d", "-s", name, "-x", "100", "-y", "45",
+        tmux("new-session", "-d", "-s", name, "-x", "100", "-y", "45",
               f"{VERGENCE} monitor --connect {endpoint} --refresh 0.3; sleep 30")
         try:
             def screen() -> str:
-                return _tmux("capture-pane", "-p", "-J", "-t", name)
+                return tmux("capture-pane", "-p", "-J", "-t", name)
 
             def following(text: str) -> str | None:
                 """The screen once the slave follows: its pans over more than a degree (the target moves),
@@ -74,5 +67,5 @@ def test_up_with_no_options_follows_a_target_moving_in_depth(tmp_path):
             after = wait_for(lambda: moved(screen()), 20, "the truth and the slave at the new fovea", logs=P.logs)
             print(after)
         finally:
-            _tmux("kill-session", "-t", name, check=False)
+            tmux("kill-session", "-t", name, check=False)
     assert up.poll() is not None

@@ -8,7 +8,7 @@ import shutil
 import cv2
 import pytest
 
-from procs import Procs, free_port, gives_up_without_a_router, textured_pair
+from procs import Procs, free_port, gives_up_without_a_router, textured_pair, tmux
 
 pytestmark = pytest.mark.slow  # every test here runs real processes
 
@@ -48,15 +48,6 @@ def test_monitor_once_and_png_against_up(tmp_path, pair):
         assert ((img[:, :, 2] > 180) & (img[:, :, 1] < 60)).sum() > 100  # the red winner marker
 
 
-def _tmux(*args: str, check: bool = True) -> str:
-    import subprocess
-
-    r = subprocess.run(["tmux", *args], capture_output=True, text=True, timeout=10)
-    if check and r.returncode != 0:
-        raise RuntimeError(f"tmux {' '.join(args)}: {r.stderr.strip()}")
-    return r.stdout
-
-
 @pytest.mark.skipif(shutil.which("tmux") is None, reason="needs tmux (apt-get install tmux)")
 def test_live_monitor_in_a_terminal(tmp_path, pair):
     """`vergence monitor` as a person runs it: in a 100 x 40 terminal (tmux), against `vergence up`. The screen
@@ -76,10 +67,10 @@ def test_live_monitor_in_a_terminal(tmp_path, pair):
         # COLUMNS=80: a stale width inherited from the environment; the screen follows the terminal's own (100)
         cmd = (f"COLUMNS=80 LINES=24 {VERGENCE} monitor --connect {endpoint} --rig {P.rig} --refresh 0.3; "
                f"echo monitor-exit=$?; sleep 30")
-        _tmux("new-session", "-d", "-s", name, "-x", "100", "-y", "40", cmd)
+        tmux("new-session", "-d", "-s", name, "-x", "100", "-y", "40", cmd)
         try:
             def screen() -> str:
-                return _tmux("capture-pane", "-p", "-J", "-t", name)  # -J: a line tmux wrapped comes back whole
+                return tmux("capture-pane", "-p", "-J", "-t", name)  # -J: a line tmux wrapped comes back whole
 
             first = wait_for(lambda: (lambda t: t if "workers 2:" in t and "decision k*=" in t else None)(screen()),
                              40, "the monitor's screen", logs=P.logs)
@@ -96,12 +87,12 @@ def test_live_monitor_in_a_terminal(tmp_path, pair):
             assert f0, first
             wait_for(lambda: (m := frame_of.search(screen())) and int(m.group(1)) > int(f0.group(1)), 10,
                      "the screen to move on", logs=P.logs)
-            _tmux("send-keys", "-t", name, "C-c")
+            tmux("send-keys", "-t", name, "C-c")
             end = wait_for(lambda: (lambda t: t if "monitor-exit=" in t else None)(screen()), 10,
                            "the monitor to exit on Ctrl-C", logs=P.logs)
             assert "monitor-exit=0" in end, end
         finally:
-            _tmux("kill-session", "-t", name, check=False)
+            tmux("kill-session", "-t", name, check=False)
 
 
 @pytest.mark.parametrize("argv", [[], ["--once"]], ids=["live", "once"])
