@@ -5,8 +5,9 @@ Each start is `vergence up` as README's first command runs it (the demo: a targe
 --listen on a free port of 127.0.0.1), with NUMBA_CACHE_DIR a folder of the benchmark's own, empty for the
 first start and filled by it for the N later ones. Timed from the process's start: the first decision on
 vergence/head/decision, and "following", the first frame ending a run of FOLLOW frames in a row whose slave pan
-is within FOLLOW_PX of the simulator's truth; up's own "compiled in" line gives the compile. Each start ends
-with SIGINT, as Ctrl-C does.
+is within FOLLOW_PX of the simulator's truth; up's own "compiled in" line gives the compile, and its lines of a
+child killed for its heartbeat or restarted are given as "trouble" (none on a good start). Each start ends with
+SIGINT, as Ctrl-C does.
 """
 
 from __future__ import annotations
@@ -77,10 +78,14 @@ def start_once(workdir: Path, cache: Path, name: str) -> dict:
         if z is not None:
             z.close()
         up.stop()
-    m = re.search(r"compiled in (\d+\.\d) s", up.text())
+    text = up.text()
+    m = re.search(r"compiled in (\d+\.\d) s", text)
     if "following_s" not in got:
         raise RuntimeError(f"{name}: the slave did not follow within {WAIT_S:.0f} s\n{up.tail()}")
-    return dict(start=name, compile_s=float(m[1]) if m else None, **got)
+    # up's lines about a child killed for its heartbeat or restarted: none on a good start, compiling or not
+    trouble = [ln for ln in text.splitlines() if "vergence.up" in ln and ("heartbeat" in ln or "restart" in ln)
+               and "no restarts" not in ln]
+    return dict(start=name, compile_s=float(m[1]) if m else None, **got, trouble=trouble)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -97,4 +102,6 @@ def run(args: argparse.Namespace) -> int:
             comp = f"compiled in {r['compile_s']:.1f} s, " if r["compile_s"] is not None else "no compile, "
             print(f"{r['start']:8s} {comp}first decision {r['decision_s']:.1f} s, following {r['following_s']:.1f} s "
                   f"after `vergence up` ({r['ratio_vs_later']:.2f} x the later starts' median)", flush=True)
+            for line in r["trouble"]:
+                print(f"         {line}", flush=True)
     return 0

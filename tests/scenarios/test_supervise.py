@@ -278,33 +278,3 @@ def test_a_fresh_compile_keeps_the_heartbeat_going(tmp_path):
         assert compiled and ready_s > 3  # it did compile
         assert max(gaps[1:]) < SuperviseSettings().heartbeat_s / 3
         assert gaps[0] < SuperviseSettings().start_grace_s
-
-
-@pytest.mark.slow
-def test_up_on_a_fresh_install_kills_nothing_while_everything_compiles(tmp_path):
-    """`vergence up` with an empty numba cache (a fresh install: every child compiles its kernels at once, on
-    the same cores): decisions come, and no child or standby is killed for its heartbeat."""
-    from procs import VERGENCE
-
-    P_env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"), PYTHONUNBUFFERED="1")
-    with Procs(tmp_path) as P:
-        P.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        t0 = time.monotonic()
-        up = P.spawn("up", [VERGENCE, "up", "--listen", P.endpoint, "--source", MOVING, "--rate", "30",
-                            "--workers", "2", "--config", settings(tmp_path), "--rig", P.rig], env=P_env)
-        s = P.session(60)
-        decisions = P.collect(s, P.key("decision"))
-        decisions.wait(10, 180)
-        first_s = time.monotonic() - t0
-        for kind in ("reducer", "capture"):
-            wait_for(lambda k=kind: re.search(rf"standby of {k} \(pid \d+\) ready", up.text()), 120,
-                     f"a standby {kind} ready", interval=0.2, logs=P.logs)
-        compiled = list((tmp_path / "numba").rglob("*.nbi"))
-        print(f"fresh install: {len(compiled)} functions compiled, 10 decisions after {first_s:.1f} s, both "
-              f"standbys ready after {time.monotonic() - t0:.1f} s")
-        assert compiled and "heartbeat" not in up.text() and "restart" not in up.text().replace("no restarts", "")
-        # up said why the first start takes longer, compiled once before any child, and said how long it took
-        text = up.text()
-        assert "first start on this machine: compiling the kernels once (numba" in text, text
-        took = re.search(r"compiled in (\d+\.\d) s; starting the pipeline", text)
-        assert took and float(took[1]) > 2 and text.index(took[0]) < text.index("started router"), text
