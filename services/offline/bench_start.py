@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import re
 import statistics
 import tempfile
@@ -36,8 +37,6 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def start_once(workdir: Path, cache: Path, name: str) -> dict:
     """One `vergence up`: the seconds to its first decision, to following, and its compile (None: none)."""
-    import os
-
     import zenoh
 
     from vergence.messages import Frame

@@ -31,7 +31,6 @@ import contextlib
 import logging
 import os
 import signal
-import subprocess
 import sys
 import time
 
@@ -390,19 +389,15 @@ def compile_first(stop: session.Stop) -> bool:
     log.info("first start on this machine: compiling the kernels once (numba, about 10-20 s; cached, so later "
              "starts take a few seconds) ...")
     t0 = time.monotonic()
-    p = subprocess.Popen([sys.executable, "-m", "services.runtime.warm"], stderr=subprocess.PIPE, text=True)
-    while p.poll() is None and not stop.is_set():
+    # a child of up as the others are (its own process group, gone with up; its errors on up's stderr)
+    p = Proc("compile", [sys.executable, "-m", "services.runtime.warm"], die_with_parent=True)
+    while p.alive() and not stop.is_set():
         stop.wait(0.1)
-    if p.poll() is None:
-        p.terminate()
-        try:
-            p.wait(GRACE_S)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
+    if p.alive():
+        p.stop(log=log)
         return False
     if p.returncode != 0:
-        log.error("compiling the kernels failed (exit %d): %s", p.returncode, p.stderr.read().strip()[-2000:])
+        log.error("compiling the kernels failed (exit %d, its error above)", p.returncode)
         return False
     log.info("compiled in %.1f s; starting the pipeline", time.monotonic() - t0)
     return True

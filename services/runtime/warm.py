@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -59,16 +58,17 @@ def compiled() -> bool:
 
 
 def main() -> int:
-    """Compile (or load) every kernel the pipeline's processes use; one line with the time it took."""
-    t0 = time.monotonic()
+    """Compile (or load) every kernel the pipeline's processes use (`vergence up` says how long it took)."""
     from vergence import retina
     from vergence.control import ControlSettings
 
     retina.warm_up()
     warm_up(Params(), ControlSettings())
-    print(f"compiled in {time.monotonic() - t0:.1f} s", file=sys.stderr)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:  # up stopped by Ctrl-C during the compile: its SIGINT, no traceback
+        sys.exit(130)
