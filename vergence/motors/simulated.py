@@ -1,18 +1,24 @@
 """A simulated pan motor that behaves like a servo: latency, top speed, acceleration, a first-order final
-approach, whole ticks, hard limits.
+approach, whole ticks, hard limits; and its replica in another process.
 
 A goal written at time t reaches the motor at t + latency_s (quantised to a whole tick when `quantise`).
 The shaft then heads for it at the speed v* = min(|e| / tau, max_speed, sqrt(2 a |e|)) (e: the distance
 left; the last term brakes in time), its speed changing by at most max_accel_deg_s2. The state is
-integrated in fixed 0.25 ms steps on a grid anchored at the motor's start, so positions do not depend on
-how often the motor is polled; a motor at rest on its goal skips ahead. read_position() is the present
-position as the encoder reports it (a whole tick when quantising), `shaft` the exact angle the camera is at.
-The hard limits are the soft limits plus one degree: the safety layer never lets a goal past the soft ones
-anyway.
+integrated in fixed 0.25 ms steps on a grid of the clock's own (whole multiples of the step in integer
+nanoseconds), so positions depend neither on how often the motor is polled nor on when it started; a motor
+at rest on its goal skips ahead. read_position() is the present position as the encoder reports it (a whole
+tick when quantising), at the instant position_ns (right after a goal is written: the write's instant), and
+`shaft` the exact angle the camera is at. The hard limits are the soft limits plus one degree: the safety
+layer never lets a goal past the soft ones anyway.
+
+The clock is the wall clock by default (time.time_ns), the clock of the motor states' t_ns: a Replica in
+another process (the capture's, for the simulator that renders the slave) then integrates on the same grid
+from the same goals at the same instants, and knows the shaft without waiting for the motor's reports.
 """
 
 from __future__ import annotations
 
+import bisect
 import math
 import time
 from collections import deque
@@ -20,24 +26,40 @@ from collections.abc import Callable
 
 from .base import Driver, MotorSettings
 
-__all__ = ["SimMotor"]
+__all__ = ["SimMotor", "Replica", "H"]
 
-H = 0.00025  # the integration step, s
+H_NS = 250_000  # the integration step, ns
+H = H_NS / 1e9  # and in seconds
+
+
+WRITE_READ_NS = 5_000_000  # a read this soon after a goal's write reports the write's instant
+
+
+def _ceil_step(ns: int) -> int:
+    """The first grid step at or after ns."""
+    return -(-ns // H_NS)
 
 
 class SimMotor(Driver):
+    """clock: seconds (a test's, or `vergence sim`'s virtual time; exact to the nanosecond below 10^5 s), or
+    clock_ns: integer nanoseconds (default: the wall clock, time.time_ns)."""
+
     name = "sim"
 
-    def __init__(self, settings: MotorSettings | None = None, clock: Callable[[], float] = time.monotonic):
+    def __init__(self, settings: MotorSettings | None = None, clock: Callable[[], float] | None = None,
+                 clock_ns: Callable[[], int] = time.time_ns):
         super().__init__(settings or MotorSettings())
         s = self.settings
-        self.clock = clock
+        self.clock_ns = clock_ns if clock is None else (lambda: round(clock() * 1e9))
         self.tick_rad = 2 * math.pi / s.ticks_per_rev
-        self.pan = math.radians(s.start_deg)  # the shaft at the grid time self.t
+        self.pan = math.radians(s.start_deg)  # the shaft at the grid step self.k (at self.k * H_NS ns)
         self.vel = 0.0
         self.goal = self.pan
-        self.pending: deque[tuple[float, float]] = deque()  # (time it reaches the motor, goal)
-        self.t = clock()
+        self.pending: deque[tuple[int, float]] = deque()  # (the step it reaches the motor at, goal)
+        self.k = self.clock_ns() // H_NS
+        self.latency_ns = round(s.latency_s * 1e9)
+        self.position_ns: int | None = None  # the instant of the latest read_position
+        self._written: int | None = None  # the instant of a goal written since the latest read
         self.torque = False
         self.hard = (s.min_rad - math.radians(1), s.max_rad + math.radians(1))
         self.vmax = math.radians(s.max_speed_deg_s) or math.inf
@@ -74,10 +96,11 @@ class SimMotor(Driver):
             self.pan = min(self.hard[1], max(self.hard[0], self.pan))
             self.vel = 0.0
 
-    def _advance(self) -> None:
-        now = self.clock()
-        while self.t + H <= now:
-            while self.pending and self.pending[0][0] <= self.t:  # every goal due by now: the newest wins
+    def _advance(self, now_ns: int | None = None) -> None:
+        """The state integrated up to the last grid step at or before now_ns (default: the clock's now)."""
+        end = (self.clock_ns() if now_ns is None else now_ns) // H_NS
+        while self.k < end:
+            while self.pending and self.pending[0][0] <= self.k:  # every goal due by now: the newest wins
                 self.goal = self.pending.popleft()[1]
             if not self.torque:
                 self.vel = 0.0
@@ -87,23 +110,27 @@ class SimMotor(Driver):
                 self.pan, self.vel = self.goal, 0.0
             else:
                 self._step(H)
-                self.t += H
+                self.k += 1
                 continue
             # at rest: skip to the next pending goal (or to now), on the grid
-            nxt = self.pending[0][0] if self.pending else now
-            n = max(1, int((min(nxt, now) - self.t) / H))
-            self.t += n * H
+            nxt = self.pending[0][0] if self.pending else end
+            self.k += max(1, min(nxt, end) - self.k)
+
+    def _at(self, ns: int) -> float:
+        """The shaft at ns, from the state at the grid step (at or, by less than a step, after ns)."""
+        return self.pan + self.vel * max(0.0, (ns - self.k * H_NS) / 1e9)
 
     @property
     def shaft(self) -> float:
         """The exact shaft angle now (between grid steps: extrapolated at the present speed)."""
-        self._advance()
-        return self.pan + self.vel * max(0.0, self.clock() - self.t)
+        now = self.clock_ns()
+        self._advance(now)
+        return self._at(now)
 
     def open(self) -> float:
         self._advance()
         self.torque = True
-        return self._quantise(self.pan)
+        return self.read_position()
 
     def close(self, torque_off: bool = True) -> None:
         self._advance()
@@ -111,13 +138,157 @@ class SimMotor(Driver):
             self.torque = False
 
     def write_goal(self, pan_rad: float) -> None:
-        self._advance()
+        now = self.clock_ns()
+        self._advance(now)
         goal = self._quantise(pan_rad)
-        at = self.clock() + self.settings.latency_s
-        if self.settings.latency_s <= 0:
+        self._written = now
+        if self.latency_ns <= 0:
             self.goal = goal
         else:
-            self.pending.append((at, goal))
+            self.pending.append((_ceil_step(now + self.latency_ns), goal))
 
     def read_position(self) -> float:
-        return self._quantise(self.shaft)
+        """The encoder's reading now, or right after a goal was written (within WRITE_READ_NS), at the write's
+        instant: the state that reports a command then says when it was written (position_ns)."""
+        now = self.clock_ns()
+        ns = self._written if self._written is not None and now - self._written <= WRITE_READ_NS else now
+        self._written = None
+        self._advance(ns)
+        self.position_ns = ns
+        return self._quantise(self._at(ns))
+
+
+class Replica:
+    """The sim motor as another process sees it: the same SimMotor model on the same grid, fed with the goals
+    that the sim actuator's motor states report, so a process that renders the slave (the capture's sim
+    source) knows the shaft at any instant up to now without waiting for the motor's next report.
+
+    The actuator publishes a state right after every goal it writes, stamped with the write's instant, and a
+    goal takes effect latency_s (2 ms) later, so a goal is normally known here before the shaft moves; one
+    that arrives late is put back in its place (the model is rewound to a snapshot before it). Every state
+    also checks the model: its encoder reading must be within one tick of the model's shaft at the state's
+    time. A model that fails the check (other motor settings than ours, a capture started while the motor
+    moved, a state lost) is not trusted until the motor is seen at rest on its goal (two states 5 ms apart
+    with the encoder on an unchanged goal), where it starts again from that rest. `trusted` says whether at()
+    may be used; `mismatches` counts the failed checks. Times are the states' clock: wall nanoseconds."""
+
+    KEEP_NS = 2_000_000_000  # snapshots kept, for instants back to this far before the newest
+    SNAP_STEPS = 4  # a snapshot every this many grid steps of model time (1 ms)
+    REST_NS = 5_000_000
+
+    def __init__(self, settings: MotorSettings):
+        self.settings = settings
+        self._now = 0
+        self.m = SimMotor(settings, clock_ns=lambda: self._now)
+        self.tick_rad = self.m.tick_rad
+        self.trusted = False
+        self.mismatches = 0
+        self.goal: float | None = None  # the newest goal reported
+        self._rest: tuple[int, float] | None = None  # (t_ns, goal) of a state seen on its goal, not yet trusted
+        self.snaps: deque[tuple] = deque()
+
+    # -- the model ------------------------------------------------------------------------------------------
+
+    def _snap(self) -> tuple:
+        m = self.m
+        return m.k, m.pan, m.vel, m.goal, tuple(m.pending), m.torque
+
+    def _restore(self, snap: tuple) -> None:
+        m = self.m
+        m.k, m.pan, m.vel, m.goal, pending, m.torque = snap
+        m.pending = deque(pending)
+
+    def _reset(self, t_ns: int, pan: float, goal: float) -> None:
+        """The motor at rest on pan from t_ns on, heading for goal."""
+        m = self.m
+        m.k, m.pan, m.vel, m.goal, m.torque = t_ns // H_NS, pan, 0.0, m._quantise(goal), True
+        m.pending.clear()
+        self.snaps.clear()
+        self.snaps.append(self._snap())
+
+    def _advance(self, ns: int) -> None:
+        """The model forward to ns, a snapshot every SNAP_STEPS steps."""
+        m = self.m
+        end = ns // H_NS
+        while m.k < end:
+            resting = m.pan == m.goal and m.vel == 0.0 and not m.pending
+            m._advance((end if resting or not m.torque else min(end, m.k + self.SNAP_STEPS)) * H_NS)
+            self.snaps.append(self._snap())
+        keep = self.KEEP_NS // H_NS
+        while len(self.snaps) > 2 and self.snaps[-1][0] - self.snaps[1][0] > keep:
+            self.snaps.popleft()
+
+    def _rewind(self, ns: int) -> bool:
+        """The model back to its latest snapshot at or before ns; False when none is that old."""
+        snaps, k = self.snaps, ns // H_NS
+        while snaps and snaps[-1][0] > k:
+            snaps.pop()
+        if not snaps:
+            return False
+        self._restore(snaps[-1])
+        return True
+
+    def _shaft(self, ns: int) -> float:
+        """The shaft at ns (also before the model's time: from the snapshot before it)."""
+        m = self.m
+        if ns >= m.k * H_NS:
+            self._advance(ns)
+            return m._at(ns)
+        i = bisect.bisect_right(self.snaps, ns // H_NS, key=lambda snap: snap[0]) - 1
+        if i < 0:
+            return math.nan
+        here = self._snap()
+        try:
+            self._restore(self.snaps[i])
+            m._advance(ns)
+            return m._at(ns)
+        finally:
+            self._restore(here)
+
+    # -- the interface --------------------------------------------------------------------------------------
+
+    def at(self, t_ns: int) -> float | None:
+        """The shaft at t_ns, or None while the model is not trusted (or t_ns before what it keeps)."""
+        if not self.trusted:
+            return None
+        pan = self._shaft(t_ns)
+        return pan if math.isfinite(pan) else None
+
+    def observe(self, t_ns: int, pan: float, goal: float, torque: bool = True) -> bool:
+        """One motor state (its time, encoder reading, goal; torque False once the motor has stopped): a new
+        goal from the instant the motor takes it (latency_s after the state, which a write stamps), the model
+        checked against the reading. False when the check failed (the model is then not trusted until the
+        motor rests on its goal)."""
+        m = self.m
+        if self.trusted and goal != self.goal:
+            if t_ns < m.k * H_NS and not self._rewind(t_ns):
+                self.trusted = False
+            elif m.latency_ns <= 0:
+                self._advance(t_ns)
+                m.goal = m._quantise(goal)
+            else:
+                m.pending.append((_ceil_step(t_ns + m.latency_ns), m._quantise(goal)))
+        if self.trusted:
+            if not torque:
+                self._advance(t_ns)
+                m.torque = False
+            if not abs(self._shaft(t_ns) - pan) <= self.tick_rad * 1.01:
+                self.mismatches += 1
+                self.trusted = False
+                self._rest = None
+        self.goal = goal
+        if not self.trusted:
+            self._settle(t_ns, pan, goal)
+        return self.trusted
+
+    def _settle(self, t_ns: int, pan: float, goal: float) -> None:
+        """Not trusted: two states with the encoder on the (unchanged) goal, REST_NS apart, restart the model."""
+        q = self.m._quantise(goal)
+        if not abs(pan - q) <= 1e-9:
+            self._rest = None
+        elif self._rest is None or self._rest[1] != goal:
+            self._rest = (t_ns, goal)
+        elif t_ns - self._rest[0] >= self.REST_NS:
+            self._reset(t_ns, q, goal)
+            self.trusted = True
+            self._rest = None

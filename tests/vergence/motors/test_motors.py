@@ -373,3 +373,129 @@ def test_loop_brings_a_motor_found_outside_the_limits_back():
     st_ = MotorLoop(drv, ms).start()
     assert st_.goal_rad == pytest.approx(math.radians(45)) and st_.at_limit
     assert drv.goals == [pytest.approx(math.radians(45))]
+
+
+# -- the sim motor's replica (the capture's, for a source that renders the slave) -------------------------
+
+WALL_NS = 1_764_000_000 * 10**9  # the states' wall clock: a real epoch (seconds there as floats lose 0.2 us)
+
+
+def _drive(ms: MotorSettings, seconds: float, delay, seed: int = 0, period: float = 0.02):
+    """The sim actuator (MotorLoop and SimMotor on one fake clock) under random commands every 3-12 ms and its
+    periodic states, each state handed to a Replica `delay(i)` s after it was published (in order, as one
+    Zenoh key keeps them). Yields (t, the true shaft, the replica) every 0.25 ms."""
+    import numpy as np
+
+    from vergence.motors.simulated import Replica
+
+    rng = np.random.default_rng(seed)
+    clock = Clock(50.0)
+    wall = lambda: WALL_NS + round(clock.t * 1e9)  # noqa: E731
+    motor = SimMotor(ms, clock_ns=wall)
+    loop = MotorLoop(motor, ms, clock=clock, wall_ns=wall)
+    rep = Replica(ms)
+    inbox: list[tuple[float, MotorState]] = []
+
+    def publish(st):
+        after = inbox[-1][0] if inbox else 0.0
+        inbox.append((max(after, clock.t + delay(len(inbox))), st))
+
+    publish(loop.start())
+    next_cmd, next_tick, goal = clock.t + 0.1, clock.t, 0.0
+    while clock.t < 50.0 + seconds:
+        clock.t = round(clock.t + 0.00025, 9)
+        if clock.t >= next_cmd:
+            goal = float(np.clip(goal + rng.normal(0, 2) * DEG, -20 * DEG, 20 * DEG))
+            publish(loop.command(cmd(goal, frame=int(clock.t * 1000))))
+            next_cmd = clock.t + rng.uniform(0.003, 0.012)
+        if clock.t >= next_tick:
+            publish(loop.tick())
+            next_tick += period
+        while inbox and inbox[0][0] <= clock.t:
+            st = inbox.pop(0)[1]
+            rep.observe(st.t_ns, st.pan_rad, st.goal_rad, torque=st.status != "stopped")
+        yield clock.t, motor.shaft, rep
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_replica_is_within_a_tick_of_the_shaft_without_waiting_for_reports(seed):
+    """States arrive 0.2-1.5 ms after they are published: the replica's shaft at every instant up to now (and
+    30 ms back: a camera's latency) is the sim motor's (well within the issue's one encoder tick), and it is
+    trusted from its first 20 ms on (two states on the goal at rest)."""
+    import numpy as np
+
+    ms = MotorSettings()
+    rng = np.random.default_rng(seed + 100)
+    errs, past, untrusted = [], [], 0
+    history: list[tuple[float, float]] = []
+    for t, shaft, rep in _drive(ms, 3.0, lambda i: rng.uniform(0.0002, 0.0015), seed=seed):
+        history.append((t, shaft))
+        if t < 50.05:
+            continue
+        got = rep.at(WALL_NS + round(t * 1e9))
+        if got is None:
+            untrusted += 1
+            continue
+        errs.append(abs(got - shaft))
+        t_old, shaft_old = history[-121]  # 30 ms back
+        if t_old >= 50.05:
+            past.append(abs(rep.at(WALL_NS + round(t_old * 1e9)) - shaft_old))
+    tick = 2 * math.pi / ms.ticks_per_rev
+    assert untrusted == 0 and rep.mismatches == 0
+    assert len(errs) > 10_000 and max(errs) <= tick, max(errs) / tick
+    assert max(past) <= tick
+    assert max(errs) <= 0.01 * tick  # the same grid, the same instants: exact but for rounding (one step off: 0.5)
+
+
+def test_replica_puts_a_late_goal_in_its_place():
+    """Every tenth state 6 ms late (after its goal took effect): the replica rewinds and stays within a tick
+    from the moment the state arrives (before, it cannot know)."""
+    import numpy as np
+
+    ms = MotorSettings()
+    late = 0.006
+    errs = []
+    for t, shaft, rep in _drive(ms, 2.0, lambda i: late if i % 10 == 5 else 0.0003, seed=3):
+        if t < 50.05:
+            continue
+        # an instant the replica has been told everything about: before the latest goal known to be late
+        got = rep.at(WALL_NS + round(t * 1e9))
+        assert got is not None
+        errs.append(abs(got - shaft))
+    tick = 2 * math.pi / ms.ticks_per_rev
+    assert rep.mismatches == 0
+    assert np.percentile(errs, 99) <= tick
+
+
+def test_replica_distrusts_other_settings_until_the_motor_rests():
+    """A replica of a faster motor than the actuator's fails its check (counted), answers None, and is trusted
+    again once the motor rests on a goal."""
+    from vergence.motors.simulated import Replica
+
+    ms = MotorSettings()
+    clock = Clock(50.0)
+    wall = lambda: WALL_NS + round(clock.t * 1e9)  # noqa: E731
+    motor = SimMotor(ms, clock_ns=wall)
+    loop = MotorLoop(motor, ms, clock=clock, wall_ns=wall)
+    rep = Replica(MotorSettings(max_speed_deg_s=900, tau_s=0.002))
+
+    def feed(st):
+        rep.observe(st.t_ns, st.pan_rad, st.goal_rad)
+
+    feed(loop.start())
+    for _ in range(3):
+        clock.t += 0.01
+        feed(loop.tick())
+    assert rep.trusted
+    feed(loop.command(cmd(10 * DEG)))
+    for _ in range(5):
+        clock.t += 0.01
+        feed(loop.tick())
+    assert rep.mismatches >= 1 and not rep.trusted
+    assert rep.at(wall()) is None
+    for _ in range(30):
+        clock.t += 0.01
+        feed(loop.tick())
+    assert rep.trusted
+    now = wall()
+    assert rep.at(now) == pytest.approx(motor.shaft, abs=2 * math.pi / ms.ticks_per_rev)
