@@ -63,6 +63,9 @@ class Source:
     start_pan_rad: float = 0.0
     truth_pan_rad: float | None = None
     follows_pan: bool = True
+    renders: bool = False  # the slave image is rendered at the pan it is asked for (the simulator)
+    rows: tuple[int, int] | None = None  # the rows the capture reads of the next pair (None: all); a source that
+    # renders may leave the others black (the simulator: a band is a tenth of the cost of a view)
     exposure_ns: tuple[int, int] | None = None
     fovea: tuple[int, int] | None = None  # where the capture's fovea is (None: the centre); the truth's point
 
@@ -247,6 +250,7 @@ class SimSource(Source):
     latency_s), for measuring the latency from outside (`vergence latency`)."""
 
     TIMING = {"latency": "latency_s", "skew": "skew_s", "exposure": "exposure_s", "jitter": "jitter_s"}
+    renders = True
 
     def __init__(self, spec: str = ""):
         super().__init__("left")
@@ -267,6 +271,7 @@ class SimSource(Source):
         self.t0: int | None = None  # the scene's time 0 (ns): the first exposure
         self.rng = np.random.default_rng(0)
         self._still_truth: tuple = (None, math.nan)  # (fovea, its truth) of the still scene
+        self._last: tuple = ([0.0], [(self.start_pan_rad, 0.0)])  # the latest read's instants and pans
 
     @classmethod
     def camera_timing(cls, timing: dict) -> CameraTiming:
@@ -319,7 +324,26 @@ class SimSource(Source):
         truth = self._truth((t_master - self.t0) / 1e9)
         self.truth_pan_rad = truth if math.isfinite(truth) else None
         self.exposure_ns = (t_master, t_slave) if self.stamps else None
-        return expose(self.rig, scene, slave)
+        self._last = (scene, slave)
+        if self.rows is None:
+            return expose(self.rig, scene, slave)
+        from .sim.optics import Region
+
+        w, h = self.size
+        y0, y1 = max(0, self.rows[0]), min(h, self.rows[1])
+        band = expose(self.rig, scene, slave, Region.band(w, y0, y1))
+        out = np.zeros((2, h, w), np.uint8)
+        out[0, y0:y1], out[1, y0:y1] = band
+        return out[0], out[1]
+
+    def preview(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """The latest pair read, rendered whole at width x height without noise (a preview at the cost of a
+        band, where a read of `rows` left the rest of the views black)."""
+        from .sim.camera import expose
+        from .sim.optics import Region
+
+        scene, slave = self._last
+        return expose(self.rig, scene, slave, Region.scaled(self.size, (width, height)))
 
     def _truth(self, t: float) -> float:
         """The converged pan at the master's exposure (t s after the first) for the fovea where it is now."""

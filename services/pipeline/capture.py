@@ -42,6 +42,7 @@ from vergence import keys, retina
 from vergence.config import load
 from vergence.frames import Roster, WindowControl, make_frame, plan_shards
 from vergence.messages import Fixate, MessageError, MotorState, Preview, Decision
+from vergence.motors.simulated import Replica, SimMotor
 from vergence.sources import SourceError, open_source
 from vergence.timing import PanHistory, Stamper
 
@@ -177,21 +178,26 @@ def remember(history: PanHistory, st: MotorState, now_ns: int) -> None:
 class PanLookup:
     """The slave's pan for one frame, from the motor's history (the zenoh callback adds to it meanwhile): a
     source that renders (the simulator) asks it at its exposure times, and the frame then carries the same
-    pan. Before any motor state, the source's start pan; a source whose images do not follow the motor
+    pan. With the sim motor behind a rendering source, the pan comes from the capture's replica of that
+    motor (vergence.motors.simulated.Replica) while it is trusted: exact at any instant up to now, with no
+    wait. Before any motor state, the source's start pan; a source whose images do not follow the motor
     always has its start pan."""
 
-    def __init__(self, history: PanHistory, lock: threading.Lock, source):
+    def __init__(self, history: PanHistory, lock: threading.Lock, source, replica: Replica | None = None):
         self.history, self.lock, self.source = history, lock, source
+        self.replica = replica
         self.seen: dict[int, float | None] = {}
 
     def settle(self, t_ns: int, timeout: float = SETTLE_S) -> None:
         """Wait (at most timeout) until the motor has reported its pan at or after t_ns: a source that renders
         the slave (the simulator) then never renders a pan the history has to guess (extrapolated past its
-        newest state, a step of the motor shows some 15 ms late). Without a history, or a motor that stopped
-        reporting, it does not wait (longer)."""
+        newest state, a step of the motor shows some 15 ms late). No wait with a trusted replica (it knows
+        the shaft up to now), without a history, or (longer) for a motor that stopped reporting."""
         end = time.monotonic() + timeout
         while True:
             with self.lock:
+                if self.replica is not None and self.replica.trusted:
+                    return
                 if not len(self.history) or self.history.t[-1] * 1e9 >= t_ns:
                     return
             if time.monotonic() >= end:
@@ -201,7 +207,10 @@ class PanLookup:
     def _at(self, t_ns: int) -> float | None:
         if t_ns not in self.seen:
             with self.lock:
-                self.seen[t_ns] = self.history.at(t_ns / 1e9) if len(self.history) else self.source.start_pan_rad
+                pan = self.replica.at(t_ns) if self.replica is not None else None
+                if pan is None:
+                    pan = self.history.at(t_ns / 1e9) if len(self.history) else self.source.start_pan_rad
+                self.seen[t_ns] = pan
         return self.seen[t_ns]
 
     def __call__(self, t_ns: int) -> float:
@@ -277,6 +286,8 @@ class Capture:
         hz = settings.actuator.state_hz
         self.history = PanHistory(max_gap_s=max(0.1, 3.0 / hz if hz > 0 else 0.1))
         self.history_lock = threading.Lock()
+        # the sim motor's replica, for a source that renders the slave (its states tell whether it is the sim)
+        self.replica = Replica(settings.actuator.motor) if source.renders else None
         rate = self.cs.rate_hz
         self.clock = ExposureClock(settings.camera.timing(), 1.0 / rate if rate > 0 else 0.0)
         self.rates = Rates()
@@ -291,6 +302,8 @@ class Capture:
         self.health = self.node.health
         self.fovea = Fovea(*at, (self.ht, self.wd), self.params, self.health)
         self.period = 1.0 / rate if rate > 0 else 0.0
+        # the rows a frame reads around the fovea's: the largest window's half, the vertical search, Sobel's margin
+        self.margin = max(self.windows.sizes) // 2 + self.params.vsearch + 1
         self.preview_period = 1.0 / self.cs.preview_hz if self.cs.preview_hz > 0 else 0.0
         self.pw = min(self.cs.preview_width, self.wd) if self.cs.preview_width > 0 else self.wd
         self.ph = max(1, round(self.ht * self.pw / self.wd))
@@ -321,7 +334,9 @@ class Capture:
         return dict(window=self.windows.window, workers=len(self.plan), excluded=self.members.excluded(),
                     **self.rates.fields(), roster=dict(self.members.counters), clipped=self.clipped(),
                     **self.fovea.fields(), **self.clock.fields(),
-                    **({"source": source.status()} if hasattr(source, "status") else {}))
+                    **({"source": source.status()} if hasattr(source, "status") else {}),
+                    **({"replica": dict(trusted=self.replica.trusted, mismatches=self.replica.mismatches)}
+                       if self.replica is not None else {}))
 
     # -- the callbacks (zenoh's threads) ------------------------------------------------------------------------
 
@@ -333,9 +348,26 @@ class Capture:
                 raise MessageError(why)
             with self.history_lock:
                 remember(self.history, st, time.time_ns())
+                if self.replica is not None:
+                    self.follow(st)
             self.health.count("motor_states")
         except MessageError as e:
             self.health.reject("motor_state", e)
+
+    def follow(self, st: MotorState) -> None:
+        """A plausible motor state into the replica (under the history's lock): only the sim motor's."""
+        rep = self.replica
+        if st.driver != SimMotor.name:
+            rep.trusted = False
+            return
+        before = rep.mismatches
+        rep.observe(st.t_ns, st.pan_rad, st.goal_rad, torque=st.status != "stopped")
+        if rep.mismatches > before:
+            self.health.count("replica_mismatch")
+            if rep.mismatches == 1:
+                log.warning("the sim motor's reading is more than a tick off the capture's replica of it "
+                            "(different [actuator.motor] settings for capture and actuator?): the frames wait "
+                            "for the motor's reports until it rests on its goal")
 
     def on_token(self, sample) -> None:
         wid = keys.parse(str(sample.key_expr)).ident
@@ -400,8 +432,9 @@ class Capture:
                         break
                 # keep the schedule, but never try to catch up more than one period late
                 next_t = max(next_t + period, time.monotonic() - period)
-            pan_at = PanLookup(self.history, self.history_lock, self.source)
+            pan_at = PanLookup(self.history, self.history_lock, self.source, self.replica)
             at = self.source.fovea = self.fovea.at()  # this pair's fovea (a simulator's truth is for it)
+            self.source.rows = (at[1] - self.margin, at[1] + self.margin + 1)  # what a frame reads (a renderer's)
             try:
                 master, slave = self.source.read(pan_at)
             except SourceError as e:
@@ -472,8 +505,11 @@ class Capture:
 
     def preview(self, master, slave, t_ns: int, p_now: float) -> None:
         pw, ph = self.pw, self.ph
-        m = cv2.resize(master, (pw, ph), interpolation=cv2.INTER_AREA)
-        sl = cv2.resize(slave, (pw, ph), interpolation=cv2.INTER_AREA)
+        if self.source.renders:  # it rendered the band only: the whole views at the preview's size
+            m, sl = self.source.preview(pw, ph)
+        else:
+            m = cv2.resize(master, (pw, ph), interpolation=cv2.INTER_AREA)
+            sl = cv2.resize(slave, (pw, ph), interpolation=cv2.INTER_AREA)
         self.pub_preview.put(Preview(rig=self.rig, frame=self.fid, t_capture_ns=t_ns, width=pw, height=ph,
                                      scale=pw / self.wd, master=m.tobytes(), slave=sl.tobytes(), pan_rad=p_now,
                                      truth_pan_rad=self.source.truth_pan_rad).to_bytes())

@@ -14,6 +14,7 @@ import math
 import numpy as np
 
 from ..timing import CameraTiming
+from .optics import Region
 
 __all__ = ["Schedule", "sub_times", "expose", "SUB_S"]
 
@@ -34,13 +35,22 @@ def _mean(views: list[np.ndarray]) -> np.ndarray:
     return np.rint(np.mean(np.stack(views), axis=0, dtype=np.float32)).astype(np.uint8)
 
 
-def expose(rig, master_times: list[float], slave_samples: list[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
+def expose(rig, master_times: list[float], slave_samples: list[tuple[float, float]],
+           region: Region | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(master, slave) images: the master's view averaged over master_times, the slave's over
     slave_samples [(pan, t), ...] (its pan at each instant), each with its camera's sensor noise once.
-    rig: a vergence.sim Rig or MovingRig (master_view, slave_view, noisy)."""
-    master = _mean([rig.master_view(t) for t in master_times])
-    slave = _mean([rig.slave_view(pan, t) for pan, t in slave_samples])
-    return rig.noisy(master, 0), rig.noisy(slave, 1)
+    rig: a vergence.sim Rig or MovingRig (master_view, slave_view, noisy). region: only that part of the
+    views (vergence.sim.optics.Region): a band gets the noise those rows get in the whole view, a scaled
+    view (a preview) none."""
+    if region is None:
+        master = _mean([rig.master_view(t) for t in master_times])
+        slave = _mean([rig.slave_view(pan, t) for pan, t in slave_samples])
+        return rig.noisy(master, 0), rig.noisy(slave, 1)
+    master = _mean([rig.master_view(t, region) for t in master_times])
+    slave = _mean([rig.slave_view(pan, t, region) for pan, t in slave_samples])
+    if region.scale:
+        return master, slave
+    return rig.noisy(master, 0, region.y0), rig.noisy(slave, 1, region.y0)
 
 
 class Schedule:

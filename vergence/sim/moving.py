@@ -23,7 +23,7 @@ import numpy as np
 
 from ..images import read_image
 from .motion import Motion, parse_motion
-from .optics import intrinsics, option_number, rotation
+from .optics import Region, intrinsics, option_number, rotation
 from .scene import texture
 
 __all__ = ["Head", "MovingRig"]
@@ -72,16 +72,18 @@ class _Noise:
         self.rng = np.random.default_rng(seed + 1_000_003)
         self.banks: list[np.ndarray] = []
 
-    def __call__(self, img: np.ndarray, camera: int) -> np.ndarray:
+    def __call__(self, img: np.ndarray, camera: int, size: tuple[int, int] | None = None, y0: int = 0) -> np.ndarray:
+        """img with camera's noise; img is rows y0.. of a view of `size` (default: img's own)."""
         if self.sigma <= 0:
             return img
         h, w = img.shape
+        vw, vh = size if size is not None else (w, h)
         while len(self.banks) <= camera:
-            shape = (self.BANK, h + self.PAD, w + self.PAD)
+            shape = (self.BANK, vh + self.PAD, vw + self.PAD)
             self.banks.append(np.rint(self.rng.standard_normal(shape, dtype=np.float32)
                                       * np.float32(self.sigma)).astype(np.int16))
         i, dy, dx = (int(v) for v in self.rng.integers(0, (self.BANK, self.PAD, self.PAD)))
-        return np.clip(img + self.banks[camera][i, dy:dy + h, dx:dx + w], 0, 255).astype(np.uint8)
+        return np.clip(img + self.banks[camera][i, dy + y0:dy + y0 + h, dx:dx + w], 0, 255).astype(np.uint8)
 
 
 class MovingRig:
@@ -178,32 +180,34 @@ class MovingRig:
         plane = np.array([[s, 0.0, -s * u0 - centre_x], [0.0, s, -s * v0], [0.0, 0.0, z]])
         return self.head.K @ rotation(pan, 0.0).T @ plane
 
-    def _view(self, z: float, centre_x: float, pan: float) -> np.ndarray:
-        size = self.size
+    def _view(self, z: float, centre_x: float, pan: float, region: Region | None = None) -> np.ndarray:
+        size = self.size if region is None else region.size
         hb = self._homography(self.bg_tex.shape, self.bg_s, self.bg_m, centre_x, pan)
-        bg = cv2.warpPerspective(self.bg_tex, hb, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         ht = self._homography(self.target_tex.shape, self.target_s, z, centre_x, pan)
+        if region is not None:
+            hb, ht = region.matrix @ hb, region.matrix @ ht
+        bg = cv2.warpPerspective(self.bg_tex, hb, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         # texture and mask in one warp, outside = 0: the texture channel comes out premultiplied by the mask
         tm = cv2.warpPerspective(self._tex_mask, ht, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                                  borderValue=(0, 0, 0, 0))
         a = tm[..., 1].astype(np.float32) * np.float32(1 / 255)
         return np.rint(bg * (1 - a) + tm[..., 0]).astype(np.uint8)
 
-    def master_view(self, t: float = 0.0) -> np.ndarray:
-        """The master's view of the scene at time t, without sensor noise."""
+    def master_view(self, t: float = 0.0, region: Region | None = None) -> np.ndarray:
+        """The master's view of the scene at time t, without sensor noise; region: that part of it."""
         if not math.isfinite(t):
             raise ValueError(f"time {t} is not finite")
-        return self._view(self.motion.z(t), 0.0, 0.0)
+        return self._view(self.motion.z(t), 0.0, 0.0, region)
 
-    def slave_view(self, slave_pan_rad: float, t: float = 0.0) -> np.ndarray:
-        """The slave's view at time t, panned to slave_pan_rad, without sensor noise."""
+    def slave_view(self, slave_pan_rad: float, t: float = 0.0, region: Region | None = None) -> np.ndarray:
+        """The slave's view at time t, panned to slave_pan_rad, without sensor noise; region: that part of it."""
         if not (math.isfinite(slave_pan_rad) and math.isfinite(t)):
             raise ValueError(f"slave pan {slave_pan_rad} or time {t} is not finite")
-        return self._view(self.motion.z(t), self.head.baseline_m, slave_pan_rad)
+        return self._view(self.motion.z(t), self.head.baseline_m, slave_pan_rad, region)
 
-    def noisy(self, img: np.ndarray, camera: int) -> np.ndarray:
-        """img with this camera's sensor noise."""
-        return self.noise(img, camera)
+    def noisy(self, img: np.ndarray, camera: int, y0: int = 0) -> np.ndarray:
+        """img with this camera's sensor noise; img is the view's rows from y0 on (a band)."""
+        return self.noise(img, camera, self.size, y0)
 
     def render(self, slave_pan_rad: float, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """(master, slave) uint8 gray views at time t with sensor noise, the slave panned to slave_pan_rad."""

@@ -5,10 +5,12 @@ the moving one (moving.py)."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
-__all__ = ["GIMBALS", "option_number", "rotation", "intrinsics", "homography"]
+__all__ = ["GIMBALS", "Region", "option_number", "rotation", "intrinsics", "homography"]
 
 
 GIMBALS = ("helmholtz", "fick")
@@ -49,3 +51,32 @@ def homography(f: float, src_size: tuple[int, int], view_size: tuple[int, int], 
     ks = intrinsics(f, src_size[0] // 2, src_size[1] // 2)
     kv = intrinsics(f, view_size[0] // 2, view_size[1] // 2)
     return kv @ rotation(pan_rad, tilt_rad, gimbal).T @ np.linalg.inv(ks)
+
+
+@dataclass(frozen=True)
+class Region:
+    """What part of a view to render: rows y0..y1-1 at full resolution (`band`: what a frame reads, a tenth of
+    the view or less), or the whole view scaled to (width, height) (`scaled`: a preview). `matrix` follows a
+    view's homography (view pixel -> region pixel), `size` is the region's (width, height); `of` cuts the same
+    region out of a rendered view."""
+
+    matrix: np.ndarray
+    size: tuple[int, int]
+    y0: int = 0
+    scale: bool = False
+
+    @classmethod
+    def band(cls, width: int, y0: int, y1: int) -> "Region":
+        return cls(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -float(y0)], [0.0, 0.0, 1.0]]), (width, y1 - y0), y0)
+
+    @classmethod
+    def scaled(cls, view: tuple[int, int], size: tuple[int, int]) -> "Region":
+        sx, sy = size[0] / view[0], size[1] / view[1]
+        # pixel centres map onto pixel centres: (x + 0.5) * s - 0.5
+        m = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+        return cls(m, size, 0, True)
+
+    def of(self, img: np.ndarray) -> np.ndarray:
+        if self.scale:
+            return cv2.resize(img, self.size, interpolation=cv2.INTER_AREA)
+        return img[self.y0 : self.y0 + self.size[1]]

@@ -29,7 +29,7 @@ import numpy as np
 from ..images import read_image
 from .motion import KINDS
 from .moving import MovingRig
-from .optics import GIMBALS, homography, option_number, rotation
+from .optics import GIMBALS, Region, homography, option_number, rotation
 from .scene import generate
 
 __all__ = ["Rig", "rotation", "homography"]
@@ -209,40 +209,55 @@ class Rig:
 
     # -- rendering ----------------------------------------------------------------------------------------
 
-    def _warp(self, img: np.ndarray, pan: float, tilt: float) -> np.ndarray:
+    def _warp(self, img: np.ndarray, pan: float, tilt: float, region: Region | None = None) -> np.ndarray:
         h = homography(self.focal_px, self.src_size, self.size, pan, tilt, self.gimbal)
-        return cv2.warpPerspective(img, h, self.size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                   borderValue=0)
+        if region is not None:
+            h = region.matrix @ h
+        return cv2.warpPerspective(img, h, self.size if region is None else region.size, flags=cv2.INTER_LINEAR,
+                                   borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
     _BANK, _PAD = 6, 64
 
-    def noisy(self, img: np.ndarray, camera: int) -> np.ndarray:
+    def noisy(self, img: np.ndarray, camera: int, y0: int = 0) -> np.ndarray:
         """img + Gaussian noise of sigma `noise`, rounded. The noise is cut at a random place out of a few
         fields pre-drawn for this camera (drawing 300 k normals per view took 3-4 ms; this takes well under
         1 ms). Each camera has its own fields: with shared ones, the slave's noise was often the master's
-        shifted by a few pixels, a pattern the network matched perfectly on a flat wall and turned to."""
+        shifted by a few pixels, a pattern the network matched perfectly on a flat wall and turned to. y0: img
+        is the view's rows from y0 on (a band), and gets the noise those rows get in the whole view."""
         if self.noise <= 0:
             return img
         h, w = img.shape
         while len(self._banks) <= camera:
-            shape = (self._BANK, h + self._PAD, w + self._PAD)
+            shape = (self._BANK, self.size[1] + self._PAD, self.size[0] + self._PAD)
             self._banks.append(np.rint(self._rng.standard_normal(shape, dtype=np.float32)
                                        * np.float32(self.noise)).astype(np.int16))
         i, dy, dx = (int(v) for v in self._rng.integers(0, (self._BANK, self._PAD, self._PAD)))
-        n = self._banks[camera][i, dy:dy + h, dx:dx + w]
+        n = self._banks[camera][i, dy + y0:dy + y0 + h, dx:dx + w]
         return np.clip(img + n, 0, 255).astype(np.uint8)
 
-    def master_view(self, t: float = 0.0) -> np.ndarray:
-        """The master's view without sensor noise (the scene is still: the same at every t)."""
-        return self._master
+    def master_view(self, t: float = 0.0, region: Region | None = None) -> np.ndarray:
+        """The master's view without sensor noise (the scene is still: the same at every t); region: that part
+        of it (vergence.sim.optics.Region)."""
+        return self._master if region is None else region.of(self._master)
 
-    def slave_view(self, slave_pan_rad: float, t: float = 0.0) -> np.ndarray:
-        """The slave's view at slave_pan_rad (radians) without sensor noise: warped, defocused, its gain."""
+    def slave_view(self, slave_pan_rad: float, t: float = 0.0, region: Region | None = None) -> np.ndarray:
+        """The slave's view at slave_pan_rad (radians) without sensor noise: warped, defocused, its gain;
+        region: that part of it (a band is rendered with a margin for the defocus, then cut)."""
         if not math.isfinite(slave_pan_rad):
             raise ValueError(f"slave pan {slave_pan_rad} is not finite")
-        slave = self._warp(self.right, slave_pan_rad, self.slave_tilt_rad)
-        if self.blur > 0:
-            slave = cv2.GaussianBlur(slave, (0, 0), self.blur)
+        cut, sigma = None, self.blur
+        if region is not None and region.scale:
+            sigma *= region.size[0] / self.size[0]
+        elif region is not None and self.blur > 0:  # the defocus reads rows around the band: render them too
+            y0, y1 = region.y0, region.y0 + region.size[1]
+            m = math.ceil(4 * self.blur) + 1
+            region = Region.band(self.size[0], max(0, y0 - m), min(self.size[1], y1 + m))
+            cut = slice(y0 - region.y0, y1 - region.y0)
+        slave = self._warp(self.right, slave_pan_rad, self.slave_tilt_rad, region)
+        if sigma > 0:
+            slave = cv2.GaussianBlur(slave, (0, 0), sigma)
+        if cut is not None:
+            slave = slave[cut]
         if self.gain != 1.0 or self.offset != 0.0:
             lin = slave.astype(np.float32) * np.float32(self.gain) + np.float32(self.offset)
             slave = np.clip(lin, 0, 255).astype(np.uint8)
