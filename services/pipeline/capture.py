@@ -357,8 +357,7 @@ class Capture:
     def follow(self, st: MotorState) -> None:
         """A plausible motor state into the replica (under the history's lock): only the sim motor's."""
         rep = self.replica
-        if st.driver != SimMotor.name:
-            rep.trusted = False
+        if st.driver != SimMotor.name:  # another motor's states say nothing of the sim's (nor distrust it)
             return
         before = rep.mismatches
         rep.observe(st.t_ns, st.pan_rad, st.goal_rad, torque=st.status != "stopped")
