@@ -1,18 +1,22 @@
-"""`vergence bench pipeline [--workers N ...] [--rate HZ] [--frames N] [--heavy] [--json]`.
+"""`vergence bench pipeline [--source SPEC] [--workers N ...] [--rate HZ] [--seconds S] [--heavy] [--json]`.
 
-Measures the distributed pipeline as deployed: a router, N workers, the reducer and the capture run as real
-processes on this machine, as `vergence up` runs them (peers linked directly; --client: clients of the
-router, every message through it, as from other nodes); the capture publishes a synthetic textured pair (the
-slave sees the scene 12 px further left, so every frame yields a command) at a fixed rate, and this process
-subscribes to the commands.
-Reported per run: capture-to-command latency p50/p99/max (the command's arrival here minus the frame's
-t_capture_ns: one more hop than the actuator sees), throughput, frames dropped (published frames without a
-command), beside the in-process vergence.match time on the same images (overhead = p50 / match).
-Without --rate: 100 Hz, then 250, 500, 1000, 1500, 2000 Hz until a run drops frames
-(the highest rate held without drops is the last clean one). --heavy adds the heavy setting (3840 x 1080,
-w = 31, vertical search +-16) at a few Hz, where sharding pays. --floor: the CPU per message (psutil) of a
-router and of a subscriber process (`vergence bench pipeline --subscriber ENDPOINT`). Processes start and
-stop through services/ops/launch.py, each logging into a file of the run's temporary folder (shown on failure).
+Measures what `vergence up` runs, as a user's client sees it: for each source, worker count and rate, it starts
+`vergence up --source SPEC --workers N --rate HZ` (the embedded router, the sim actuator, the workers, the reducer
+and the capture with their standbys, all as real processes on this machine), waits for its first decision and
+WARM_S more, then subscribes through the router for --seconds to the decisions, the commands and the motor
+states. Reported per run: decisions against the frames the rate asks for in that time (rate x seconds; drops:
+the difference), capture-to-decision latency p50/p99/max (a decision's arrival here minus its frame's
+t_capture_ns, the master's exposure: one hop more than the reducer's own), the commands and how many were
+wrong (files: an offset other than the pair's SHIFT px, or older than one sent before it), capture-to-executed
+(the first motor state naming a frame, at the actuator), beside the in-process vergence.match time on a pair of
+the same source (overhead = p50 / match).
+Sources (default all three): vga, a synthetic textured pair as a `files:` source (the slave sees the scene
+SHIFT px further left, whatever the motor does: every frame yields a command); sim, the simulated still scene;
+demo, `vergence up`'s default source (a target moving in depth). --source SPEC: that source only.
+Without --rate: 100, 250, 500, then 1000 Hz until a run drops frames. --heavy adds a 3840 x 1080 pair
+(w = 31, vertical search +-16) at a few Hz, where sharding pays. --floor: the CPU per message (psutil) of a
+router and of a subscriber process (`vergence bench pipeline --subscriber ENDPOINT`). Processes start and stop
+through services/ops/launch.py, each logging into the run's temporary folder (shown on failure).
 """
 
 from __future__ import annotations
@@ -21,7 +25,6 @@ import argparse
 import dataclasses
 import json
 import os
-import signal
 import sys
 import tempfile
 import threading
@@ -34,12 +37,15 @@ import numpy as np
 from services.runtime.args import number, whole
 from services.ops.launch import Proc, free_port, stop_all, vergence, wait_for, wait_listening
 
-RATES = [100, 250, 500, 1000, 1500, 2000]
+RATES = [100, 250, 500, 1000]
 HEAVY_RATES = [10, 25, 50, 100]
-WARM_FRAMES = 20  # the first frames of a fresh capture process are slow (imports, first messages)
+WARM_S = 1.0  # after the first decision: the first frames of fresh processes are slow (imports, first messages)
+DEMO = "sim:motion=sine:z=0.8,amp=0.3,hz=0.2"  # vergence up's default source (vergence.config)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--source", default=None, metavar="SPEC",
+                   help="one source only, as `vergence up --source` takes it (default: vga, sim and the demo)")
     p.add_argument("--workers", type=whole(1, 64), nargs="+", default=[1, 2], metavar="N",
                    help="worker counts (default 1 2)")
     p.add_argument("--rate", type=number(0, 1000, lo_open=True), default=None, metavar="HZ",
@@ -48,13 +54,8 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="length of each run (default 2 s)")
     p.add_argument("--heavy", action="store_true", help="also the heavy setting: 3840 wide, w=31, +-16 rows")
     p.add_argument("--faithful", action="store_true", help="the paper's network (no extension)")
-    p.add_argument("--client", action="store_true", help="pipeline processes as clients of the router (every "
-                                                         "message through it, as from other nodes) instead of "
-                                                         "peers linked directly, as `vergence up` runs them")
     p.add_argument("--floor", action="store_true", help="also the messaging floor: CPU per 27 KB message of the "
                                                         "router and of one Python subscriber, at 1 kHz")
-    p.add_argument("--actuator", action="store_true", help="also run the sim actuator (commands close the loop "
-                                                           "through motor_state, as in `vergence up`)")
     p.add_argument("--json", action="store_true", help="one JSON object per run")
     p.add_argument("--subscriber", metavar="ENDPOINT", help=argparse.SUPPRESS)  # --floor's, in its own process
 
@@ -68,43 +69,39 @@ def synthetic_pair(width: int, height: int, shift: int = SHIFT, seed: int = 5) -
     return (np.ascontiguousarray(base[:, shift : shift + width]), np.ascontiguousarray(base[:, :width]))
 
 
-class Cluster:
-    """A router, a reducer and N workers (and the sim actuator) as child processes, stopped on close."""
+@dataclasses.dataclass
+class Setting:
+    """One source to run: its name in the rows, its spec, the settings file every process gets, its pair for the
+    in-process baseline, whether its commands must carry SHIFT px."""
 
-    def __init__(self, workdir: Path, rig: str, config: str, workers: int, client: bool = False,
-                 actuator: bool = False):
-        self.dir, self.rig, self.config = workdir, rig, config
+    name: str
+    source: str
+    config: Path
+    pair: tuple[np.ndarray, np.ndarray]
+    shifted: bool = False
+
+
+class Up:
+    """`vergence up` as a child (its own process group, its log in the run's folder), stopped on close."""
+
+    def __init__(self, workdir: Path, rig: str, setting: Setting, workers: int, rate: float):
+        self.rig = rig
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.procs: list[Proc] = []
-        self.extra = [] if client else ["--mode", "peer", "--listen", "tcp/127.0.0.1:0"]  # as `vergence up`
-        self.members = ["reducer"] + (["actuator"] if actuator else [])  # besides the workers
+        self.proc = Proc("up", vergence("up", "--listen", self.endpoint, "--rig", rig, "--config",
+                                        str(setting.config), "--source", setting.source, "--workers",
+                                        str(workers), "--rate", f"{rate:g}"),
+                         log=workdir / f"up-{setting.name}-{workers}-{rate:g}.log")
         try:
-            router = self.spawn("router", "router", "--listen", self.endpoint, member=False)
-            wait_listening(self.endpoint, 30, router, logs=self.logs)
-            if actuator:
-                self.spawn("actuator", "actuator", "--driver", "sim")
-            for i in range(workers):
-                self.spawn(f"worker{i}", "worker", "--name", f"b{i}")
-            self.spawn("reducer", "reducer")
+            wait_listening(self.endpoint, 60, self.proc, logs=self.logs)
         except BaseException:
             self.close()
             raise
 
-    def spawn(self, name: str, *args: str, member: bool = True) -> Proc:
-        argv = vergence(*args)
-        if member:
-            argv += ["--connect", self.endpoint, "--rig", self.rig, "--config", self.config] + self.extra
-        p = Proc(name, argv, log=self.dir / f"{name}.log", append=True)
-        self.procs.append(p)
-        return p
-
     def logs(self) -> str:
-        return "\n".join(p.tail(10) for p in self.procs)
+        return self.proc.tail(40)
 
     def close(self) -> None:
-        for p in self.procs:  # all at once, then each in turn, the router last
-            p.signal_group(signal.SIGINT)
-        stop_all(self.procs[::-1])
+        self.proc.stop()
 
 
 def _session(endpoint: str):
@@ -140,99 +137,123 @@ def executed_lags(states: list, first: int, last: int) -> dict[int, int]:
     return out
 
 
-def run_rate(cl: Cluster, s, source: str, rate: float, frames: int) -> dict:
-    """One capture run at `rate`: WARM_FRAMES frames to start the capture (not counted), then `frames`
-    frames; the latency of the commands that came back for those."""
-    from vergence import keys
-    from vergence.messages import Command, MotorState
+def _p(a: np.ndarray, q: float) -> float:
+    return float(np.percentile(a, q)) if len(a) else float("nan")
 
-    warm = min(WARM_FRAMES, max(2, frames // 5))
-    got: list[tuple[int, bytes]] = []
+
+def run_rate(up: Up, setting: Setting, rate: float, seconds: float) -> dict:
+    """One run: the first decision, WARM_S, then `seconds` of decisions, commands and motor states."""
+    from vergence import keys
+    from vergence.messages import Command, Decision, MotorState
+
+    got: dict[str, list[tuple[int, bytes]]] = {"decision": [], "command": [], "motor_state": []}
     lock = threading.Lock()
 
-    def on_cmd(sample):
-        t = time.time_ns()
-        with lock:
-            got.append((t, sample.payload.to_bytes()))
+    def on(kind):
+        def cb(sample):
+            t = time.time_ns()
+            with lock:
+                got[kind].append((t, sample.payload.to_bytes()))
+        return cb
 
-    states: list[bytes] = []
-    sub = s.declare_subscriber(keys.command(cl.rig), on_cmd)
-    sub_state = s.declare_subscriber(keys.motor_state(cl.rig),
-                                     lambda smp: states.append(smp.payload.to_bytes()))
+    s = _session(up.endpoint)
     try:
-        cap = cl.spawn("capture", "capture", "--source", source, "--rate", str(rate), "--frames",
-                       str(frames + warm))
-        try:
-            cap.wait(frames / rate * 3 + 30)
-        except TimeoutError:
-            cap.stop()
-        time.sleep(0.3)  # the last frames' commands on their way
+        subs = [s.declare_subscriber(getattr(keys, kind)(up.rig), on(kind)) for kind in got]
+        wait_for(lambda: len(got["decision"]) > 0, 90, "the first decision", logs=up.logs)
+        time.sleep(WARM_S)
+        t0 = time.time_ns()
+        time.sleep(seconds + 0.3)  # and the last frames' decisions on their way
+        for sub in subs:
+            sub.undeclare()
     finally:
-        sub.undeclare()
-        sub_state.undeclare()
-    executed = executed_lags([MotorState.from_bytes(b) for b in states], warm + 1, frames + warm)
-    act = np.array(sorted(executed.values())) / 1e6 if executed else np.array([np.nan])
-    cmds = [(t, c) for t, c in ((t, Command.from_bytes(b)) for t, b in got) if warm < c.frame <= frames + warm]
-    lat = np.array([(t - c.t_capture_ns) / 1e6 for t, c in cmds]) if cmds else np.array([np.nan])
-    red = np.array([(c.t_sent_ns - c.t_capture_ns) / 1e6 for _, c in cmds]) if cmds else np.array([np.nan])
-    caps = sorted(c.t_capture_ns for _, c in cmds)
-    span = (caps[-1] - caps[0]) / 1e9 if len(caps) > 1 else float("nan")
-    have = {c.frame for _, c in cmds}
-    # a wrong command: one whose offset is not the pair's (SHIFT px), or older than one sent before it
+        s.close()
+    t1 = t0 + round(seconds * 1e9)
+    with lock:
+        dec = [(t, Decision.from_bytes(b)) for t, b in got["decision"]]
+        cmds = [(t, Command.from_bytes(b)) for t, b in got["command"]]
+        states = [MotorState.from_bytes(b) for _, b in got["motor_state"]]
+    dec = [(t, d) for t, d in dec if t0 <= d.t_capture_ns < t1]
+    cmds = [(t, c) for t, c in cmds if t0 <= c.t_capture_ns < t1]
+    lat = np.array([(t - d.t_capture_ns) / 1e6 for t, d in dec])
+    red = np.array([(c.t_sent_ns - c.t_capture_ns) / 1e6 for _, c in cmds])
+    frames = {d.frame for _, d in dec}
+    act = np.array(sorted(executed_lags(states, min(frames, default=0), max(frames, default=-1)).values())) / 1e6
     ids = [c.frame for _, c in sorted(cmds, key=lambda tc: tc[1].t_sent_ns)]
-    wrong = sum(abs(c.magnitude_px - SHIFT) > 1.0 for _, c in cmds) + sum(b <= a for a, b in zip(ids, ids[1:]))
-    lost = [i for i in range(warm + 1, warm + frames + 1) if i not in have]
-    return dict(rate_hz=rate, frames=frames, commands=len(have), drops=len(lost), lost_first=lost[:12], wrong=wrong,
-                behind_p99=float(np.percentile(red, 99)) * rate / 1e3, executed=len(executed),
-                actuator_p50_ms=float(np.percentile(act, 50)), actuator_p99_ms=float(np.percentile(act, 99)),
-                p50_ms=float(np.percentile(lat, 50)), p99_ms=float(np.percentile(lat, 99)),
-                max_ms=float(lat.max()), reducer_p99_ms=float(np.percentile(red, 99)),
-                throughput_hz=(len(caps) - 1) / span if span == span and span > 0 else float("nan"))
+    wrong = sum(b <= a for a, b in zip(ids, ids[1:]))
+    if setting.shifted:
+        wrong += sum(abs(c.magnitude_px - SHIFT) > 1.0 for _, c in cmds)
+    asked = int(round(rate * seconds))
+    return dict(rate_hz=rate, frames=asked, decided=len(dec), drops=max(0, asked - len(dec)),
+                decided_share=len(dec) / asked, commands=len(cmds), wrong=wrong,
+                behind_p99=_p(red, 99) * rate / 1e3, executed=len(act),
+                actuator_p50_ms=_p(act, 50), actuator_p99_ms=_p(act, 99),
+                p50_ms=_p(lat, 50), p99_ms=_p(lat, 99), max_ms=float(lat.max()) if len(lat) else float("nan"),
+                throughput_hz=len(dec) / seconds)
 
 
-def bench_setting(name: str, width: int, height: int, net: dict, args, workdir: Path, rates: list[float],
-                  emit, p99_limit: float = float("inf")) -> list[dict]:
+def bench_setting(setting: Setting, args, workdir: Path, rates: list[float], emit, params,
+                  p99_limit: float = float("inf")) -> list[dict]:
     """Runs at each rate in turn (the first always; a later one only while the previous one had no drop and
-    p99 <= p99_limit ms), for each worker count."""
-    from vergence import keys
-    from vergence.params import Params
-
-    master, slave = synthetic_pair(width, height)
-    lp, rp = workdir / f"{name}-l.png", workdir / f"{name}-r.png"
-    cv2.imwrite(str(lp), master)
-    cv2.imwrite(str(rp), slave)
-    params = Params.paper(**net) if args.faithful else Params(**net)
-    cfg = workdir / f"{name}.toml"
-    lines = ["[network]"] + [f"{k} = {json.dumps(v)}" for k, v in dataclasses.asdict(params).items()]
-    cfg.write_text("\n".join(lines + ["[capture]", "preview_hz = 0"]) + "\n")
-    base_ms = in_process_ms(master, slave, params, n=30 if width < 2000 else 3)
+    p99 <= p99_limit ms), for each worker count: a fresh `vergence up` each."""
+    base_ms = in_process_ms(*setting.pair, params, n=30 if setting.pair[0].shape[1] < 2000 else 3)
     rows = []
     for nw in args.workers:
-        cl = Cluster(workdir, f"bench{os.getpid()}{name}{nw}", str(cfg), nw, args.client, args.actuator)
-        try:
-            s = _session(cl.endpoint)
+        for rate in rates:
+            up = Up(workdir, f"bench{os.getpid()}{setting.name}{nw}", setting, nw, rate)
             try:
-                for role, n in [("worker", nw)] + [(m, 1) for m in cl.members]:
-                    try:
-                        wait_for(lambda r=role, n=n: len(list(s.liveliness().get(keys.alives(cl.rig, r),
-                                                                                  timeout=0.5))) >= n,
-                                 60, f"{n} {role}(s)", interval=0.05)
-                    except TimeoutError:
-                        raise RuntimeError(f"{n} {role}(s) did not come up; see the logs in {workdir}") from None
-                for rate in rates:
-                    frames = max(10, int(rate * args.seconds))
-                    r = run_rate(cl, s, f"files:{lp},{rp}", rate, frames)
-                    r.update(setting=name, width=width, window=params.window, vsearch=params.vsearch, workers=nw,
-                             match_ms=base_ms, overhead=r["p50_ms"] / base_ms)
-                    rows.append(r)
-                    emit(r)
-                    if args.rate is None and rate > rates[0] and (r["drops"] > 0 or r["p99_ms"] > p99_limit):
-                        break
+                r = run_rate(up, setting, rate, args.seconds)
             finally:
-                s.close()
-        finally:
-            cl.close()
+                up.close()
+            r.update(setting=setting.name, source=setting.source, width=setting.pair[0].shape[1],
+                     window=params.window, vsearch=params.vsearch, workers=nw, match_ms=base_ms,
+                     overhead=r["p50_ms"] / base_ms)
+            rows.append(r)
+            emit(r)
+            if args.rate is None and rate > rates[0] and (r["drops"] > 0 or r["p99_ms"] > p99_limit):
+                break
     return rows
+
+
+def settings(args, workdir: Path) -> list[tuple[Setting, object, list[float]]]:
+    """(setting, its network parameters, its rates) for the run: the sources asked for, and --heavy's."""
+    from vergence.params import Params
+    from vergence.sources import open_source
+
+    def config(name: str, net: dict):
+        params = Params.paper(**net) if args.faithful else Params(**net)
+        cfg = workdir / f"{name}.toml"
+        cfg.write_text("\n".join(["[network]"] + [f"{k} = {json.dumps(v)}"
+                                                   for k, v in dataclasses.asdict(params).items()]) + "\n")
+        return params, cfg
+
+    def files(name: str, width: int, height: int) -> str:
+        pair = synthetic_pair(width, height)
+        for side, img in zip("lr", pair):
+            cv2.imwrite(str(workdir / f"{name}-{side}.png"), img)
+        return f"files:{workdir / f'{name}-l.png'},{workdir / f'{name}-r.png'}"
+
+    def rendered(spec: str):
+        src = open_source(spec)
+        try:
+            return src.read(src.start_pan_rad)
+        finally:
+            src.close()
+
+    rates = [args.rate] if args.rate else RATES
+    out = []
+    params, cfg = config("net", {})
+    if args.source:
+        out.append((Setting("source", args.source, cfg, rendered(args.source)), params, rates))
+    else:
+        vga = files("vga", 640, 480)
+        out += [(Setting("vga", vga, cfg, synthetic_pair(640, 480), shifted=True), params, rates),
+                (Setting("sim", "sim", cfg, rendered("sim")), params, rates),
+                (Setting("demo", DEMO, cfg, rendered(DEMO)), params, rates)]
+    if args.heavy:
+        hp, hcfg = config("heavy", {"window": 31, "vsearch": 16, "max_window": 0})
+        out.append((Setting("heavy", files("heavy", 3840, 1080), hcfg, synthetic_pair(3840, 1080), shifted=True),
+                    hp, [args.rate] if args.rate else HEAVY_RATES))
+    return out
 
 
 def floor_subscriber(endpoint: str) -> int:
@@ -314,32 +335,28 @@ def run(args: argparse.Namespace) -> int:
             print(json.dumps(r), flush=True)
         else:
             print(f"{r['setting']:6s} {r['width']:5d}px w={r['window']:<2d} R={r['vsearch']:<2d} "
-                  f"{r['workers']} worker(s) {r['rate_hz']:6.0f} Hz: {r['commands']:5d}/{r['frames']:<5d} cmds "
-                  f"drops {r['drops']:4d} wrong {r['wrong']} behind {r['behind_p99']:4.1f}  "
-                  f"p50 {r['p50_ms']:6.2f} ms  p99 {r['p99_ms']:6.2f} ms  "
-                  f"max {r['max_ms']:6.1f} ms  actuator p50 {r['actuator_p50_ms']:5.2f} "
-                  f"p99 {r['actuator_p99_ms']:5.2f} ms  "
-                  f"thr {r['throughput_hz']:7.1f} Hz  match {r['match_ms']:6.2f} ms  "
-                  f"overhead x{r['overhead']:.2f}", flush=True)
+                  f"{r['workers']} worker(s) {r['rate_hz']:6.0f} Hz: {r['decided']:5d}/{r['frames']:<5d} decided "
+                  f"({100 * r['decided_share']:5.1f} %) drops {r['drops']:4d}  "
+                  f"p50 {r['p50_ms']:6.2f} ms  p99 {r['p99_ms']:6.2f} ms  max {r['max_ms']:6.1f} ms  "
+                  f"cmds {r['commands']:5d} wrong {r['wrong']} behind {r['behind_p99']:4.1f}  "
+                  f"actuator p50 {r['actuator_p50_ms']:5.2f} p99 {r['actuator_p99_ms']:5.2f} ms  "
+                  f"match {r['match_ms']:6.2f} ms  overhead x{r['overhead']:.2f}", flush=True)
 
     with tempfile.TemporaryDirectory(prefix="vergence-bench-") as d:
         work = Path(d)
-        rates = [args.rate] if args.rate else RATES
         try:
             if args.floor:
                 f = messaging_floor(work)
                 print(json.dumps(f) if args.json else
                       f"floor  {f['size']} B messages at 1 kHz: router {f['router_us']:.0f} us CPU per message, "
                       f"a Python subscriber {f['subscriber_us']:.0f} us", flush=True)
-            rows = bench_setting("vga", 640, 480, {"window": 15, "max_window": 0}, args, work, rates, emit)
-            if args.heavy:
-                hr = [args.rate] if args.rate else HEAVY_RATES
-                rows += bench_setting("heavy", 3840, 1080, {"window": 31, "vsearch": 16, "max_window": 0}, args,
-                                      work, hr, emit)
+            rows = []
+            for setting, params, rates in settings(args, work):
+                rows += bench_setting(setting, args, work, rates, emit, params)
             if not args.json:
                 for line in summary(rows):
                     print(line, flush=True)
-        except (RuntimeError, TimeoutError, KeyboardInterrupt) as e:
+        except (RuntimeError, TimeoutError, KeyboardInterrupt, ValueError, OSError) as e:
             print(f"vergence bench pipeline: {e}", file=sys.stderr)
             for log in sorted(work.glob("*.log")):
                 print(f"--- {log.name}\n{log.read_text(errors='replace')[-800:]}", file=sys.stderr)
