@@ -168,8 +168,8 @@ class Periodic:
     Referee leaves them out.
 
     Its cost does not grow with the frame rate: the history keeps samples at least MIN_DT_S apart (a newer
-    one closer than that replaces the newest, so the fit always has the latest measurement; at 60 Hz every
-    sample is kept), and every grid is fitted at once (the normal equations of all its frequencies in one
+    one closer than that replaces the newest; at 60 Hz every sample is kept), the fit is made again only when
+    a sample is kept, and every grid is fitted at once (the normal equations of all its frequencies in one
     batch, the harmonics by the angle-addition recurrence): a search takes about 1 ms at any rate, where one
     least-squares solve per frequency took 4 ms at 60 Hz and 13 ms at 250 Hz (docs/PERFORMANCE.md)."""
 
@@ -183,12 +183,15 @@ class Periodic:
         self.t: deque[float] = deque()
         self.z: deque[float] = deque()
         self.hz: float | None = None
-        self.kept = 0  # samples appended (a replaced newest one not counted): the search's clock
+        self.kept = 0  # samples appended since the last search (a replaced newest one not counted)
+        self.appended = 0  # samples appended, ever
+        self._fit: tuple | None = None  # (appended, hz, the newest time, coefficients) of the latest fit
 
     def reset(self) -> None:
         self.t.clear()
         self.z.clear()
         self.hz = None
+        self._fit = None
 
     def add(self, t: float, z: float) -> None:
         if self.t and t <= self.t[-1]:
@@ -199,6 +202,7 @@ class Periodic:
             self.t.append(t)
             self.z.append(z)
             self.kept += 1
+            self.appended += 1
         while self.t[-1] - self.t[0] > self.window_s:
             self.t.popleft()
             self.z.popleft()
@@ -239,13 +243,16 @@ class Periodic:
     def predict(self, at: float) -> float | None:
         if len(self.t) < 4 * self.k + 4 or self.t[-1] - self.t[0] < self.min_s:
             return None
-        ts, zs = np.fromiter(self.t, float), np.fromiter(self.z, float)
-        tt = ts - ts[-1]
-        if self.hz is None or self.kept >= self.every or self.hz < self.cycles / (ts[-1] - ts[0]):
-            self.hz = self._search(tt, zs, ts[-1] - ts[0])
+        span = self.t[-1] - self.t[0]
+        if self.hz is None or self.kept >= self.every or self.hz < self.cycles / span:
+            ts, zs = np.fromiter(self.t, float), np.fromiter(self.z, float)
+            self.hz = self._search(ts - ts[-1], zs, span)
             self.kept = 0
-        coef = self._fits(tt, zs, np.array([self.hz]))[1][0]
-        return float(self._design(np.array([at - ts[-1]]), np.array([self.hz]))[0, :, 0] @ coef)
+        if self._fit is None or self._fit[:2] != (self.appended, self.hz):  # refit on a new sample kept
+            ts, zs = np.fromiter(self.t, float), np.fromiter(self.z, float)
+            self._fit = (self.appended, self.hz, ts[-1], self._fits(ts - ts[-1], zs, np.array([self.hz]))[1][0])
+        _, hz, t_ref, coef = self._fit
+        return float(self._design(np.array([at - t_ref]), np.array([hz]))[0, :, 0] @ coef)
 
 
 class Referee:

@@ -33,13 +33,14 @@ def plan_shards(workers, k_count: int) -> list[list]:
 
 def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, pan_rad: float, focal_px: float,
                params: Params, plan: list[list], at: tuple[int, int] | None = None, window: int | None = None,
-               t_capture_ns: int | None = None, clip: bool = True) -> Frame:
+               t_capture_ns: int | None = None, clip: bool = True, clipped: list | None = None) -> Frame:
     """A Frame for the fovea at `at` (default: the image centre) of the master, window w (default
     params.window): the fovea and band gray strips with their Sobel margins, and the master band too when
     params.lr_check needs it. The slave band is mapped onto the master's intensities here (params.photometric),
     and the master clipped like the slave where its gain clipped (params.clip_master, unless clip is False:
     the dynamic window's clip_fallback states, WindowControl), so the workers and the reducer see the same
-    strips as vergence.match() with that clip_master. Raises retina.BorderError when the window does not fit."""
+    strips as vergence.match() with that clip_master; `clipped` (a list) gets whether it was clipped
+    (retina.master_clipped's answer, found on the way). Raises retina.BorderError when the window does not fit."""
     if t_capture_ns is None:
         t_capture_ns = time.time_ns()
     h, wd = master.shape[:2]
@@ -48,8 +49,10 @@ def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, p
     x, y = at if at is not None else (wd // 2, h // 2)
     w = params.window if window is None else window
     retina.check_point(master.shape, x, y, w, params.vsearch)
-    fovea, band, mband, _ = retina.mapped_strips(master, slave, x, y, w, params.vsearch, params.photometric,
-                                              params.lr_check, params.clip_master and clip)
+    fovea, band, mband, lims = retina.mapped_strips(master, slave, x, y, w, params.vsearch, params.photometric,
+                                                 params.lr_check, params.clip_master and clip)
+    if clipped is not None:
+        clipped.append(lims is not None)
     return Frame(rig=rig, frame=frame, t_capture_ns=t_capture_ns, pan_rad=float(pan_rad), width=wd, height=h,
                  x=x, y=y, window=w, vsearch=params.vsearch, focal_px=float(focal_px), fovea=fovea.tobytes(),
                  band=band.tobytes(), plan=plan, circular=params.circular, support=params.support,

@@ -479,10 +479,11 @@ class Capture:
                 stale: bool, at: tuple[int, int]) -> bool:
         """The frame of this pair, published; False when the window no longer fits (reset to the base one)."""
         windows, fid = self.windows, self.fid
+        clipped: list[bool] = []
         try:
             frame = make_frame(master, slave, rig=self.rig, frame=fid, pan_rad=p_now, focal_px=self.focal,
                                params=self.params, plan=self.plan, at=at, window=w,
-                               t_capture_ns=t_ns, clip=clip)
+                               t_capture_ns=t_ns, clip=clip, clipped=clipped)
             frame.master_pan_rad, frame.tilt_rad = self.master_pan, self.tilt
             frame.skew_ns, frame.t_read_ns, frame.pan_stale = t_slave - t_ns, t_read, stale
         except retina.BorderError:
@@ -491,7 +492,7 @@ class Capture:
         if len(windows.states) > len(windows.sizes):  # clip_fallback: the decision's state is ours
             if clip:
                 if not windows.was_clipped:  # once set, it stays until a confident decision: no re-check
-                    windows.clipped(retina.master_clipped(master, slave, frame.y, w, self.params))
+                    windows.clipped(clipped[0])  # retina.master_clipped, as make_frame found it
             else:
                 self.unclipped[fid] = None
                 while len(self.unclipped) > 1024:

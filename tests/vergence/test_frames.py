@@ -107,3 +107,17 @@ def test_window_control_with_clip_fallback_then_the_unclipped_windows():
         assert WindowControl(params).states == [(15, True), (23, True), (31, True)]
     assert WindowControl(Params(max_window=0)).states == [(15, True), (15, False)]  # as match() then tries
     assert Params.paper().clip_fallback is False and WindowControl(Params.paper()).states == [(15, True)]
+
+
+@pytest.mark.parametrize("clips", [True, False])
+def test_make_frame_says_whether_it_clipped_the_master_as_master_clipped_does(clips):
+    """The capture's clip_fallback asks make_frame (one photometric map per frame), not master_clipped (two)."""
+    from vergence.frames import make_frame
+
+    m, s = clipping_pair() if clips else textured()
+    params = Params(photometric="affine")
+    y = m.shape[0] // 2
+    got: list[bool] = []
+    make_frame(m, s, rig="r", frame=1, pan_rad=0.0, focal_px=100.0, params=params, plan=[["w", 0, 10]],
+               clipped=got)
+    assert got == [retina.master_clipped(m, s, y, params.window, params)] == [clips]

@@ -47,10 +47,12 @@ def intrinsics(f: float, cx: float, cy: float) -> np.ndarray:
 
 def homography(f: float, src_size: tuple[int, int], view_size: tuple[int, int], pan_rad: float,
                tilt_rad: float, gimbal: str = "helmholtz") -> np.ndarray:
-    """K_v R^T K_s^-1: source pixel -> view pixel of a camera rotated by (pan, tilt)."""
-    ks = intrinsics(f, src_size[0] // 2, src_size[1] // 2)
+    """K_v R^T K_s^-1: source pixel -> view pixel of a camera rotated by (pan, tilt) (K_s^-1 in closed form: the
+    simulator asks this for every view it renders)."""
+    cx, cy = src_size[0] // 2, src_size[1] // 2
+    ks_inv = np.array([[1.0 / f, 0.0, -cx / f], [0.0, 1.0 / f, -cy / f], [0.0, 0.0, 1.0]])
     kv = intrinsics(f, view_size[0] // 2, view_size[1] // 2)
-    return kv @ rotation(pan_rad, tilt_rad, gimbal).T @ np.linalg.inv(ks)
+    return kv @ rotation(pan_rad, tilt_rad, gimbal).T @ ks_inv
 
 
 @dataclass(frozen=True)
