@@ -295,15 +295,13 @@ class Capture:
         self.plan_key = None
         self.fid = 0
         self.unclipped: dict[int, None] = {}  # the recent frames published with the master unclipped (clip_fallback)
-        self.pair: list = []  # the latest (master, slave), for the clipped shares of the status
+        self.pair: list = []  # the latest (master, slave, fovea row, window), for the clipped shares of the status
         self.warned: set[str] = set()
         self.node = Node("capture", self.rig, conf, stop, log=log, fields=self.fields, final_fields=lambda: dict(
             window=self.windows.window, workers=len(self.plan)))
         self.health = self.node.health
         self.fovea = Fovea(*at, (self.ht, self.wd), self.params, self.health)
         self.period = 1.0 / rate if rate > 0 else 0.0
-        # the rows a frame reads around the fovea's: the largest window's half, the vertical search, Sobel's margin
-        self.margin = max(self.windows.sizes) // 2 + self.params.vsearch + 1
         self.preview_period = 1.0 / self.cs.preview_hz if self.cs.preview_hz > 0 else 0.0
         self.pw = min(self.cs.preview_width, self.wd) if self.cs.preview_width > 0 else self.wd
         self.ph = max(1, round(self.ht * self.pw / self.wd))
@@ -315,7 +313,8 @@ class Capture:
         if not self.pair:
             return {}
         try:
-            out = retina.clipped_share(*self.pair, self.fovea.at()[1], self.windows.window, self.params.vsearch)
+            master, slave, y, w = self.pair  # a renderer's pair has only the rows of its fovea and window
+            out = retina.clipped_share(master, slave, y, w, self.params.vsearch)
         except ValueError as e:  # a figure of the status never stops the capture
             if "error" not in self.warned:
                 self.warned.add("error")
@@ -433,7 +432,11 @@ class Capture:
                 next_t = max(next_t + period, time.monotonic() - period)
             pan_at = PanLookup(self.history, self.history_lock, self.source, self.replica)
             at = self.source.fovea = self.fovea.at()  # this pair's fovea (a simulator's truth is for it)
-            self.source.rows = (at[1] - self.margin, at[1] + self.margin + 1)  # what a frame reads (a renderer's)
+            window = self.windows.state  # this pair's window (a decision may change it meanwhile)
+            # the rows its frame reads (a renderer renders only these): the window's half, the vertical search and
+            # Sobel's margin around the fovea's
+            margin = window[0] // 2 + self.params.vsearch + 1
+            self.source.rows = (at[1] - margin, at[1] + margin + 1)
             try:
                 master, slave = self.source.read(pan_at)
             except SourceError as e:
@@ -442,18 +445,18 @@ class Capture:
                     continue
                 print(f"vergence capture: {e}", file=sys.stderr)
                 return 2
-            self.step(master, slave, pan_at, at)
+            self.step(master, slave, pan_at, at, window)
         return 0
 
-    def step(self, master, slave, pan_at: PanLookup, at: tuple[int, int]) -> None:
+    def step(self, master, slave, pan_at: PanLookup, at: tuple[int, int], window: tuple[int, bool]) -> None:
         """One pair read: stamped, planned, published (when some worker is alive), previewed; the status."""
         t_read = time.time_ns()
         t_ns, t_slave = self.clock.stamp(t_read, self.source.exposure_ns)
         p_now, stale = pan_at.frame(t_slave)
         if stale:
             self.health.count("pan_unknown")
-        self.pair[:] = master, slave
-        w, clip = self.windows.state
+        w, clip = window
+        self.pair[:] = master, slave, at[1], w
         changes, ids = self.members.snapshot()
         if (changes, w) != self.plan_key:
             self.plan_key = (changes, w)
