@@ -34,11 +34,11 @@ def rotation(pan_rad: float, tilt_rad: float, gimbal: str = "helmholtz") -> np.n
     """Camera to world (x right, y down, z forward): R_x(tilt) R_y(pan) (helmholtz) or R_y(pan) R_x(tilt)."""
     cp, sp = math.cos(pan_rad), math.sin(pan_rad)
     ct, st = math.cos(tilt_rad), math.sin(tilt_rad)
-    ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
-    rx = np.array([[1.0, 0.0, 0.0], [0.0, ct, -st], [0.0, st, ct]])
-    if gimbal not in GIMBALS:
-        raise ValueError(f"gimbal={gimbal!r}: must be one of {', '.join(GIMBALS)}")
-    return rx @ ry if gimbal == "helmholtz" else ry @ rx
+    if gimbal == "helmholtz":  # rx @ ry
+        return np.array([[cp, 0.0, sp], [st * sp, ct, -st * cp], [-ct * sp, st, ct * cp]])
+    if gimbal == "fick":  # ry @ rx
+        return np.array([[cp, sp * st, sp * ct], [0.0, ct, -st], [-sp, cp * st, cp * ct]])
+    raise ValueError(f"gimbal={gimbal!r}: must be one of {', '.join(GIMBALS)}")
 
 
 def intrinsics(f: float, cx: float, cy: float) -> np.ndarray:
@@ -50,9 +50,11 @@ def homography(f: float, src_size: tuple[int, int], view_size: tuple[int, int], 
     """K_v R^T K_s^-1: source pixel -> view pixel of a camera rotated by (pan, tilt) (K_s^-1 in closed form: the
     simulator asks this for every view it renders)."""
     cx, cy = src_size[0] // 2, src_size[1] // 2
-    ks_inv = np.array([[1.0 / f, 0.0, -cx / f], [0.0, 1.0 / f, -cy / f], [0.0, 0.0, 1.0]])
-    kv = intrinsics(f, view_size[0] // 2, view_size[1] // 2)
-    return kv @ rotation(pan_rad, tilt_rad, gimbal).T @ ks_inv
+    vx, vy = view_size[0] // 2, view_size[1] // 2
+    r = rotation(pan_rad, tilt_rad, gimbal).T.tolist()
+    # kv @ r @ ks_inv, written out (small numpy products cost more than the arithmetic)
+    a = [[f * r[0][j] + vx * r[2][j] for j in range(3)], [f * r[1][j] + vy * r[2][j] for j in range(3)], r[2]]
+    return np.array([[row[0] / f, row[1] / f, row[2] - (row[0] * cx + row[1] * cy) / f] for row in a])
 
 
 @dataclass(frozen=True)
