@@ -24,6 +24,20 @@ HERE = str(Path(__file__).resolve().parent)
 if HERE not in sys.path:
     sys.path.insert(0, HERE)
 
+# the reaper: on SIGTERM or SIGINT, and at the session's end, every process the run started ends (tests/reaper.py)
+from reaper import pytest_configure, pytest_runtest_setup, pytest_unconfigure  # noqa: E402, F401
+
+import background  # noqa: E402
+
+
+def pytest_collection_finish(session):
+    """The slow tests' long computations start in the background, ahead of the tests (tests/background.py)."""
+    background.start(session.items)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    background.stop()
+
 
 @pytest.fixture
 def tiny_fs(tmp_path):

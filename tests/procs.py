@@ -57,7 +57,17 @@ def gives_up_without_a_router(*args: str, within: float, margin: float = 8.0) ->
 
 
 def tmux(*args: str, check: bool = True) -> str:
-    """`tmux ARGS...` (a terminal a test reads as a person would), its stdout; RuntimeError when it fails."""
+    """`tmux ARGS...` (a terminal a test reads as a person would), its stdout; RuntimeError when it fails. A
+    session it makes (new-session -s NAME) is killed by the reaper if the run is (tmux's server is no child of
+    the test's); kill-session forgets it."""
+    import reaper
+
+    if args[:1] == ("new-session",) and "-s" in args:
+        name = args[args.index("-s") + 1]
+        reaper.at_reap(("tmux", name), lambda: subprocess.run(["tmux", "kill-session", "-t", name],
+                                                              capture_output=True, timeout=5))
+    elif args[:1] == ("kill-session",) and "-t" in args:
+        reaper.forget(("tmux", args[args.index("-t") + 1]))
     r = subprocess.run(["tmux", *args], capture_output=True, text=True, timeout=10)
     if check and r.returncode != 0:
         raise RuntimeError(f"tmux {' '.join(args)}: {r.stderr.strip()}")

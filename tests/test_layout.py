@@ -9,13 +9,13 @@ from __future__ import annotations
 import ast
 import json
 import pkgutil
-import subprocess
-import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
 
+import background
+import sweeps
 import vergence
 
 ROOT = Path(vergence.__file__).resolve().parent
@@ -37,8 +37,14 @@ print(json.dumps({"loaded": sorted(m for m in sys.modules if m.split(".")[0] in 
 
 
 def _probe(name: str) -> tuple[str, int, str, str]:
-    r = subprocess.run([sys.executable, "-c", PROBE, name], capture_output=True, text=True, timeout=120)
-    return name, r.returncode, r.stdout, r.stderr
+    """PROBE of module `name` in a fresh interpreter (sweeps.probe; done ahead in the background when the test below is
+    selected, tests/background.py)."""
+    return background.get(sweeps.probe, PROBE, name)
+
+
+for _name in MODULES:
+    background.ahead(sweeps.probe, PROBE, _name,
+                     tests="test_every_module_imports_first_in_a_fresh_interpreter_without_zenoh_or_services")
 
 
 @pytest.mark.slow

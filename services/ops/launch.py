@@ -7,8 +7,12 @@ and stop them.
 
 Each child runs in a process group of its own (a Ctrl-C in the terminal reaches the parent only, which stops
 its children in order; a stop reaches whatever the child started); optionally it gets SIGTERM when its
-parent dies (Linux). Its stdout and stderr go to a log file, or to the parent's. CPU time and memory come
-from psutil. Every wait has a deadline.
+parent dies (Linux; when the thread that started it ends, in fact: PR_SET_PDEATHSIG). Its stdout and stderr go
+to a log file, or to the parent's. CPU time and memory come from psutil. Every wait has a deadline.
+
+Every Proc a process starts is in `live()` until it is stopped or found exited: a parent that is killed can end
+them all (tests/reaper.py does, for a killed test run), since a signal to the parent's process group does not
+reach their groups.
 """
 
 from __future__ import annotations
@@ -26,12 +30,25 @@ from pathlib import Path
 
 import psutil
 
-__all__ = ["GRACE_S", "TERM_GRACE_S", "Proc", "accepts", "free_port", "stop_all", "vergence", "wait_for",
-           "wait_listening"]
+__all__ = ["GRACE_S", "TERM_GRACE_S", "Proc", "accepts", "forget", "free_port", "live", "stop_all", "vergence",
+           "wait_for", "wait_listening"]
 
 GRACE_S = 5.0  # after SIGINT, the time a child has to exit by itself ...
 TERM_GRACE_S = 2.0  # ... then after SIGTERM, before SIGKILL
 SETTLE_S = 0.3  # wait_listening on a transport it cannot probe: the time the listener has to start
+
+_LIVE: set[Proc] = set()  # the Procs this process started, until stopped or seen exited (no lock: a signal
+#                           handler reads it in the thread it may interrupt; list(set) is atomic under the GIL)
+
+
+def live() -> list[Proc]:
+    """The Procs this process started that were not stopped, nor seen to have exited (poll, wait), yet."""
+    return [p for p in list(_LIVE) if p.returncode is None]
+
+
+def forget(p: Proc) -> None:
+    """Take p out of live() (it has been stopped, or reaped by someone else)."""
+    _LIVE.discard(p)
 
 
 def vergence(*args: str) -> list[str]:
@@ -116,6 +133,9 @@ class Proc:
                 fh.close()  # the child has its own copy
         self.pid = self.p.pid
         self._ps: psutil.Process | None = None
+        for old in [q for q in list(_LIVE) if q.returncode is not None]:  # exited and reaped: nothing to end
+            _LIVE.discard(old)
+        _LIVE.add(self)
 
     # -- state ----------------------------------------------------------------------------------------------
 
@@ -198,6 +218,7 @@ class Proc:
         self.signal_group(signal.SIGKILL)  # leftovers of the group, even after the leader exited
         with contextlib.suppress(subprocess.TimeoutExpired):
             self.p.wait(5)
+        forget(self)
         return self.p.poll()
 
 

@@ -16,6 +16,8 @@ import cv2
 import numpy as np
 import pytest
 
+import background
+import sweeps
 import vergence
 from vergence import evaluate
 from vergence.evaluate import GAINS
@@ -44,15 +46,9 @@ def slave_image(name: str, gain: float = 1.0, offset: float = 0.0) -> np.ndarray
 @functools.lru_cache(maxsize=None)
 def draw(name: str, seed: int, n: int, gain: float = 1.0, offset: float = 0.0, faithful: bool = False):
     """(share of points answered confidently, share of those within 1 px, share of all points within 1 px) for
-    n visible points of `seed`, the slave at gain / offset."""
-    left, _, disp = load(name)
-    slave = slave_image(name, gain, offset)
-    params = vergence.FAITHFUL if faithful else vergence.Params()
-    res = [(vergence.match(left, slave, p, params), disp[p[1], p[0]])
-           for p in points(name, n=n, seed=seed, mask=visible(name))]
-    right = [abs(m.offset_px + d) <= 1.0 for m, d in res]
-    confident = [r for (m, _), r in zip(res, right) if m.confident]
-    return len(confident) / n, sum(confident) / max(1, len(confident)), sum(right) / n
+    n visible points of `seed`, the slave at gain / offset (sweeps.draw: vergence.match at each point, the slave
+    image slave_image's; the slow test's draws are done ahead in the background, tests/background.py)."""
+    return background.get(sweeps.draw, name, int(seed), int(n), float(gain), float(offset), bool(faithful))
 
 
 # Seed 0, 100 points (default Params): confident / within 1 px of those: cones 85 / 100 %, teddy 92 / 98.9 %,
@@ -98,6 +94,11 @@ FLOORS = {
     "venus": (0.91, 0.975),
 }
 SEEDS_AT = {"equal": range(5), "bright": range(3), "dark": range(3)}
+for _gain in GAINS:
+    for _name in SCENES:
+        for _seed in SEEDS_AT[_gain]:
+            background.ahead(sweeps.draw, _name, _seed, N, *map(float, GAINS[_gain]), False,
+                             tests="test_accuracy_holds_on_every_seed")
 
 
 @pytest.mark.slow

@@ -12,6 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import background
+import sweeps
 import vergence
 from procs import run as cli
 from vergence.control import ControlSettings, Controller, Predictor
@@ -36,9 +38,18 @@ class Clock:
 
 
 def run(spec, mode="predictive", rate=60.0, frames=300, seed=0, noise=0.0, start_px=0.0, rig=None, **control):
+    if rig is None and not control:  # sweeps.track, done ahead in the background when registered (below)
+        return background.get(sweeps.track, spec, mode, float(rate), int(frames), int(seed), float(noise),
+                              float(start_px))
     rig = rig or MovingRig(spec, HEAD, seed=seed, noise=noise)
     rig.start_pan_rad = rig.pan_off_truth(start_px)
     return list(closed_loop(rig, frames, None, ControlSettings(mode=mode, **control), None, rate))
+
+
+def ahead_run(test, spec, mode="predictive", rate=60.0, frames=300, seed=0, noise=0.0, start_px=0.0):
+    """Register run(...) of a slow test with tests/background.py (its normalised arguments, as run asks)."""
+    background.ahead(sweeps.track, spec, mode, float(rate), int(frames), int(seed), float(noise), float(start_px),
+                     tests=test)
 
 
 # -- motion specs ----------------------------------------------------------------------------------------------
@@ -273,8 +284,21 @@ def test_the_reducer_bounds_its_commands_by_the_motor_settings():
 
 # -- the Musts, in `vergence sim`'s loop -------------------------------------------------------------------------
 
+SINES = [(1, 1.0), (2, 2.0)]
+STILL_Z = [0.6, 0.8, 1.0]
+for _hz, _ in SINES:
+    for _seed in (0, 1):
+        ahead_run("test_sine_tracking_rms", f"sine:z=0.8,amp=0.3,hz={_hz}", seed=_seed)
+        ahead_run("test_sine_tracking_rms", f"sine:z=0.8,amp=0.3,hz={_hz}", mode="p", seed=_seed)
+ahead_run("test_step_settles_within_6_frames_without_overshoot", "step:z0=1.2,z1=0.6,at=1", frames=120, start_px=8.0)
+for _z in STILL_Z:
+    for _seed in (0, 1):
+        ahead_run("test_still_target_with_noise_never_moves_once_converged", f"still:z={_z}", frames=150, seed=_seed,
+                  noise=3.0, start_px=12.0)
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("hz,limit", [(1, 1.0), (2, 2.0)])
+@pytest.mark.parametrize("hz,limit", SINES)
 def test_sine_tracking_rms(hz, limit):
     """RMS over frames 60..300 at 60 Hz, default controller (predictive), seeds 0 and 1; the p controller's
     figure is printed beside (and must be worse)."""
@@ -299,7 +323,7 @@ def test_step_settles_within_6_frames_without_overshoot():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("z", [0.6, 0.8, 1.0])
+@pytest.mark.parametrize("z", STILL_Z)
 def test_still_target_with_noise_never_moves_once_converged(z):
     for seed in (0, 1):
         steps = run(f"still:z={z}", frames=150, seed=seed, noise=3.0, start_px=12.0)
@@ -541,17 +565,37 @@ def test_servo_takes_the_newest_of_a_burst_of_goals():
 
 def late(motion, latency, rate=60.0, frames=300, seed=4, noise=None, **timing):
     """`vergence sim --motion M --focal 500 --rate R --frames N --camera-latency L ...` (the slave starting
-    parallel, pan 0), the run's Steps."""
-    from vergence.timing import CameraTiming
+    parallel, pan 0), the run's Steps (sweeps.late, done ahead in the background when registered below)."""
+    return background.get(sweeps.late, motion, float(latency), float(rate), int(frames), int(seed), noise, **timing)
 
-    rig = MovingRig.from_options(motion=motion, focal="500", seed=str(seed), noise=noise)
-    return list(closed_loop(rig, frames, None, ControlSettings(), None, rate,
-                            timing=CameraTiming(latency, **timing), seed=seed))
+
+def ahead_late(test, motion, latency, rate=60.0, frames=300, seed=4, noise=None, **timing):
+    background.ahead(sweeps.late, motion, float(latency), float(rate), int(frames), int(seed), noise, tests=test,
+                     **timing)
+
+
+OLD_IMAGE = [(0.0, 1, 0.5), (0.033, 1, 1.0), (0.066, 0.5, 1.0), (0.066, 1, 1.5), (0.1, 0.5, 1.5), (0.1, 1, 2.5)]
+RATES = [30.0, 60.0]
+LATENCIES = [0.0, 0.016, 0.033, 0.05, 0.066, 0.1, 0.15]
+for _latency, _hz, _ in OLD_IMAGE:
+    ahead_late("test_the_default_controller_tracks_a_sine_with_the_image_old_when_read",
+               f"sine:z=0.8,amp=0.3,hz={_hz}", _latency)
+for _seed in (4, 5):
+    for _kw in ({"skew_s": 0.008}, {}):
+        ahead_late("test_a_skew_of_8_ms_between_the_cameras_costs_under_0_3_px", "sine:z=0.8,amp=0.3,hz=1", 0.033,
+                   seed=_seed, **_kw)
+for _rate in RATES:
+    for _latency in LATENCIES:
+        for _motion in ("still:z=0.8", "step:z0=1.2,z1=0.6,at=1"):
+            ahead_late("test_never_a_runaway_on_a_still_target_nor_after_a_step", _motion, _latency, _rate,
+                       int(3 * _rate), seed=6, noise="2")
+for _gain in (1.0, 1.9):
+    background.ahead(sweeps.p_still, _gain, tests="test_the_p_controller_neither_oscillates_at_100_ms_even_with_a_"
+                                                   "gain_of_1_9")
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("latency,hz,bound", [(0.0, 1, 0.5), (0.033, 1, 1.0), (0.066, 0.5, 1.0), (0.066, 1, 1.5),
-                                              (0.1, 0.5, 1.5), (0.1, 1, 2.5)])
+@pytest.mark.parametrize("latency,hz,bound", OLD_IMAGE)
 def test_the_default_controller_tracks_a_sine_with_the_image_old_when_read(latency, hz, bound):
     """RMS over frames 60..300 at 60 Hz (seed 4: a draw the controller was not tuned on; seeds 1-3 and teddy's
     texture in docs/SIMULATOR.md). Without the time model (the frame stamped at its read with the pan then)
@@ -571,8 +615,8 @@ def test_a_skew_of_8_ms_between_the_cameras_costs_under_0_3_px():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("rate", [30.0, 60.0])
-@pytest.mark.parametrize("latency", [0.0, 0.016, 0.033, 0.05, 0.066, 0.1, 0.15])
+@pytest.mark.parametrize("rate", RATES)
+@pytest.mark.parametrize("latency", LATENCIES)
 def test_never_a_runaway_on_a_still_target_nor_after_a_step(latency, rate):
     """Still (with sensor noise): once within 1 px, it stays there for the rest of 3 s. A step from 1.2 to
     0.6 m at 1 s: overshoot <= 3 px, within 1 px for good no later than 6 frames plus the latency in frames."""
@@ -590,12 +634,8 @@ def test_never_a_runaway_on_a_still_target_nor_after_a_step(latency, rate):
 def test_the_p_controller_neither_oscillates_at_100_ms_even_with_a_gain_of_1_9():
     """Referred to the pan at exposure, p is (1 - g) x that pan + g x the target: stable at gain <= 1 at any
     latency; its gain is lowered to 1 for an old image (at 1.9 it never converged before)."""
-    from vergence.timing import CameraTiming
-
     for gain in (1.0, 1.9):
-        rig = MovingRig.from_options(motion="still:z=0.8", focal="500", noise="2", seed="6")
-        steps = list(closed_loop(rig, 120, None, ControlSettings(mode="p", gain=gain), None, 60,
-                                 timing=CameraTiming(0.1)))
+        steps = background.get(sweeps.p_still, gain)  # 120 frames at 60 Hz, the image 100 ms old (tests/sweeps.py)
         assert max(abs(s.error_px) for s in steps[60:]) <= 1.0
 
 

@@ -12,6 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
+import background
+import sweeps
 import vergence
 from middlebury import SCENES, load, needs_data, points, visible
 from procs import Procs, free_port, run as cli, wait_for
@@ -222,18 +224,23 @@ def test_loop_converges_with_6_px_of_vertical_misalignment(name, capsys):
 def _loop_outcomes(name, seed, n, gain=1.0, offset=0.0):
     """Whether the loop converges (within 1 px by frame 5, staying there) at each of n visible points of `seed`
     (starts 10-40 px off, drawn from seed + 1000), the slave camera at gain / offset: a tuple of bools. The first
-    m of n points (and their starts) are the m points of the same seed drawn alone."""
-    rng = np.random.default_rng(seed + 1000)
-    out = []
-    for x, y in points(name, n=n, seed=seed, margin=60, mask=visible(name)):
-        n_conv = frames_to_converge(run(_started_off(name, x, y, rng, gain=gain, offset=offset)))
-        out.append(n_conv is not None and n_conv <= 5)
-    return tuple(out)
+    m of n points (and their starts) are the m points of the same seed drawn alone. (sweeps.loop_outcomes: this
+    file's run() on _started_off's rigs; done ahead in the background, tests/background.py.)"""
+    return background.get(sweeps.loop_outcomes, name, int(seed), int(n), float(gain), float(offset))
+
+
+def _ahead_outcomes(test, name, seed, n, gain=1.0, offset=0.0):
+    background.ahead(sweeps.loop_outcomes, name, int(seed), int(n), float(gain), float(offset), tests=test)
+
+
+RATE_FLOORS = [("cones", 0.88), ("teddy", 0.905), ("tsukuba", 0.825), ("venus", 0.905)]
+GAIN_IDS = {"bright": (1.3, 20.0), "dark": (0.7, -15.0)}
+UNDER_GAIN_300 = [("teddy", 1.3, 20.0), ("tsukuba", 0.7, -15.0)]
 
 
 @pytest.mark.slow
 @needs_data
-@pytest.mark.parametrize("name,floor", [("cones", 0.88), ("teddy", 0.905), ("tsukuba", 0.825), ("venus", 0.905)])
+@pytest.mark.parametrize("name,floor", RATE_FLOORS)
 def test_loop_convergence_rate_over_300_points(name, floor, capsys):
     """The same loop at 300 points per scene (seeds 3-5, 100 each; starts 10-40 px off): 20 points are too few
     to see a change of a few percent. Measured: cones 89.3, teddy 92.7, tsukuba 83.7, venus 92.3 % (92.0 without
@@ -258,9 +265,23 @@ GAIN_POINTS = 60  # per seed (3 and 4): 120 points per scene and gain, each agai
 GAIN_DROP = {"cones": 0.03, "teddy": 0.05, "tsukuba": 0.03, "venus": 0.03}
 
 
+for _name, _ in RATE_FLOORS:
+    for _seed in (3, 4, 5):
+        _ahead_outcomes(("test_loop_convergence_rate_over_300_points", "test_loop_converges_whatever_the_slave_cameras_"
+                         "gain", "test_the_loop_stays_within_3_points_under_gain_over_300_points"), _name, _seed, 100)
+    for _gain, _offset in GAIN_IDS.values():
+        for _seed in (3, 4):
+            _ahead_outcomes("test_loop_converges_whatever_the_slave_cameras_gain", _name, _seed, GAIN_POINTS, _gain,
+                            _offset)
+for _name, _gain, _offset in UNDER_GAIN_300:
+    for _seed in (3, 4, 5):
+        _ahead_outcomes("test_the_loop_stays_within_3_points_under_gain_over_300_points", _name, _seed, 100, _gain,
+                        _offset)
+
+
 @pytest.mark.slow
 @needs_data
-@pytest.mark.parametrize("gain,offset", [(1.3, 20.0), (0.7, -15.0)], ids=["bright", "dark"])
+@pytest.mark.parametrize("gain,offset", list(GAIN_IDS.values()), ids=list(GAIN_IDS))
 @pytest.mark.parametrize("name", SCENES)
 def test_loop_converges_whatever_the_slave_cameras_gain(name, gain, offset, capsys):
     """The slave camera at another gain and offset (`vergence sim --gain --offset`): the loop converges at
@@ -369,8 +390,7 @@ def test_up_with_the_simulated_rig_converges(tmp_path):
 
 @pytest.mark.slow
 @needs_data
-@pytest.mark.parametrize("name,gain,offset", [("teddy", 1.3, 20.0), ("tsukuba", 0.7, -15.0)], ids=["teddy-bright",
-                                                                                                     "tsukuba-dark"])
+@pytest.mark.parametrize("name,gain,offset", UNDER_GAIN_300, ids=["teddy-bright", "tsukuba-dark"])
 def test_the_loop_stays_within_3_points_under_gain_over_300_points(name, gain, offset, capsys):
     """With Params.clip_fallback (the default): the two conditions short of the issue's 3 points without it,
     over 300 points (seeds 3-5, 100 each, the same points and starts at both gains; a 3-point

@@ -1,0 +1,102 @@
+"""The slow tests' long computations, as top-level functions of their arguments (so that tests/background.py can do
+them ahead in its worker processes, which import them by name): closed loops of the simulated rig, draws of
+Middlebury points, and the layout's imports in fresh interpreters. Each is deterministic (seeded): done here or
+there, the result is the same. The loops return their Steps without the layer-4 scores (vergence.sim.loop.Step.scores),
+which no test of these reads and which would be 20 MB a run to carry back."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+import vergence
+from middlebury import load, points, visible
+from vergence import evaluate
+from vergence.control import ControlSettings
+from vergence.evaluate import IDEAL_MOTOR, P_CONTROL, started_off
+from vergence.sim.loop import closed_loop, frames_to_converge
+from vergence.sim.moving import Head, MovingRig
+
+F, B = 500.0, 0.06
+HEAD = Head(B, F)  # tests/scenarios/test_tracking.py's head: b = 0.06 m, f = 500 px
+
+
+def _lean(steps) -> list:
+    return [dataclasses.replace(s, scores=None) for s in steps]
+
+
+# -- tests/scenarios/test_tracking.py ----------------------------------------------------------------------------
+
+def track(spec: str, mode: str = "predictive", rate: float = 60.0, frames: int = 300, seed: int = 0,
+          noise: float = 0.0, start_px: float = 0.0) -> list:
+    """The moving rig of `spec` on HEAD (seeded, with sensor noise), its slave started start_px off the truth, in
+    `vergence sim`'s loop with the controller of `mode`: the Steps."""
+    rig = MovingRig(spec, HEAD, seed=seed, noise=noise)
+    rig.start_pan_rad = rig.pan_off_truth(start_px)
+    return _lean(closed_loop(rig, frames, None, ControlSettings(mode=mode), None, rate))
+
+
+def late(motion: str, latency: float, rate: float = 60.0, frames: int = 300, seed: int = 4, noise: str | None = None,
+         **timing) -> list:
+    """`vergence sim --motion M --focal 500 --rate R --frames N --camera-latency L ...` (the slave starting
+    parallel, pan 0), the run's Steps."""
+    from vergence.timing import CameraTiming
+
+    rig = MovingRig.from_options(motion=motion, focal="500", seed=str(seed), noise=noise)
+    return _lean(closed_loop(rig, frames, None, ControlSettings(), None, rate,
+                             timing=CameraTiming(latency, **timing), seed=seed))
+
+
+def p_still(gain: float) -> list:
+    """The p controller at `gain`, the image 100 ms old when read, on a still target with sensor noise: 120
+    frames at 60 Hz."""
+    from vergence.timing import CameraTiming
+
+    rig = MovingRig.from_options(motion="still:z=0.8", focal="500", noise="2", seed="6")
+    return _lean(closed_loop(rig, 120, None, ControlSettings(mode="p", gain=gain), None, 60,
+                             timing=CameraTiming(0.1)))
+
+
+# -- tests/vergence/sim/test_loop.py ------------------------------------------------------------------------------
+
+def loop_outcomes(name: str, seed: int, n: int, gain: float = 1.0, offset: float = 0.0) -> tuple[bool, ...]:
+    """Whether the loop converges (within 1 px by frame 5, staying there) at each of n visible points of `seed`
+    (starts 10-40 px off, drawn from seed + 1000), the slave camera at gain / offset: a tuple of bools. The first
+    m of n points (and their starts) are the m points of the same seed drawn alone. (The loop of
+    test_loop.run: 8 frames, the ideal motor, the p controller, default Params.)"""
+    rng = np.random.default_rng(seed + 1000)
+    out = []
+    for x, y in points(name, n=n, seed=seed, margin=60, mask=visible(name)):
+        rig = started_off(*load(name), x, y, rng, gain=gain, offset=offset)
+        n_conv = frames_to_converge(list(closed_loop(rig, 8, vergence.Params(), motor=IDEAL_MOTOR,
+                                                     control=P_CONTROL)))
+        out.append(n_conv is not None and n_conv <= 5)
+    return tuple(out)
+
+
+# -- tests/scenarios/test_accuracy.py ------------------------------------------------------------------------------
+
+def draw(name: str, seed: int, n: int, gain: float = 1.0, offset: float = 0.0, faithful: bool = False):
+    """(share of points answered confidently, share of those within 1 px, share of all points within 1 px) for
+    n visible points of `seed`, the slave at gain / offset."""
+    left, right, disp = load(name)
+    slave = evaluate.gained(right, gain, offset)
+    params = vergence.FAITHFUL if faithful else vergence.Params()
+    res = [(vergence.match(left, slave, p, params), disp[p[1], p[0]])
+           for p in points(name, n=n, seed=seed, mask=visible(name))]
+    right_ = [abs(m.offset_px + d) <= 1.0 for m, d in res]
+    confident = [r for (m, _), r in zip(res, right_) if m.confident]
+    return len(confident) / n, sum(confident) / max(1, len(confident)), sum(right_) / n
+
+
+
+# -- tests/test_layout.py ----------------------------------------------------------------------------------------------
+
+def probe(code: str, name: str) -> tuple[str, int, str, str]:
+    """`python -c CODE NAME` in a fresh interpreter: (name, exit code, stdout, stderr)."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", code, name], capture_output=True, text=True, timeout=120)
+    return name, r.returncode, r.stdout, r.stderr
