@@ -17,7 +17,8 @@ values for one limit would leave the reader guessing which one holds).
     [actuator]  # driver, port, and the motor (see vergence.motors): [actuator.motor] min_deg, max_deg,
                 # max_step_deg, dead_band_deg are the one home of the pan limits (the reducer's controller
                 # and the actuator both read them there)
-    [supervise] # `vergence up`: heartbeat_s, start_grace_s, stall_s (liveness by heartbeat, issue #29)
+    [supervise] # `vergence up`: heartbeat_s, start_grace_s, stall_s (liveness by heartbeat, issue #29);
+                # restart_s, restart_max_s (the back-off before a restart)
     [limits]    # what a message may claim before it is believed (clock skew, frame window, sizes, membership)
 """
 
@@ -195,22 +196,32 @@ class SuperviseSettings:
     standby takes over, or it is restarted). start_grace_s: the time a fresh child has for its first beat (its
     interpreter starting; the thread starts before any heavy import, so it beats through a numba compile).
     stall_s: a child whose own loop (its status, the actuator's motor loop) has not turned for this long stops
-    beating, so a deadlocked loop is hung too (0: not checked)."""
+    beating, so a deadlocked loop is hung too (0: not checked).
+
+    restart_s: the wait before restarting a child that died (with no standby to take over), doubled at each
+    death that comes before the child has run 10 s, up to restart_max_s; back to restart_s after a longer run."""
 
     heartbeat_s: float = 1.5
     start_grace_s: float = 30.0
     stall_s: float = 10.0
+    restart_s: float = 0.2
+    restart_max_s: float = 5.0
 
     RANGES: typing.ClassVar[dict[str, Range]] = {
         "heartbeat_s": Range(0, 3600, lo_open=True, note="seconds"),
         "start_grace_s": Range(0, 3600, lo_open=True, note="seconds"),
         "stall_s": Range(0, 3600, note="seconds; 0: not checked"),
+        "restart_s": Range(0, 3600, lo_open=True, note="seconds"),
+        "restart_max_s": Range(0, 3600, lo_open=True, note="seconds"),
     }
 
     def __post_init__(self):
         check(self, self.RANGES)
         if 0 < self.stall_s <= self.heartbeat_s:
             raise ValueError(f"stall_s: must exceed heartbeat_s ({self.heartbeat_s:g}) or be 0, got {self.stall_s}")
+        if self.restart_max_s < self.restart_s:
+            raise ValueError(f"restart_max_s: must be at least restart_s ({self.restart_s:g}), got "
+                             f"{self.restart_max_s}")
 
 
 @dataclass(frozen=True)

@@ -6,8 +6,9 @@ from it and links to them directly on 127.0.0.1, so a frame crosses one link per
 no data between them (it serves the clients: `vergence monitor`, workers on other nodes). With no arguments it
 runs the simulated rig.
 
-Supervised: a child that exits (the router too) is started again after a back-off (0.2 s, doubled at each
-quick death up to 5 s, back to 0.2 s once it has run 10 s), with one log line per restart and the counts;
+Supervised: a child that exits (the router too) is started again after a back-off ([supervise] restart_s, 0.2 s,
+doubled at each quick death up to restart_max_s, 5 s; back to restart_s once it has run 10 s), with one log line
+per restart and the counts;
 the reducer and the capture, slow to start, each have a standby (a second process that has imported and
 warmed up and waits in session.open_session) that takes over the moment its child dies. A child that exits
 with 2 at its first start (bad options or settings) stops everything instead.
@@ -45,8 +46,7 @@ from services.ops.launch import GRACE_S, Proc, accepts, vergence, wait_listening
 
 log = logging.getLogger("vergence.up")
 POLL_S = 0.05  # how often dead children are looked for
-BACKOFF_S = (0.2, 5.0)  # the wait before a restart: first, then doubled up to the second ...
-STABLE_S = 10.0  # ... and back to the first once the child has run this long
+STABLE_S = 10.0  # a child that ran this long gets the first back-off again ([supervise] restart_s)
 STATUS_S = 60.0  # a line with the restart counts this often
 ROUTER_START_S = 10.0  # the router has this long to listen before anything else starts
 STANDBY_DELAY_S = 5.0  # a standby is started this long after its child (not to slow the child's own start)
@@ -236,7 +236,7 @@ class Child:
         self.why = ""  # why up killed the running process (its heartbeat stopped), for the exit's log line
         self.started = 0.0  # time.monotonic() of the latest start
         self.restarts = 0
-        self.backoff = BACKOFF_S[0]
+        self.backoff = self.sup.restart_s
         self.due: float | None = None  # when a dead child is started again
         self.standby: Standby | None = None
         self.standby_due: float | None = None  # when a standby is started (None: this child has none)
@@ -297,10 +297,10 @@ def _tend_standby(c: Child, now: float) -> None:
             log.info("standby of %s (pid %d) ready", c.name, sb.p.pid)
         elif sb.p.poll() is not None:
             log.warning("standby of %s (pid %d) exited with %s: another in %.0f s", c.name, sb.p.pid,
-                        sb.p.returncode, BACKOFF_S[1])
+                        sb.p.returncode, c.sup.restart_max_s)
             sb.close()
             sb.hb.close()
-            c.standby, c.standby_due = None, now + BACKOFF_S[1]
+            c.standby, c.standby_due = None, now + c.sup.restart_max_s
     elif c.standby_due is not None and now >= c.standby_due and c.exited() is None:
         c.standby = Standby(c.name, c.argv, c.sup)
         log.info("started a standby of %s (pid %d)", c.name, c.standby.p.pid)
@@ -314,8 +314,8 @@ def _exited(c: Child, code: int, now: float, children: list[Child]) -> bool:
         log.error("%s (pid %d) refused its options or settings (exit 2): stopping", c.name, c.p.pid)
         return False
     if ran >= STABLE_S:
-        c.backoff = BACKOFF_S[0]
-    wait, c.backoff = c.backoff, min(c.backoff * 2, BACKOFF_S[1])
+        c.backoff = c.sup.restart_s
+    wait, c.backoff = c.backoff, min(c.backoff * 2, c.sup.restart_max_s)
     how = f"was killed by up ({c.why})" if c.why else f"exited with {code}"
     if c.standby is not None and c.standby.p.poll() is None:
         ready = "ready" if c.standby.ready else "still starting"

@@ -55,6 +55,15 @@ def connects(secrets, role, variant, endpoint, **override) -> bool:
     return True
 
 
+def connects_each(secrets, attempts: list[tuple[str, str, str, dict]]) -> list[bool]:
+    """connects() for each (role, variant, endpoint, override), all at once (threads): a refused one waits out its
+    1.5 s connect timeout, and these are independent clients of one router."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(len(attempts)) as pool:
+        return list(pool.map(lambda a: connects(secrets, a[0], a[1], a[2], **a[3]), attempts))
+
+
 def test_router_configs_share_one_acl():
     """router.json5 and router-tcp.json5 carry the same rules and policies; TLS subjects also need the
     certificate's common name. Both disable multicast and gossip scouting."""
@@ -86,14 +95,15 @@ def test_no_credentials_or_wrong_password_cannot_connect(tmp_path, secrets, vari
     conf, endpoint = router_config(variant, secrets, tmp_path / "router.json5")
     with Procs(tmp_path) as P:
         start_router(P, conf, endpoint)
-        assert connects(secrets, "reducer", variant, endpoint)
-        assert not connects(secrets, "reducer", variant, endpoint,
-                            **{"transport/auth/usrpwd/password": "wrong"})
         intruder = {"transport/auth/usrpwd/user": "intruder", "transport/auth/usrpwd/password": "x"}
-        assert not connects(secrets, "reducer", variant, endpoint, **intruder)
-        # another role's password does not open this role's name
-        assert not connects(secrets, "reducer", variant, endpoint,
-                            **{"transport/auth/usrpwd/password": passwords(secrets)["worker"]})
+        # the right password; a wrong one; an unknown user; another role's password (it does not open this
+        # role's name)
+        assert connects_each(secrets, [
+            ("reducer", variant, endpoint, {}),
+            ("reducer", variant, endpoint, {"transport/auth/usrpwd/password": "wrong"}),
+            ("reducer", variant, endpoint, intruder),
+            ("reducer", variant, endpoint, {"transport/auth/usrpwd/password": passwords(secrets)["worker"]}),
+        ]) == [True, False, False, False]
         # no credentials at all: a plain client with only the endpoint (and, for TLS, our CA and a cert)
         conf0 = zenoh.Config()
         conf0.insert_json5("mode", '"client"')
@@ -115,19 +125,18 @@ def test_wrong_ca_fails_tls(tmp_path, secrets, other_ca):
     conf, endpoint = router_config("tls", secrets, tmp_path / "router.json5")
     with Procs(tmp_path) as P:
         start_router(P, conf, endpoint)
-        assert connects(secrets, "reducer", "tls", endpoint)
-        # the client trusts another CA: it rejects our router's certificate
-        assert not connects(secrets, "reducer", "tls", endpoint,
-                            **{"transport/link/tls/root_ca_certificate": str(other_ca / "ca.pem")})
-        # the client presents a certificate of another CA (right CN, right password): the router rejects it
-        assert not connects(secrets, "reducer", "tls", endpoint,
-                            **{"transport/link/tls/connect_certificate": str(other_ca / "reducer.pem"),
-                               "transport/link/tls/connect_private_key": str(other_ca / "reducer-key.pem")})
-        # no client certificate at all (mutual TLS is required)
-        assert not connects(secrets, "reducer", "tls", endpoint,
-                            **{"transport/link/tls/enable_mtls": False})
-        # a plain tcp client does not reach a tls listener
-        assert not connects(secrets, "reducer", "tcp", endpoint.replace("tls/", "tcp/"))
+        assert connects_each(secrets, [
+            ("reducer", "tls", endpoint, {}),
+            # the client trusts another CA: it rejects our router's certificate
+            ("reducer", "tls", endpoint, {"transport/link/tls/root_ca_certificate": str(other_ca / "ca.pem")}),
+            # the client presents a certificate of another CA (right CN, right password): the router rejects it
+            ("reducer", "tls", endpoint, {"transport/link/tls/connect_certificate": str(other_ca / "reducer.pem"),
+                                          "transport/link/tls/connect_private_key": str(other_ca / "reducer-key.pem")}),
+            # no client certificate at all (mutual TLS is required)
+            ("reducer", "tls", endpoint, {"transport/link/tls/enable_mtls": False}),
+            # a plain tcp client does not reach a tls listener
+            ("reducer", "tcp", endpoint.replace("tls/", "tcp/"), {}),
+        ]) == [True, False, False, False, False]
 
 
 @pytest.mark.slow

@@ -25,9 +25,9 @@ RESUME_S = 3.0  # the longest pause in the decisions that a SIGKILLed (or SIGSTO
 MOVING = "sim:motion=sine:z=0.8,amp=0.3,hz=0.5:focal=500"  # a target moving in depth: the commands change
 
 
-def settings(tmp_path) -> str:
+def settings(tmp_path, more: str = "") -> str:
     p = tmp_path / "settings.toml"
-    p.write_text("[network]\nmax_window = 0\n[capture]\npreview_hz = 0\n")
+    p.write_text("[network]\nmax_window = 0\n[capture]\npreview_hz = 0\n" + more)
     return str(p)
 
 
@@ -56,15 +56,15 @@ def children(up) -> dict[str, list]:
     return out
 
 
-def start_up(P: Procs, tmp_path, *extra: str, source: str | None = None, rate: str = "20"):
-    """`vergence up` (2 workers, a still textured pair at 20 Hz unless told otherwise) on a free port, and a
-    collector of the decisions in the test's own Zenoh client (one that reconnects when the router comes
-    back)."""
+def start_up(P: Procs, tmp_path, *extra: str, source: str | None = None, rate: str = "20", more: str = ""):
+    """`vergence up` (2 workers, a still textured pair at 20 Hz unless told otherwise; `more`: more settings) on a
+    free port, and a collector of the decisions in the test's own Zenoh client (one that reconnects when the router
+    comes back)."""
     from services.runtime import session
 
     P.endpoint = f"tcp/127.0.0.1:{free_port()}"
     up = P.start("up", "up", "--listen", P.endpoint, "--source", source or textured_pair(tmp_path), "--rate", rate,
-                 "--workers", "2", "--config", settings(tmp_path), *extra, connect=False)
+                 "--workers", "2", "--config", settings(tmp_path, more), *extra, connect=False)
     P.wait_port(60)
     import zenoh
 
@@ -172,7 +172,9 @@ def test_a_sigkilled_child_is_restarted_and_decisions_resume_within_3_s(tmp_path
 @pytest.mark.slow
 def test_worker_and_reducer_memory_stays_put_over_10_capture_restarts(tmp_path):
     with Procs(tmp_path) as P:
-        up, _, decisions = start_up(P, tmp_path)
+        # every restart after 0.2 s: the captures killed in a row would otherwise wait up to 5 s each for their
+        # back-off (what the memory does over the restarts is under test, not the back-off: test_up.py's)
+        up, _, decisions = start_up(P, tmp_path, more="[supervise]\nrestart_max_s = 0.2\n")
         kill_and_time(P, up, decisions, "capture")  # the first restart: whatever is allocated once, is
 
         def rss() -> dict[int, int]:

@@ -32,7 +32,9 @@ def test_settings_from_toml(tmp_path):
     ({"supervise": {"heartbeat_s": 0}}, r"supervise\.heartbeat_s: must be above 0 and at most 3600 \(seconds\), got 0"),
     ({"supervise": {"stall_s": 1.0}}, r"supervise\.stall_s: must exceed heartbeat_s \(1\.5\) or be 0, got 1\.0"),
     ({"supervise": {"heartbeat": 1}}, r"supervise\.heartbeat: unknown setting; known here: heartbeat_s, "
-                                      "stall_s, start_grace_s"),
+                                      "restart_max_s, restart_s, stall_s, start_grace_s"),
+    ({"supervise": {"restart_max_s": 0.1}}, r"supervise\.restart_max_s: must be at least restart_s \(0\.2\), "
+                                            r"got 0\.1"),
     ({"actuator": {"motor": {"silent_s": -1}}}, r"actuator\.motor\.silent_s: must be from 0 to 3600, got -1"),
     ({"colour": 1}, "colour: unknown setting; known here: actuator, camera, capture, control, limits, network, "
                     "reducer, rig, supervise$"),

@@ -37,10 +37,10 @@ def test_busy_port_is_refused_with_a_hint(tmp_path):
 RUNS_ON = "import time; time.sleep(60)"  # a child's code, not a wait of the test: a service that runs on
 
 
-def _child(name: str, code: str):
+def _child(name: str, code: str, sup=None):
     from services.ops import up
 
-    return up.Child(name, [sys.executable, "-c", code])
+    return up.Child(name, [sys.executable, "-c", code], sup=sup)
 
 
 def _supervise_until(children, stop, cond, timeout: float) -> int:
@@ -93,8 +93,10 @@ def test_the_back_off_caps_and_resets_after_a_stable_run(monkeypatch, caplog):
     from services.runtime import session
     from services.ops import up
 
-    monkeypatch.setattr(up, "BACKOFF_S", (0.1, 0.4))  # scaled down from (0.2, 5.0)
-    quick = _child("quick", "import sys; sys.exit(1)")
+    from vergence.config import SuperviseSettings
+
+    sup = SuperviseSettings(restart_s=0.1, restart_max_s=0.4)  # [supervise], scaled down from 0.2 and 5.0
+    quick = _child("quick", "import sys; sys.exit(1)", sup)
     quick.start()
     stop = session.Stop(install=False)
     with caplog.at_level(logging.INFO, logger="vergence.up"):
@@ -104,7 +106,7 @@ def test_the_back_off_caps_and_resets_after_a_stable_run(monkeypatch, caplog):
 
     monkeypatch.setattr(up, "STABLE_S", 0.3)  # a child that ran 0.3 s has been stable
     caplog.clear()
-    steady = _child("steady", "import sys, time; time.sleep(0.4); sys.exit(1)")  # time under test: runs 0.4 s
+    steady = _child("steady", "import sys, time; time.sleep(0.4); sys.exit(1)", sup)  # time under test: runs 0.4 s
     steady.start()
     steady.backoff = 0.4  # as after several quick deaths
     with caplog.at_level(logging.INFO, logger="vergence.up"):
@@ -235,8 +237,7 @@ def test_a_hung_standby_is_killed_and_another_started(monkeypatch, caplog):
     from services.ops import up
 
     monkeypatch.setattr(up, "STANDBY_DELAY_S", 0.2)
-    monkeypatch.setattr(up, "BACKOFF_S", (0.2, 0.5))
-    sup = SuperviseSettings(heartbeat_s=0.3, start_grace_s=5.0, stall_s=0)
+    sup = SuperviseSettings(heartbeat_s=0.3, start_grace_s=5.0, stall_s=0, restart_max_s=0.5)
     c = up.Child("svc", [sys.executable, "-c", BEATS + "from services.runtime import session; session._standby(); "
                          + RUNS_ON], sup=sup)
     c.standby_due = 0.0
