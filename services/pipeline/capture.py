@@ -287,7 +287,8 @@ class Capture:
         self.history = PanHistory(max_gap_s=max(0.1, 3.0 / hz if hz > 0 else 0.1))
         self.history_lock = threading.Lock()
         # the sim motor's replica, for a source that renders the slave (its states tell whether it is the sim)
-        self.replica = Replica(settings.actuator.motor) if source.renders else None
+        self.renders = getattr(source, "renders", False)  # (the ros2 source is not a vergence.sources.Source)
+        self.replica = Replica(settings.actuator.motor) if self.renders else None
         rate = self.cs.rate_hz
         self.clock = ExposureClock(settings.camera.timing(), 1.0 / rate if rate > 0 else 0.0)
         self.rates = Rates()
@@ -508,7 +509,7 @@ class Capture:
 
     def preview(self, master, slave, t_ns: int, p_now: float) -> None:
         pw, ph = self.pw, self.ph
-        if self.source.renders:  # it rendered the band only: the whole views at the preview's size
+        if self.renders:  # it rendered the band only: the whole views at the preview's size
             m, sl = self.source.preview(pw, ph)
         else:
             m = cv2.resize(master, (pw, ph), interpolation=cv2.INTER_AREA)
