@@ -31,7 +31,19 @@ import background  # noqa: E402
 
 
 def pytest_collection_finish(session):
-    """The slow tests' long computations start in the background, ahead of the tests (tests/background.py)."""
+    """On a fresh install with slow tests selected, the kernels are compiled once first (as `vergence up` does on a
+    first start: else the first processes of the tests all compile them at once, inside timed tests); then the slow
+    tests' long computations start in the background, ahead of the tests (tests/background.py)."""
+    from services.runtime import warm
+
+    if any(item.get_closest_marker("slow") for item in session.items) and not warm.compiled():
+        import time
+
+        t0 = time.monotonic()
+        r = subprocess.run([sys.executable, "-m", "services.runtime.warm"], capture_output=True, text=True,
+                           timeout=600)
+        print(f"\ncompiled the kernels once before the tests (numba's cache was empty): {time.monotonic() - t0:.1f} s"
+              + ("" if r.returncode == 0 else f", failed (exit {r.returncode}): {r.stderr[-500:]}"))
     background.start(session.items)
 
 

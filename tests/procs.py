@@ -88,10 +88,13 @@ class Procs:
     # -- processes -----------------------------------------------------------------------------------------
 
     def spawn(self, name: str, argv: list[str], env: dict | None = None) -> Proc:
-        """Start any command (own process group, log in tmp_path/<name>.log)."""
+        """Start any command (own process group, log in tmp_path/<name>.log). Started from pytest's main thread, it
+        gets SIGTERM if pytest dies (a SIGKILLed run runs no reaper: tests/reaper.py); from another thread, not (the
+        signal would come when that thread ends)."""
         e = dict(os.environ if env is None else env)
         e.setdefault("PYTHONUNBUFFERED", "1")
-        p = Proc(name, argv, self.dir / f"{name}.log", e)
+        p = Proc(name, argv, self.dir / f"{name}.log", e,
+                 die_with_parent=threading.current_thread() is threading.main_thread())
         self.procs.append(p)
         return p
 

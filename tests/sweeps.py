@@ -48,6 +48,13 @@ def late(motion: str, latency: float, rate: float = 60.0, frames: int = 300, see
                              timing=CameraTiming(latency, **timing), seed=seed))
 
 
+def bench_tracking(hzs: tuple[float, ...], rates: tuple[float, ...], seconds: float) -> list[dict]:
+    """vergence.bench.bench_tracking's rows (`vergence bench tracking`)."""
+    from vergence.bench import bench_tracking as rows
+
+    return rows(hzs=hzs, rates=rates, seconds=seconds)
+
+
 def p_still(gain: float) -> list:
     """The p controller at `gain`, the image 100 ms old when read, on a still target with sensor noise: 120
     frames at 60 Hz."""
@@ -100,3 +107,50 @@ def probe(code: str, name: str) -> tuple[str, int, str, str]:
 
     r = subprocess.run([sys.executable, "-c", code, name], capture_output=True, text=True, timeout=120)
     return name, r.returncode, r.stdout, r.stderr
+
+
+# -- the command line (tests/vergence/test_depth.py) -------------------------------------------------------------------
+
+def cli(*args: str, timeout: float = 300):
+    """`vergence ARGS...` run to its end (at most timeout s): its CompletedProcess, stdout and stderr as text (as
+    procs.run)."""
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "services.ops.cli", *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def match_depth(name: str, baseline: float, focal: float, n: int = 120, seed: int = 11):
+    """`vergence match LEFT RIGHT --json --baseline B --focal F --at X,Y ...` on Middlebury `name` at n visible
+    points of `seed`."""
+    import json
+
+    from middlebury import ROOT
+
+    scene = json.loads((ROOT / "scenes.json").read_text())[name]
+    args = ["match", str(ROOT / scene["left"]), str(ROOT / scene["right"]), "--json", "--baseline", str(baseline),
+            "--focal", str(focal)]
+    for x, y in points(name, n, seed=seed, mask=visible(name)):
+        args += ["--at", f"{x},{y}"]
+    return cli(*args)
+
+
+def sim_still_target(d: int, seed: int, *args: str):
+    """`vergence sim` on a textured fronto-parallel plane at disparity d (px), a rectified pair with its disparity
+    map written to a folder of its own (test_depth.still_target's), with more ARGS."""
+    import tempfile
+    from pathlib import Path
+
+    import cv2
+
+    from vergence.sim.scene import texture
+
+    w, h = 640, 480
+    with tempfile.TemporaryDirectory() as tmp:
+        tex = texture(np.random.default_rng(seed), h, w + d)
+        paths = [str(Path(tmp) / f"{n}{d}.png") for n in "lrd"]
+        cv2.imwrite(paths[0], tex[:, :w])
+        cv2.imwrite(paths[1], tex[:, d : d + w])
+        cv2.imwrite(paths[2], np.full((h, w), d, np.uint8))
+        return cli("sim", "--left", paths[0], "--right", paths[1], "--disparity", paths[2], "--dscale", "1", *args)

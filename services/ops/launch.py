@@ -105,14 +105,24 @@ def wait_listening(endpoint: str, timeout: float, proc: Proc | None = None, inte
     wait_for(up, timeout, f"a listener on {endpoint}", interval=interval, logs=logs)
 
 
+_PRCTL = None  # libc's prctl, resolved in the parent (no dlopen between fork and exec), False where there is none
+
+
+def _prctl():
+    global _PRCTL
+    if _PRCTL is None:
+        try:
+            _PRCTL = ctypes.CDLL("libc.so.6", use_errno=True).prctl
+        except (OSError, AttributeError):
+            _PRCTL = False
+    return _PRCTL
+
 
 def _die_with_parent() -> None:
-    """preexec_fn: SIGTERM this child when its parent dies (Linux)."""
-    try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
+    """preexec_fn: SIGTERM this child when its parent dies (Linux; when the parent's thread that started it ends,
+    in fact). It runs in the child between fork and exec: only the call, prctl resolved in the parent."""
+    if _PRCTL:
+        _PRCTL(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
 
 
 class Proc:
@@ -123,6 +133,8 @@ class Proc:
     def __init__(self, name: str, argv: list[str], log: Path | None = None, env: dict | None = None, *,
                  append: bool = False, die_with_parent: bool = False, pass_fds: tuple[int, ...] = ()):
         self.name, self.argv, self.log = name, argv, log
+        if die_with_parent:
+            _prctl()
         fh = open(log, "ab" if append else "wb") if log is not None else None
         try:
             self.p = subprocess.Popen(argv, stdout=fh, stderr=subprocess.STDOUT if fh else None,

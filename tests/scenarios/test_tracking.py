@@ -411,11 +411,12 @@ def test_cli_motion_errors(args, says):
     assert r.returncode == 2 and says in r.stderr
 
 
+background.ahead(sweeps.bench_tracking, (1.0,), (60.0,), 2.0, tests="test_bench_tracking_rows")
+
+
 @pytest.mark.slow
 def test_bench_tracking_rows():
-    from vergence.bench import bench_tracking
-
-    rows = bench_tracking(hzs=(1.0,), rates=(60.0,), seconds=2.0)
+    rows = background.get(sweeps.bench_tracking, (1.0,), (60.0,), 2.0)  # vergence.bench.bench_tracking's
     assert [(r["motion"], r["mode"]) for r in rows] == [("sine:z=0.8,amp=0.3,hz=1", "p"),
                                                         ("sine:z=0.8,amp=0.3,hz=1", "predictive"),
                                                         ("step:z0=1.2,z1=0.6,at=1", "p"),

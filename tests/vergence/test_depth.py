@@ -12,14 +12,15 @@ import cv2
 import numpy as np
 import pytest
 
+import background
+import sweeps
 from procs import run
-from middlebury import ROOT, SCENES, load, needs_data, points, visible
+from middlebury import SCENES, load, needs_data
 from vergence import depth
 from vergence.config import ConfigError, from_dict, load as load_settings
 from vergence.sim import Rig, generate
 from vergence.sim.fixation import truth_at
 from vergence.sim.optics import homography
-from vergence.sim.scene import texture
 
 
 def vergence(*args, timeout=300):
@@ -135,6 +136,10 @@ def test_rig_table_of_the_settings(tmp_path):
 B, F = 0.16, 3740.0  # a chosen rig (Middlebury 2003's own is about this)
 
 
+for _name in SCENES:
+    background.ahead(sweeps.match_depth, _name, B, F, tests="test_match_depth_on_middlebury_within_two_sigma")
+
+
 @needs_data
 @pytest.mark.slow
 def test_match_depth_on_middlebury_within_two_sigma():
@@ -142,15 +147,11 @@ def test_match_depth_on_middlebury_within_two_sigma():
     fitted on draw 7): depth_m = b f / disparity, and b f / ground truth within 2 stated sigma at >= 90 % of
     the confident points (per pair at least 88 %). A confident point with no positive disparity (a wrong
     match) has no depth and counts as a miss."""
-    scenes = json.loads((ROOT / "scenes.json").read_text())
     inside_all = []
     for name in SCENES:
-        left, right = (str(ROOT / scenes[name][k]) for k in ("left", "right"))
         gt = load(name)[2]
-        args = ["match", left, right, "--json", "--baseline", str(B), "--focal", str(F)]
-        for x, y in points(name, 120, seed=11, mask=visible(name)):
-            args += ["--at", f"{x},{y}"]
-        r = vergence(*args)
+        # `vergence match LEFT RIGHT --json --baseline B --focal F --at X,Y ...` at 120 visible points of draw 11
+        r = background.get(sweeps.match_depth, name, B, F)
         assert r.returncode == 0, r.stderr
         rows = [json.loads(line) for line in r.stdout.splitlines()]
         assert len(rows) == 120
@@ -195,28 +196,30 @@ def test_match_depth_options_are_checked(tmp_path):
 
 # -- vergence sim on a still target ---------------------------------------------------------------------------
 
-def still_target(tmp_path, d: int, seed: int, size=(640, 480)) -> list[str]:
-    """A textured fronto-parallel plane at disparity d (px) as a rectified pair with its disparity map: the
-    `vergence sim` options that show it."""
-    w, h = size
-    tex = texture(np.random.default_rng(seed), h, w + d)
-    paths = [str(tmp_path / f"{n}{d}.png") for n in "lrd"]
-    cv2.imwrite(paths[0], tex[:, :w])
-    cv2.imwrite(paths[1], tex[:, d : d + w])
-    cv2.imwrite(paths[2], np.full((h, w), d, np.uint8))
-    return ["--left", paths[0], "--right", paths[1], "--disparity", paths[2], "--dscale", "1"]
+def still_target(d: int, seed: int):
+    """`vergence sim` on a textured fronto-parallel plane at disparity d (px), a rectified 640 x 480 pair with its
+    disparity map (sweeps.sim_still_target writes them), b = 0.06 m, f = 500 px, the slave started 15 px off,
+    sensor noise 2, 30 frames at 320 x 240 (done ahead in the background, tests/background.py)."""
+    return background.get(sweeps.sim_still_target, d, seed, *STILL_ARGS, str(seed), "--baseline", "0.06", "--json")
+
+
+STILL_ARGS = ("--focal", "500", "--size", "320x240", "--noise", "2", "--start-off", "15", "--frames", "30", "--seed")
+STILL_Z, STILL_SEEDS = [0.5, 1.0, 2.0], [0, 1]
+for _z in STILL_Z:
+    for _seed in STILL_SEEDS:
+        background.ahead(sweeps.sim_still_target, round(0.06 * 500 / _z), _seed, *STILL_ARGS, str(_seed),
+                         "--baseline", "0.06", "--json", tests="test_sim_depth_of_a_still_target")
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [0, 1])
-@pytest.mark.parametrize("z", [0.5, 1.0, 2.0])
-def test_sim_depth_of_a_still_target(tmp_path, z, seed):
+@pytest.mark.parametrize("seed", STILL_SEEDS)
+@pytest.mark.parametrize("z", STILL_Z)
+def test_sim_depth_of_a_still_target(z, seed):
     """b = 0.06 m, f = 500 px, the slave started 15 px off, sensor noise 2: the converged depth_m within 1 %
     of the truth (median over the frames after convergence) and the truth within 2 depth_sigma_m at >= 90 %
     of them."""
     d = round(0.06 * 500 / z)
-    r = vergence("sim", *still_target(tmp_path, d, seed), "--focal", "500", "--size", "320x240", "--noise", "2",
-                 "--start-off", "15", "--frames", "30", "--seed", str(seed), "--baseline", "0.06", "--json")
+    r = still_target(d, seed)
     assert r.returncode == 0, r.stderr
     rows = [json.loads(line) for line in r.stdout.splitlines()]
     assert len(rows) == 31 and all(o["truth_depth_m"] == pytest.approx(z) for o in rows)
@@ -231,14 +234,22 @@ def test_sim_depth_of_a_still_target(tmp_path, z, seed):
     assert np.all(sig < 0.02 * z)  # and the sigma says something: under 2 % of Z here
 
 
+FIXATE_AT = [("sim", "--frames", "34", "--noise", "2", "--fixate-at", "10:440,240", "--fixate-at", "22:320,400",
+              "--json"),
+             ("sim", "--frames", "34", "--fixate-at", "10:440,240", "--fixate-at", "22:320,400"),
+             ("sim", "--fixate-at", "3:700,10"),
+             ("sim", "--fixate-at", "22:320,400")]  # `vergence sim ...`, done ahead (tests/background.py)
+for _args in FIXATE_AT:
+    background.ahead(sweeps.cli, *_args, tests="test_sim_fixate_at_reconverges_and_measures_the_new_depth")
+
+
 @pytest.mark.slow
 def test_sim_fixate_at_reconverges_and_measures_the_new_depth():
     """`vergence sim --fixate-at 10:440,240 --fixate-at 22:320,400`: the generated scene's centre object
     (d = 24 px), then a nearer one (36 px) and the background (8 px); each re-converges within 1 px in a few
     frames and reads its own depth (f = 512 px, b = 0.06 m): within 1 % at 24 and 36 px, within two stated
     sigmas at 8 px."""
-    r = vergence("sim", "--frames", "34", "--noise", "2", "--fixate-at", "10:440,240", "--fixate-at",
-                 "22:320,400", "--json")
+    r = background.get(sweeps.cli, *FIXATE_AT[0])
     assert r.returncode == 0, r.stderr
     rows = [json.loads(line) for line in r.stdout.splitlines()]
     for first, end, xy, d in ((0, 10, (320, 240), 24), (10, 22, (440, 240), 36), (22, 35, (320, 400), 8)):
@@ -255,9 +266,9 @@ def test_sim_fixate_at_reconverges_and_measures_the_new_depth():
         sigma = np.median([o["depth_sigma_m"] for o in conv])
         tol = 0.01 * 0.06 * 512 / d if d > 8 else 2 * sigma
         assert np.median([o["depth_m"] for o in conv]) == pytest.approx(0.06 * 512 / d, abs=tol)
-    r = vergence("sim", "--frames", "34", "--fixate-at", "10:440,240", "--fixate-at", "22:320,400")
+    r = background.get(sweeps.cli, *FIXATE_AT[1])
     assert "fixation (440, 240) from frame 10: converged pan -3.874 deg; within 1 px from frame" in r.stdout
-    r = vergence("sim", "--fixate-at", "3:700,10")
+    r = background.get(sweeps.cli, *FIXATE_AT[2])
     assert r.returncode == 2 and "outside the 640 x 480 view" in r.stderr
-    r = vergence("sim", "--fixate-at", "22:320,400")  # the default 20 frames never reach it
+    r = background.get(sweeps.cli, *FIXATE_AT[3])  # the default 20 frames never reach it
     assert r.returncode == 2 and "after the last frame (--frames 20); run at least --frames 22" in r.stderr
