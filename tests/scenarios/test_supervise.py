@@ -176,6 +176,9 @@ def test_worker_and_reducer_memory_stays_put_over_10_capture_restarts(tmp_path):
         # back-off (what the memory does over the restarts is under test, not the back-off: test_up.py's)
         up, _, decisions = start_up(P, tmp_path, more="[supervise]\nrestart_max_s = 0.2\n")
         kill_and_time(P, up, decisions, "capture")  # the first restart: whatever is allocated once, is
+        # the reducer's standby started (up starts it a while after the reducer): not a process measured here
+        wait_for(lambda: re.search(r"standby of reducer \(pid \d+\) ready", up.text()), 60,
+                 "a standby reducer ready", interval=0.1, logs=P.logs)
 
         def rss() -> dict[int, int]:
             return {c.pid: c.memory_info().rss for k in ("worker", "reducer") for c in children(up)[k]}

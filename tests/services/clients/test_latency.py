@@ -16,9 +16,9 @@ from vergence.messages import Decision
 def test_vergence_latency_measures_the_sim_camera_within_5_ms(tmp_path, latency, stamps):
     """The sim camera's image `latency` old when read; with stamps=no the capture stamps frames at their read
     time (as a camera whose backend gives no timestamps, [camera] latency_s 0), so the measurement has to find
-    the whole latency from the image offsets and the motor's history. At latency 0 the sim camera's image is
-    as old as the motor's newest report of its pan (it waits for it, up to 20 ms at 50 Hz: it never renders a
-    pan it has to guess), so the truth there is what the capture's status says of its stamps."""
+    the whole latency from the image offsets and the motor's history. At latency 0 the sim camera renders the
+    pan its replica of the motor has at the read, stamped a little before it (what the capture's status says of its
+    stamps is the truth there, a millisecond or less): the measured figure may then be a little below 0."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with Procs(tmp_path) as P:
         P.endpoint = endpoint
@@ -30,13 +30,15 @@ def test_vergence_latency_measures_the_sim_camera_within_5_ms(tmp_path, latency,
         wait_for(lambda: len(decisions) > 10, 60, "decisions", logs=P.logs)
         r = run("latency", "--connect", endpoint, "--rig", P.rig, timeout=60)
         assert r.returncode == 0, r.stdout + r.stderr
-        got = float(re.search(r"exposure to read: ([\d.]+) \+- ([\d.]+) ms", r.stdout)[1])
+        m = re.search(r"exposure to read: (-?[\d.]+) \+- ([\d.]+) ms", r.stdout)
+        assert m, r.stdout + r.stderr
+        got = float(m[1])
         said = [json.loads(b).get("latency_ms") for _, b, _ in status.snapshot()]
         truth = statistics.median(v for v in said if v is not None) if stamps == "yes" else latency * 1e3
         print(f"\nsim latency {latency * 1e3:.0f} ms (stamps={stamps}, truth {truth:.1f} ms): measured {got:.1f} ms")
         assert got == pytest.approx(truth, abs=5.0)
         toml = float(re.search(r"latency_s = ([\d.]+)", r.stdout)[1])
-        assert toml == pytest.approx(got / 1e3, abs=0.0005)
+        assert toml == pytest.approx(max(0.0, got / 1e3), abs=0.0005)
         # the hold is over (`vergence latency` released it as it ended): the rig decides on, and commands again where
         # its decisions ask for a move (none where the slave is back where it wants it): a command, or a second of
         # decisions of frames captured after the release
