@@ -433,15 +433,18 @@ def test_a_command_from_the_future_locks_nothing_out(rig):
     states = [MotorState.from_bytes(b) for t, b, _ in c["state"].snapshot() if t > t_a]
     assert all(st.goal_rad == pytest.approx(goal) for st in states)  # the forged goal never became one
     assert states[-1].ignored >= 1
-    # within the skew (1.5 s ahead): taken once, and the real commands take over again at once
+    # within the skew (1.5 s ahead): not refused, taken once (unless a real command superseded it in the motor
+    # loop's inbox, which keeps the newest only: then never taken), and the real commands take over again at once
     t_b, base = before(c)
+    refused = MotorState.from_bytes(c["state"].snapshot()[-1][1]).ignored
     s.put(P.key("command"), Command(rig=P.rig, frame=BIG_FRAME, t_capture_ns=time.time_ns() + 3 * S // 2,
                                     pan_rad=forged, correction_rad=0.0, direction=0, magnitude_px=0.0,
                                     confidence=1.0).to_bytes())
     after(P, c, t_b, base)
     states = [(t, MotorState.from_bytes(b)) for t, b, _ in c["state"].snapshot() if t > t_b]
+    assert states[-1][1].ignored == refused
     moved = [t for t, st in states if st.goal_rad == pytest.approx(forged)]
-    back = [t for t, st in states if moved and t > moved[0] and st.goal_rad == pytest.approx(goal)]
+    back = [t for t, st in states if t > (moved or [t_b])[0] and st.goal_rad == pytest.approx(goal)]
     assert back and (back[0] - t_b) / 1e9 <= 1.0
 
 
