@@ -308,6 +308,9 @@ class SimSource(Source):
 
         pan_of = pan_at if callable(pan_at) else (lambda t_ns: pan_at)
         tm = self.timing
+        ready = getattr(pan_at, "ready", None)  # the capture's: until the motor has counted the commands seen
+        if ready is not None:
+            ready()
         later = time.time_ns() - round(tm.age_s * 1e9)
         if tm.jitter_s > 0:
             later += round(float(np.clip(self.rng.normal(0.0, tm.jitter_s), -0.02, 0.02)) * 1e9)

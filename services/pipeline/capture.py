@@ -41,7 +41,7 @@ import zenoh
 from vergence import keys, retina
 from vergence.config import load
 from vergence.frames import Roster, WindowControl, make_frame, plan_shards
-from vergence.messages import Fixate, MessageError, MotorState, Preview, Decision
+from vergence.messages import Command, Fixate, MessageError, MotorState, Preview, Decision
 from vergence.motors.simulated import Replica, SimMotor
 from vergence.sources import SourceError, open_source
 from vergence.timing import PanHistory, Stamper
@@ -179,14 +179,15 @@ class PanLookup:
     """The slave's pan for one frame, from the motor's history (the zenoh callback adds to it meanwhile): a
     source that renders (the simulator) asks it at its exposure times, and the frame then carries the same
     pan. With the sim motor behind a rendering source, the pan comes from the capture's replica of that
-    motor (vergence.motors.simulated.Replica) while it is trusted: exact at any instant up to now, with no
-    wait. Before any motor state, the source's start pan; a source whose images do not follow the motor
-    always has its start pan."""
+    motor (vergence.motors.simulated.Replica) while it is trusted: exact at any instant up to now, once the
+    motor has counted the commands seen (ready). Before any motor state, the source's start pan; a source whose
+    images do not follow the motor always has its start pan."""
 
-    def __init__(self, history: PanHistory, lock: threading.Lock, source, replica: Replica | None = None):
+    def __init__(self, history: PanHistory, lock: threading.Condition, source, replica: Replica | None = None):
         self.history, self.lock, self.source = history, lock, source
         self.replica = replica
         self.seen: dict[int, float | None] = {}
+        self.waited = False  # ready() waited for the motor to count a command
 
     def settle(self, t_ns: int, timeout: float = SETTLE_S) -> None:
         """Wait (at most timeout) until the motor has reported its pan at or after t_ns: a source that renders
@@ -203,6 +204,18 @@ class PanLookup:
             if time.monotonic() >= end:
                 return
             time.sleep(0.0005)
+
+    def ready(self) -> None:
+        """Before a rendering source picks its exposure: with a trusted replica, wait until the motor has
+        counted every command seen (at most Replica.ANSWER_NS from its arrival), so that the replica holds
+        every goal written before the exposure."""
+        rep = self.replica
+        if rep is None:
+            return
+        with self.lock:
+            while rep.trusted and (since := rep.unanswered(time.monotonic_ns())) is not None:
+                self.waited = True
+                self.lock.wait((since + rep.ANSWER_NS - time.monotonic_ns()) / 1e9 + 1e-4)
 
     def _at(self, t_ns: int) -> float | None:
         if t_ns not in self.seen:
@@ -285,7 +298,7 @@ class Capture:
         self.members = Roster(lim.miss_s, lim.probation_s, lim.miss_frames)
         hz = settings.actuator.state_hz
         self.history = PanHistory(max_gap_s=max(0.1, 3.0 / hz if hz > 0 else 0.1))
-        self.history_lock = threading.Lock()
+        self.history_lock = threading.Condition()  # notified on each motor state (PanLookup.ready waits on it)
         # the sim motor's replica, for a source that renders the slave (its states tell whether it is the sim)
         self.renders = getattr(source, "renders", False)  # (the ros2 source is not a vergence.sources.Source)
         self.replica = Replica(settings.actuator.motor) if self.renders else None
@@ -335,7 +348,8 @@ class Capture:
                     **self.rates.fields(), roster=dict(self.members.counters), clipped=self.clipped(),
                     **self.fovea.fields(), **self.clock.fields(),
                     **({"source": source.status()} if hasattr(source, "status") else {}),
-                    **({"replica": dict(trusted=self.replica.trusted, mismatches=self.replica.mismatches)}
+                    **({"replica": dict(trusted=self.replica.trusted, mismatches=self.replica.mismatches,
+                                    unheard=self.replica.unheard)}
                        if self.replica is not None else {}))
 
     # -- the callbacks (zenoh's threads) ------------------------------------------------------------------------
@@ -361,12 +375,27 @@ class Capture:
             return
         before = rep.mismatches
         rep.observe(st.t_ns, st.pan_rad, st.goal_rad, torque=st.status != "stopped")
+        rep.counted(st.commands, time.monotonic_ns())
+        self.history_lock.notify_all()
         if rep.mismatches > before:
             self.health.count("replica_mismatch")
             if rep.mismatches == 1:
                 log.warning("the sim motor's reading is more than a tick off the capture's replica of it "
                             "(different [actuator.motor] settings for capture and actuator?): the frames wait "
                             "for the motor's reports until it rests on its goal")
+
+    def on_command(self, sample) -> None:
+        """A command on the rig's key (the reducer's, or a client's): its goal is not in the replica until the
+        motor's state counts it (PanLookup.ready). Only a command that decodes, for this rig, counts."""
+        try:
+            cmd = Command.from_bytes(sample.payload.to_bytes())
+            if cmd.rig != self.rig:
+                raise MessageError(f"command for rig {cmd.rig!r}")
+        except MessageError as e:
+            self.health.reject("command", e)
+            return
+        with self.history_lock:
+            self.replica.commanded(time.monotonic_ns())
 
     def on_token(self, sample) -> None:
         wid = keys.parse(str(sample.key_expr)).ident
@@ -402,6 +431,8 @@ class Capture:
         self.pub_frame = node.publisher(keys.frame(rig), express=True)
         self.pub_preview = node.publisher(keys.preview(rig))
         node.subscriber(keys.motor_state(rig), self.on_motor)
+        if self.replica is not None:
+            node.subscriber(keys.command(rig), self.on_command)
         node.subscriber(keys.workers(rig), self.on_report)
         node.liveliness_subscriber(keys.alives(rig, "worker"), self.on_token, history=True)
         if len(self.windows.states) > 1:  # a dynamic window (max_window, clip_fallback): the decisions drive it
@@ -456,6 +487,8 @@ class Capture:
         p_now, stale = pan_at.frame(t_slave)
         if stale:
             self.health.count("pan_unknown")
+        if pan_at.waited:
+            self.health.count("command_waits")
         w, clip = window
         self.pair[:] = master, slave, at[1], w
         changes, ids = self.members.snapshot()

@@ -170,11 +170,18 @@ class Replica:
     time. A model that fails the check (other motor settings than ours, a capture started while the motor
     moved, a state lost) is not trusted until the motor is seen at rest on its goal (two states 5 ms apart
     with the encoder on an unchanged goal), where it starts again from that rest. `trusted` says whether at()
-    may be used; `mismatches` counts the failed checks. Times are the states' clock: wall nanoseconds."""
+    may be used; `mismatches` counts the failed checks. Times are the states' clock: wall nanoseconds.
+
+    A state that comes more than latency_s after its write (a loaded machine) is known too late for the frames
+    exposed meanwhile, so the commands are counted too: `commanded` for each one seen on the command key,
+    `counted` with the motor's own count from each state (which may come first); while the motor has not
+    counted one seen here (`unanswered`), its goal may be missing, and the renderer waits (at most ANSWER_NS from
+    its arrival, then it is let go and counted in `unheard`)."""
 
     KEEP_NS = 2_000_000_000  # snapshots kept, for instants back to this far before the newest
     SNAP_STEPS = 4  # a snapshot every this many grid steps of model time (1 ms)
     REST_NS = 5_000_000
+    ANSWER_NS = 25_000_000  # the longest a command seen waits for the motor's state that counts it
 
     def __init__(self, settings: MotorSettings):
         self.settings = settings
@@ -186,6 +193,10 @@ class Replica:
         self.goal: float | None = None  # the newest goal reported
         self._rest: tuple[int, float] | None = None  # (t_ns, goal) of a state seen on its goal, not yet trusted
         self.snaps: deque[tuple] = deque()
+        self.out: deque[int] = deque()  # the arrivals (monotonic ns) of commands seen, not yet counted by the motor
+        self.early: deque[int] = deque()  # the arrivals of states counting commands not seen here yet
+        self.count: int | None = None  # the motor's count of commands in its newest state
+        self.unheard = 0  # commands let go after ANSWER_NS with no state counting them
 
     # -- the model ------------------------------------------------------------------------------------------
 
@@ -253,6 +264,42 @@ class Replica:
             return None
         pan = self._shaft(t_ns)
         return pan if math.isfinite(pan) else None
+
+    def commanded(self, now_ns: int) -> None:
+        """A command seen on the command key (now_ns: its arrival, monotonic): out until a state counts it (or
+        answered already, by a state that came first)."""
+        self._expire(now_ns)
+        if self.early:
+            self.early.popleft()
+        else:
+            self.out.append(now_ns)
+
+    def counted(self, commands: int, now_ns: int) -> None:
+        """The motor's count of command messages received, from one of its states (now_ns: its arrival): the
+        ones it counted since its last state answer those out, or, where none is (the state came first), the
+        next ones seen. A count that went down is a restarted actuator's, from 0."""
+        self._expire(now_ns)
+        if self.count is not None:
+            for _ in range(min(commands - self.count if commands >= self.count else commands, 64)):
+                if self.out:
+                    self.out.popleft()
+                else:
+                    self.early.append(now_ns)
+        self.count = commands
+
+    def _expire(self, now_ns: int) -> None:
+        """Let go what waited over ANSWER_NS for its match: commands out (counted in unheard), answers early."""
+        while self.out and now_ns - self.out[0] > self.ANSWER_NS:
+            self.out.popleft()
+            self.unheard += 1
+        while self.early and now_ns - self.early[0] > self.ANSWER_NS:
+            self.early.popleft()
+
+    def unanswered(self, now_ns: int) -> int | None:
+        """The arrival of the oldest command seen that the motor has not counted yet (its goal may be missing
+        here), or None."""
+        self._expire(now_ns)
+        return self.out[0] if self.out else None
 
     def observe(self, t_ns: int, pan: float, goal: float, torque: bool = True) -> bool:
         """One motor state (its time, encoder reading, goal; torque False once the motor has stopped): a new

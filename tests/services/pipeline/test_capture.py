@@ -68,6 +68,41 @@ def test_a_rendering_source_waits_for_the_motors_report_of_its_instant_but_not_f
     assert look(1010 * MS) == pytest.approx(0.11)
 
 
+def test_with_a_trusted_replica_the_exposure_waits_for_the_motor_to_count_the_commands_seen():
+    """PanLookup.ready: no wait with nothing out; with a command out, until a state counts it (the capture's
+    on_motor notifies), or at most Replica.ANSWER_NS."""
+    import time
+
+    from vergence.motors import MotorSettings
+    from vergence.motors.simulated import Replica
+
+    rep = Replica(MotorSettings())
+    cond = threading.Condition()
+    t = 10**18
+    for k in range(3):  # at rest on its goal: trusted
+        rep.observe(t + k * 5 * MS, 0.0, 0.0)
+    assert rep.trusted
+    rep.counted(4, time.monotonic_ns())
+    look = PanLookup(PanHistory(max_gap_s=0.1), cond, Source(), rep)
+    look.ready()
+    assert not look.waited
+    rep.commanded(time.monotonic_ns())
+
+    def answer():
+        with cond:
+            rep.counted(5, time.monotonic_ns())
+            cond.notify_all()
+
+    threading.Timer(0.01, answer).start()
+    t0 = time.monotonic()
+    look.ready()
+    assert look.waited and 0.009 <= time.monotonic() - t0 < rep.ANSWER_NS / 1e9
+    rep.commanded(time.monotonic_ns())  # never counted: let go after ANSWER_NS
+    t0 = time.monotonic()
+    PanLookup(PanHistory(max_gap_s=0.1), cond, Source(), rep).ready()
+    assert rep.ANSWER_NS / 1e9 <= time.monotonic() - t0 < 1.0 and rep.unheard == 1
+
+
 def test_a_motor_state_from_our_future_is_forgotten_when_the_true_ones_come():
     from vergence.messages import MessageError, MotorState
     from services.pipeline.capture import remember

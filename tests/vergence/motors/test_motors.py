@@ -499,3 +499,38 @@ def test_replica_distrusts_other_settings_until_the_motor_rests():
     assert rep.trusted
     now = wall()
     assert rep.at(now) == pytest.approx(motor.shaft, abs=2 * math.pi / ms.ticks_per_rev)
+
+
+def test_replica_counts_the_commands_seen_against_the_motors_own_count():
+    """A command seen is out until a state's `commands` counts it (the state may come first: it answers the next
+    command seen); one that no state counts within ANSWER_NS is let go, counted in unheard; a count that went down
+    is a restarted actuator's."""
+    from vergence.motors.simulated import Replica
+
+    rep = Replica(MotorSettings())
+    ms = 1_000_000
+    rep.counted(7, 0)  # the first state: its count is the reference
+    assert rep.unanswered(0) is None
+    rep.commanded(1 * ms)
+    rep.commanded(2 * ms)
+    assert rep.unanswered(2 * ms) == 1 * ms
+    rep.counted(7, 3 * ms)  # a periodic state: nothing new counted
+    assert rep.unanswered(3 * ms) == 1 * ms
+    rep.counted(8, 4 * ms)
+    assert rep.unanswered(4 * ms) == 2 * ms
+    rep.counted(9, 5 * ms)
+    assert rep.unanswered(5 * ms) is None
+    rep.counted(10, 6 * ms)  # the state before the command (another path through the network)
+    rep.commanded(7 * ms)
+    assert rep.unanswered(7 * ms) is None
+    rep.commanded(8 * ms)  # never counted: out until ANSWER_NS, then let go
+    assert rep.unanswered(8 * ms + rep.ANSWER_NS) == 8 * ms
+    assert rep.unanswered(8 * ms + rep.ANSWER_NS + 1) is None and rep.unheard == 1
+    rep.counted(1, 40 * ms)  # a restarted actuator, one command since its start: answers the next one seen
+    rep.commanded(41 * ms)
+    assert rep.unanswered(41 * ms) is None and rep.unheard == 1
+    rep.counted(2, 42 * ms)  # an early answer older than ANSWER_NS answers nothing
+    rep.commanded(90 * ms)
+    assert rep.unanswered(90 * ms) == 90 * ms
+    rep.counted(3, 91 * ms)
+    assert rep.unanswered(91 * ms) is None and rep.unheard == 1
