@@ -663,14 +663,13 @@ def test_sim_cli_models_the_camera_and_says_which_instant_each_row_is():
 
 @pytest.mark.slow
 def test_up_renders_the_slave_at_the_motors_own_shaft_without_waiting_for_its_reports(tmp_path):
-    """`vergence up` on the demo at 250 Hz, the motor unquantised and reporting at 1 kHz (so that its states
-    give its shaft between them to 0.01 tick): every frame's slave pan, the pan the simulator rendered it at,
-    is the sim motor's shaft at the slave's exposure (the capture's replica of the motor): issue #33's "within
-    one encoder tick" for every frame, and exact (0.0001 tick) for most; measured beside another test suite,
-    the 99th percentile 0.07-0.13 tick and the worst 0.19-0.94 tick, frames exposed after a goal took effect
-    whose state reached the capture more than the motor's 2 ms latency late (since the capture also waits, before
-    an exposure, for the motor to count the commands it has seen: 0.04-0.26 tick and 0.12-0.68 tick on a machine
-    where the pipeline decided only 45-60 of the 250 frames a second). None is stale (none waited for a
+    """`vergence up` on the demo at 250 Hz, the motor unquantised and reporting at 1 kHz: every frame's slave pan,
+    the pan the simulator rendered it at, is the sim motor's shaft at the slave's exposure (the capture's replica
+    of the motor, once the motor has counted the commands seen). Checked where two states at most 1.5 ms apart
+    bracket the exposure (their line is the shaft there to 0.01 tick): issue #33's "within one encoder tick", and
+    the 99th percentile within 0.1 tick; measured on a slow day (the pipeline deciding 43-52 of the 250 frames a
+    second), 0.0000 tick median, 99th percentile 0.002-0.008 tick, worst 0.009 tick, once 0.12 (a command the
+    motor did not count within 25 ms, `unheard`). None is stale (none waited for a
     report). The rate decided is the bench's (`vergence bench pipeline`); here the capture publishes at the rate
     asked, well past the 50 Hz of the motor's reports that bounded it before (the config's 1 kHz reports would
     not, so the replica's own status is asserted too)."""
@@ -702,7 +701,11 @@ def test_up_renders_the_slave_at_the_motors_own_shaft_without_waiting_for_its_re
         replica = [st.get("replica") for st in said]
     tick = 2 * math.pi / 4096
     ts, pans = np.array([m.t_ns for m in ms], float), np.array([m.pan_rad for m in ms])
-    inside = [f for f in fr[50:] if ts[0] < f.t_capture_ns + f.skew_ns < ts[-1]]
+    # the frames whose exposure lies between two states at most 1.5 ms apart (the states interpolated give the
+    # shaft there; a loaded machine delays the motor's 1 kHz reports, and across a longer gap the line between
+    # two states is off the accelerating shaft by more than the 0.01 tick asserted)
+    i = np.searchsorted(ts, [f.t_capture_ns + f.skew_ns for f in fr])
+    inside = [f for f, j in zip(fr, i) if 50 <= f.frame and 0 < j < len(ts) and ts[j] - ts[j - 1] <= 1.5e6]
     off = np.array([abs(f.pan_rad - np.interp(f.t_capture_ns + f.skew_ns, ts, pans)) for f in inside]) / tick
     moved = max(f.pan_rad for f in inside) - min(f.pan_rad for f in inside)
     print(f"\n{len(inside)} frames, the slave over {math.degrees(moved):.2f} deg: off the motor's shaft by "
@@ -710,7 +713,8 @@ def test_up_renders_the_slave_at_the_motors_own_shaft_without_waiting_for_its_re
           f"{np.sum(off > 0.01)} over 0.01; {decided:.0f} decisions/s; replica {replica[-1:]}; published "
           f"{[round(st.get('published_hz', 0)) for st in said]}/s, "
           f"waits {said[-1].get('counters', {}).get('command_waits')}")
-    assert len(inside) > 500 and moved > math.radians(1)  # the target moved the slave
-    assert np.median(off) <= 0.01 and off.max() <= 1.0 and not any(f.pan_stale for f in inside)
+    assert len(inside) > 150 and moved > math.radians(1)  # the target moved the slave
+    assert np.median(off) <= 0.01 and np.percentile(off, 99) <= 0.1 and off.max() <= 1.0
+    assert not any(f.pan_stale for f in fr[50:])
     assert replica and replica[-1] == {"trusted": True, "mismatches": 0, "unheard": 0}
     assert max(st.get("published_hz", 0) for st in said) >= 200
