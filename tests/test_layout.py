@@ -62,6 +62,24 @@ def test_every_module_imports_first_in_a_fresh_interpreter_without_zenoh_or_serv
         assert got.get("loaded", []) == [], f"import {name} loads {got['loaded']}"
 
 
+@pytest.mark.slow
+def test_the_processes_that_run_no_kernel_start_without_numba():
+    """`vergence up`, the actuator and the clients load no numba (vergence's public names are imported on first use,
+    and the settings need no kernel): about 0.6 s less of each start. `vergence.decide` and `vergence.match` stay
+    the functions when their modules are imported."""
+    import subprocess
+    import sys
+
+    code = ("import sys, services.ops.up, services.pipeline.actuator, services.clients.latency, "
+            "services.clients.fixate, vergence.config, vergence.keys, vergence.messages\n"
+            "print(sorted(m for m in ('numba', 'vergence.kernel', 'vergence.retina') if m in sys.modules))\n"
+            "import vergence, vergence.decide, vergence.match\n"
+            "print(vergence.decide.__name__, type(vergence.decide).__name__, type(vergence.match).__name__)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split("\n")[:2] == ["[]", "decide function function"]
+
+
 def _top_level(tree: ast.Module):
     """The statements run when the module is imported (not those inside functions or classes' methods)."""
     todo = list(tree.body)

@@ -5,8 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass, fields, replace
 from typing import ClassVar
 
-from . import retina
 from .ranges import Range, check
+
+PHOTOMETRIC = ("none", "affine", "histogram")  # retina.photometric's modes
 
 __all__ = ["Params", "FAITHFUL", "WINDOW_STEP"]
 
@@ -83,8 +84,8 @@ class Params:
         check(self, self.RANGES)
         if self.window % 2 == 0:
             raise ValueError(f"window: must be odd, got {self.window}")
-        if self.photometric not in retina.PHOTOMETRIC:
-            raise ValueError(f"photometric must be one of {', '.join(retina.PHOTOMETRIC)}, got {self.photometric!r}")
+        if self.photometric not in PHOTOMETRIC:
+            raise ValueError(f"photometric must be one of {', '.join(PHOTOMETRIC)}, got {self.photometric!r}")
 
     @classmethod
     def paper(cls, **overrides) -> "Params":

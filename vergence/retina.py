@@ -14,6 +14,8 @@ import cv2
 import numba
 import numpy as np
 
+from .params import PHOTOMETRIC  # the modes of photometric, beside the parameter that names one
+
 __all__ = ["BorderError", "gray", "strip", "fovea_strip", "band_strip", "planes", "features", "check_point",
            "PHOTOMETRIC", "photometric", "photometric_map", "slave_band_strip", "mapped_strips", "master_clipped",
            "clipped_share", "CLIP_WARN", "warm_up"]
@@ -151,7 +153,6 @@ def planes(s: np.ndarray) -> np.ndarray:
     return out
 
 
-PHOTOMETRIC = ("none", "affine", "histogram")
 AFFINE_QUANTILES = (0.3, 0.5, 0.7)
 
 

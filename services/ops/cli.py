@@ -87,8 +87,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"vergence {name}: {e}", file=sys.stderr)
             return 1
         # a settings file or value that is wrong: the message names the field. Looked up only if the command
-        # loaded the settings: importing vergence costs ~1 s (numba), which `vergence router` does without
-        # (a router restarted by `vergence up` is back that much sooner)
+        # loaded the settings: importing vergence.config loads numpy and msgspec, which `vergence router` does
+        # without (a router restarted by `vergence up` is back that much sooner)
         config = sys.modules.get("vergence.config")
         if config is not None and isinstance(e, config.ConfigError):
             print(f"vergence {name}: {e}", file=sys.stderr)

@@ -13,14 +13,10 @@ import dataclasses
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from vergence import kernel
-from vergence.frames import make_frame
-from vergence.gather import Gatherer
-from vergence.params import Params
-from vergence.shards import compute_correlation
+if TYPE_CHECKING:
+    from vergence.params import Params
 
 WIDTH = 128
 WINDOW = 15
@@ -29,7 +25,15 @@ WINDOW = 15
 def warm_up(params: Params, control=None) -> None:
     """Run the kernel once on a small synthetic frame made with `params` (window 15, at most +-2 rows); given
     the controller's settings (the reducer), the frame and its correlation also go through a Gatherer, which
-    decides on them (left-right check included)."""
+    decides on them (left-right check included). (The kernels are imported here: `vergence up` imports this
+    module for compiled() and loads no numba.)"""
+    import numpy as np
+
+    from vergence import kernel
+    from vergence.frames import make_frame
+    from vergence.gather import Gatherer
+    from vergence.shards import compute_correlation
+
     kernel.warm_up()
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, (64, WIDTH), np.uint8)
@@ -61,6 +65,7 @@ def main() -> int:
     """Compile (or load) every kernel the pipeline's processes use (`vergence up` says how long it took)."""
     from vergence import retina
     from vergence.control import ControlSettings
+    from vergence.params import Params
 
     retina.warm_up()
     warm_up(Params(), ControlSettings())
