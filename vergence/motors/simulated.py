@@ -181,7 +181,7 @@ class Replica:
     KEEP_NS = 2_000_000_000  # snapshots kept, for instants back to this far before the newest
     SNAP_STEPS = 4  # a snapshot every this many grid steps of model time (1 ms)
     REST_NS = 5_000_000
-    ANSWER_NS = 25_000_000  # the longest a command seen waits for the motor's state that counts it
+    ANSWER_NS = 50_000_000  # the longest a command seen waits for the motor's state that counts it
 
     def __init__(self, settings: MotorSettings):
         self.settings = settings

@@ -526,11 +526,12 @@ def test_replica_counts_the_commands_seen_against_the_motors_own_count():
     rep.commanded(8 * ms)  # never counted: out until ANSWER_NS, then let go
     assert rep.unanswered(8 * ms + rep.ANSWER_NS) == 8 * ms
     assert rep.unanswered(8 * ms + rep.ANSWER_NS + 1) is None and rep.unheard == 1
-    rep.counted(1, 40 * ms)  # a restarted actuator, one command since its start: answers the next one seen
-    rep.commanded(41 * ms)
-    assert rep.unanswered(41 * ms) is None and rep.unheard == 1
-    rep.counted(2, 42 * ms)  # an early answer older than ANSWER_NS answers nothing
-    rep.commanded(90 * ms)
-    assert rep.unanswered(90 * ms) == 90 * ms
-    rep.counted(3, 91 * ms)
+    rep.counted(1, 90 * ms)  # a restarted actuator, one command since its start: answers the next one seen
+    rep.commanded(91 * ms)
     assert rep.unanswered(91 * ms) is None and rep.unheard == 1
+    rep.counted(2, 100 * ms)  # an early answer older than ANSWER_NS answers nothing
+    late = 101 * ms + rep.ANSWER_NS
+    rep.commanded(late)
+    assert rep.unanswered(late) == late
+    rep.counted(3, late + ms)
+    assert rep.unanswered(late + ms) is None and rep.unheard == 1
