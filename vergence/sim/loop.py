@@ -16,6 +16,7 @@ exposures (a latency longer than a frame); runs are deterministic and as fast as
 from __future__ import annotations
 
 import heapq
+import inspect
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -29,6 +30,7 @@ from ..motors.base import MotorSettings, Safety
 from ..motors.simulated import SimMotor
 from ..timing import CameraTiming, PanHistory
 from .camera import Schedule, expose, sub_times
+from .optics import Region
 from .rig import Rig
 
 __all__ = ["Step", "closed_loop", "frames_to_converge", "tracking_error", "DELAY_S", "STATE_HZ"]
@@ -150,7 +152,7 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
             history: PanHistory, t_now: float) -> tuple[Step, float | None]:
     """One frame read: its images, the network's decision, the controller's target (None: no move)."""
     t_master, t_slave, _ = times
-    master, slave = expose(rig, seen["master_t"], seen["slave"])
+    master, slave = _band(rig, seen, at, params)
     m = match(master, slave, at, params)
     d = m.decision
     pan = history.at(t_slave)  # the slave's pan at its exposure, as the encoder reports it
@@ -163,6 +165,23 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
                 offset_px=d.offset_px, confident=d.confident, k=d.k, v=d.v, window=m.window,
                 confidence=d.confidence, target_deg=None, scores=np.atleast_2d(m.scores)[d.v + params.vsearch])
     return step, target
+
+
+def _band(rig, seen: dict, at, params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's views with only the rows the match reads rendered (the largest window's half, the vertical
+    search and Sobel's margin about the fovea's row; the same rows, noise included, as in the whole view), the
+    rest black: as the capture's sim source renders. A rig of the caller's own whose views take no region is
+    rendered whole."""
+    if "region" not in inspect.signature(rig.master_view).parameters:
+        return expose(rig, seen["master_t"], seen["slave"])
+    w, h = rig.size
+    y = h // 2 if at is None else at[1]
+    margin = max(params.windows()) // 2 + params.vsearch + 1
+    y0, y1 = max(0, y - margin), min(h, y + margin + 1)
+    band = expose(rig, seen["master_t"], seen["slave"], Region.band(w, y0, y1))
+    out = np.zeros((2, h, w), np.uint8)
+    out[0, y0:y1], out[1, y0:y1] = band
+    return out[0], out[1]
 
 
 def frames_to_converge(steps: list[Step], tol_px: float = 1.0) -> int | None:
