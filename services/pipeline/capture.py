@@ -386,7 +386,8 @@ class Capture:
 
     def on_command(self, sample) -> None:
         """A command on the rig's key (the reducer's, or a client's): its goal is not in the replica until the
-        motor's state counts it (PanLookup.ready). Only a command that decodes, for this rig, counts."""
+        motor's state counts it (PanLookup.ready). Only a command that decodes, for this rig, counts, and only
+        while the replica is trusted (another driver's motor never counts here: nothing would answer it)."""
         try:
             cmd = Command.from_bytes(sample.payload.to_bytes())
             if cmd.rig != self.rig:
@@ -395,7 +396,8 @@ class Capture:
             self.health.reject("command", e)
             return
         with self.history_lock:
-            self.replica.commanded(time.monotonic_ns())
+            if self.replica.trusted:
+                self.replica.commanded(time.monotonic_ns())
 
     def on_token(self, sample) -> None:
         wid = keys.parse(str(sample.key_expr)).ident
