@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import vergence
+import middlebury
 from references import ref_features
 from vergence import retina
 
@@ -29,6 +30,24 @@ def test_direction_feature_is_full_circle(grad, expect_d):
     assert (p[1, 2:-2, 2:-2] == 20).all()  # Sobel of a 10/px ramp is 4 * 2 * 10 = 80; G = 80 / 4
     flat = retina.planes(np.full((5, 5), 77, np.uint8))
     assert flat[0].min() == 77 and not flat[1].any() and not flat[2].any()
+
+
+def test_the_direction_table_gives_the_bytes_of_atan2_per_pixel():
+    """planes() looks D up in a table of every Sobel gradient; planes_reference computes numpy's float32 atan2 per
+    pixel: the same bytes on noise, on 0/255 edges (the extreme gradients, +-1020) and on a real photo."""
+    rng = np.random.default_rng(11)
+    strips = [rng.integers(0, 256, (33, 643), dtype=np.uint8),
+              (rng.integers(0, 2, (17, 300)) * 255).astype(np.uint8),
+              cv2.GaussianBlur(rng.integers(0, 256, (40, 200), dtype=np.uint8), (5, 5), 1.5)]
+    if (middlebury.ROOT / "scenes.json").is_file():
+        strips += list(middlebury.load("teddy")[:2])
+    for s in strips:
+        assert np.array_equal(retina.planes(s), retina.planes_reference(s))
+    table = retina.direction_table()
+    assert table.shape == (2 * 1020 + 1,) * 2
+    g = retina.GRAD_MAX
+    assert table[g, g] == 0 and table[g, g + 5] == 0 and table[g + 5, g] == 64  # no gradient; right; down
+    assert table[g, g - 5] == 128 and table[g - 5, g] == 192 and table[g + 1020, g + 1020] == 32
 
 
 def test_gradient_magnitude_saturates_at_255():
