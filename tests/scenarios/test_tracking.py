@@ -671,14 +671,13 @@ def test_up_renders_the_slave_at_the_motors_own_shaft_without_waiting_for_its_re
     a second): 0.0000 tick median, 99th percentile 0.002-0.14 tick, worst 0.009-0.30 tick in most runs, once 3.0
     ticks (one frame of 210: a command the capture saw only after the motor had taken it, its callback waiting
     for the interpreter behind the capture's own work; no wait can cover a command not seen yet). None is stale
-    (none waited for a
-    report). At 250 Hz, beside a fresh-clone test run on a half-speed day (the pipeline deciding 35 of the 250
-    frames a second, the capture publishing nothing for 3 s of the 12), 29 of 194 frames were 10 ticks off with no
-    mismatch and no command unheard: the capture's states and commands reached it late behind its own work, the
-    frames rendered meanwhile with a goal it did not know yet; the rate is 125 Hz since (the capture's share of the
-    two cores halved). The rate decided is the bench's (`vergence bench pipeline`); here the capture publishes at the rate
-    asked, well past the 50 Hz of the motor's reports that bounded it before (the config's 1 kHz reports would
-    not, so the replica's own status is asserted too)."""
+    (none waited for a report). At 250 Hz, beside a fresh-clone test run on a half-speed day (the pipeline deciding
+    35 of the 250 frames a second, the capture publishing nothing for 3 s of the 12), 29 of 194 frames were 10 ticks
+    off with no mismatch and no command unheard: the capture's states and commands reached it late behind its own
+    work, the frames rendered meanwhile with a goal it did not know yet; the rate is 125 Hz since (the capture's
+    share of the two cores halved). The rate decided is the bench's (`vergence bench pipeline`); here the capture
+    publishes at the rate asked, well past the 50 Hz of the motor's reports that bounded it before (the config's
+    1 kHz reports would not, so the replica's own status is asserted too)."""
     import contextlib
     import time
 
