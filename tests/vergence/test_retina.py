@@ -32,22 +32,30 @@ def test_direction_feature_is_full_circle(grad, expect_d):
     assert flat[0].min() == 77 and not flat[1].any() and not flat[2].any()
 
 
-def test_the_direction_table_gives_the_bytes_of_atan2_per_pixel():
-    """planes() looks D up in a table of every Sobel gradient; planes_reference computes numpy's float32 atan2 per
-    pixel: the same bytes on noise, on 0/255 edges (the extreme gradients, +-1020) and on a real photo."""
+def test_the_direction_table_is_the_exact_direction_on_any_cpu():
+    """planes() looks D up in a table of every Sobel gradient: each entry is round(atan2 * 128 / pi) mod 256 of
+    exact maths, because no integer gradient's angle lies within 1e-6 of a step of a rounding boundary (float64's
+    error is 1e-15 of one; float32's, the old per-pixel route, is not: it rounded 10 entries the other way). The
+    planes of noise, of 0/255 edges (the extreme gradients, +-1020) and of a real photo equal the float64
+    reference of ALGORITHM.md."""
+    g = retina.GRAD_MAX
+    table = retina.direction_table()
+    assert table.shape == (2 * g + 1,) * 2 and not table.flags.writeable
+    assert table[g, g] == 0 and table[g, g + 5] == 0 and table[g + 5, g] == 64  # no gradient; right; down
+    assert table[g, g - 5] == 128 and table[g - 5, g] == 192 and table[g + g, g + g] == 32
+    v = np.arange(-g, g + 1, dtype=np.float64)
+    steps = (np.arctan2(v[:, None], v[None, :]) % (2 * np.pi)) * (128 / np.pi) + 0.5
+    near = np.abs(steps - np.round(steps))
+    near[g, g] = 1.0
+    assert near.min() > 1e-6
+    assert table[g - 834, g + 382] == int(np.floor(steps[g - 834, g + 382])) % 256  # one float32 rounded wrong
     rng = np.random.default_rng(11)
-    strips = [rng.integers(0, 256, (33, 643), dtype=np.uint8),
-              (rng.integers(0, 2, (17, 300)) * 255).astype(np.uint8),
+    images = [rng.integers(0, 256, (33, 643), dtype=np.uint8), (rng.integers(0, 2, (17, 300)) * 255).astype(np.uint8),
               cv2.GaussianBlur(rng.integers(0, 256, (40, 200), dtype=np.uint8), (5, 5), 1.5)]
     if (middlebury.ROOT / "scenes.json").is_file():
-        strips += list(middlebury.load("teddy")[:2])
-    for s in strips:
-        assert np.array_equal(retina.planes(s), retina.planes_reference(s))
-    table = retina.direction_table()
-    assert table.shape == (2 * 1020 + 1,) * 2
-    g = retina.GRAD_MAX
-    assert table[g, g] == 0 and table[g, g + 5] == 0 and table[g + 5, g] == 64  # no gradient; right; down
-    assert table[g, g - 5] == 128 and table[g - 5, g] == 192 and table[g + 1020, g + 1020] == 32
+        images.append(middlebury.load("teddy")[0])
+    for img in images:
+        assert np.array_equal(retina.planes(retina.strip(img, 0, img.shape[0], 0, img.shape[1])), ref_features(img))
 
 
 def test_gradient_magnitude_saturates_at_255():
