@@ -196,8 +196,10 @@ class Periodic:
     def add(self, t: float, z: float) -> None:
         if self.t and t <= self.t[-1]:
             return
-        if len(self.t) >= 2 and t - self.t[-2] < self.MIN_DT_S:
-            self.t[-1], self.z[-1] = t, z  # closer than MIN_DT_S to the one before the newest: the newest now
+        if len(self.t) >= 2 and self.t[-1] - self.t[-2] < self.MIN_DT_S:
+            # the newest is closer than MIN_DT_S to the one before it: this one takes its place (the newest is
+            # always the latest measurement; the ones before it are MIN_DT_S apart at least)
+            self.t[-1], self.z[-1] = t, z
         else:
             self.t.append(t)
             self.z.append(z)
