@@ -27,6 +27,7 @@ import time
 
 from . import ros2 as conv
 from .images import SourceError
+from .spec import Key, SpecError, parse
 
 __all__ = ["SourceStall", "Ros2Source", "parse_spec"]
 
@@ -49,17 +50,12 @@ def parse_spec(rest: str) -> tuple[str, str, dict[str, float]]:
     parts = [p.strip() for p in topics.split(",")]
     if len(parts) != 2 or not all(parts):
         raise SourceError(f"source ros2:{rest!r}: want ros2:LEFT_TOPIC,RIGHT_TOPIC[:slop=S][:wait=S][:skew=S]")
-    out = {"slop": 0.005, "wait": 10.0, "skew": 2.0}
-    for o in opts:
-        k, _, v = o.partition("=")
-        if k not in out:
-            raise SourceError(f"source ros2: unknown option {k!r} (want slop=S, wait=S or skew=S)")
-        try:
-            out[k] = float(v)
-        except ValueError:
-            raise SourceError(f"source ros2: {k}={v!r} is not a number of seconds") from None
-        if not out[k] >= 0:
-            raise SourceError(f"source ros2: {k}={v!r} must be >= 0")
+    keys = [Key("slop", default=0.005, lo=0.0, unit="s"), Key("wait", default=10.0, lo=0.0, unit="s"),
+            Key("skew", default=2.0, lo=0.0, unit="s")]
+    try:
+        out = parse(":".join(opts), keys, "source ros2")
+    except SpecError as e:
+        raise SourceError(str(e)) from None
     return parts[0], parts[1], out
 
 

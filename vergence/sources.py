@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 
 from .images import SourceError, read_image
+from .spec import Key, parse
 from .timing import CameraTiming
 
 __all__ = ["SourceError", "Source", "FilesSource", "VideoSource", "CameraSource", "SimSource",
@@ -257,9 +258,9 @@ class SimSource(Source):
         from .sim import Rig  # the simulator is only loaded when used
 
         try:
-            spec, timing, self.stamps = self._timing(spec)
+            items, timing, self.stamps = self._timing(spec)
             self.timing = self.camera_timing(timing)
-            self.rig = Rig.from_spec(spec)
+            self.rig = Rig.from_items(items)
         except (ValueError, OSError) as e:
             raise SourceError(str(e)) from None
         self.size = tuple(self.rig.size)
@@ -284,24 +285,16 @@ class SimSource(Source):
             raise ValueError(f"sim source: {key}:{why}") from None
 
     @classmethod
-    def _timing(cls, spec: str) -> tuple[str, dict, bool]:
-        """The spec without its timing keys, the CameraTiming's arguments, and whether to stamp."""
-        rest, timing, stamps = [], {}, True
-        for item in (spec or "").split(":"):
-            key, eq, value = item.partition("=")
-            key = key.strip()
-            if eq and key in cls.TIMING:
-                try:
-                    timing[cls.TIMING[key]] = float(value)
-                except ValueError:
-                    raise ValueError(f"sim source: {key}={value.strip()!r} is not a number of seconds") from None
-            elif eq and key == "stamps":
-                if value.strip() not in ("yes", "no"):
-                    raise ValueError(f"sim source: stamps={value.strip()!r}: yes or no")
-                stamps = value.strip() == "yes"
-            else:
-                rest.append(item)
-        return ":".join(rest), timing, stamps
+    def _timing(cls, spec: str) -> tuple[dict, dict, bool]:
+        """The spec's rig items, the CameraTiming's arguments, and whether to stamp (one parse, vergence.spec)."""
+        from .sim import Rig
+
+        keys = [Key(k, unit="s") for k in cls.TIMING] + [Key("stamps", "choice", "yes", choices=("yes", "no"))]
+        items = parse(spec, keys + Rig.spec_keys(), "sim source")
+        timing = {field: items[k] for k, field in cls.TIMING.items() if items[k] is not None}
+        for k in cls.TIMING:
+            del items[k]
+        return items, timing, items.pop("stamps") == "yes"
 
     def read(self, pan_at=0.0) -> tuple[np.ndarray, np.ndarray]:
         from .sim.camera import expose, sub_times

@@ -64,7 +64,7 @@ def test_motion_z(spec, t, z):
 
 @pytest.mark.parametrize("spec,says", [("walk:z=1", "unknown kind"), ("still:z=0", "> 0"), ("sine:z=0.3,amp=0.3,hz=1",
                                        "> 0"), ("step:z0=1,z1=2", "missing at"), ("still:z=x", "not a number"),
-                                       ("ramp:z0=1,z1=2,speed=0", "speed"), ("still:q=1", "bad item")])
+                                       ("ramp:z0=1,z1=2,speed=0", "speed"), ("still:q=1", "unknown key 'q'")])
 def test_motion_errors_say_what(spec, says):
     with pytest.raises(ValueError, match=says):
         parse_motion(spec)

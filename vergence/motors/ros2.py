@@ -27,6 +27,7 @@ import threading
 import time
 
 from .. import ros2 as conv
+from ..spec import Key, SpecError, parse
 from .base import Disconnected, Driver, MotorSettings, PortError
 
 __all__ = ["Ros2Driver", "parse_port"]
@@ -39,25 +40,17 @@ def parse_port(port: str) -> dict:
     """'CONTROLLER[:joint=NAME][:mode=forward|trajectory][:joints=A,B][:states=TOPIC][:reach=S]' -> options;
     PortError naming what is wrong."""
     controller, *opts = (port or "forward_position_controller").split(":")
-    out = {"controller": controller.strip("/") or "forward_position_controller", "joint": "slave_pan",
-           "mode": "forward", "joints": "", "states": "/joint_states", "reach": "0.05"}
-    for o in opts:
-        k, eq, v = o.partition("=")
-        if k not in out or k == "controller" or not eq:
-            raise PortError(f"ros2 driver: option {o!r}: want joint=NAME, mode=forward|trajectory, joints=A,B, "
-                            "states=TOPIC or reach=S")
-        out[k] = v
-    if out["mode"] not in ("forward", "trajectory"):
-        raise PortError(f"ros2 driver: mode={out['mode']!r}: want forward or trajectory")
-    out["joints"] = [j for j in out["joints"].split(",") if j] or [out["joint"]]
+    keys = [Key("joint", "str", default="slave_pan"),
+            Key("mode", "choice", "forward", choices=("forward", "trajectory")), Key("joints", "list", default=()),
+            Key("states", "str", default="/joint_states"), Key("reach", default=0.05, above=0.0, unit="s")]
+    try:
+        out = parse(":".join(opts), keys, "ros2 driver")
+    except SpecError as e:
+        raise PortError(str(e)) from None
+    out["controller"] = controller.strip("/") or "forward_position_controller"
+    out["joints"] = list(out["joints"]) or [out["joint"]]
     if out["joint"] not in out["joints"]:
         raise PortError(f"ros2 driver: joints={','.join(out['joints'])} does not name joint={out['joint']}")
-    try:
-        out["reach"] = float(out["reach"])
-    except ValueError:
-        raise PortError(f"ros2 driver: reach={out['reach']!r} is not a number of seconds") from None
-    if not (out["reach"] > 0 and math.isfinite(out["reach"])):
-        raise PortError("ros2 driver: reach must be a positive number of seconds")
     return out
 
 

@@ -13,6 +13,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from ..spec import Key, SpecError, parse
+
 __all__ = ["Motion", "parse_motion", "KINDS"]
 
 KINDS = {"still": ("z",), "step": ("z0", "z1", "at"), "ramp": ("z0", "z1", "speed"), "sine": ("z", "amp", "hz")}
@@ -56,39 +58,22 @@ class Motion:
         return min(q["z0"], q["z1"]), max(q["z0"], q["z1"])
 
 
+def _keys(kind: str) -> list[Key]:
+    """The keys of a kind (vergence.spec), all required: metres, seconds, hertz."""
+    limits = {"speed": dict(above=0.0, unit="m/s"), "hz": dict(lo=0.0, unit="Hz"), "at": dict(lo=0.0, unit="s")}
+    return [Key(k, required=True, **limits.get(k, {})) for k in KINDS[kind]]
+
+
 def parse_motion(spec: str) -> Motion:
-    """A Motion from 'kind:key=value,...' (see the module's docstring)."""
+    """A Motion from 'kind:key=value,...' (see the module's docstring); ValueError (vergence.spec.SpecError)
+    naming the item."""
     kind, _, rest = (spec or "").strip().partition(":")
     kind = kind.strip()
     if kind not in KINDS:
-        raise ValueError(f"motion {spec!r}: unknown kind {kind!r}; want one of "
-                         + ", ".join(f"{k}:{','.join(v + '=' for v in keys)}" for k, keys in KINDS.items()))
-    keys = KINDS[kind]
-    vals: dict[str, float] = {}
-    for item in rest.split(","):
-        if not item.strip():
-            continue
-        key, eq, value = item.partition("=")
-        key = key.strip()
-        if not eq or key not in keys:
-            raise ValueError(f"motion {spec!r}: bad item {item.strip()!r}; {kind} takes {', '.join(keys)}")
-        try:
-            v = float(value)
-        except ValueError:
-            raise ValueError(f"motion {spec!r}: {key}={value.strip()!r} is not a number") from None
-        if not math.isfinite(v):
-            raise ValueError(f"motion {spec!r}: {key}={value.strip()!r} is not finite")
-        vals[key] = v
-    missing = [k for k in keys if k not in vals]
-    if missing:
-        raise ValueError(f"motion {spec!r}: missing {', '.join(missing)} ({kind} takes {', '.join(keys)})")
-    m = Motion(kind, tuple((k, vals[k]) for k in keys))
-    if kind == "ramp" and not vals["speed"] > 0:
-        raise ValueError(f"motion {spec!r}: speed must be > 0 m/s")
-    if kind == "sine" and not vals["hz"] >= 0:
-        raise ValueError(f"motion {spec!r}: hz must be >= 0")
-    if kind == "step" and not vals["at"] >= 0:
-        raise ValueError(f"motion {spec!r}: at must be >= 0 s")
+        raise SpecError(f"motion {spec!r}: unknown kind {kind!r}; want one of "
+                        + ", ".join(f"{k}:{','.join(v + '=' for v in keys)}" for k, keys in KINDS.items()))
+    vals = parse(rest, _keys(kind), f"motion {spec!r}", sep=",")
+    m = Motion(kind, tuple((k, vals[k]) for k in KINDS[kind]))
     if not m.z_range[0] > 0:
-        raise ValueError(f"motion {spec!r}: the target comes to {m.z_range[0]:g} m; every distance must be > 0")
+        raise SpecError(f"motion {spec!r}: the target comes to {m.z_range[0]:g} m; every distance must be > 0")
     return m

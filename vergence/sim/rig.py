@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from ..images import read_image
-from .motion import KINDS
+from ..spec import Key, parse
 from .moving import MovingRig
 from .optics import GIMBALS, Region, homography, option_number, rotation
 from .scene import generate
@@ -142,22 +142,18 @@ class Rig:
         target on the physical rig instead (vergence.sim.moving.MovingRig.from_options: baseline=M,
         focal=PX, size=WxH, noise, seed, pan, texture=FILE|flat, target=M, bg=M).
         A bad key or value raises ValueError naming it."""
-        items: dict[str, str] = {}
-        parts = (spec or "").split(":")
+        return cls.from_items(parse(spec, cls.spec_keys(), "sim source"))
+
+    @classmethod
+    def spec_keys(cls) -> list[Key]:
+        """The keys of from_spec (vergence.spec): text, read by from_options; motion=SPEC takes its own items."""
         keys = cls.KEYS + tuple(k for k in MovingRig.KEYS if k not in cls.KEYS)
-        while parts:
-            item = parts.pop(0)
-            if not item.strip():
-                continue
-            key, eq, value = item.partition("=")
-            key, value = key.strip(), value.strip()
-            if not eq:
-                raise ValueError(f"sim source item {item!r} is not key=value; keys: {', '.join(keys)}")
-            if key not in keys:
-                raise ValueError(f"sim source: unknown key {key!r}; keys: {', '.join(keys)}")
-            if key == "motion" and parts and (value in KINDS or parts[0].partition("=")[0].strip() not in keys):
-                value = f"{value}:{parts.pop(0).strip()}"  # motion=sine:z=0.8,... : the next item is its own
-            items[key] = value
+        return [Key(k, "spec" if k == "motion" else "str") for k in keys]
+
+    @classmethod
+    def from_items(cls, items: dict[str, str | None]):
+        """The rig of parsed spec items (None: not given): the moving target's with motion=, else the still one."""
+        items = {k: v for k, v in items.items() if v is not None}
         if "motion" in items:
             return MovingRig.from_options(**items)
         return cls.from_options(**items)
