@@ -72,17 +72,18 @@ def _parabola(ym: float, y0: float, yp: float) -> float:
     return min(max(0.5 * (ym - yp) / den, -0.5), 0.5)  # np.clip's value, NaN included, without its call
 
 
-def decide(scores: np.ndarray, window: int, *, k_centre: int | None = None, subpixel: bool = True,
-           tex: float | None = None, min_texture: float = 4.0, min_margin: float = 0.04,
-           rival_radius: int | None = None, back_ok: bool | None = None, vshift_cost: float = 0.0) -> Decision:
+def decide(scores: np.ndarray, window: int, *, k_centre: int | None = None, subpixel: bool = Params.subpixel,
+           tex: float | None = None, min_texture: float = Params.min_texture, min_margin: float = Params.min_margin,
+           rival_radius: int | None = None, vshift_cost: float = Params.vshift_cost) -> Decision:
     """Winner-takes-all over layer 4 and the two output neurons.
 
     scores: y(k) (1-D) or y(v, k) with vertical search (row v is the shift v - R). The band is
     W = K + w - 1 wide; k_centre defaults to W/2 - floor(w/2). The confidence is the margin between the
     winner and the best rival more than rival_radius (default w // 2) offsets away, as a fraction of the
-    rival's dissimilarity (255 * w * w - y); confident needs that margin >= min_margin, the fovea's texture
-    (when given) >= min_texture, and the left-right check (when given) to agree. min_margin=0 and
-    min_texture=0 with no check give the paper's behaviour: always confident. vshift_cost: with vertical
+    rival's dissimilarity (255 * w * w - y); confident needs that margin >= min_margin and the fovea's texture
+    (when given) >= min_texture. min_margin=0 and min_texture=0 give the paper's behaviour: always confident.
+    The defaults are Params' (vergence.match's): the checks that need the images (decide_scores) are not here.
+    vshift_cost: with vertical
     search, each row of shift |v| costs this much per pixel (the 0..255 scale of layer 3) in the
     winner-takes-all and the margin, so that a shifted row wins only where it is clearly better; the
     decision's score stays the row's own y."""
@@ -116,8 +117,6 @@ def decide(scores: np.ndarray, window: int, *, k_centre: int | None = None, subp
     margin = float(min(max(margin, 0.0), 1.0))
     confident = margin >= min_margin
     if tex is not None and tex < min_texture:
-        confident = False
-    if back_ok is False:
         confident = False
     d = k - k_centre
     return Decision(k=k, k_sub=k_sub, v=vi - (nv - 1) // 2, k_centre=k_centre, direction=int(np.sign(d)),

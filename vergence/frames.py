@@ -95,14 +95,14 @@ class Roster:
     """The workers the capture plans with: the live liveliness tokens (an invitation, not a guarantee),
     minus those the reducer's evidence (Gatherer.report) shows missing.
 
-    A worker in the plan for at least miss_s that the latest report (no older than 4 x miss_s) shows with
-    at least miss_frames expired frames in a row without its correlation, and no correlation for miss_s (or none
-    ever), leaves the plan for probation_s, doubling on each exclusion in a row (up to 32 x); it is then
-    tried again. One that answers is back to a clean record. Without reports (no reducer), the plan is the
-    tokens, as before. counters: excluded, readmitted, reports."""
+    A worker in the plan for at least miss_s that a report shows with at least miss_frames expired frames in a
+    row without its correlation, and no correlation for miss_s (or none ever), leaves the plan for probation_s,
+    doubling on each exclusion in a row (up to 32 x); it is then tried again. One that answers is back to a clean
+    record. Without reports (no reducer), the plan is the tokens, as before. The defaults are the settings'
+    ([limits]). counters: excluded, readmitted, reports."""
 
-    def __init__(self, miss_s: float = 0.25, probation_s: float = 1.0, miss_frames: int = 3,
-                 clock=time.monotonic):
+    def __init__(self, miss_s: float = LimitSettings.miss_s, probation_s: float = LimitSettings.probation_s,
+                 miss_frames: int = LimitSettings.miss_frames, clock=time.monotonic):
         self.miss_s, self.probation_s, self.miss_frames = miss_s, probation_s, miss_frames
         self.clock = clock
         self.lock = threading.Lock()
@@ -173,7 +173,7 @@ class Roster:
 
 
 class WindowControl:
-    """The dynamic window of the service, driven by the decisions (Verdicts) coming back to the capture.
+    """The dynamic window of the service, driven by the decisions coming back to the capture.
 
     It moves along states (window, clip): params.windows() (the one dynamic-window rule, shared with
     vergence.match()) with the master clipped as params.clip_master says (clip True), then, with

@@ -195,7 +195,7 @@ class Gatherer:
                              implausible_frame=0)
 
     # -- plausibility --------------------------------------------------------------------------------------
-    def implausible(self, frame_id: int, t_capture_ns: int, now: float) -> str | None:
+    def implausible(self, frame_id: int, t_capture_ns: int) -> str | None:
         """Why a message of this frame and capture time is not believed (a counter's name), or None."""
         if abs(t_capture_ns - self.wall_ns()) > self.limits.max_skew_s * 1e9:
             return "implausible_time"
@@ -212,7 +212,7 @@ class Gatherer:
 
     def _entry(self, frame_id: int, t_capture_ns: int, now: float, is_frame: bool) -> _Pending | None:
         self._recover(now)
-        why = self.implausible(frame_id, t_capture_ns, now)
+        why = self.implausible(frame_id, t_capture_ns)
         if why is not None:
             self.counters[why] += 1
             return None
@@ -239,13 +239,13 @@ class Gatherer:
         now = time.monotonic() if now is None else now
         if not frame.plan:
             self.counters["no_plan"] += 1
-            return self.expire(now)
+            return self._nothing(now)
         e = self._entry(frame.frame, frame.t_capture_ns, now, True)
         if e is None:
-            return self.expire(now)
+            return self._nothing(now)
         if e.frame is not None:
             self.counters["unexpected"] += 1
-            return self.expire(now)
+            return self._nothing(now)
         self.counters["frames"] += 1
         e.frame = frame
         self.newest = max(self.newest, frame.frame)
@@ -262,13 +262,13 @@ class Gatherer:
         now = time.monotonic() if now is None else now
         e = self._entry(correlation.frame, correlation.t_capture_ns, now, False)
         if e is None:
-            return self.expire(now)
+            return self._nothing(now)
         self.counters["correlations"] += 1
         if correlation.worker in e.correlations or (e.frame is not None and
                                             e.frame.shard(correlation.worker) != (correlation.k0, correlation.k1)) or (
                 e.frame is None and len(e.correlations) >= self.MAX_CORRELATIONS):
             self.counters["unexpected"] += 1
-            return self.expire(now)
+            return self._nothing(now)
         e.correlations[correlation.worker] = correlation
         if e.frame is not None:
             self._answer(correlation.worker, correlation.frame, now)
@@ -280,7 +280,7 @@ class Gatherer:
 
     # -- assembling ----------------------------------------------------------------------------------------
     def _try(self, fid: int, e: _Pending, now: float) -> list[Reduced]:
-        out = self.expire(now)
+        out = self._nothing(now)
         f = e.frame
         if f is None or len(e.correlations) != len(f.plan) or fid not in self.pending:
             return out
@@ -326,12 +326,16 @@ class Gatherer:
             o = self.pending.pop(old)
             self.counters["superseded" if o.frame is not None else "orphaned"] += 1
 
-    def expire(self, now: float | None = None) -> list[Reduced]:
-        """Drop the frames whose deadline has passed; returns [] (a uniform return for the callers)."""
+    def expire(self, now: float | None = None) -> None:
+        """Drop the frames whose deadline has passed."""
         now = time.monotonic() if now is None else now
         limit = now - self.deadline_s
         for fid in [k for k, e in self.pending.items() if e.t_first <= limit]:
             self._expired(fid, self.pending.pop(fid))
+
+    def _nothing(self, now: float) -> list[Reduced]:
+        """What an input that completes no frame returns, after the deadlines."""
+        self.expire(now)
         return []
 
     def next_deadline(self) -> float | None:

@@ -37,7 +37,7 @@ def test_subpixel_parabola_vertex():
 def test_vertical_search_reports_the_row_shift():
     y = np.zeros((5, 50))
     y[4, 20] = 9.0  # row 4 of 5 = shift +2
-    d = decide(y, 15)
+    d = decide(y, 15, vshift_cost=0.0)
     assert (d.k, d.v) == (20, 2)
 
 
@@ -52,7 +52,9 @@ def test_vshift_cost_prefers_the_unshifted_row_unless_a_shifted_one_is_clearly_b
     d = decide(y, 15, vshift_cost=0.5)
     assert (d.k, d.v, d.score) == (20, 2, 5300.0)
     assert d.confidence == pytest.approx((5300 - 225 - 5000) / (255 * 225 - 5000))
-    assert decide(y, 15).v == 2 and decide(y[2:3], 15, vshift_cost=0.5).k == 30
+    assert decide(y, 15, vshift_cost=0.0).v == 2 and decide(y[2:3], 15, vshift_cost=0.5).k == 30
+    dd = decide(y, 15)  # the default cost is Params' (0.5)
+    assert (dd.k, dd.v, dd.score, dd.confidence) == (d.k, d.v, d.score, d.confidence)
 
 
 def test_margin_is_zero_for_a_tie_and_one_without_rival():
@@ -86,3 +88,29 @@ def test_correlation_check_tells_a_match_from_two_fields_of_noise():
         fov, bnd = retina.features(master, slave, None, 15, p.vsearch)
         assert pearson(fov, bnd, m.decision) < 0.3
         assert not vergence.match(master, slave, params=p).confident
+
+
+def test_decide_defaults_are_params_so_it_agrees_with_match():
+    """vergence.decide(y, w) on the scores match() decided on gives match's winner and confidence, and is
+    confident wherever match is (match adds the checks that need the images, never removes a confidence): its
+    defaults are Params' (issue #34: they were min_margin 0.04, min_texture 4, no vertical shift cost, and
+    decide said confident where match abstained on the margin alone)."""
+    import inspect
+
+    import vergence
+    from vergence.sim.scene import generate
+
+    defaults = {k: v.default for k, v in inspect.signature(decide).parameters.items() if v.default is not v.empty}
+    p = vergence.Params()
+    assert {k: defaults[k] for k in ("subpixel", "min_margin", "min_texture", "vshift_cost")} == {
+        "subpixel": p.subpixel, "min_margin": p.min_margin, "min_texture": p.min_texture, "vshift_cost": p.vshift_cost}
+    sc = generate(seed=3, size=(320, 240))
+    agree = 0
+    for x, y in [(160, 120), (100, 80), (220, 160), (60, 200), (250, 60)]:
+        m = vergence.match(sc.left, sc.right, at=(x, y))
+        d = vergence.decide(m.scores, m.window, k_centre=x - m.window // 2)
+        assert (d.k, d.v) == (m.decision.k, m.decision.v) and d.confidence == pytest.approx(m.decision.confidence)
+        assert d.confident or not m.confident
+        assert d.confident == (m.decision.confidence >= p.min_margin)  # the margin alone: the same call
+        agree += d.confident == m.confident
+    assert agree >= 4
