@@ -13,6 +13,7 @@ from . import retina
 from .config import LimitSettings
 from .messages import Frame, MessageError
 from .params import Params
+from .status import WorkersReport
 
 __all__ = ["plan_shards", "make_frame", "Roster", "WindowControl", "frame_cost", "frame_too_large"]
 
@@ -128,24 +129,20 @@ class Roster:
                 return
             self.changes += 1
 
-    def on_report(self, report: dict) -> list[str]:
-        """Apply one reducer report (Gatherer.report's dict); returns the workers it excluded."""
+    def on_report(self, report: WorkersReport) -> list[str]:
+        """Apply one reducer report (vergence.status.decode_report's); returns the workers it excluded."""
         now = self.clock()
         gone = []
         with self.lock:
             self.counters["reports"] += 1
-            workers = report.get("workers") or {}
             for wid in list(self.joined):
-                w = workers.get(wid) if isinstance(workers, dict) else None
-                if not isinstance(w, dict):
+                w = report.workers.get(wid)
+                if w is None:
                     continue
-                age, misses = w.get("age_s"), w.get("misses", 0)
-                answers = isinstance(age, (int, float)) and age < self.miss_s
-                if answers:
+                if w.age_s is not None and w.age_s < self.miss_s:
                     self.strikes[wid] = 0
                     continue
-                if (now - self.joined[wid] >= self.miss_s and isinstance(misses, int)
-                        and misses >= self.miss_frames):
+                if now - self.joined[wid] >= self.miss_s and w.misses >= self.miss_frames:
                     k = self.strikes.get(wid, 0)
                     self.out[wid] = now + self.probation_s * 2 ** min(k, 5)
                     self.strikes[wid] = k + 1

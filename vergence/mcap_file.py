@@ -24,7 +24,6 @@ A payload that does not decode as its kind is still recorded raw; only its ROS 2
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Iterator
@@ -35,6 +34,7 @@ from . import keys
 from . import ros2 as conv
 from .messages import MessageError, MotorState, Preview, Profile, Decision
 from .recording import EVENTS, Record, RecordingError
+from .status import decode_status
 
 __all__ = ["McapWriter", "McapReader", "is_mcap", "RAW_TYPE"]
 
@@ -206,13 +206,7 @@ class McapWriter:
             self._put(f"{self.ns}/preview/{cam}", "sensor_msgs/msg/Image", msg, t_ns, pv.t_capture_ns)
 
     def _status(self, payload: bytes, t_ns: int) -> None:
-        try:
-            st = json.loads(payload)
-        except (ValueError, RecursionError) as e:
-            raise ValueError(str(e)) from None
-        if not isinstance(st, dict):
-            raise ValueError("not a status")
-        d = conv.diagnostic(self.rig, st, 0.0, math.inf, None)
+        d = conv.diagnostic(self.rig, decode_status(payload), 0.0, math.inf, None)
         T = self.T
         status = T["diagnostic_msgs/msg/DiagnosticStatus"](
             level=d.level, name=d.name, message=d.message[:500], hardware_id=d.hardware_id,

@@ -15,7 +15,6 @@ Rates, drops and histories use the monitor's own arrival times.
 
 from __future__ import annotations
 
-import json
 import math
 import re
 import threading
@@ -28,6 +27,7 @@ import numpy as np
 from . import keys
 from . import messages as m
 from .retina import CLIP_WARN
+from .status import Status, decode_status
 
 __all__ = ["Monitor", "Snapshot", "Rate", "decode", "MESSAGES", "WATCHED", "render_text", "profile_bars",
            "fixation_line"]
@@ -38,19 +38,13 @@ MESSAGES: dict[str, type[m.Message]] = m.KINDS
 WATCHED = (keys.FRAME, keys.PROFILE, keys.COMMAND, keys.MOTOR_STATE, keys.PREVIEW, keys.CORRELATION, keys.STATUS)
 
 
-def decode(kind: str, payload: bytes) -> m.Message | dict:
+def decode(kind: str, payload: bytes) -> m.Message | Status:
     """The payload of a key of this kind (vergence.keys), decoded: a message (vergence.messages), or for a
-    status the JSON object of a process's counters. The one decoding of the wire for `vergence monitor` and
-    `vergence view`; m.MessageError when it is malformed, KeyError for a kind that carries no payload."""
+    status a vergence.status.Status. The one decoding of the wire for `vergence monitor` and `vergence view`;
+    m.MessageError when it is malformed, KeyError for a kind that carries no payload."""
     if kind != keys.STATUS:
         return MESSAGES[kind].from_bytes(payload)
-    try:
-        d = json.loads(bytes(payload).decode("utf-8"))
-        if not isinstance(d, dict) or not isinstance(d.get("counters", {}), dict):
-            raise ValueError("not a JSON object with a counters object")
-    except (ValueError, UnicodeDecodeError) as e:
-        raise m.MessageError(str(e)) from None
-    return d
+    return decode_status(payload)
 
 
 class Rate:
@@ -108,7 +102,7 @@ class Snapshot:
     # "frames" seen on the wire and never answered by a profile, or "gaps" in the profiles' frame ids
     dropped_from: str = "frames"
     dropped_of: int = 0                   # out of how many frames (same origin as dropped)
-    status: dict[str, dict] = field(default_factory=dict)      # "role/id" -> its latest status JSON
+    status: dict[str, Status] = field(default_factory=dict)    # "role/id" -> its latest status
     workers: dict[str, tuple[int, int] | None] = field(default_factory=dict)
     alive: dict[str, list[str]] = field(default_factory=dict)   # role -> ids
     plan_frame: int = -1
@@ -171,7 +165,7 @@ class Monitor:
         self._truth_hist: deque[tuple[int, float, float]] = deque()  # (arrival, truth, error px)
         self._correlations: dict[str, tuple[int, int]] = {}
         self._motor: m.MotorState | None = None
-        self._status: dict[str, dict] = {}
+        self._status: dict[str, Status] = {}
         self._profile: m.Profile | None = None
         self._command: m.Command | None = None
         self._pan_hist: deque[tuple[int, float]] = deque()
@@ -182,8 +176,8 @@ class Monitor:
         self.listeners: list = []   # callables(kind, message), called under no lock after a good message
 
     # ---- input -------------------------------------------------------------------------------------
-    def feed(self, key: str, payload: bytes, t_ns: int | None = None) -> m.Message | dict | None:
-        """One sample from the wire. Returns the decoded message (a dict for a status), or None when the
+    def feed(self, key: str, payload: bytes, t_ns: int | None = None) -> m.Message | Status | None:
+        """One sample from the wire. Returns the decoded message (a Status for a status), or None when the
         key is not watched (ignored) or the payload is malformed (counted per kind in self.malformed,
         never raised)."""
         t_ns = self.clock() if t_ns is None else t_ns
@@ -225,11 +219,11 @@ class Monitor:
         for fn in self.listeners:
             fn(msg.KIND, msg)
 
-    def _on_status(self, name: str, d: dict, t_ns: int) -> None:
-        """vergence/<rig>/status/<role>/<id>: a process's JSON counters; the latest one per process is
-        kept (the reducer's give the dropped frames), an `"exiting": true` one removes the process."""
+    def _on_status(self, name: str, d: Status, t_ns: int) -> None:
+        """vergence/<rig>/status/<role>/<id>: a process's status; the latest one per process is kept (the
+        reducer's give the dropped frames), an exiting one removes the process."""
         with self._lock:
-            if d.get("exiting"):
+            if d.exiting:
                 self._status.pop(name, None)
             else:
                 self._status[name] = d
@@ -313,18 +307,17 @@ class Monitor:
             if self._red:
                 red = np.array([x for _, x in self._red], dtype=np.float64) / 1e6
                 s.reduce_p50_ms, s.reduce_p99_ms = (float(v) for v in np.percentile(red, [50, 99]))
-            gatherers = [d["gatherer"] for n, d in self._status.items()
-                         if n.startswith("reducer/") and isinstance(d.get("gatherer"), dict)]
+            gatherers = [g for n, d in self._status.items() if n.startswith("reducer/") and (g := d.gatherer())]
             if gatherers:
-                def total(name: str) -> int:  # a status is a claim: counters are integers 0..2^53
-                    return sum(v for g in gatherers if _plausible(v := g.get(name, 0), 0, 2 ** 53, int))
+                def total(name: str) -> int:  # (Status.gatherer keeps the plausible counters only)
+                    return sum(g.get(name, 0) for g in gatherers)
                 s.dropped, s.dropped_from = total("dropped") + total("superseded"), "reducer"
                 s.dropped_of = total("frames")
             elif s.frames:
                 s.dropped, s.dropped_from, s.dropped_of = self._dropped, "frames", s.frames
             else:
                 s.dropped, s.dropped_from, s.dropped_of = self._gaps, "gaps", s.profiles + self._gaps
-            s.status = {n: dict(d) for n, d in sorted(self._status.items())}
+            s.status = dict(sorted(self._status.items()))
             s.alive = {r: sorted(ids) for r, ids in sorted(self._alive.items()) if ids}
             live = set(self._alive.get("worker", set()))
             shards = dict(self._correlations)
@@ -586,18 +579,16 @@ def _process_lines(s: Snapshot, width: int, color: bool) -> list[str]:
     return out
 
 
-def _status_lines(name: str, d: dict, c) -> list[str]:
+def _status_lines(name: str, d: Status, c) -> list[str]:
     """A process's status: a reducer's gatherer counters, a capture's clipped shares (warned when high)."""
     out = []
-    if name.startswith("reducer/") and isinstance(d.get("gatherer"), dict):
-        g = d["gatherer"]
+    g = d.gatherer() if name.startswith("reducer/") else {}
+    if g:
+        pending = d.number("pending", 0, 2 ** 53)
         out.append(f"{name}: " + "  ".join(f"{k} {g[k]}" for k in ("frames", "complete", "dropped",
                                                                    "superseded", "late", "unexpected")
-                                           if k in g) + f"  pending {d.get('pending', '?')}")
-    clipped = d.get("clipped") if name.startswith("capture/") and isinstance(d.get("clipped"), dict) else {}
-    # a status is a claim: only the two cameras' shares, numbers in 0..1 (a huge JSON integer would not even
-    # format as a float)
-    shares = {cam: float(v) for cam, v in clipped.items() if cam in ("master", "slave") and _plausible(v, 0, 1)}
+                                           if k in g) + f"  pending {'?' if pending is None else int(pending)}")
+    shares = d.clipped() if name.startswith("capture/") else {}
     if shares:
         line = f"{name}: clipped " + ", ".join(f"{cam} {100 * v:.0f} %" for cam, v in sorted(shares.items()))
         if any(v >= CLIP_WARN for v in shares.values()):
@@ -605,11 +596,6 @@ def _status_lines(name: str, d: dict, c) -> list[str]:
         else:
             out.append(line)
     return out
-
-
-def _plausible(v, lo: float, hi: float, kinds: type | tuple = (int, float)) -> bool:
-    """Whether a status's value (JSON: a claim) is a number of these kinds within lo..hi (not a bool, not NaN)."""
-    return isinstance(v, kinds) and not isinstance(v, bool) and lo <= v <= hi
 
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")

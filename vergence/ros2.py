@@ -27,6 +27,8 @@ import cv2
 import msgspec
 import numpy as np
 
+from .status import Status
+
 __all__ = ["NS_PER_S", "OK", "ros_name", "WARN", "ERROR", "STALE", "stamp", "from_stamp", "stamp_problem", "View",
            "FrameView", "view_of_frame", "fixation_point", "fixation_covariance", "Refused", "look_at_pixel",
            "pan_at", "joint_velocity", "correlation_layout", "Diagnostic", "diagnostic", "ImageError", "ENCODINGS",
@@ -248,31 +250,23 @@ def _flat(prefix: str, value, out: list[tuple[str, str]]) -> None:
         out.append((prefix, json.dumps(value)))
 
 
-def diagnostic(rig: str, status: dict, age_s: float, stale_s: float, bad_before: int | None) -> Diagnostic:
-    """One process's DiagnosticStatus from its latest status (a dict: role, id, counters, bad, ...), received
-    age_s ago: STALE when older than stale_s, ERROR when it said it exits, WARN when its `bad` total grew since
-    the previous status (bad_before; None: the first one), else OK. Its counters and fields as key-values."""
-    role, ident = str(status.get("role", "?")), str(status.get("id", "?"))
-    bad = status.get("bad") if isinstance(status.get("bad"), dict) else {}
-    bad_total = sum(v for v in bad.values() if isinstance(v, int) and not isinstance(v, bool))
+def diagnostic(rig: str, status: Status, age_s: float, stale_s: float, bad_before: int | None) -> Diagnostic:
+    """One process's DiagnosticStatus from its latest status (vergence.status.Status), received age_s ago: STALE
+    when older than stale_s, ERROR when it said it exits, WARN when its `bad` total grew since the previous
+    status (bad_before; None: the first one), else OK. Its counters and fields as key-values."""
     values: list[tuple[str, str]] = []
-    for k, v in status.items():
+    for k, v in status.to_dict().items():
         if k not in ("role", "id"):
             _flat("" if k == "counters" else k, v, values)
-    name = f"vergence/{rig}/{role}/{ident}"
+    name = f"vergence/{rig}/{status.role}/{status.id}"
     if age_s > stale_s:
         return Diagnostic(STALE, name, f"no status for {age_s:.1f} s", rig, values)
-    if status.get("exiting"):
+    if status.exiting:
         return Diagnostic(ERROR, name, "exited", rig, values)
-    if bad_before is not None and bad_total > bad_before:
-        kinds = ", ".join(f"{k} {v}" for k, v in sorted(bad.items()))
+    if bad_before is not None and status.bad_total > bad_before:
+        kinds = ", ".join(f"{k} {v}" for k, v in sorted(status.bad.items()))
         return Diagnostic(WARN, name, f"bad messages: {kinds}", rig, values)
     return Diagnostic(OK, name, "ok", rig, values)
-
-
-def bad_total(status: dict) -> int:
-    bad = status.get("bad") if isinstance(status.get("bad"), dict) else {}
-    return sum(v for v in bad.values() if isinstance(v, int) and not isinstance(v, bool))
 
 
 # -- images -----------------------------------------------------------------------------------------------------

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import array
-import json
 import logging
 import sys
 import threading
@@ -39,6 +38,7 @@ from vergence import keys
 from vergence import ros2 as conv
 from vergence.config import load
 from vergence.messages import Fixate, MessageError, MotorState, Profile, Decision
+from vergence.status import Status, decode_status, status_of
 from vergence.ros2_node import RosNode, RosUnavailable
 
 from services.runtime import session
@@ -94,7 +94,7 @@ class Bridge:
         self.view: conv.View | None = None
         self.motor: tuple[int, float] | None = None
         self.motor_state: MotorState | None = None
-        self.statuses: dict[str, tuple[float, dict, int | None]] = {}  # key: (arrival, status, bad before)
+        self.statuses: dict[str, tuple[float, Status, int | None]] = {}  # key: (arrival, status, bad before)
         self.refusal: tuple[float, str] | None = None
         self.look_times: list[float] = []
         self.wrong_types: set[tuple[str, str, str]] = set()
@@ -183,20 +183,17 @@ class Bridge:
 
     def on_status(self, key: str, payload: bytes) -> None:
         try:
-            st = json.loads(payload)
-            if not isinstance(st, dict) or not isinstance(st.get("role"), str) or not isinstance(st.get("id"), str):
-                raise ValueError("not a status")
-        except (ValueError, RecursionError) as e:
+            st = decode_status(payload)
+        except MessageError as e:
             self.health.reject("status", e)
             return
         with self.lock:
             prev = self.statuses.get(key)
-            before = conv.bad_total(prev[1]) if prev is not None else None
-            self.statuses[key] = (time.monotonic(), st, before)
+            self.statuses[key] = (time.monotonic(), st, prev[1].bad_total if prev is not None else None)
 
     # -- /diagnostics --------------------------------------------------------------------------------------------
 
-    def diagnostics(self, own: dict) -> list[conv.Diagnostic]:
+    def diagnostics(self, own: Status) -> list[conv.Diagnostic]:
         now = time.monotonic()
         with self.lock:
             items = sorted(self.statuses.items())
@@ -243,7 +240,7 @@ class Bridge:
 
         arr = DiagnosticArray()
         arr.header.stamp = self.ros.node.get_clock().now().to_msg()
-        for d in self.diagnostics(self.health.status()):
+        for d in self.diagnostics(status_of(self.health.status())):
             arr.status.append(DiagnosticStatus(level=bytes([d.level]), name=d.name, message=d.message[:500],
                                                hardware_id=d.hardware_id,
                                                values=[KeyValue(key=k, value=v) for k, v in d.values]))

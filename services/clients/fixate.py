@@ -10,7 +10,6 @@ line when no router answers within it (within session.CLIENT_WAIT_S with --wait 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import sys
@@ -20,6 +19,7 @@ import time
 from vergence import keys
 from vergence.config import load
 from vergence.messages import Fixate, MessageError, Decision
+from vergence.status import decode_status
 
 from services.runtime import session
 from services.runtime.args import master_point, number
@@ -47,13 +47,10 @@ def refusal(payload: bytes, t_ns: int) -> str | None:
     """A capture status's reason for refusing the request sent at t_ns, or None (another request's, none, or
     not a status we can read: a peer's message is a claim, so anything malformed is only ignored)."""
     try:
-        st = json.loads(payload)
-    except (ValueError, RecursionError):
+        r = decode_status(payload).fixate_rejection()
+    except MessageError:
         return None
-    r = st.get("fixate_rejection") if isinstance(st, dict) else None
-    if isinstance(r, dict) and r.get("t_ns") == t_ns and isinstance(r.get("why"), str):
-        return r["why"][:300]
-    return None
+    return r[1] if r is not None and r[0] == t_ns else None
 
 
 class Answer:

@@ -59,7 +59,7 @@ class Bench:
         self.dir, self.rig = workdir, f"b{uuid.uuid4().hex[:8]}"
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.procs: list[Proc] = []
-        self.statuses: list[dict] = []  # the captures' status messages
+        self.statuses: list = []  # the captures' status messages (vergence.status.Status)
         router = self.spawn("router", ["router", "--listen", self.endpoint])
         wait_listening(self.endpoint, 30, router, logs=self.logs)
         self.z = zenoh.open(session.zenoh_config("client", [self.endpoint]))
@@ -143,11 +143,12 @@ def _frames(b: Bench, source: list[str], seconds: float, stamps=None) -> list[in
     """Latency of the frames a capture publishes: arrival minus the exposure (the newest pair stamp at or before
     the frame's capture time when stamps is given, else the frame's capture time)."""
     from vergence.messages import Frame
+    from vergence.status import decode_status
 
     got: list[tuple[int, int]] = []
     sub = b.z.declare_subscriber(b.key("frame"), lambda s: got.append(
         (time.time_ns(), Frame.from_bytes(s.payload.to_bytes()).t_capture_ns)))
-    status = b.z.declare_subscriber(b.key("status/capture/*"), lambda s: b.statuses.append(json.loads(
+    status = b.z.declare_subscriber(b.key("status/capture/*"), lambda s: b.statuses.append(decode_status(
         s.payload.to_bytes())))
     cap = b.spawn(f"capture-{len(b.procs)}", ["capture", "--rate", "0", "--source"] + source, member=True)
     b.last_capture = cap
@@ -202,8 +203,8 @@ def _source(b: Bench, seconds: float, size: tuple[int, int]) -> list[dict]:
     r, s = _ms(ros), _ms(sim)
     return [dict(figure=f"sim source, exposure -> frame on Zenoh ({w}x{h})", **s),
             dict(figure=f"ros2 source, exposure -> frame on Zenoh ({w}x{h})", **r, added_ms=r["p50_ms"] - s["p50_ms"],
-                 pairs_published=published, source=next((st["source"] for st in reversed(b.statuses)
-                                                          if "source" in st), None))]
+                 pairs_published=published, source=next((st.get("source") for st in reversed(b.statuses)
+                                                          if st.get("source") is not None), None))]
 
 
 def run(args: argparse.Namespace) -> int:

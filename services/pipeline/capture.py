@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import json
 import logging
 import math
 import sys
@@ -44,6 +43,7 @@ from vergence.frames import Roster, WindowControl, make_frame, plan_shards
 from vergence.messages import Command, Fixate, MessageError, MotorState, Preview, Decision
 from vergence.motors.simulated import Replica, SimMotor
 from vergence.sources import SourceError, open_source
+from vergence.status import decode_report
 from vergence.timing import PanHistory, Stamper
 
 from services.runtime import session
@@ -406,16 +406,14 @@ class Capture:
 
     def on_report(self, sample) -> None:
         try:
-            rep = json.loads(sample.payload.to_bytes())
-            if not isinstance(rep, dict) or not isinstance(rep.get("workers"), dict):
-                raise ValueError("not a report")
-        except ValueError as e:
+            rep = decode_report(sample.payload.to_bytes())
+        except MessageError as e:
             self.health.reject("workers", e)
             return
         for wid in self.members.on_report(rep):
             log.warning("worker %s left the plan: its shards stopped arriving at the reducer", wid)
-        if isinstance(rep.get("complete"), int):
-            self.rates.decided = rep["complete"]
+        if rep.complete is not None:
+            self.rates.decided = rep.complete
 
     def on_decision(self, sample) -> None:
         try:

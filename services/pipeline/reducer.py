@@ -22,18 +22,19 @@ from __future__ import annotations
 import argparse
 import collections
 import dataclasses
-import json
 import logging
 import math
 import threading
 import time
 
+import msgspec
 import zenoh
 
 from vergence import depth, keys
 from vergence.config import load
 from vergence.frames import check_frame
 from vergence.gather import Reduced, Gatherer
+from vergence.status import WorkerEvidence, WorkersReport
 from vergence.messages import MAX_HOLD_S, Frame, Hold, MessageError, MotorState, Correlation, replace as replace_message
 
 from services.runtime import session
@@ -311,8 +312,11 @@ class Reducer:
 
     def workers_report(self) -> bytes:
         with self.lock:
-            return json.dumps(dict(self.gatherer.report(), rig=self.rig, id=self.node.ident, t_ns=time.time_ns(),
-                                   complete=self.gatherer.counters["complete"])).encode()
+            rep = self.gatherer.report()
+            return msgspec.json.encode(WorkersReport(
+                rig=self.rig, id=self.node.ident, t_ns=time.time_ns(), frame=rep["frame"],
+                complete=self.gatherer.counters["complete"],
+                workers={w: WorkerEvidence(e["age_s"], e["misses"]) for w, e in rep["workers"].items()}))
 
     def counts(self) -> tuple[int, int, int]:
         """For the summary: frames complete, frames lost (dropped or superseded), commands sent."""

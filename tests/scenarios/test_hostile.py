@@ -19,9 +19,10 @@ from vergence.config import LimitSettings
 from vergence.control import ControlSettings
 from vergence.frames import Roster, make_frame, plan_shards
 from vergence.gather import Gatherer
-from vergence.messages import Command, Frame, MotorState, Correlation, Decision
+from vergence.messages import Command, Frame, MotorState, Correlation, Decision, MessageError
 from vergence.params import Params
 from vergence.shards import compute_correlation
+from vergence.status import decode_report, report_of
 from vergence.motors.base import MotorSettings, Safety
 
 BIG_T = 2**64 - 1  # the capture time of the issue's forged messages
@@ -178,7 +179,8 @@ def test_roster_drops_a_token_that_never_answers_and_tries_it_again():
     r.token("w1", True)
     r.token("zz-fake-1", True)
     assert r.snapshot()[1] == ["w1", "zz-fake-1"]
-    rep = {"frame": 20, "workers": {"w1": {"age_s": 0.01, "misses": 0}, "zz-fake-1": {"age_s": None, "misses": 5}}}
+    raw = {"frame": 20, "workers": {"w1": {"age_s": 0.01, "misses": 0}, "zz-fake-1": {"age_s": None, "misses": 5}}}
+    rep = report_of(raw)
     c.t += 0.1
     assert r.on_report(rep) == []  # in the plan for less than miss_s: not judged yet
     c.t += 0.2
@@ -194,7 +196,8 @@ def test_roster_drops_a_token_that_never_answers_and_tries_it_again():
     c.t += 0.6
     assert r.snapshot()[1] == ["w1", "zz-fake-1"]
     # it answers now: a clean record, never excluded by an old miss count
-    rep["workers"]["zz-fake-1"] = {"age_s": 0.02, "misses": 7}
+    raw["workers"]["zz-fake-1"] = {"age_s": 0.02, "misses": 7}
+    rep = report_of(raw)
     c.t += 0.5
     assert r.on_report(rep) == [] and r.strikes["zz-fake-1"] == 0
     r.token("zz-fake-1", False)
@@ -205,7 +208,20 @@ def test_roster_without_reports_plans_every_token():
     r = Roster(clock=Clock())
     r.token("a", True)
     r.token("b", True)
-    assert r.on_report({"workers": "nonsense"}) == [] and r.snapshot()[1] == ["a", "b"]
+    assert r.on_report(report_of({"workers": {}})) == [] and r.snapshot()[1] == ["a", "b"]
+
+
+@pytest.mark.parametrize("payload,says", [
+    (b'{"workers": "nonsense"}', "not a JSON object with a workers object"), (b"[1, 2]", "not a JSON object"),
+    (b'{"workers": {"w1": {"age_s": -1, "misses": 0}}}', "worker 'w1'"),
+    (b'{"workers": {"w1": {"age_s": 0.1, "misses": true}}}', "worker 'w1'"),
+    (b'{"workers": {}, "complete": -3}', "frame and complete"), (b"{not json", "not JSON"),
+    (b'{"workers": {}}' + b" " * 70000, "bytes, over"),
+], ids=lambda v: str(v)[:24])
+def test_a_workers_report_that_is_no_report_is_refused(payload, says):
+    """A report is a claim: what could move the plan must be a report (decode_report, the capture's one decoding)."""
+    with pytest.raises(MessageError, match=says):
+        decode_report(payload)
 
 
 # -- the actuator's safety layer -------------------------------------------------------------------------------

@@ -231,7 +231,7 @@ def test_drops_from_reducer_status():
     g = {"frames": 1200, "correlations": 2400, "complete": 1190, "dropped": 7, "superseded": 3, "late": 0}
     st = {"role": "reducer", "id": "r-9", "pid": 9, "t_ns": T0, "counters": {"profiles": 1190},
           "bad": {}, "gatherer": g, "pending": 1}
-    assert mon.feed("vergence/head/status/reducer/r-9", json.dumps(st).encode())["gatherer"] == g
+    assert mon.feed("vergence/head/status/reducer/r-9", json.dumps(st).encode()).get("gatherer") == g
     assert mon.feed("vergence/head/status/reducer/r-8", b"{not json") is None
     assert mon.feed("vergence/head/status/worker/w-1", b"[1, 2]") is None
     s = mon.snapshot(T0 + 2_000 * MS)
@@ -265,12 +265,14 @@ def test_capture_status_says_what_each_camera_clips():
              .encode())
     text = render_text(mon.snapshot(T0 + 2_000 * MS), color=True)
     assert "capture/c-1: clipped master 0 %, slave 1 %\n" in text + "\n" and "\x1b[33mcapture/c-1" not in text
-    # a forged status: a number too large for a float, NaN, a share over 1, a third camera: only what is
-    # plausible is shown, and the screen still renders
-    forged = {"slave": 10 ** 400, "master": float("nan"), "left": 0.5, "extra" * 50: 0.9}
+    # a forged status: a number too large for a float, a share over 1, a third camera: only what is plausible
+    # is shown, and the screen still renders; NaN is not JSON: that status is malformed (counted, skipped)
+    forged = {"slave": 10 ** 400, "master": 1.5, "left": 0.5, "extra" * 50: 0.9}
+    assert mon.feed("vergence/head/status/capture/c-1", json.dumps(dict(st, clipped={"master": float("nan")}))
+                    .encode()) is None
     mon.feed("vergence/head/status/capture/c-1", json.dumps(dict(st, clipped=forged)).encode())
     text = render_text(mon.snapshot(T0 + 2_000 * MS), color=False)
-    assert "capture/c-1" not in text and "extra" not in text
+    assert "capture/c-1: clipped" not in text and "extra" not in text
     mon.feed("vergence/head/status/capture/c-1", json.dumps(dict(st, clipped={"slave": 2, "master": 0.06}))
              .encode())
     assert "capture/c-1: clipped master 6 % of the fovea's rows" in render_text(mon.snapshot(T0 + 2_000 * MS),

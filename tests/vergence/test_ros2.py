@@ -96,17 +96,22 @@ def test_joint_velocity_and_correlation_layout():
 
 
 def test_diagnostic_levels_and_values():
-    st = {"role": "reducer", "id": "r-1", "pid": 4, "counters": {"profiles": 10}, "bad": {"frame": 0},
-          "gatherer": {"dropped": 2}, "published_hz": 29.97}
+    from vergence.messages import MessageError
+    from vergence.status import status_of
+
+    raw = {"role": "reducer", "id": "r-1", "pid": 4, "t_ns": 7, "counters": {"profiles": 10}, "bad": {"frame": 0},
+           "gatherer": {"dropped": 2}, "published_hz": 29.97}
+    st = status_of(raw)
     d = conv.diagnostic("head", st, 0.5, 3.0, None)
     assert (d.level, d.name, d.message, d.hardware_id) == (conv.OK, "vergence/head/reducer/r-1", "ok", "head")
-    assert dict(d.values) == {"pid": "4", "profiles": "10", "bad.frame": "0", "gatherer.dropped": "2",
+    assert dict(d.values) == {"pid": "4", "t_ns": "7", "profiles": "10", "bad.frame": "0", "gatherer.dropped": "2",
                               "published_hz": "29.97"}
-    assert conv.diagnostic("head", dict(st, bad={"frame": 3}), 0.5, 3.0, 0).level == conv.WARN
-    assert conv.diagnostic("head", dict(st, bad={"frame": 3}), 0.5, 3.0, 3).level == conv.OK
-    assert conv.diagnostic("head", dict(st, exiting=True), 0.5, 3.0, None).level == conv.ERROR
+    assert conv.diagnostic("head", status_of(dict(raw, bad={"frame": 3})), 0.5, 3.0, 0).level == conv.WARN
+    assert conv.diagnostic("head", status_of(dict(raw, bad={"frame": 3})), 0.5, 3.0, 3).level == conv.OK
+    assert conv.diagnostic("head", status_of(dict(raw, exiting=True)), 0.5, 3.0, None).level == conv.ERROR
     assert conv.diagnostic("head", st, 3.5, 3.0, None).level == conv.STALE
-    assert conv.diagnostic("head", {"bad": "x"}, 0, 3, None).name == "vergence/head/?/?"
+    with pytest.raises(MessageError, match="role"):
+        status_of({"bad": "x"})
 
 
 def test_images_decode_to_gray_with_step_padding_and_refuse_the_rest():

@@ -59,14 +59,16 @@ def test_fovea_moves_on_a_valid_request_and_nothing_else():
 
 
 def test_the_command_reads_only_its_own_refusal():
-    ok = json.dumps({"fovea": [1, 2], "fixate_rejection": {"t_ns": 7, "why": "(1, 2): does not fit"}}).encode()
+    head = {"role": "capture", "id": "c-1"}  # a status (vergence.status): who sent it
+    ok = json.dumps(dict(head, fovea=[1, 2], fixate_rejection={"t_ns": 7, "why": "(1, 2): does not fit"})).encode()
     assert refusal(ok, 7) == "(1, 2): does not fit"
     assert refusal(ok, 8) is None  # another request's
     for bad in (b"", b"\xc1", b"[1, 2]", b"null", b'{"fixate_rejection": [7]}', b'{"fixate_rejection": {"t_ns": 7}}',
                 b'{"fixate_rejection": {"t_ns": 7, "why": 3}}', b"[" * 100000):
         assert refusal(bad, 7) is None
-    long = json.dumps({"fixate_rejection": {"t_ns": 7, "why": "x" * 10000}}).encode()
+    long = json.dumps(dict(head, fixate_rejection={"t_ns": 7, "why": "x" * 10000})).encode()
     assert refusal(long, 7) == "x" * 300
+    assert refusal(json.dumps({"fixate_rejection": {"t_ns": 7, "why": "no"}}).encode(), 7) is None  # no sender
 
 
 @pytest.mark.slow
