@@ -34,6 +34,7 @@ from pathlib import Path
 import msgspec
 
 from .control import ControlSettings
+from .choices import Gimbal, Side
 from .params import Params
 from .motors import DRIVERS
 from .motors.base import MotorSettings
@@ -71,7 +72,7 @@ class RigSettings:
         check(self, self.RANGES)
         if self.master not in ("", "left", "right"):
             raise ValueError(f"master={self.master!r}: must be left or right")
-        if self.gimbal not in ("helmholtz", "fick"):
+        if self.gimbal not in tuple(Gimbal):
             raise ValueError(f"gimbal={self.gimbal!r}: must be helmholtz or fick")
 
 
@@ -97,7 +98,7 @@ class CaptureSettings:
 
     def __post_init__(self):
         check(self, self.RANGES)
-        if self.master not in ("left", "right"):
+        if self.master not in tuple(Side):
             raise ValueError(f"master={self.master!r}: must be left or right")
 
 

@@ -45,12 +45,13 @@ from typing import ClassVar
 import numpy as np
 
 from .motors.base import MotorSettings, Safety
+from .choices import ControlMode
 from .ranges import Range, check
 from .timing import MAX_AGE_S
 
 __all__ = ["pixels_to_angle", "ControlSettings", "Controller", "Predictor", "MODES"]
 
-MODES = ("p", "predictive")
+MODES = tuple(ControlMode)  # (vergence.choices)
 
 
 def pixels_to_angle(offset_px: float, focal_px: float, centre_px: float = 0.0) -> float:

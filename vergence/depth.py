@@ -29,10 +29,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .choices import Gimbal
+
 __all__ = ["GIMBALS", "CONVERGED_PX", "SIGMA_FLOOR_PX", "SIGMA_CURVATURE", "azimuth_tan", "depth_from_pans",
            "depth_sigma", "disparity_sigma", "Depth", "fixated_depth", "depth_from_disparity"]
 
-GIMBALS = ("helmholtz", "fick")
+GIMBALS = tuple(Gimbal)  # (vergence.choices)
 CONVERGED_PX = 1.0  # |offset_px| at or under this: the slave is converged on the fovea (the loop's tolerance)
 # The sub-pixel sigma of a decision, sigma_d = sqrt(FLOOR^2 + (CURVATURE / c)^2) px, c the winning peak's
 # curvature per fovea pixel. Fitted on 560 confident points of the four Middlebury pairs (draw seed 7) so that

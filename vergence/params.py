@@ -6,8 +6,9 @@ from dataclasses import dataclass, fields, replace
 from typing import ClassVar
 
 from .ranges import Range, check
+from .choices import Photometric
 
-PHOTOMETRIC = ("none", "affine", "histogram")  # retina.photometric's modes
+PHOTOMETRIC = tuple(Photometric)  # retina.photometric's modes (vergence.choices)
 
 __all__ = ["Params", "FAITHFUL", "WINDOW_STEP"]
 

@@ -26,7 +26,7 @@ import threading
 import time
 
 from . import ros2 as conv
-from .images import SourceError
+from .images import Source, SourceError
 from .spec import Key, SpecError, parse
 
 __all__ = ["SourceStall", "Ros2Source", "parse_spec"]
@@ -66,7 +66,7 @@ def _info_topic(image_topic: str) -> str:
     return base.rpartition("/")[0] + "/camera_info"
 
 
-class Ros2Source:
+class Ros2Source(Source):
     """Stereo pairs from two ROS 2 image topics (see the module's docstring)."""
 
     follows_pan = True
@@ -76,11 +76,8 @@ class Ros2Source:
     def __init__(self, rest: str, master: str = "left"):
         from .ros2_node import RosNode, RosUnavailable
 
-        if master not in ("left", "right"):
-            raise SourceError(f"capture.master must be 'left' or 'right', got {master!r}")
-        self.topics = parse_spec(rest)[:2]
-        self.opts = parse_spec(rest)[2]
-        self.swap = master == "right"
+        super().__init__(master)
+        *self.topics, self.opts = parse_spec(rest)
         self.size: tuple[int, int] = (0, 0)
         self.focal_px = 0.0
         self.exposure_ns: tuple[int, int] = (0, 0)
@@ -225,11 +222,8 @@ class Ros2Source:
                 raise SourceStall(f"ros2 source: no new pair from {', '.join(self.topics)} in {STALL_S:g} s")
             tl, left, tr, right = self.latest
             self.served = tl
-        if self.swap:
-            self.exposure_ns = (tr, tl)
-            return right, left
-        self.exposure_ns = (tl, tr)
-        return left, right
+        self.exposure_ns = self._order(tl, tr)
+        return self._order(left, right)
 
     def status(self) -> dict:
         """Counters for the capture's status: images, pairs, unmatched, stalls, bad_stamp, bad_image, bad_size;

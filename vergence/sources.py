@@ -35,7 +35,7 @@ import time
 import cv2
 import numpy as np
 
-from .images import SourceError, read_image
+from .images import Source, SourceError, read_image
 from .spec import Key, parse
 from .timing import CameraTiming
 
@@ -54,41 +54,6 @@ def _pair(rest: str, kind: str) -> tuple[str, str]:
     if len(parts) != 2 or not all(parts):
         raise SourceError(f"source {kind}:{rest!r}: want {kind}:LEFT,RIGHT (two items separated by a comma)")
     return parts[0], parts[1]
-
-
-class Source:
-    """The interface: size, focal_px, start_pan_rad, follows_pan, read(pan_rad), close()."""
-
-    size: tuple[int, int] = (0, 0)
-    focal_px: float = 0.0
-    start_pan_rad: float = 0.0
-    truth_pan_rad: float | None = None
-    follows_pan: bool = True
-    renders: bool = False  # the slave image is rendered at the pan it is asked for (the simulator)
-    rows: tuple[int, int] | None = None  # the rows the capture reads of the next pair (None: all); a source that
-    # renders may leave the others black (the simulator: a band is a tenth of the cost of a view)
-    exposure_ns: tuple[int, int] | None = None
-    fovea: tuple[int, int] | None = None  # where the capture's fovea is (None: the centre); the truth's point
-
-    def __init__(self, master: str = "left"):
-        if master not in ("left", "right"):
-            raise SourceError(f"capture.master must be 'left' or 'right', got {master!r}")
-        self.swap = master == "right"
-
-    def _order(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return (right, left) if self.swap else (left, right)
-
-    def read(self, pan_at=0.0) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError
-
-    def close(self) -> None:
-        pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 def _check_pair(a: np.ndarray, b: np.ndarray, what: str) -> tuple[int, int]:
@@ -253,8 +218,11 @@ class SimSource(Source):
     TIMING = {"latency": "latency_s", "skew": "skew_s", "exposure": "exposure_s", "jitter": "jitter_s"}
     renders = True
 
-    def __init__(self, spec: str = ""):
-        super().__init__("left")
+    def __init__(self, spec: str = "", master: str = "left"):
+        super().__init__(master)
+        if self.swap:
+            raise SourceError("sim source: the simulator's master is its left camera (it pans the right one); "
+                              "capture.master = 'right' is for a real head whose right camera is the fixed one")
         from .sim import Rig  # the simulator is only loaded when used
 
         try:
@@ -388,7 +356,7 @@ def open_source(spec: str, master: str = "left") -> Source:
     if kind == "camera":
         return CameraSource(*_pair(rest, kind), master=master)
     if kind == "sim":
-        return SimSource(rest)
+        return SimSource(rest, master=master)
     if kind == "ros2":  # two ROS 2 image topics (vergence/ros2_source.py; rclpy is imported only here)
         from .ros2_source import Ros2Source
 

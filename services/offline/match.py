@@ -9,6 +9,7 @@ import sys
 
 from vergence import BorderError, Params, depth, match
 from vergence.config import ConfigError, load
+from vergence.choices import Side
 from vergence.images import read_image
 
 from services.runtime.args import pixel, positive, whole
@@ -29,7 +30,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--baseline", type=positive, default=None, metavar="B",
                    help="baseline in metres: with --focal, print each point's depth Z = b f / disparity")
     p.add_argument("--focal", type=positive, default=None, metavar="F", help="focal length in pixels (with --baseline)")
-    p.add_argument("--master-is", dest="master_side", choices=("left", "right"), default="left",
+    p.add_argument("--master-is", dest="master_side", choices=tuple(Side), default="left",
                    help="which camera MASTER is, for the disparity's sign (default left: disparity = -offset)")
 
 

@@ -18,6 +18,7 @@ import sys
 
 from vergence import Params, depth
 from vergence.config import ConfigError, load
+from vergence.choices import ControlMode, Gimbal
 from vergence.sim import Rig
 from vergence.sim.fixation import truth_at
 from vergence.sim.loop import DELAY_S, closed_loop, frames_to_converge, tracking_error
@@ -70,7 +71,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--blur", metavar="SIGMA", help="defocus of the slave (Gaussian sigma, px)")
     p.add_argument("--vmis", metavar="PX", help="vertical misalignment of the slave, px (an extra tilt)")
     p.add_argument("--seed", help="seed of the generated scene and of the noise")
-    p.add_argument("--gimbal", choices=("helmholtz", "fick"),
+    p.add_argument("--gimbal", choices=tuple(Gimbal),
                    help="helmholtz: both cameras pan on one tilting "
                    "platform (default, the paper's rig); fick: each camera tilts on its own pan joint")
     p.add_argument("--fixate-at", type=fixate_at_arg, action="append", default=[], metavar="FRAME:X,Y",
@@ -84,7 +85,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    "settings [rig] baseline_m, 0.06)")
     p.add_argument("--texture", metavar="FILE|flat",
                    help="--motion: an image as the target's texture (default procedural; flat: none)")
-    p.add_argument("--mode", choices=("p", "predictive"), help="the controller (default: [control] mode)")
+    p.add_argument("--mode", choices=tuple(ControlMode), help="the controller (default: [control] mode)")
     p.add_argument("--delay-ms", type=number(0, 10_000), default=None, metavar="MS",
                    help="read to command, virtual (default 5)")
     p.add_argument("--camera-latency", type=number(0, 1, note="seconds"), default=0.0, metavar="S",

@@ -154,3 +154,24 @@ def test_sim_source_renders_at_the_given_pan():
     a0, b0 = src.read(0.0)
     a1, b1 = src.read(0.05)
     assert a0.shape == (120, 160) and np.array_equal(a0, a1) and not np.array_equal(b0, b1)
+
+
+def test_every_source_is_a_source_and_says_which_master_it_cannot_take():
+    """Source is an abstract base class (issue #34): every source subclasses it, the ROS 2 one too (its master
+    check and ordering are the base's); a source without read() cannot be made; the simulator, whose master is
+    its left camera, refuses master 'right' instead of ignoring it."""
+    import inspect
+
+    from vergence import sources
+    from vergence.ros2_source import Ros2Source
+
+    kinds = [c for _, c in inspect.getmembers(sources, inspect.isclass) if c.__module__ == sources.__name__
+             and c.__name__.endswith("Source") and c is not sources.Source]
+    assert {c.__name__ for c in kinds} == {"FilesSource", "VideoSource", "CameraSource", "SimSource"}
+    assert all(issubclass(c, sources.Source) for c in kinds + [Ros2Source])
+    with pytest.raises(TypeError, match="abstract"):
+        sources.Source()
+    with pytest.raises(SourceError, match="capture.master must be 'left' or 'right', got 'up'"):
+        Ros2Source("/l,/r", master="up")
+    with pytest.raises(SourceError, match="the simulator's master is its left camera"):
+        open_source("sim", master="right")

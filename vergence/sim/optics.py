@@ -10,10 +10,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..depth import GIMBALS  # (vergence.choices.Gimbal's words)
+
 __all__ = ["GIMBALS", "Region", "option_number", "rotation", "intrinsics", "homography"]
 
 
-GIMBALS = ("helmholtz", "fick")
 
 
 def option_number(items: dict, key: str, conv=float, default=None):
