@@ -273,6 +273,8 @@ class Referee:
     predictor has none now) by the inverse square of their mean squared errors, so the one that predicts
     best all but decides; the first is the fallback, alone until another has `warm` scores."""
 
+    PENDING = 64  # predictions kept awaiting their measurement (a second at 64 Hz; older ones are dropped)
+
     def __init__(self, n: int, memory: int = 30, warm: int = 8, power: float = 2.0):
         self.alpha, self.warm, self.power = 1.0 / memory, warm, power
         self.pending: deque[tuple[float, list]] = deque()
@@ -289,7 +291,7 @@ class Referee:
 
     def predicted(self, at: float, preds: list) -> None:
         self.pending.append((at, preds))
-        while len(self.pending) > 64:
+        while len(self.pending) > self.PENDING:
             self.pending.popleft()
 
     def measured(self, t: float, z: float) -> None:
@@ -315,6 +317,9 @@ class Referee:
 
 
 LATE_S = 0.02  # an image older than this when its command goes out: p's gain is at most 1
+PREDICTORS = ("hold", "rate", "periodic")  # what the predictive mode's Referee weighs, in this order
+PERIOD_ALPHA = 0.1  # the decisions' interval is smoothed with this weight per decision (about 10 decisions)
+PERIOD_GAP_S = 1.0  # an interval this long or longer is a pause, not the decisions' rate
 log = logging.getLogger("vergence.control")
 
 
@@ -385,9 +390,10 @@ class Controller:
                                        gate=self.s.gate_px * one, vmax=math.radians(self.s.max_rate_deg_s))
         f = self.predictor
         if self.periodic is None and self.s.periodic:
-            self.periodic, self.referee = Periodic(), Referee(3)
-        if self.t_prev is not None and 0 < t - self.t_prev < 1.0:
-            self.period = t - self.t_prev if self.period is None else 0.9 * self.period + 0.1 * (t - self.t_prev)
+            self.periodic, self.referee = Periodic(), Referee(len(PREDICTORS))
+        if self.t_prev is not None and 0 < t - self.t_prev < PERIOD_GAP_S:
+            dt = t - self.t_prev
+            self.period = dt if self.period is None else (1 - PERIOD_ALPHA) * self.period + PERIOD_ALPHA * dt
         self.t_prev = t
         # a set-point holds until the next decision: aim at the middle of that interval, from when the motor
         # acts on this command (now + lead_s), however old the image it comes from
