@@ -257,6 +257,7 @@ TESTED_ELSEWHERE = {
     "vergence.params": "tests/vergence/test_decide.py, test_match.py (the parameters' effects)",
     "vergence.ros2_node": "tests/services/bridges/test_ros2.py (real rclpy nodes)",
     "vergence.ros2_source": "tests/services/bridges/test_ros2.py (the ros2: source end to end)",
+    "vergence.screen": "tests/vergence/test_monitor.py (the screen drawn from the model's snapshots)",
     "vergence.simd": "tests/vergence/test_kernel.py (the kernel's variants agree)",
 }
 

@@ -183,7 +183,7 @@ def monitor_figure(s: Snapshot, width: int = 960, height: int = 720) -> Figure:
     the curve) and the centre neuron (centre, blue dashed) on top, over 3/5 of the height; below it the
     slave pan (pan) and the commanded targets (target, orange dots) against the seconds before now.
     The layout and fonts scale with the size (designed at 960 x 720)."""
-    from .monitor import _winning_row, fixation_line
+    from .screen import _winning_row, fixation_line
 
     # fonts shrink with the picture down to 60 % (below 576 x 432 the text takes more of it)
     fig = _figure(width, height, dpi=100.0 * max(0.6, min(width / 960, height / 720)))

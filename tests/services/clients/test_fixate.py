@@ -17,7 +17,7 @@ from procs import VERGENCE, Procs, free_port, gives_up_without_a_router, wait_fo
 from services.pipeline.capture import Fovea
 from services.clients.fixate import refusal
 from services.runtime.health import Health
-from vergence import monitor, plots
+from vergence import monitor, plots, screen
 from vergence.control import Controller
 from vergence.frames import make_frame
 from vergence.gather import Reduced
@@ -221,13 +221,13 @@ def test_monitor_shows_the_fovea_and_the_depth():
                                                           depth_sigma_m=0.012).to_bytes())
     s = mon.snapshot()
     assert s.fovea == (80, 60)
-    assert "fovea (80, 60)   converged, depth 1.234 m ± 0.012" in monitor.render_text(s, color=False)
+    assert "fovea (80, 60)   converged, depth 1.234 m ± 0.012" in screen.render_text(s, color=False)
     f.x, f.frame = 90, 4  # the fovea moved; the latest profile is still the old point's
     mon.feed("vergence/head/frame", f.to_bytes())
-    text = monitor.render_text(mon.snapshot(), color=False)
+    text = screen.render_text(mon.snapshot(), color=False)
     assert "fovea (90, 60) (the profile's: (80, 60))" in text
     mon.feed("vergence/head/profile", replace_message(r.profile, frame=4, x=90, y=60).to_bytes())
-    assert "fovea (90, 60)   not converged, no depth" in monitor.render_text(mon.snapshot(), color=False)
+    assert "fovea (90, 60)   not converged, no depth" in screen.render_text(mon.snapshot(), color=False)
     assert plots.monitor_figure(mon.snapshot()).axes[0].get_title(loc="left").endswith(
         "\nfovea (90, 60)   not converged, no depth")  # the PNG says it too
 
