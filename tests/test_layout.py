@@ -306,6 +306,14 @@ def test_no_function_in_the_product_is_over_80_lines():
     assert _long_functions("def f():\n" + "    x = 1\n" * 80) == [("f", 81)]  # the check can fail
 
 
+MAX_MODULE_LINES = 450
+
+
+def test_no_module_in_the_product_is_over_450_lines():
+    """A module holds one concept (issue #34): none of vergence/ or services/ is longer than 450 lines."""
+    long = {m: n for m in _modules() if (n := len(_path(m).read_text().splitlines())) > MAX_MODULE_LINES}
+    assert long == {}
+
 DOCS = TREE / "docs"
 README = TREE / "README.md"
 # a path of the tree as docs/ARCHITECTURE.md names it: in backticks, starting at a top-level folder or file

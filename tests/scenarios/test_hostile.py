@@ -261,7 +261,7 @@ def test_frames_beyond_the_limits_are_not_computed():
 
 
 def test_capture_ignores_implausible_motor_states():
-    from services.pipeline.capture import motor_state_implausible
+    from services.pipeline.capture_time import motor_state_implausible
 
     m = MotorSettings()
     now = time.time_ns()

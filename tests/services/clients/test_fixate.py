@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from procs import VERGENCE, Procs, free_port, gives_up_without_a_router, wait_for
-from services.pipeline.capture import Fovea
+from services.pipeline.fovea import Fovea
 from services.clients.fixate import refusal
 from services.runtime.health import Health
 from vergence import monitor, plots, screen
