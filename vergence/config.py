@@ -78,9 +78,10 @@ class RigSettings:
 
 @dataclass(frozen=True)
 class CaptureSettings:
-    """source: sim[:...] | files:L,R | video:L,R | camera:0,1. rate_hz: frames per second (0: as fast as
-    the source gives them). preview_hz: rate of the downscaled preview. focal_px: focal length in pixels
-    (0: the source's own, else 0.8 x width). master: which camera is the fixed one, left or right."""
+    """source: sim[:...] | files:L,R | video:L,R | camera:0,1 | ros2:LEFT,RIGHT (vergence.sources). rate_hz:
+    frames per second (0: as fast as the source gives them). preview_hz: rate of the downscaled preview.
+    focal_px: focal length in pixels (0: the source's own, else 0.8 x width). master: which camera is the fixed
+    one, left or right."""
 
     source: str = "sim:motion=sine:z=0.8,amp=0.3,hz=0.2"  # the demo: a target moving in depth; "sim": still
     rate_hz: float = 30.0
@@ -135,8 +136,9 @@ class ReducerSettings:
 
 @dataclass(frozen=True)
 class ActuatorSettings:
-    """driver: sim | dynamixel | line. port: a pyserial URL (/dev/ttyUSB0, socket://host:port, loop://).
-    state_hz: rate of vergence/<rig>/motor_state. motor: the motor ([actuator.motor], vergence.motors)."""
+    """driver: one of vergence.motors.DRIVERS (sim | dynamixel | line | ros2). port: a pyserial URL (/dev/ttyUSB0,
+    socket://host:port, loop://), or the ros2 driver's CONTROLLER[:key=value...]. state_hz: rate of
+    vergence/<rig>/motor_state. motor: the motor ([actuator.motor], vergence.motors)."""
 
     driver: str = "sim"
     port: str = ""

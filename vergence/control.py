@@ -171,8 +171,7 @@ class Periodic:
     Its cost does not grow with the frame rate: the history keeps samples at least MIN_DT_S apart (a newer
     one closer than that replaces the newest; at 60 Hz every sample is kept), the fit is made again only when
     a sample is kept, and every grid is fitted at once (the normal equations of all its frequencies in one
-    batch, the harmonics by the angle-addition recurrence): a search takes about 1 ms at any rate, where one
-    least-squares solve per frequency took 4 ms at 60 Hz and 13 ms at 250 Hz (docs/PERFORMANCE.md)."""
+    batch, the harmonics by the angle-addition recurrence; its figures: docs/PERFORMANCE.md)."""
 
     MIN_DT_S = 1 / 64  # the history's spacing: 3 harmonics of max_hz need 24 Hz; 64 Hz keeps a 60 Hz camera's
     GRID, FINE = 40, 33  # the search's log grid, and its fine grid between the best point's neighbours
