@@ -314,6 +314,44 @@ def test_no_module_in_the_product_is_over_450_lines():
     long = {m: n for m in _modules() if (n := len(_path(m).read_text().splitlines())) > MAX_MODULE_LINES}
     assert long == {}
 
+def _resolve(dotted: str):
+    """The object a dotted name of the docs names: its longest importable module, then attributes."""
+    import importlib
+
+    parts = dotted.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ModuleNotFoundError:
+            continue
+        for name in parts[i:]:
+            obj = getattr(obj, name)
+        return obj
+    raise ModuleNotFoundError(dotted)
+
+
+def test_every_name_the_library_doc_gives_is_importable_there():
+    """docs/LIBRARY.md cannot name what is not there (issue #34): each vergence.X.Y it writes resolves (a module,
+    then its attributes), and `from vergence import ...` takes every public name vergence's __init__ lists."""
+    import re
+
+    import vergence
+
+    text = (TREE / "docs" / "LIBRARY.md").read_text()
+    names = sorted(set(re.findall(r"vergence(?:\.[A-Za-z_][A-Za-z_0-9]*)+", text)))
+    assert len(names) >= 10
+    missing = []
+    for name in names:
+        try:
+            _resolve(name)
+        except (ImportError, AttributeError):
+            missing.append(name)
+    assert missing == []
+    assert all(getattr(vergence, n) is not None for n in vergence.__all__)
+    assert callable(vergence.decide) and callable(vergence.match)
+    with pytest.raises(AttributeError):
+        _resolve("vergence.retina.no_such_name")
+
 DOCS = TREE / "docs"
 README = TREE / "README.md"
 # a path of the tree as docs/ARCHITECTURE.md names it: in backticks, starting at a top-level folder or file
