@@ -221,8 +221,9 @@ class SimSource(Source):
     def __init__(self, spec: str = "", master: str = "left"):
         super().__init__(master)
         if self.swap:
-            raise SourceError("sim source: the simulator's master is its left camera (it pans the right one); "
-                              "capture.master = 'right' is for a real head whose right camera is the fixed one")
+            raise SourceError("sim source: the simulator's master is its left camera (it pans the right one): "
+                              "leave master out of [rig] and [capture], or set it to 'left', for a sim source "
+                              "('right' is for a real head whose right camera is the fixed one)")
         from .sim import Rig  # the simulator is only loaded when used
 
         try:
