@@ -226,7 +226,7 @@ class ForwardController:
 
     def pan_at(self, t_ns: int) -> float:
         """Where the joint was at t_ns (its motion is piecewise linear between its steps)."""
-        from vergence.ros2 import pan_at
+        from vergence.ros2.convert import pan_at
 
         with self.lock:
             return pan_at(list(self.history), t_ns, self.pan)

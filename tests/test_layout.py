@@ -256,8 +256,8 @@ TESTED_ELSEWHERE = {
     "vergence.images": "tests/vergence/test_sources.py (read_image's errors, through the sources)",
     "vergence.params": "tests/vergence/test_decide.py, test_match.py (the parameters' effects)",
     "vergence.photometric": "tests/vergence/test_retina.py (the mapping through the strips the retina reads)",
-    "vergence.ros2_node": "tests/services/bridges/test_ros2.py (real rclpy nodes)",
-    "vergence.ros2_source": "tests/services/bridges/test_ros2.py (the ros2: source end to end)",
+    "vergence.ros2.node": "tests/services/bridges/test_ros2.py (real rclpy nodes)",
+    "vergence.ros2.source": "tests/services/bridges/test_ros2.py (the ros2: source end to end)",
     "vergence.screen": "tests/vergence/test_monitor.py (the screen drawn from the model's snapshots)",
     "vergence.simd": "tests/vergence/test_kernel.py (the kernel's variants agree)",
 }

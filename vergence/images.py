@@ -1,6 +1,6 @@
 """Image files: read_image, the one reader of an image path (the sources, the simulator's scenes, the ground
 truth of an evaluation); SourceError, what it and the sources raise; and Source, the base class of every source
-(vergence.sources' and vergence.ros2_source's: here, so that neither imports the other)."""
+(vergence.sources' and vergence.ros2.source's: here, so that neither imports the other)."""
 
 from __future__ import annotations
 

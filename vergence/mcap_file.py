@@ -31,7 +31,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from . import keys
-from . import ros2 as conv
+from .ros2 import convert as conv
 from .messages import MessageError, MotorState, Preview, Profile, Decision
 from .recording import EVENTS, Record, RecordingError
 from .status import decode_status

@@ -3,7 +3,7 @@
     files:LEFT,RIGHT     one image pair, read once, given out again and again
     video:LEFT,RIGHT     two video files read in step (rewound at the end)
     camera:0,1           two OpenCV devices (indices or paths)
-    ros2:LEFT,RIGHT      two ROS 2 image topics, paired by stamp (vergence.ros2_source; the [ros2] extra)
+    ros2:LEFT,RIGHT      two ROS 2 image topics, paired by stamp (vergence.ros2.source; the [ros2] extra)
     sim[:key=value:...]  the rig simulator (vergence.sim.Rig.from_spec); the slave is rendered at the pan
                          the capture passes in, so the loop closes through the motor state. With
                          motion=SPEC (sim:motion=sine:z=0.8,amp=0.3,hz=0.5:focal=500) a target moves in
@@ -337,7 +337,7 @@ def check_source(spec: str) -> None:
             if not os.path.exists(path):
                 raise SourceError(f"source {kind}: {path}: no such file")
     elif kind == "ros2":
-        from .ros2_source import parse_spec
+        from .ros2.source import parse_spec
 
         parse_spec(rest)
     elif kind == "sim":
@@ -358,8 +358,8 @@ def open_source(spec: str, master: str = "left") -> Source:
         return CameraSource(*_pair(rest, kind), master=master)
     if kind == "sim":
         return SimSource(rest, master=master)
-    if kind == "ros2":  # two ROS 2 image topics (vergence/ros2_source.py; rclpy is imported only here)
-        from .ros2_source import Ros2Source
+    if kind == "ros2":  # two ROS 2 image topics (vergence/ros2/source.py; rclpy is imported only here)
+        from .ros2.source import Ros2Source
 
         return Ros2Source(rest, master=master)
     raise SourceError(f"unknown source {spec!r}: want files:LEFT,RIGHT, video:LEFT,RIGHT, camera:0,1, "

@@ -1,6 +1,6 @@
 """`vergence ros2 [--namespace NS] [--joint NAME] [--frame-id FRAME]`: the rig's Zenoh topics as ROS 2 topics.
 
-A real rclpy node (vergence.ros2_node; rclpy from a sourced ROS 2 or the `ros2` extra's wheels) under the
+A real rclpy node (vergence.ros2.node; rclpy from a sourced ROS 2 or the `ros2` extra's wheels) under the
 namespace NS (default /vergence/<rig>), publishing:
 
     joint_states          sensor_msgs/msg/JointState       the slave pan (position, velocity) of every
@@ -14,7 +14,7 @@ namespace NS (default /vergence/<rig>), publishing:
     /diagnostics          diagnostic_msgs/msg/DiagnosticArray   one status per process of the rig, 1 Hz
 
 and subscribing to `look_at` (geometry_msgs/msg/PointStamped in the master's optical frame): the point is
-projected to a master pixel (vergence.ros2.look_at_pixel, with the view of the latest frame) and sent as a
+projected to a master pixel (vergence.ros2.convert.look_at_pixel, with the view of the latest frame) and sent as a
 messages.Fixate on vergence/<rig>/fixate; a point that is not finite, behind the camera, outside the view,
 in another frame_id or too close to the border is refused: counted, logged (at most once a second) and shown
 as a warning on /diagnostics; nothing moves. A publisher of another type on look_at (which ROS 2 never
@@ -35,11 +35,11 @@ import threading
 import time
 
 from vergence import keys
-from vergence import ros2 as conv
+from vergence.ros2 import convert as conv
 from vergence.config import load
 from vergence.messages import Fixate, MessageError, MotorState, Profile, Decision
 from vergence.status import Status, decode_status, status_of
-from vergence.ros2_node import RosNode, RosUnavailable
+from vergence.ros2.node import RosNode, RosUnavailable
 
 from services.runtime import session
 from services.runtime.args import whole

@@ -52,7 +52,7 @@ class Bench:
     def __init__(self, workdir: Path):
         import zenoh
 
-        from vergence.ros2_node import RosNode
+        from vergence.ros2.node import RosNode
 
         from services.runtime import session
 

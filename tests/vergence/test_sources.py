@@ -163,7 +163,7 @@ def test_every_source_is_a_source_and_says_which_master_it_cannot_take():
     import inspect
 
     from vergence import sources
-    from vergence.ros2_source import Ros2Source
+    from vergence.ros2.source import Ros2Source
 
     kinds = [c for _, c in inspect.getmembers(sources, inspect.isclass) if c.__module__ == sources.__name__
              and c.__name__.endswith("Source") and c is not sources.Source]

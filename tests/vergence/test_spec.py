@@ -68,7 +68,7 @@ def test_the_specs_that_use_it_refuse_through_it():
     from vergence.images import SourceError
     from vergence.motors.base import PortError
     from vergence.motors.ros2 import parse_port
-    from vergence.ros2_source import parse_spec
+    from vergence.ros2.source import parse_spec
     from vergence.sim import Rig
     from vergence.sim.motion import parse_motion
     from vergence.sources import open_source

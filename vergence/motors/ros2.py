@@ -26,7 +26,7 @@ import math
 import threading
 import time
 
-from .. import ros2 as conv
+from ..ros2 import convert as conv
 from ..spec import Key, SpecError, parse
 from .base import Disconnected, Driver, MotorSettings, PortError
 
@@ -107,7 +107,7 @@ class Ros2Driver(Driver):
     # -- Driver ---------------------------------------------------------------------------------------------------
 
     def open(self) -> float:
-        from ..ros2_node import RosNode, RosUnavailable
+        from ..ros2.node import RosNode, RosUnavailable
 
         if self.ros is None:
             try:

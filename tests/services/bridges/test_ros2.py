@@ -314,7 +314,7 @@ def test_up_with_a_ros2_stereo_camera_converges_and_fixation_depth(tmp_path, mon
         def pan_at(t_ns: int) -> float | None:
             """The slave's pan at t_ns, from the joint states received (interpolated between two); None before
             the first of them."""
-            from vergence.ros2 import pan_at as interpolate
+            from vergence.ros2.convert import pan_at as interpolate
 
             with t.cond:
                 states = [(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m.position[0]) for _, m in joints[-20:]]

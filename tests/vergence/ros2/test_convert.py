@@ -1,4 +1,4 @@
-"""vergence.ros2, the ROS 2 conversions without ROS: stamps, the master's view, the fixated point and its
+"""vergence.ros2.convert, the ROS 2 conversions without ROS: stamps, the master's view, the fixated point and its
 covariance, look_at's projection and refusals, diagnostics, image decoding, stamp pairing."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vergence import ros2 as conv
+from vergence.ros2 import convert as conv
 from vergence.frames import make_frame
 from vergence.params import Params
 from vergence.sim.optics import rotation
@@ -47,7 +47,7 @@ def test_fixation_point_lies_at_the_depth_on_the_fovea_ray():
     assert conv.fixation_point(420, 190, 1.25, v) == pytest.approx((100 * 1.25 / 500, -50 * 1.25 / 500, 1.25))
     assert conv.fixation_point(320, 240, math.nan, v) is None and conv.fixation_point(320, 240, -1.0, v) is None
     # an aimed master (the simulator's): the point, turned into the head's frame by the camera's rotation
-    # (vergence.sim.rig.rotation, independent of vergence.ros2), has the decision's depth along the head's z
+    # (vergence.sim.rig.rotation, independent of vergence.ros2.convert), has the decision's depth along the head's z
     for gimbal in ("helmholtz", "fick"):
         va = conv.View(640, 480, 500.0, 0.2, -0.1, gimbal)
         p = np.array(conv.fixation_point(400, 300, 0.9, va))

@@ -1,5 +1,5 @@
 """ROS 2 conversions, with no ROS import: what the bridge (services/bridges/ros2.py), the ros2 source
-(vergence/ros2_source.py), the ros2 motor driver and the MCAP recorder put into or take out of ROS 2 messages,
+(vergence/ros2/source.py), the ros2 motor driver and the MCAP recorder put into or take out of ROS 2 messages,
 as plain numbers and arrays, so that every rule here is unit-tested without rclpy.
 
 Conventions (docs/ROS2.md): the master camera's optical frame is REP 103's (z forward, x right, y down), its
@@ -27,7 +27,7 @@ import cv2
 import msgspec
 import numpy as np
 
-from .status import Status
+from ..status import Status
 
 __all__ = ["NS_PER_S", "OK", "ros_name", "WARN", "ERROR", "STALE", "stamp", "from_stamp", "stamp_problem", "View",
            "FrameView", "view_of_frame", "fixation_point", "fixation_covariance", "Refused", "look_at_pixel",
@@ -175,7 +175,7 @@ def look_at_pixel(point: tuple[float, float, float], view: View, window: int, vs
     """The master pixel (rounded) where `point` (x, y, z in the master's optical frame, m) is seen; Refused
     when it is not finite, not in front of the camera, outside the view, or where the fovea (window, vsearch)
     would not fit."""
-    from .retina import BorderError, check_point
+    from ..retina import BorderError, check_point
 
     x, y, z = (float(c) for c in point)
     if not all(math.isfinite(c) for c in (x, y, z)):

@@ -1,10 +1,10 @@
 """The capture's ROS 2 source: `ros2:LEFT_TOPIC,RIGHT_TOPIC[:slop=S][:wait=S][:skew=S]`.
 
-An rclpy node (vergence.ros2_node) subscribes to the two image topics, sensor_msgs/msg/Image (mono8, bgr8,
+An rclpy node (vergence.ros2.node) subscribes to the two image topics, sensor_msgs/msg/Image (mono8, bgr8,
 rgb8, bgra8, rgba8, mono16) or sensor_msgs/msg/CompressedImage (jpeg, png), whichever each topic carries
 (looked up in the ROS graph; a name ending in /compressed is taken as compressed while it is not there yet), with
 sensor-data QoS (best effort: matches reliable and best-effort publishers). Images are paired by header.stamp
-within `slop` seconds (default 0.005; vergence.ros2.Pairer) and the stamps, the exposure times, are the pair's
+within `slop` seconds (default 0.005; vergence.ros2.convert.Pairer) and the stamps, the exposure times, are the pair's
 `exposure_ns` (t_master_ns, t_slave_ns). The camera_info beside each image topic (<topic's namespace>/camera_info)
 gives the focal length (k[0], fx) when it comes within `wait` s of the first pair; vergence's model puts the
 principal point at the view centre, and a camera_info whose (cx, cy) is more than 2 px off it is logged.
@@ -25,9 +25,9 @@ import math
 import threading
 import time
 
-from . import ros2 as conv
-from .images import Source, SourceError
-from .spec import Key, SpecError, parse
+from . import convert as conv
+from ..images import Source, SourceError
+from ..spec import Key, SpecError, parse
 
 __all__ = ["SourceStall", "Ros2Source", "parse_spec"]
 
@@ -74,7 +74,7 @@ class Ros2Source(Source):
     start_pan_rad = 0.0
 
     def __init__(self, rest: str, master: str = "left"):
-        from .ros2_node import RosNode, RosUnavailable
+        from .node import RosNode, RosUnavailable
 
         super().__init__(master)
         *self.topics, self.opts = parse_spec(rest)
