@@ -258,7 +258,7 @@ TESTED_ELSEWHERE = {
     "vergence.photometric": "tests/vergence/test_retina.py (the mapping through the strips the retina reads)",
     "vergence.ros2.node": "tests/services/bridges/test_ros2.py (real rclpy nodes)",
     "vergence.ros2.source": "tests/services/bridges/test_ros2.py (the ros2: source end to end)",
-    "vergence.screen": "tests/vergence/test_monitor.py (the screen drawn from the model's snapshots)",
+    "vergence.observe.screen": "tests/vergence/observe/test_monitor.py (the screen drawn from the model's snapshots)",
     "vergence.simd": "tests/vergence/test_kernel.py (the kernel's variants agree)",
 }
 

@@ -11,12 +11,12 @@ import numpy as np
 
 from vergence import keys
 from vergence.messages import Command, Frame, MessageError, MotorState, Preview, Profile, Decision
-from vergence.monitor import decode
+from vergence.observe.monitor import decode
 
 log = logging.getLogger("vergence.view")
 # what the cockpit subscribes to under vergence/<rig>/
 WATCHED = (keys.preview, keys.frame, keys.decision, keys.profile, keys.command, keys.motor_state, keys.statuses)
-# the key kinds the cockpit logs (vergence.monitor.decode decodes them)
+# the key kinds the cockpit logs (vergence.observe.monitor.decode decodes them)
 SHOWN = (keys.PREVIEW, keys.FRAME, keys.DECISION, keys.PROFILE, keys.COMMAND, keys.MOTOR_STATE, keys.STATUS)
 ENTITIES = {
     "rig/master": "the master's preview image",

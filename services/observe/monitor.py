@@ -2,8 +2,8 @@
 
 Subscribes (zenoh callbacks only: the network threads never wait on the screen) to vergence/<rig>/frame,
 profile, command, motor_state and status/**, and to the liveliness tokens vergence/<rig>/alive/**; feeds
-them to vergence.monitor.Monitor, which counts and skips malformed messages. The main thread redraws the
-screen (ANSI, vergence.screen.render_text) every --refresh seconds. It publishes only its status (through
+them to vergence.observe.monitor.Monitor, which counts and skips malformed messages. The main thread redraws the
+screen (ANSI, vergence.observe.screen.render_text) every --refresh seconds. It publishes only its status (through
 services.runtime.node.Node: vergence/<rig>/status/monitor/<id>) and declares no token, but its subscription
 to the profile key is what makes the reducer publish profiles (it encodes them only while someone subscribes).
 
@@ -30,9 +30,9 @@ import zenoh
 
 from vergence import keys
 from vergence.config import load
-from vergence.monitor import Monitor
-from vergence.screen import render_text
-from vergence.plots import monitor_png
+from vergence.observe.monitor import Monitor
+from vergence.observe.screen import render_text
+from vergence.observe.plots import monitor_png
 
 from services.runtime import session
 from services.runtime.args import number

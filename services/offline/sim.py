@@ -238,7 +238,7 @@ def _summary(args: argparse.Namespace, steps: list, segments: list, rig, timing,
     moving = args.motion is not None
     skip = int(round(args.rate)) if len(steps) > args.rate else 0  # the statistics after the first second
     if args.plot:
-        from vergence.plots import plot_run, plot_tracking
+        from vergence.observe.plots import plot_run, plot_tracking
 
         if moving:
             late = f", image {timing.latency_s * 1e3:g} ms old" if timing.latency_s else ""

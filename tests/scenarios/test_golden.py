@@ -94,8 +94,8 @@ def monitor_text() -> str:
     import numpy as np
 
     from vergence import messages as m
-    from vergence.monitor import Monitor
-    from vergence.screen import render_text
+    from vergence.observe.monitor import Monitor
+    from vergence.observe.screen import render_text
 
     w, win, t0, ms = 640, 15, 1_700_000_000_000_000_000, 1_000_000
     kk = w - win + 1

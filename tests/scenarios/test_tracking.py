@@ -525,8 +525,8 @@ def test_frame_truth_travels_and_is_checked():
 
 
 def test_monitor_shows_the_truth_beside_the_pan():
-    from vergence.monitor import Monitor
-    from vergence.screen import render_text
+    from vergence.observe.monitor import Monitor
+    from vergence.observe.screen import render_text
 
     mon = Monitor("head")
     truth = HEAD.converged_pan(0.8)

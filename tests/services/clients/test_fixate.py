@@ -17,7 +17,7 @@ from procs import VERGENCE, Procs, free_port, gives_up_without_a_router, wait_fo
 from services.pipeline.fovea import Fovea
 from services.clients.fixate import refusal
 from services.runtime.health import Health
-from vergence import monitor, plots, screen
+from vergence.observe import monitor, plots, screen
 from vergence.control import Controller
 from vergence.frames import make_frame
 from vergence.gather import Reduced

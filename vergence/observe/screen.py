@@ -1,5 +1,5 @@
-"""The terminal screen of `vergence monitor`, drawn from a vergence.monitor.Snapshot (a pure function of it: tested
-without Zenoh, as the model is): the rates and latencies, the latest profile as bars with the winner and the
+"""The terminal screen of `vergence monitor`, drawn from a monitor.Snapshot (a pure function of it: tested without
+Zenoh, as the model is): the rates and latencies, the latest profile as bars with the winner and the
 centre marked, the decision, the fixated point's depth, the motor's pans and faults, the pan history, the workers
 and the processes' statuses; ANSI colours optional, every line fitted to the terminal's width."""
 
@@ -11,11 +11,11 @@ import time
 
 import numpy as np
 
-from . import keys
-from . import messages as m
+from .. import keys
+from .. import messages as m
 from .monitor import Snapshot
-from .retina import CLIP_WARN
-from .status import Status
+from ..retina import CLIP_WARN
+from ..status import Status
 
 __all__ = ["render_text", "profile_bars", "sparkline", "timeline", "fixation_line"]
 

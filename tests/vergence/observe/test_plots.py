@@ -1,4 +1,4 @@
-"""vergence.plots: the figures of `vergence sim --plot` hold the run's values (read back from the returned
+"""vergence.observe.plots: the figures of `vergence sim --plot` hold the run's values (read back from the returned
 matplotlib Figure, line by line), the PNGs open at their size and are drawn, and importing the module does not
 import matplotlib. The monitor's figure is tested in test_monitor.py, with the monitor's model."""
 
@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vergence import plots
+from vergence.observe import plots
 from vergence.control import ControlSettings
 from vergence.decide import centre_offset
 from vergence.sim import Rig, generate
@@ -130,6 +130,6 @@ def test_unwritable_path_says_which(still, tmp_path):
 
 
 def test_importing_plots_does_not_import_matplotlib():
-    code = "import sys, vergence.plots, vergence.monitor; print('matplotlib' in sys.modules)"
+    code = "import sys, vergence.observe.plots, vergence.observe.monitor; print('matplotlib' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stdout.strip() == "False", out.stderr

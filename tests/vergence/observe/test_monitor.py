@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from vergence import messages as m
-from vergence.monitor import Monitor
-from vergence.screen import profile_bars, render_text
-from vergence.plots import lines as plot_lines, monitor_figure, monitor_png, png_bytes
+from vergence.observe.monitor import Monitor
+from vergence.observe.screen import profile_bars, render_text
+from vergence.observe.plots import lines as plot_lines, monitor_figure, monitor_png, png_bytes
 
 W, WIN = 640, 15
 K = W - WIN + 1

@@ -4,9 +4,9 @@ Monitor is fed with (key, bytes, arrival time) exactly as they come off vergence
 liveliness events of vergence/<rig>/alive/**; it decodes them with vergence.messages, counts and skips the
 malformed ones, and keeps what a user watches: rates, capture-to-command latency percentiles over the last
 seconds, dropped frames, live workers and their shards, pan and target, the latest profile and the recent
-pan history. snapshot() returns a plain Snapshot; vergence.screen.render_text() draws the terminal screen (ANSI
-optional) from it, and vergence.plots.monitor_figure() the paper's figure 5 (layer 4 against k, winner and centre
-marked) with the pan history, so both are tested without Zenoh.
+pan history. snapshot() returns a plain Snapshot; screen.render_text() draws the terminal screen (ANSI optional)
+from it, and plots.monitor_figure() the paper's figure 5 (layer 4 against k, winner and centre marked) with the
+pan history (both in vergence.observe), so both are tested without Zenoh.
 
 Clocks: latencies are differences of time.time_ns() stamps taken on the capture and the reducer
 (t_capture_ns, Command.t_sent_ns / Profile.t_reduced_ns): across machines they need synchronised clocks.
@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import keys
-from . import messages as m
-from .status import Status, decode_status
+from .. import keys
+from .. import messages as m
+from ..status import Status, decode_status
 
 __all__ = ["Monitor", "Snapshot", "Rate", "decode", "MESSAGES", "WATCHED"]
 

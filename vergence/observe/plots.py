@@ -27,7 +27,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
     from .monitor import Snapshot
-    from .sim.loop import Step
+    from ..sim.loop import Step
 
 __all__ = ["run_figure", "plot_run", "tracking_figure", "plot_tracking", "monitor_figure", "monitor_png",
            "save_png", "png_bytes", "lines"]
@@ -93,7 +93,7 @@ def run_figure(steps: list[Step], one_px_deg: float, width: int = 900, height: i
     winner_last, centre)."""
     from matplotlib.ticker import MaxNLocator
 
-    from .decide import centre_offset
+    from ..decide import centre_offset
 
     fig = _figure(width, height)
     top, bot = fig.subplots(2, 1)
@@ -144,7 +144,7 @@ def tracking_figure(steps: list[Step], title: str = "", first: int = 0, width: i
                     height: int = 700) -> Figure:
     """Truth and pan over time on top (gids truth, pan), the error f tan(pan - truth) in pixels below from
     frame `first` on (error, zero, band+, band-), its RMS and maximum in the title."""
-    from .sim.loop import tracking_error
+    from ..sim.loop import tracking_error
 
     fig = _figure(width, height)
     top, bot = fig.subplots(2, 1, sharex=True)
