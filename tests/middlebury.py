@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vergence import evaluate
+from vergence.tools import evaluate
 
 ROOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "middlebury"
 SCENES = ["cones", "teddy", "tsukuba", "venus"]
@@ -31,12 +31,12 @@ def load(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 @functools.lru_cache(maxsize=None)
 def visible(name: str) -> np.ndarray:
     """True where the left pixel's disparity is known AND the point is seen by the right camera
-    (vergence.evaluate.visible, which says why)."""
+    (vergence.tools.evaluate.visible, which says why)."""
     return evaluate.visible(load(name)[2])
 
 
 def points(name: str, n: int = 100, seed: int = 0, margin: int = 40, mask: np.ndarray | None = None):
     """n random (x, y) with valid ground truth (mask: where, default every known disparity), fixed seed, at least
-    `margin` px from the border: vergence.evaluate.points, the draw `vergence accuracy` makes."""
+    `margin` px from the border: vergence.tools.evaluate.points, the draw `vergence accuracy` makes."""
     disp = load(name)[2]
     return evaluate.points(disp > 0 if mask is None else mask, n, seed, margin)

@@ -26,7 +26,7 @@ import time
 import uuid
 from pathlib import Path
 
-from vergence import keys
+from vergence.wire import keys
 from services.ops.launch import Proc, free_port, wait_for, wait_listening
 
 VERGENCE = str(Path(sys.executable).with_name("vergence"))  # the installed command itself
@@ -144,7 +144,7 @@ class Procs:
         return s
 
     def key(self, suffix: str) -> str:
-        """vergence/<rig>/<suffix> (the suffix as vergence.keys names it: frame, motor_state, status/** ...)."""
+        """vergence/<rig>/<suffix> (the suffix as vergence.wire.keys names it: frame, motor_state, status/** ...)."""
         return keys.prefix(self.rig) + suffix
 
     def collect(self, session, key: str) -> "Collector":

@@ -6,8 +6,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from vergence.frames import make_frame, plan_shards
-from vergence.messages import Command
+from vergence.stages.frames import make_frame, plan_shards
+from vergence.wire.messages import Command
 
 
 def cmd(pan, frame=1, t=0, **kw) -> Command:

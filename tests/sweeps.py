@@ -12,9 +12,9 @@ import numpy as np
 
 import vergence
 from middlebury import load, points, visible
-from vergence import evaluate
-from vergence.control import ControlSettings
-from vergence.evaluate import IDEAL_MOTOR, P_CONTROL, started_off
+from vergence.tools import evaluate
+from vergence.head.control import ControlSettings
+from vergence.tools.evaluate import IDEAL_MOTOR, P_CONTROL, started_off
 from vergence.sim.loop import closed_loop, frames_to_converge
 from vergence.sim.moving import Head, MovingRig
 
@@ -41,7 +41,7 @@ def late(motion: str, latency: float, rate: float = 60.0, frames: int = 300, see
          **timing) -> list:
     """`vergence sim --motion M --focal 500 --rate R --frames N --camera-latency L ...` (the slave starting
     parallel, pan 0), the run's Steps."""
-    from vergence.timing import CameraTiming
+    from vergence.head.timing import CameraTiming
 
     rig = MovingRig.from_options(motion=motion, focal="500", seed=str(seed), noise=noise)
     return _lean(closed_loop(rig, frames, None, ControlSettings(), None, rate,
@@ -49,8 +49,8 @@ def late(motion: str, latency: float, rate: float = 60.0, frames: int = 300, see
 
 
 def bench_tracking(hzs: tuple[float, ...], rates: tuple[float, ...], seconds: float) -> list[dict]:
-    """vergence.bench.bench_tracking's rows (`vergence bench tracking`)."""
-    from vergence.bench import bench_tracking as rows
+    """vergence.tools.bench.bench_tracking's rows (`vergence bench tracking`)."""
+    from vergence.tools.bench import bench_tracking as rows
 
     return rows(hzs=hzs, rates=rates, seconds=seconds)
 
@@ -58,7 +58,7 @@ def bench_tracking(hzs: tuple[float, ...], rates: tuple[float, ...], seconds: fl
 def p_still(gain: float) -> list:
     """The p controller at `gain`, the image 100 ms old when read, on a still target with sensor noise: 120
     frames at 60 Hz."""
-    from vergence.timing import CameraTiming
+    from vergence.head.timing import CameraTiming
 
     rig = MovingRig.from_options(motion="still:z=0.8", focal="500", noise="2", seed="6")
     return _lean(closed_loop(rig, 120, None, ControlSettings(mode="p", gain=gain), None, 60,
@@ -109,7 +109,7 @@ def probe(code: str, name: str) -> tuple[str, int, str, str]:
     return name, r.returncode, r.stdout, r.stderr
 
 
-# -- the command line (tests/vergence/test_depth.py) -------------------------------------------------------------------
+# -- the command line (tests/vergence/head/test_depth.py) --------------------------------------------------------------
 
 def cli(*args: str, timeout: float = 300):
     """`vergence ARGS...` run to its end (at most timeout s): its CompletedProcess, stdout and stderr as text (as

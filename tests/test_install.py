@@ -70,6 +70,6 @@ def test_the_wheel_holds_vergence_and_services_with_every_subpackage(tmp_path):
     folders = {p.parent.relative_to(ROOT).as_posix() for name in ("vergence", "services")
                for p in (ROOT / name).rglob("__init__.py")}
     assert folders == {n.rpartition("/")[0] for n in names if n.endswith("/__init__.py")}
-    assert "services/ops/cli.py" in names and "vergence/keys.py" in names and "vergence/sim/__init__.py" in names
+    assert "services/ops/cli.py" in names and "vergence/wire/keys.py" in names and "vergence/sim/__init__.py" in names
     entry = next(n for n in names if n.endswith("entry_points.txt"))
     assert "vergence = services.ops.cli:main" in zipfile.ZipFile(whl).read(entry).decode()

@@ -51,9 +51,8 @@ for _name in MODULES:
 def test_every_module_imports_first_in_a_fresh_interpreter_without_zenoh_or_services():
     """Each module imported first, alone, in its own interpreter: an import cycle (a module importing a
     partly initialised one) fails here, whichever module the cycle is entered by."""
-    assert {"vergence.params", "vergence.frames", "vergence.shards", "vergence.gather", "vergence.decide",
-            "vergence.match"} <= set(MODULES)
-    assert "vergence.pipeline" not in MODULES
+    assert {"vergence.network.params", "vergence.stages.frames", "vergence.stages.shards", "vergence.stages.gather",
+            "vergence.network.decide", "vergence.network.match"} <= set(MODULES)
     with ThreadPoolExecutor(4) as pool:
         results = list(pool.map(_probe, MODULES))
     for name, rc, out, err in results:
@@ -71,13 +70,14 @@ def test_the_processes_that_run_no_kernel_start_without_numba():
     import sys
 
     code = ("import sys, services.ops.up, services.pipeline.actuator, services.clients.latency, "
-            "services.clients.fixate, vergence.config, vergence.keys, vergence.messages\n"
-            "print(sorted(m for m in ('numba', 'vergence.kernel', 'vergence.retina') if m in sys.modules))\n"
-            "import vergence, vergence.decide, vergence.match\n"
-            "print(vergence.decide.__name__, type(vergence.decide).__name__, type(vergence.match).__name__)")
+            "services.clients.fixate, vergence.config, vergence.wire.keys, vergence.wire.messages\n"
+            "print(sorted(m for m in ('numba', 'vergence.network.kernel', 'vergence.network.retina')\n"
+            "             if m in sys.modules))\n"
+            "import vergence, vergence.network.decide, vergence.network.match\n"
+            "print(vergence.network.decide.__name__, type(vergence.decide).__name__, type(vergence.match).__name__)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
-    assert r.stdout.split("\n")[:2] == ["[]", "decide function function"]
+    assert r.stdout.split("\n")[:2] == ["[]", "vergence.network.decide function function"]
 
 
 def _top_level(tree: ast.Module):
@@ -191,11 +191,11 @@ def test_a_cycle_inside_a_function_is_found():
 
 def test_the_stages_stay_apart():
     edges = _edges(_graph(deferred=False))
-    stages = {"vergence.frames", "vergence.shards", "vergence.gather"}
+    stages = {"vergence.stages.frames", "vergence.stages.shards", "vergence.stages.gather"}
     for s in stages:
         assert not (edges[s] & stages), f"{s} imports another stage: {sorted(edges[s] & stages)}"
-    assert "vergence.params" in edges["vergence.decide"] and not edges["vergence.params"] & {
-        "vergence.decide", "vergence.match"}  # Params in one place, below every user of it
+    assert "vergence.network.params" in edges["vergence.network.decide"] and not edges["vergence.network.params"] & {
+        "vergence.network.decide", "vergence.network.match"}  # Params in one place, below every user of it
 
 
 # Who may import whom: each package of the tree and the packages of the tree it may import (itself always). The
@@ -251,15 +251,15 @@ def test_observers_never_publish_commands():
 
 # The modules with no test file of their own, and where they are tested.
 TESTED_ELSEWHERE = {
-    "vergence.bench": "tests/services/offline/test_bench.py (the benchmarks run from the CLI)",
-    "vergence.control": "tests/scenarios/test_tracking.py (the controller in the closed loop)",
-    "vergence.images": "tests/vergence/test_sources.py (read_image's errors, through the sources)",
-    "vergence.params": "tests/vergence/test_decide.py, test_match.py (the parameters' effects)",
-    "vergence.photometric": "tests/vergence/test_retina.py (the mapping through the strips the retina reads)",
+    "vergence.tools.bench": "tests/services/offline/test_bench.py (the benchmarks run from the CLI)",
+    "vergence.head.control": "tests/scenarios/test_tracking.py (the controller in the closed loop)",
+    "vergence.io.images": "tests/vergence/io/test_sources.py (read_image's errors, through the sources)",
+    "vergence.network.params": "tests/vergence/network/test_decide.py, test_match.py (the parameters' effects)",
+    "vergence.network.photometric": "tests/vergence/network/test_retina.py (the mapping through the retina's strips)",
     "vergence.ros2.node": "tests/services/bridges/test_ros2.py (real rclpy nodes)",
     "vergence.ros2.source": "tests/services/bridges/test_ros2.py (the ros2: source end to end)",
     "vergence.observe.screen": "tests/vergence/observe/test_monitor.py (the screen drawn from the model's snapshots)",
-    "vergence.simd": "tests/vergence/test_kernel.py (the kernel's variants agree)",
+    "vergence.network.simd": "tests/vergence/network/test_kernel.py (the kernel's variants agree)",
 }
 
 
@@ -280,12 +280,25 @@ def test_the_tests_mirror_the_tree():
         if where.parts and where.parts[0] in PACKAGES and where.as_posix() not in ("vergence/sim", "vergence/motors"):
             module = TREE / where / (p.stem.removeprefix("test_") + ".py")
             assert module.is_file(), f"{p.relative_to(tests)} mirrors no module ({module.relative_to(TREE)})"
-    library = [m for m in _modules() if m.count(".") == 1 and m.startswith("vergence.")
-               and _path(m).name != "__init__.py"]
-    missing = [m for m in library if m not in TESTED_ELSEWHERE
-               and not (tests / "vergence" / f"test_{m.removeprefix('vergence.')}.py").is_file()]
+    library = [m for m in _modules() if m.startswith("vergence.") and _path(m).name != "__init__.py"
+               and m.split(".")[1] not in ("sim", "motors")]
+    mirror = {m: tests / _path(m).relative_to(TREE).parent / f"test_{_path(m).stem}.py" for m in library}
+    missing = [m for m in library if m not in TESTED_ELSEWHERE and not mirror[m].is_file()]
     assert missing == [], f"library modules with no test file: {missing}"
+    assert not [m for m in TESTED_ELSEWHERE if m not in library], "TESTED_ELSEWHERE names a module that is not there"
     assert not [p for p in tests.rglob("__init__.py") if p.parent.name != "emulators"]
+
+
+MAX_TOP_MODULES = 10
+
+
+def test_the_library_top_holds_at_most_10_modules():
+    """vergence/ by concept (issue #34): the network, the head, the wire, the stages, io, ros2, sim, motors,
+    observe, tools are folders; at most 10 modules stay at the top (the settings and what every folder shares)."""
+    top = sorted(p.stem for p in ROOT.glob("*.py") if p.name != "__init__.py")
+    assert len(top) <= MAX_TOP_MODULES, top
+    folders = sorted(p.parent.name for p in ROOT.glob("*/__init__.py"))
+    assert folders == ["head", "io", "motors", "network", "observe", "ros2", "sim", "stages", "tools", "wire"]
 
 
 MAX_FUNCTION_LINES = 80
@@ -350,7 +363,7 @@ def test_every_name_the_library_doc_gives_is_importable_there():
     assert all(getattr(vergence, n) is not None for n in vergence.__all__)
     assert callable(vergence.decide) and callable(vergence.match)
     with pytest.raises(AttributeError):
-        _resolve("vergence.retina.no_such_name")
+        _resolve("vergence.network.retina.no_such_name")
 
 DOCS = TREE / "docs"
 README = TREE / "README.md"

@@ -8,23 +8,27 @@ import importlib
 import sys
 import types
 
-_PUBLIC = {"features": "retina", "BorderError": "retina", "correlate": "kernel", "decide": "decide",
-           "Decision": "decide", "centre_offset": "decide", "match": "match", "Match": "match", "Params": "params",
-           "FAITHFUL": "params"}
+_PUBLIC = {"features": "network.retina", "BorderError": "network.retina", "correlate": "network.kernel",
+           "decide": "network.decide", "Decision": "network.decide", "centre_offset": "network.decide",
+           "match": "network.match", "Match": "network.match", "Params": "network.params", "FAITHFUL": "network.params"}
 
-__all__ = ["features", "correlate", "decide", "match", "Params", "Match", "Decision", "FAITHFUL",
-           "BorderError", "centre_offset"]
+__all__ = [
+    "FAITHFUL",
+    "BorderError",
+    "Decision",
+    "Match",
+    "Params",
+    "centre_offset",
+    "correlate",
+    "decide",
+    "features",
+    "match",
+]
 __version__ = "0.1.0"
 
 
 class _Package(types.ModuleType):
-    """`vergence.decide` and `vergence.match` are the functions, as when they were imported eagerly: the import
-    system's binding of the submodules of the same names to the package is not kept."""
-
-    def __setattr__(self, name: str, value) -> None:
-        if name in ("decide", "match") and isinstance(value, types.ModuleType):
-            return
-        super().__setattr__(name, value)
+    """The public names, each imported from its module (in vergence.network) on first use."""
 
     def __getattr__(self, name: str):
         if name not in _PUBLIC:

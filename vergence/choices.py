@@ -25,7 +25,7 @@ class Gimbal(StrEnum):
 
 
 class Photometric(StrEnum):
-    """How the slave's gray levels are mapped onto the master's (vergence.retina.photometric)."""
+    """How the slave's gray levels are mapped onto the master's (vergence.network.retina.photometric)."""
 
     NONE = "none"
     AFFINE = "affine"

@@ -1,6 +1,6 @@
 """Typed settings for every process, loaded from one TOML file; errors name the offending field.
 
-The settings are frozen dataclasses (vergence.params.Params, vergence.control.ControlSettings and
+The settings are frozen dataclasses (vergence.network.params.Params, vergence.head.control.ControlSettings and
 vergence.motors.MotorSettings among them); msgspec checks a parsed file against them (types, unknown keys,
 each class's __post_init__), its errors giving the path (network.window: expected `int`, got `str`).
 A setting that moved is an error naming where it lives now (MOVED): [control] min_deg, max_deg and
@@ -8,12 +8,12 @@ max_step_deg are [actuator.motor]'s since the motor's limits got one home (no de
 values for one limit would leave the reader guessing which one holds).
 
     rig = "head"          # the rig's name (the key prefix vergence/<rig>/), or name = "head" in [rig]
-    [rig]       # the rig's geometry: baseline_m, focal_px, master, gimbal (vergence.depth)
-    [network]   # vergence.params.Params: window, vsearch, circular, subpixel, min_margin, ...
+    [rig]       # the rig's geometry: baseline_m, focal_px, master, gimbal (vergence.head.depth)
+    [network]   # vergence.network.params.Params: window, vsearch, circular, subpixel, min_margin, ...
     [capture]   # source, rate_hz, preview_hz, focal_px, master
     [camera]    # latency_s, skew_s: the cameras' timing where a source does not stamp its images
     [reducer]   # deadline_ms
-    [control]   # mode, gain, dead_band_px, the predictive filter (vergence.control.ControlSettings)
+    [control]   # mode, gain, dead_band_px, the predictive filter (vergence.head.control.ControlSettings)
     [actuator]  # driver, port, and the motor (see vergence.motors): [actuator.motor] min_deg, max_deg,
                 # max_step_deg, dead_band_deg are the one home of the pan limits (the reducer's controller
                 # and the actuator both read them there)
@@ -33,13 +33,13 @@ from pathlib import Path
 
 import msgspec
 
-from .control import ControlSettings
+from .head.control import ControlSettings
 from .choices import Gimbal, Side
-from .params import Params
+from .network.params import Params
 from .motors import DRIVERS
 from .motors.base import MotorSettings
 from .ranges import Range, check
-from .timing import CameraTiming
+from .head.timing import CameraTiming
 
 __all__ = ["ConfigError", "MOVED", "RigSettings", "CaptureSettings", "CameraSettings", "ReducerSettings",
            "ActuatorSettings", "LimitSettings", "SuperviseSettings", "Settings", "load", "from_dict"]
@@ -51,7 +51,7 @@ class ConfigError(ValueError):
 
 @dataclass(frozen=True)
 class RigSettings:
-    """The `[rig]` table, the head's geometry (vergence.depth): baseline_m, the distance between the two
+    """The `[rig]` table, the head's geometry (vergence.head.depth): baseline_m, the distance between the two
     cameras' optical centres in metres; focal_px, the focal length in pixels of the views the capture reads
     (0: [capture] focal_px, else the source's own, else 0.8 x width); master, which camera is the fixed one,
     left or right ("": [capture] master, left); gimbal, helmholtz (both cameras pan on one tilting
@@ -78,7 +78,7 @@ class RigSettings:
 
 @dataclass(frozen=True)
 class CaptureSettings:
-    """source: sim[:...] | files:L,R | video:L,R | camera:0,1 | ros2:LEFT,RIGHT (vergence.sources). rate_hz:
+    """source: sim[:...] | files:L,R | video:L,R | camera:0,1 | ros2:LEFT,RIGHT (vergence.io.sources). rate_hz:
     frames per second (0: as fast as the source gives them). preview_hz: rate of the downscaled preview.
     focal_px: focal length in pixels (0: the source's own, else 0.8 x width). master: which camera is the fixed
     one, left or right."""
@@ -108,7 +108,7 @@ class CameraSettings:
     """The `[camera]` table: the cameras' timing where the source does not stamp its images (or its stamps
     are not believable): latency_s, from the exposure of the later image to its read (the image is this old
     when the capture gets it; `vergence latency` measures it); skew_s, the slave's exposure after the master's
-    (negative: before). Both in seconds (vergence.timing.CameraTiming)."""
+    (negative: before). Both in seconds (vergence.head.timing.CameraTiming)."""
 
     latency_s: float = 0.0
     skew_s: float = 0.0

@@ -34,11 +34,11 @@ import sys
 import threading
 import time
 
-from vergence import keys
+from vergence.wire import keys
 from vergence.ros2 import convert as conv
 from vergence.config import load
-from vergence.messages import Fixate, MessageError, MotorState, Profile, Decision
-from vergence.status import Status, decode_status, status_of
+from vergence.wire.messages import Fixate, MessageError, MotorState, Profile, Decision
+from vergence.wire.status import Status, decode_status, status_of
 from vergence.ros2.node import RosNode, RosUnavailable
 
 from services.runtime import session

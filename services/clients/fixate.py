@@ -16,10 +16,10 @@ import sys
 import threading
 import time
 
-from vergence import keys
+from vergence.wire import keys
 from vergence.config import load
-from vergence.messages import Fixate, MessageError, Decision
-from vergence.status import decode_status
+from vergence.wire.messages import Fixate, MessageError, Decision
+from vergence.wire.status import decode_status
 
 from services.runtime import session
 from services.runtime.args import master_point, number

@@ -5,7 +5,7 @@ With the rig running on a still, textured scene (the master fixed), it holds the
 its present pan (+-amplitude and half of it, each step held hold-s; within +-1 degree and the motor's soft
 limits) with its own messages.Command, records the decisions (vergence/<rig>/decision) and the motor's states
 (vergence/<rig>/motor_state), and finds the instant at which the measured offsets follow the motor best
-(vergence.latency.fit_latency). It prints the slave camera's exposure-to-read latency with its uncertainty and
+(vergence.head.latency.fit_latency). It prints the slave camera's exposure-to-read latency with its uncertainty and
 the settings line to put in the TOML ([camera] latency_s), then puts the slave back and releases the hold.
 Exit 1 when no rig answers, 2 when the scene or the motor does not allow the measurement (it says why).
 """
@@ -19,10 +19,10 @@ import sys
 import threading
 import time
 
-from vergence import keys
+from vergence.wire import keys
 from vergence.config import load
-from vergence.latency import LatencyError, fit_latency, motion_plan
-from vergence.messages import Command, Hold, MessageError, MotorState, Decision
+from vergence.head.latency import LatencyError, fit_latency, motion_plan
+from vergence.wire.messages import Command, Hold, MessageError, MotorState, Decision
 
 from services.runtime import session
 from services.runtime.args import number

@@ -27,18 +27,18 @@ import time
 
 import zenoh
 
-from vergence import keys
-from vergence.frames import plan_shards
-from vergence.messages import Frame, MessageError, replace
-from vergence.mcap_file import McapReader, is_mcap
-from vergence.recording import Reader, RecordingError
+from vergence.wire import keys
+from vergence.stages.frames import plan_shards
+from vergence.wire.messages import Frame, MessageError, replace
+from vergence.io.mcap_file import McapReader, is_mcap
+from vergence.io.recording import Reader, RecordingError
 
 from services.runtime import session
 from services.runtime.args import number
 from services.runtime.node import Node
 
 log = logging.getLogger("vergence.replay")
-# the kinds (vergence.keys) a replay publishes again; REPLAY_RIG: where by default (no actuator listens there)
+# the kinds (vergence.wire.keys) a replay publishes again; REPLAY_RIG: where by default (no actuator listens there)
 KINDS = (keys.FRAME, keys.PREVIEW, keys.CORRELATION, keys.DECISION, keys.PROFILE)
 REPLAY_RIG = keys.REPLAY_RIG
 

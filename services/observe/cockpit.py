@@ -9,8 +9,8 @@ import math
 
 import numpy as np
 
-from vergence import keys
-from vergence.messages import Command, Frame, MessageError, MotorState, Preview, Profile, Decision
+from vergence.wire import keys
+from vergence.wire.messages import Command, Frame, MessageError, MotorState, Preview, Profile, Decision
 from vergence.observe.monitor import decode
 
 log = logging.getLogger("vergence.view")
@@ -116,7 +116,7 @@ class Cockpit:
     # -- one sample ----------------------------------------------------------------------------------------
 
     def feed(self, rest: str, payload: bytes, t_ns: int | None = None) -> str | None:
-        """Log one message whose key is vergence/<rig>/<rest>; returns its kind (vergence.keys), or None when
+        """Log one message whose key is vergence/<rig>/<rest>; returns its kind (vergence.wire.keys), or None when
         skipped."""
         kind = keys.kind_of(rest)
         if kind not in SHOWN:
@@ -136,7 +136,7 @@ class Cockpit:
         return kind
 
     def _loggers(self) -> dict:
-        """Key kind (vergence.keys) -> what logs its decoded message; the kinds the cockpit shows."""
+        """Key kind (vergence.wire.keys) -> what logs its decoded message; the kinds the cockpit shows."""
         return {keys.PREVIEW: self._preview, keys.FRAME: self._frame, keys.DECISION: self._decision,
                 keys.PROFILE: self._profile, keys.COMMAND: self._command, keys.MOTOR_STATE: self._motor}
 

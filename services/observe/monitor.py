@@ -28,7 +28,7 @@ import time
 
 import zenoh
 
-from vergence import keys
+from vergence.wire import keys
 from vergence.config import load
 from vergence.observe.monitor import Monitor
 from vergence.observe.screen import render_text

@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 
-from vergence import keys
+from vergence.wire import keys
 
 from services.observe.cockpit import Cockpit
 from services.observe.rerun_sdk import APP_ID, MissingExtra, import_rerun
@@ -35,7 +35,7 @@ def parse_target(text: str) -> dict:
 def view_recording(path: str, target: str, rig: str | None, stop=None) -> int:
     """`vergence replay FILE --view TARGET`: a `vergence record` file into the cockpit's Rerun view (no Zenoh,
     nothing published). Serving (web, spawn) keeps running until stopped, so the viewer can read it."""
-    from vergence.recording import Reader, RecordingError
+    from vergence.io.recording import Reader, RecordingError
 
     try:
         sinks = parse_target(target)

@@ -1,6 +1,6 @@
 """`vergence record FILE [--duration S] [--queue-mb MB]`: every vergence/<rig>/** message, with its key and
-arrival time, into a msgpack stream (the format of vergence.recording); FILE.mcap: a ROS 2 MCAP file
-(vergence.mcap_file: the rig's messages as the standard ROS 2 messages of `vergence ros2`, and every sample raw
+arrival time, into a msgpack stream (the format of vergence.io.recording); FILE.mcap: a ROS 2 MCAP file
+(vergence.io.mcap_file: the rig's messages as the standard ROS 2 messages of `vergence ros2`, and every sample raw
 for `vergence replay`).
 
 A zenoh callback stamps each sample (time.time_ns()) and hands it to a queue; one writer thread appends
@@ -32,10 +32,10 @@ import time
 
 import zenoh
 
-from vergence import keys
+from vergence.wire import keys
 from vergence.config import load
-from vergence.mcap_file import McapWriter, is_mcap
-from vergence.recording import RecordingError, Writer
+from vergence.io.mcap_file import McapWriter, is_mcap
+from vergence.io.recording import RecordingError, Writer
 
 from services.runtime import session
 from services.runtime.args import number
@@ -138,7 +138,7 @@ def main(rig: str, conf: zenoh.Config, stop: session.Stop, path: str, duration: 
         # within the wait: session.NoRouter (one line, exit 1: services/ops/cli.py), and no file was created
         with Node("record", rig, conf, stop, log=log, timeout=wait if end is None else min(wait, duration)) as node:
             try:
-                # FILE.mcap: a ROS 2 MCAP file (vergence.mcap_file; the [ros2] extra), else vergence's own format
+                # FILE.mcap: a ROS 2 MCAP file (vergence.io.mcap_file; the [ros2] extra), else vergence's own format
                 writer = McapWriter(path, rig=rig) if is_mcap(path) else Writer(path, rig=rig)
             except RecordingError as e:
                 print(f"vergence record: {e}", file=sys.stderr)

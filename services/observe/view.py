@@ -31,7 +31,7 @@ import os
 import sys
 import threading
 
-from vergence import keys
+from vergence.wire import keys
 
 from services.observe.cockpit import ENTITIES, WATCHED, Cockpit
 from services.observe.playback import log_sim_step, parse_target, view_recording

@@ -1,5 +1,5 @@
 """`vergence accuracy LEFT RIGHT DISP [--loop]`: the network's accuracy on any rectified pair with a ground-truth
-disparity, drawn as the tests draw Middlebury's (vergence.evaluate). No Zenoh."""
+disparity, drawn as the tests draw Middlebury's (vergence.tools.evaluate). No Zenoh."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import sys
 import tomllib
 
 import vergence
-from vergence import evaluate
+from vergence.tools import evaluate
 from vergence.config import ConfigError, from_dict
-from vergence.images import read_image
+from vergence.io.images import read_image
 from services.runtime.args import positive
 
 

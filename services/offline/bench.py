@@ -50,7 +50,7 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def _kernel(args) -> int:
-    from vergence.bench import CASES, KernelCase, bench_kernel
+    from vergence.tools.bench import CASES, KernelCase, bench_kernel
 
     cases = [KernelCase(640, 15, 1), KernelCase(3840, 31, 33)] if args.quick else CASES
     if not args.json:
@@ -75,7 +75,7 @@ def _kernel(args) -> int:
 
 
 def _match(args) -> int:
-    from vergence.bench import bench_match
+    from vergence.tools.bench import bench_match
 
     r = bench_match(args.repeats)
     if args.json:
@@ -89,7 +89,7 @@ def _match(args) -> int:
 
 
 def _messages(args) -> int:
-    from vergence.bench import bench_messages
+    from vergence.tools.bench import bench_messages
 
     for r in bench_messages(args.repeats):
         if args.json:
@@ -108,7 +108,7 @@ def _numbers(text: str) -> tuple[float, ...]:
 
 
 def _tracking(args) -> int:
-    from vergence.bench import bench_tracking
+    from vergence.tools.bench import bench_tracking
 
     try:
         rates = _numbers(args.rates or ("30,60" if args.camera else "30,60,120"))
@@ -149,7 +149,7 @@ def _tracking(args) -> int:
 
 
 def _camera(args, latencies, rates, hzs) -> int:
-    from vergence.bench import bench_camera
+    from vergence.tools.bench import bench_camera
 
     if not args.json:
         print(f"{'motion':24s} {'latency':>7s} {'Hz':>4s} {'variant':>13s} {'mode':>10s} {'RMS px':>7s} "

@@ -143,8 +143,8 @@ def _p(a: np.ndarray, q: float) -> float:
 
 def run_rate(up: Up, setting: Setting, rate: float, seconds: float) -> dict:
     """One run: the first decision, WARM_S, then `seconds` of decisions, commands and motor states."""
-    from vergence import keys
-    from vergence.messages import Command, Decision, MotorState
+    from vergence.wire import keys
+    from vergence.wire.messages import Command, Decision, MotorState
 
     got: dict[str, list[tuple[int, bytes]]] = {"decision": [], "command": [], "motor_state": []}
     lock = threading.Lock()
@@ -216,8 +216,8 @@ def bench_setting(setting: Setting, args, workdir: Path, rates: list[float], emi
 
 def settings(args, workdir: Path) -> list[tuple[Setting, object, list[float]]]:
     """(setting, its network parameters, its rates) for the run: the sources asked for, and --heavy's."""
-    from vergence.params import Params
-    from vergence.sources import open_source
+    from vergence.network.params import Params
+    from vergence.io.sources import open_source
 
     def config(name: str, net: dict):
         params = Params.paper(**net) if args.faithful else Params(**net)

@@ -59,7 +59,7 @@ class Bench:
         self.dir, self.rig = workdir, f"b{uuid.uuid4().hex[:8]}"
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.procs: list[Proc] = []
-        self.statuses: list = []  # the captures' status messages (vergence.status.Status)
+        self.statuses: list = []  # the captures' status messages (vergence.wire.status.Status)
         router = self.spawn("router", ["router", "--listen", self.endpoint])
         wait_listening(self.endpoint, 30, router, logs=self.logs)
         self.z = zenoh.open(session.zenoh_config("client", [self.endpoint]))
@@ -75,7 +75,7 @@ class Bench:
         return "\n".join(p.tail(10) for p in self.procs)
 
     def key(self, suffix: str) -> str:
-        from vergence import keys
+        from vergence.wire import keys
 
         return keys.prefix(self.rig) + suffix
 
@@ -90,7 +90,7 @@ def _bridge(b: Bench, seconds: float) -> list[dict]:
     from geometry_msgs.msg import PointStamped
     from sensor_msgs.msg import JointState
 
-    from vergence.messages import Frame, MotorState, Decision
+    from vergence.wire.messages import Frame, MotorState, Decision
 
     lat: dict[str, list[int]] = {k: [] for k in ("zenoh", "joint_states", "fixation", "look_at")}
     stamp = lambda m: m.header.stamp.sec * 10**9 + m.header.stamp.nanosec  # noqa: E731
@@ -142,8 +142,8 @@ def _bridge(b: Bench, seconds: float) -> list[dict]:
 def _frames(b: Bench, source: list[str], seconds: float, stamps=None) -> list[int]:
     """Latency of the frames a capture publishes: arrival minus the exposure (the newest pair stamp at or before
     the frame's capture time when stamps is given, else the frame's capture time)."""
-    from vergence.messages import Frame
-    from vergence.status import decode_status
+    from vergence.wire.messages import Frame
+    from vergence.wire.status import decode_status
 
     got: list[tuple[int, int]] = []
     sub = b.z.declare_subscriber(b.key("frame"), lambda s: got.append(

@@ -39,7 +39,7 @@ def start_once(workdir: Path, cache: Path, name: str) -> dict:
     """One `vergence up`: the seconds to its first decision, to following, and its compile (None: none)."""
     import zenoh
 
-    from vergence.messages import Frame
+    from vergence.wire.messages import Frame
     from services.runtime import session
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"

@@ -7,10 +7,11 @@ import json
 import sys
 
 
-from vergence import BorderError, Params, depth, match
+from vergence import BorderError, Params, match
+from vergence.head import depth
 from vergence.config import ConfigError, load
 from vergence.choices import Side
-from vergence.images import read_image
+from vergence.io.images import read_image
 
 from services.runtime.args import pixel, positive, whole
 

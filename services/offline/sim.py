@@ -3,7 +3,7 @@
 With --motion SPEC the scene is a target moving in depth in front of the physical rig (--baseline,
 --focal; vergence.sim.moving), and the output is a tracking run: pan, truth and error at each frame, the
 RMS and maximum error after the first second. --camera-latency, --skew, --exposure and --jitter give the
-cameras a real camera's timing (vergence.timing.CameraTiming); time stays virtual. A frame's t_s is its
+cameras a real camera's timing (vergence.head.timing.CameraTiming); time stays virtual. A frame's t_s is its
 master's exposure, its pan the slave's at the slave's exposure, its truth and error at t_s."""
 
 from __future__ import annotations
@@ -16,14 +16,15 @@ import math
 import re
 import sys
 
-from vergence import Params, depth
+from vergence import Params
+from vergence.head import depth
 from vergence.config import ConfigError, load
 from vergence.choices import ControlMode, Gimbal
 from vergence.sim import Rig
 from vergence.sim.fixation import truth_at
 from vergence.sim.loop import DELAY_S, closed_loop, frames_to_converge, tracking_error
 from vergence.sim.moving import MovingRig
-from vergence.timing import CameraTiming
+from vergence.head.timing import CameraTiming
 
 from services.runtime.args import number, whole, xy
 

@@ -35,10 +35,10 @@ import signal
 import sys
 import time
 
-from vergence import keys
+from vergence.wire import keys
 from vergence.config import Settings, SuperviseSettings, load
 from vergence.motors import DRIVERS, check_driver
-from vergence.sources import SourceError, check_source
+from vergence.io.sources import SourceError, check_source
 
 from services.runtime import heartbeat, session, warm
 from services.runtime.args import number, whole

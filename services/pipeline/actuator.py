@@ -18,7 +18,7 @@ import sys
 import threading
 import time
 
-from vergence import keys
+from vergence.wire import keys
 from vergence.config import ConfigError, load
 from vergence.motors import DRIVERS, PortError, check_driver, make_driver
 from vergence.motors.runner import MotorLoop

@@ -7,7 +7,8 @@ latency_s), the slave's pan at its exposure (PanLookup: the messages.MotorState 
 interpolated there; the source's start pan before any; always the start pan, 0, for a source whose images do not
 move with the motor: a still pair, videos; pan_stale where the history cannot tell), and the shard plan made from
 the workers' liveliness tokens vergence/<rig>/alive/worker/* at that moment, minus the workers the reducer's
-evidence (vergence/<rig>/workers) shows silent (vergence.frames.Roster: a token is an invitation, not a guarantee).
+evidence (vergence/<rig>/workers) shows silent (vergence.stages.frames.Roster: a token is an invitation, not a
+guarantee).
 A motor_state whose pan is outside the motor's limits or whose time is off our clock by more than [limits]
 max_skew_s is counted and ignored. With no worker alive, frames are counted (no_workers) and not published. A
 downscaled messages.Preview goes on vergence/<rig>/preview at [capture] preview_hz. With [network] max_window > 0 the
@@ -37,14 +38,15 @@ import time
 import cv2
 import zenoh
 
-from vergence import keys, retina
+from vergence.wire import keys
+from vergence.network import retina
 from vergence.config import load
-from vergence.frames import Roster, WindowControl, make_frame, plan_shards
-from vergence.messages import Command, MessageError, MotorState, Preview, Decision
+from vergence.stages.frames import Roster, WindowControl, make_frame, plan_shards
+from vergence.wire.messages import Command, MessageError, MotorState, Preview, Decision
 from vergence.motors.simulated import Replica, SimMotor
-from vergence.sources import SourceError, open_source
-from vergence.status import decode_report
-from vergence.timing import PanHistory
+from vergence.io.sources import SourceError, open_source
+from vergence.wire.status import decode_report
+from vergence.head.timing import PanHistory
 
 from services.runtime import session
 from services.runtime.args import number, pixel, whole
@@ -110,7 +112,7 @@ class Capture:
         self.history = PanHistory(max_gap_s=max(0.1, 3.0 / hz if hz > 0 else 0.1))
         self.history_lock = threading.Condition()  # notified on each motor state (PanLookup.ready waits on it)
         # the sim motor's replica, for a source that renders the slave (its states tell whether it is the sim)
-        self.renders = getattr(source, "renders", False)  # (the ros2 source is not a vergence.sources.Source)
+        self.renders = getattr(source, "renders", False)  # (the ros2 source is not a vergence.io.sources.Source)
         self.replica = Replica(settings.actuator.motor) if self.renders else None
         rate = self.cs.rate_hz
         self.clock = ExposureClock(settings.camera.timing(), 1.0 / rate if rate > 0 else 0.0)

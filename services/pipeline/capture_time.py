@@ -9,9 +9,9 @@ import logging
 import threading
 import time
 
-from vergence.messages import MessageError, MotorState
+from vergence.wire.messages import MessageError, MotorState
 from vergence.motors.simulated import Replica
-from vergence.timing import PanHistory, Stamper
+from vergence.head.timing import PanHistory, Stamper
 
 log = logging.getLogger("vergence.capture")
 FUTURE_S = 0.05  # a motor history whose newest state is this far ahead of our clock is forgotten
@@ -110,7 +110,7 @@ class PanLookup:
 
 
 class ExposureClock:
-    """The exposure times of the pairs read (vergence.timing.Stamper: the source's own where believable, else
+    """The exposure times of the pairs read (vergence.head.timing.Stamper: the source's own where believable, else
     the read time less [camera] latency_s), and what the status says of them: the latency (read minus the
     master's exposure) and the skew (slave minus master) over the last period, the stamps not believed per
     reason (logged once each); a warning, once, when the skew is over half a frame."""

@@ -7,8 +7,8 @@ import logging
 import threading
 import time
 
-from vergence import retina
-from vergence.messages import Fixate, MessageError
+from vergence.network import retina
+from vergence.wire.messages import Fixate, MessageError
 
 from services.runtime.health import Health
 

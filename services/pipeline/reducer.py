@@ -1,8 +1,8 @@
 """`vergence reducer`: gathers the shards of each frame, decides, publishes the profile and the command.
 
-Subscribes to vergence/<rig>/frame and vergence/<rig>/correlation/*; vergence.gather.Gatherer assembles
+Subscribes to vergence/<rig>/frame and vergence/<rig>/correlation/*; vergence.stages.gather.Gatherer assembles
 each frame by the plan the frame carries, drops (and counts) a frame whose shards miss the deadline
-([reducer] deadline_ms), and reduces a complete one with vergence.decide.decide_scores and the controller.
+([reducer] deadline_ms), and reduces a complete one with vergence.network.decide.decide_scores and the controller.
 Messages that are not plausible ([limits]: capture time, frame id, frame size) are counted and change
 nothing. Messages arrive in zenoh RingChannels (bounded, the oldest go); one thread takes everything that
 arrived, newest frame first, so an overloaded reducer serves the newest frame instead of queueing.
@@ -13,7 +13,7 @@ Publishes messages.Profile on vergence/<rig>/profile and, when the controller mo
 messages.Command on vergence/<rig>/command; never from an incomplete profile. Counters go out as JSON on
 vergence/<rig>/status/reducer/<id> every second and at exit. The profile is only encoded and published while
 someone subscribes to it. Each decision carries the fovea centre (x, y) it was made for and the fixated
-point's depth (vergence.depth, with the [rig] table's baseline, gimbal and master). Every SUMMARY_S seconds
+point's depth (vergence.head.depth, with the [rig] table's baseline, gimbal and master). Every SUMMARY_S seconds
 with frames, one log line says what the loop is doing (summary()).
 """
 
@@ -30,12 +30,14 @@ import time
 import msgspec
 import zenoh
 
-from vergence import depth, keys
+from vergence.head import depth
+from vergence.wire import keys
 from vergence.config import load
-from vergence.frames import check_frame
-from vergence.gather import Reduced, Gatherer
-from vergence.status import WorkerEvidence, WorkersReport
-from vergence.messages import MAX_HOLD_S, Frame, Hold, MessageError, MotorState, Correlation, replace as replace_message
+from vergence.stages.frames import check_frame
+from vergence.stages.gather import Reduced, Gatherer
+from vergence.wire.status import WorkerEvidence, WorkersReport
+from vergence.wire.messages import MAX_HOLD_S, Correlation, Frame, Hold, MessageError, MotorState
+from vergence.wire.messages import replace as replace_message
 
 from services.runtime import session
 from services.runtime.args import number

@@ -18,12 +18,12 @@ import time
 
 import zenoh
 
-from vergence import keys
+from vergence.wire import keys
 from vergence.config import LimitSettings, load
-from vergence.frames import check_frame
-from vergence.messages import MessageError
-from vergence.params import Params
-from vergence.shards import compute_correlation
+from vergence.stages.frames import check_frame
+from vergence.wire.messages import MessageError
+from vergence.network.params import Params
+from vergence.stages.shards import compute_correlation
 
 from services.runtime import session
 from services.runtime.node import Node

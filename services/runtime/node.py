@@ -31,7 +31,7 @@ import time
 
 import zenoh
 
-from vergence import keys
+from vergence.wire import keys
 
 from services.runtime import heartbeat, session
 from services.runtime.health import Health

@@ -198,7 +198,7 @@ def alive_key(rig: str, role: str, name: str | None = None) -> str:
         name = f"{os.uname().nodename}-{os.getpid()}"
     elif not name.endswith(f"-{os.getpid()}"):
         name = f"{name}-{os.getpid()}"
-    from vergence import keys  # here, not at the top: `vergence router` never pays for importing vergence
+    from vergence.wire import keys  # here, not at the top: `vergence router` never pays for importing vergence
 
     return keys.alive(rig, role, name)
 

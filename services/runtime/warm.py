@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from vergence.params import Params
+    from vergence.network.params import Params
 
 WIDTH = 128
 WINDOW = 15
@@ -29,10 +29,10 @@ def warm_up(params: Params, control=None) -> None:
     module for compiled() and loads no numba.)"""
     import numpy as np
 
-    from vergence import kernel
-    from vergence.frames import make_frame
-    from vergence.gather import Gatherer
-    from vergence.shards import compute_correlation
+    from vergence.network import kernel
+    from vergence.stages.frames import make_frame
+    from vergence.stages.gather import Gatherer
+    from vergence.stages.shards import compute_correlation
 
     kernel.warm_up()
     rng = np.random.default_rng(0)
@@ -48,11 +48,11 @@ def warm_up(params: Params, control=None) -> None:
 
 
 def cache_dirs() -> list[Path]:
-    """Where numba's cache of vergence's kernels may be: NUMBA_CACHE_DIR when set, else the package's
-    __pycache__ and, for a read-only install, the user's cache (~/.cache/numba)."""
+    """Where numba's cache of vergence's kernels may be: NUMBA_CACHE_DIR when set, else the __pycache__ of the
+    kernels' package (vergence/network/) and, for a read-only install, the user's cache (~/.cache/numba)."""
     if os.environ.get("NUMBA_CACHE_DIR"):
         return [Path(os.environ["NUMBA_CACHE_DIR"])]
-    package = Path(__file__).resolve().parents[2] / "vergence"
+    package = Path(__file__).resolve().parents[2] / "vergence" / "network"
     return [package / "__pycache__", Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "numba"]
 
 
@@ -63,9 +63,9 @@ def compiled() -> bool:
 
 def main() -> int:
     """Compile (or load) every kernel the pipeline's processes use (`vergence up` says how long it took)."""
-    from vergence import retina
-    from vergence.control import ControlSettings
-    from vergence.params import Params
+    from vergence.head.control import ControlSettings
+    from vergence.network import retina
+    from vergence.network.params import Params
 
     retina.warm_up()
     warm_up(Params(), ControlSettings())

@@ -25,8 +25,8 @@ import pytest
 from deploy_helpers import client_config_file, make_secrets, router_config, start_router
 from procs import VERGENCE, Procs, wait_for
 
-from vergence import kernel, retina
-from vergence.messages import Frame, Profile
+from vergence.network import kernel, retina
+from vergence.wire.messages import Frame, Profile
 
 pytestmark = pytest.mark.slow  # every test here runs real processes
 
@@ -113,7 +113,7 @@ OBSERVER = textwrap.dedent("""
     from deploy_helpers import round_trip
     from procs import wait_for
     conf_file, rig, n, w, out, timeout = sys.argv[1:7]
-    from vergence.messages import Profile
+    from vergence.wire.messages import Profile
     conf = zenoh.Config.from_file(conf_file)
     frames, profiles = [], []
     with zenoh.open(conf) as s:

@@ -20,7 +20,7 @@ import pytest
 from deploy_helpers import client_config_file, client_session, make_secrets, router_config, start_router
 from procs import VERGENCE, Procs, free_port, wait_for
 
-from vergence.messages import Command, MotorState
+from vergence.wire.messages import Command, MotorState
 
 pytestmark = pytest.mark.slow  # every test here runs real processes
 

@@ -27,7 +27,7 @@ from deploy_helpers import (
 )
 from procs import VERGENCE, Procs, textured_pair, wait_for
 
-from vergence.messages import Command, MotorState, Decision
+from vergence.wire.messages import Command, MotorState, Decision
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,7 @@ from emulators.dynamixel import DynamixelEmulator  # noqa: E402
 from emulators.pty import PtyDevice  # noqa: E402
 from procs import Procs, wait_for  # noqa: E402
 
-from vergence.messages import Command, MotorState  # noqa: E402
+from vergence.wire.messages import Command, MotorState  # noqa: E402
 
 
 def round_trips(tmp: Path, driver_args: list[str], n: int) -> dict:

@@ -19,8 +19,8 @@ import pytest
 import background
 import sweeps
 import vergence
-from vergence import evaluate
-from vergence.evaluate import GAINS
+from vergence.tools import evaluate
+from vergence.tools.evaluate import GAINS
 from middlebury import SCENES, load, needs_data, points, visible
 from references import ref_winner
 
@@ -156,12 +156,12 @@ def test_the_service_dynamic_window_falls_back_as_match_does():
     correlation, the reducer), one frame per state as the capture publishes them: the clipped windows abstain, the
     master was clipped, the unclipped windows follow and the first confident decision is match()'s with
     clip_fallback, field for field, reached after as many frames as match() tried windows."""
-    from vergence.control import Controller
-    from vergence.frames import WindowControl, make_frame, plan_shards
-    from vergence.gather import reduce
-    from vergence.retina import master_clipped
-    from vergence.messages import Frame
-    from vergence.shards import compute_correlation
+    from vergence.head.control import Controller
+    from vergence.stages.frames import WindowControl, make_frame, plan_shards
+    from vergence.stages.gather import reduce
+    from vergence.network.retina import master_clipped
+    from vergence.wire.messages import Frame
+    from vergence.stages.shards import compute_correlation
 
     left, _, _ = load("teddy")
     slave = slave_image("teddy", 1.3, 20.0)

@@ -93,7 +93,7 @@ def monitor_text() -> str:
     workers alive and the capture's status."""
     import numpy as np
 
-    from vergence import messages as m
+    from vergence.wire import messages as m
     from vergence.observe.monitor import Monitor
     from vergence.observe.screen import render_text
 

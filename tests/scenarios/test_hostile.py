@@ -1,6 +1,7 @@
 """Hostile messages and faults (issue #18): a message is a claim, not a fact.
 
-The library's plausibility rules first (vergence.gather.Gatherer, vergence.frames.Roster, vergence.motors.base.Safety,
+The library's plausibility rules first (vergence.stages.gather.Gatherer, vergence.stages.frames.Roster,
+vergence.motors.base.Safety,
 the worker's and the capture's checks), with fake clocks; then each attack as a user would meet it: one
 process per role around a real router on 127.0.0.1, an outside Zenoh client doing the harm, and the
 figures asserted (decisions per second after the attack against before it, the sim motor's state)."""
@@ -16,13 +17,13 @@ import numpy as np
 import pytest
 
 from vergence.config import LimitSettings
-from vergence.control import ControlSettings
-from vergence.frames import Roster, make_frame, plan_shards
-from vergence.gather import Gatherer
-from vergence.messages import Command, Frame, MotorState, Correlation, Decision, MessageError
-from vergence.params import Params
-from vergence.shards import compute_correlation
-from vergence.status import decode_report, report_of
+from vergence.head.control import ControlSettings
+from vergence.stages.frames import Roster, make_frame, plan_shards
+from vergence.stages.gather import Gatherer
+from vergence.wire.messages import Command, Frame, MotorState, Correlation, Decision, MessageError
+from vergence.network.params import Params
+from vergence.stages.shards import compute_correlation
+from vergence.wire.status import decode_report, report_of
 from vergence.motors.base import MotorSettings, Safety
 
 BIG_T = 2**64 - 1  # the capture time of the issue's forged messages
@@ -487,7 +488,7 @@ def test_a_fake_worker_token_leaves_the_plan(rig):
 def test_replay_refuses_a_rig_with_a_live_actuator(tmp_path):
     from procs import Procs
 
-    from vergence.recording import Writer
+    from vergence.io.recording import Writer
 
     path = tmp_path / "one.vrec"
     with Writer(path, rig="head") as w:

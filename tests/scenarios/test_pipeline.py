@@ -21,10 +21,10 @@ import zenoh
 
 from middlebury import needs_data
 from procs import Procs, free_port, textured_pair, wait_for
-from vergence import kernel, retina
+from vergence.network import kernel, retina
 from vergence.config import load
-from vergence.gather import decide_frame
-from vergence.messages import Command, Frame, MessageError, MotorState, Correlation, Preview, Profile, Decision
+from vergence.stages.gather import decide_frame
+from vergence.wire.messages import Command, Frame, MessageError, MotorState, Correlation, Preview, Profile, Decision
 
 pytestmark = pytest.mark.slow  # every test here runs real processes
 
@@ -214,7 +214,7 @@ def test_sigstop_worker_frames_dropped_not_queued(tmp_path, pair):
         after = status(P, s, "reducer")
         dropped = next(iter(after.values()))["gatherer"]["dropped"] - dropped0
         # dropped, not queued: about 0.3-0.4 s of frames, until the reducer's evidence takes the silent worker
-        # out of the plan (vergence.frames.Roster), or the 0.6 s of the stop
+        # out of the plan (vergence.stages.frames.Roster), or the 0.6 s of the stop
         assert 0.2 * RATE <= dropped <= 2 * RATE, dropped
         # not queued: after SIGCONT the stopped worker computes at most the stale frame its ring holds, plus
         # the frames that were in flight while the signal landed (under load, up to two)
@@ -274,7 +274,7 @@ def test_the_service_falls_back_to_the_unclipped_master_as_match_does(tmp_path):
     clip False), and the reducer's confident decision is vergence.match()'s with clip_fallback, field for field."""
     import vergence
     from middlebury import load as load_scene
-    from vergence.frames import make_frame
+    from vergence.stages.frames import make_frame
 
     left = load_scene("teddy")[0]
     right = load_scene("teddy")[1]

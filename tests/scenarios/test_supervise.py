@@ -19,7 +19,7 @@ import psutil
 import pytest
 from procs import Procs, free_port, textured_pair, wait_for
 
-from vergence.messages import Command
+from vergence.wire.messages import Command
 
 RESUME_S = 3.0  # the longest pause in the decisions that a SIGKILLed (or SIGSTOPped) child may cause
 MOVING = "sim:motion=sine:z=0.8,amp=0.3,hz=0.5:focal=500"  # a target moving in depth: the commands change

@@ -16,14 +16,14 @@ import background
 import sweeps
 import vergence
 from procs import run as cli
-from vergence.control import ControlSettings, Controller, Predictor
+from vergence.head.control import ControlSettings, Controller, Predictor
 from vergence.motors import MotorSettings, Safety
 from vergence.motors.simulated import SimMotor
 from vergence.sim import Rig
 from vergence.sim.loop import closed_loop, tracking_error
 from vergence.sim.motion import parse_motion
 from vergence.sim.moving import Head, MovingRig
-from vergence.sources import SourceError, open_source
+from vergence.io.sources import SourceError, open_source
 
 F, B = 500.0, 0.06
 HEAD = Head(B, F)
@@ -163,7 +163,7 @@ def test_predictor_learns_a_constant_rate_and_restarts_on_a_jump():
 
 
 def test_the_periodic_fit_predicts_a_repeating_motion_far_ahead_and_nothing_on_too_short_a_history():
-    from vergence.control import Periodic
+    from vergence.head.control import Periodic
 
     p = Periodic()
     truth = [(i / 60, -math.atan(B / parse_motion("sine:z=0.8,amp=0.3,hz=0.7").z(i / 60))) for i in range(200)]
@@ -178,7 +178,7 @@ def test_the_periodic_fit_predicts_a_repeating_motion_far_ahead_and_nothing_on_t
 
 
 def test_the_referee_trusts_the_prediction_that_predicted_best():
-    from vergence.control import Referee
+    from vergence.head.control import Referee
 
     r = Referee(2, warm=3)
     for i in range(10):
@@ -261,9 +261,9 @@ def test_the_reducer_bounds_its_commands_by_the_motor_settings():
     """The reducer's gatherer takes [actuator.motor] (the settings file's, as services/pipeline/reducer.py passes it):
     a 12 px correction at f = 100 px (6.8 degrees) is commanded as max_step_deg, then min/max_deg."""
     from vergence.config import from_dict
-    from vergence.frames import make_frame, plan_shards
-    from vergence.gather import Gatherer
-    from vergence.shards import compute_correlation
+    from vergence.stages.frames import make_frame, plan_shards
+    from vergence.stages.gather import Gatherer
+    from vergence.stages.shards import compute_correlation
 
     rng = np.random.default_rng(1)
     base = cv2.GaussianBlur(rng.integers(0, 256, (120, 240), np.uint8), (5, 5), 1.5)
@@ -416,7 +416,7 @@ background.ahead(sweeps.bench_tracking, (1.0,), (60.0,), 2.0, tests="test_bench_
 
 @pytest.mark.slow
 def test_bench_tracking_rows():
-    rows = background.get(sweeps.bench_tracking, (1.0,), (60.0,), 2.0)  # vergence.bench.bench_tracking's
+    rows = background.get(sweeps.bench_tracking, (1.0,), (60.0,), 2.0)  # vergence.tools.bench.bench_tracking's
     assert [(r["motion"], r["mode"]) for r in rows] == [("sine:z=0.8,amp=0.3,hz=1", "p"),
                                                         ("sine:z=0.8,amp=0.3,hz=1", "predictive"),
                                                         ("step:z0=1.2,z1=0.6,at=1", "p"),
@@ -438,7 +438,7 @@ def _up_tracking(tmp_path, spec: str) -> tuple[np.ndarray, str]:
     pan at exposure, as the decision says, against the truth the frame carries), and a line saying it and the
     error of the motor itself (the motor states' pan, interpolated at each exposure, against that truth)."""
     from procs import Procs, free_port, wait_for
-    from vergence.messages import Frame, MotorState, Decision
+    from vergence.wire.messages import Frame, MotorState, Decision
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with Procs(tmp_path) as P:
@@ -504,7 +504,7 @@ def test_up_tracks_a_sine_at_60_hz_with_a_camera_66_ms_late(tmp_path):
 # -- the truth on the wire -----------------------------------------------------------------------------------------
 
 def _frame(truth):
-    from vergence.frames import make_frame
+    from vergence.stages.frames import make_frame
 
     rig = MovingRig("still:z=0.8", HEAD)
     master, slave = rig.render(0.0)
@@ -515,7 +515,7 @@ def _frame(truth):
 
 
 def test_frame_truth_travels_and_is_checked():
-    from vergence.messages import Frame, MessageError
+    from vergence.wire.messages import Frame, MessageError
 
     f = _frame(HEAD.converged_pan(0.8))
     assert Frame.from_bytes(f.to_bytes()).truth_pan_rad == HEAD.converged_pan(0.8)
@@ -563,7 +563,7 @@ def test_servo_takes_the_newest_of_a_burst_of_goals():
     assert not m.pending
 
 
-# -- a real camera's timing: the image old when read, the cameras skewed (vergence.timing, #25) -------------------
+# -- a real camera's timing: the image old when read, the cameras skewed (vergence.head.timing, #25) -------------------
 
 def late(motion, latency, rate=60.0, frames=300, seed=4, noise=None, **timing):
     """`vergence sim --motion M --focal 500 --rate R --frames N --camera-latency L ...` (the slave starting
@@ -683,7 +683,7 @@ def test_up_renders_the_slave_at_the_motors_own_shaft_without_waiting_for_its_re
     import time
 
     from procs import Procs, free_port, wait_for
-    from vergence.messages import Frame, MotorState
+    from vergence.wire.messages import Frame, MotorState
     from services.offline.bench_pipeline import DEMO
 
     cfg = tmp_path / "fast.toml"

@@ -8,7 +8,9 @@ import json
 import msgspec
 import pytest
 
-from vergence import config, control, depth, params
+from vergence import config
+from vergence.head import control, depth
+from vergence.network import params
 from vergence.choices import ControlMode, Gimbal, Photometric, Side, check
 from vergence.sim import optics
 

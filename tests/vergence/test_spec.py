@@ -65,13 +65,13 @@ def test_a_required_key_missing_is_named():
 
 
 def test_the_specs_that_use_it_refuse_through_it():
-    from vergence.images import SourceError
+    from vergence.io.images import SourceError
     from vergence.motors.base import PortError
     from vergence.motors.ros2 import parse_port
     from vergence.ros2.source import parse_spec
     from vergence.sim import Rig
     from vergence.sim.motion import parse_motion
-    from vergence.sources import open_source
+    from vergence.io.sources import open_source
 
     assert parse_spec("/l,/r:slop=0.01") == ("/l", "/r", {"slop": 0.01, "wait": 10.0, "skew": 2.0})
     with pytest.raises(SourceError, match=r"source ros2: wait='-1' must be >= 0 s"):

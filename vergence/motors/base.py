@@ -7,7 +7,7 @@ the soft limits and the step limit, counting what it clamped or ignored; its Rul
 one command. Nothing here imports zenoh.
 
 Safety is the one home of the motor's limits ([actuator.motor] min_deg, max_deg, max_step_deg,
-dead_band_deg): the reducer's controller (vergence.control.Controller) asks a Safety built from the same
+dead_band_deg): the reducer's controller (vergence.head.control.Controller) asks a Safety built from the same
 settings to bound each set-point it makes (inside, limit_step, dead_band_rad), and the actuator's own
 Safety bounds whatever arrives (the last line: a message is a claim).
 """

@@ -23,7 +23,7 @@ import math
 import time
 from collections.abc import Callable
 
-from ..messages import Command, MessageError, MotorState
+from ..wire.messages import Command, MessageError, MotorState
 from .base import Disconnected, Driver, MotorError, MotorSettings, NoAnswer, PortError, Safety, TransientError
 
 __all__ = ["MotorLoop", "ABSENT_REPEAT_S"]

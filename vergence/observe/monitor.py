@@ -1,7 +1,7 @@
 """What `vergence monitor` knows about a running rig, and how it draws it: a pure model, no network.
 
 Monitor is fed with (key, bytes, arrival time) exactly as they come off vergence/<rig>/** and with the
-liveliness events of vergence/<rig>/alive/**; it decodes them with vergence.messages, counts and skips the
+liveliness events of vergence/<rig>/alive/**; it decodes them with vergence.wire.messages, counts and skips the
 malformed ones, and keeps what a user watches: rates, capture-to-command latency percentiles over the last
 seconds, dropped frames, live workers and their shards, pan and target, the latest profile and the recent
 pan history. snapshot() returns a plain Snapshot; screen.render_text() draws the terminal screen (ANSI optional)
@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import keys
-from .. import messages as m
-from ..status import Status, decode_status
+from ..wire import keys
+from ..wire import messages as m
+from ..wire.status import Status, decode_status
 
 __all__ = ["Monitor", "Snapshot", "Rate", "decode", "MESSAGES", "WATCHED"]
 
@@ -36,8 +36,8 @@ WATCHED = (keys.FRAME, keys.PROFILE, keys.COMMAND, keys.MOTOR_STATE, keys.PREVIE
 
 
 def decode(kind: str, payload: bytes) -> m.Message | Status:
-    """The payload of a key of this kind (vergence.keys), decoded: a message (vergence.messages), or for a
-    status a vergence.status.Status. The one decoding of the wire for `vergence monitor` and `vergence view`;
+    """The payload of a key of this kind (vergence.wire.keys), decoded: a message (vergence.wire.messages), or for a
+    status a vergence.wire.status.Status. The one decoding of the wire for `vergence monitor` and `vergence view`;
     m.MessageError when it is malformed, KeyError for a kind that carries no payload."""
     if kind != keys.STATUS:
         return MESSAGES[kind].from_bytes(payload)

@@ -93,7 +93,7 @@ def run_figure(steps: list[Step], one_px_deg: float, width: int = 900, height: i
     winner_last, centre)."""
     from matplotlib.ticker import MaxNLocator
 
-    from ..decide import centre_offset
+    from ..network.decide import centre_offset
 
     fig = _figure(width, height)
     top, bot = fig.subplots(2, 1)

@@ -11,11 +11,11 @@ import time
 
 import numpy as np
 
-from .. import keys
-from .. import messages as m
+from ..wire import keys
+from ..wire import messages as m
 from .monitor import Snapshot
-from ..retina import CLIP_WARN
-from ..status import Status
+from ..network.retina import CLIP_WARN
+from ..wire.status import Status
 
 __all__ = ["render_text", "profile_bars", "sparkline", "timeline", "fixation_line"]
 

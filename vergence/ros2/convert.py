@@ -3,7 +3,7 @@
 as plain numbers and arrays, so that every rule here is unit-tested without rclpy.
 
 Conventions (docs/ROS2.md): the master camera's optical frame is REP 103's (z forward, x right, y down), its
-principal point vergence's (W // 2, H // 2: vergence.depth); a stamp is (sec, nanosec) since the Unix epoch on
+principal point vergence's (W // 2, H // 2: vergence.head.depth); a stamp is (sec, nanosec) since the Unix epoch on
 the same clock as time.time_ns(), and an image's stamp is its exposure time.
 
 - fixation_point: a converged decision (fovea pixel and depth along the head's forward axis) -> the fixated 3-D
@@ -27,7 +27,7 @@ import cv2
 import msgspec
 import numpy as np
 
-from ..status import Status
+from ..wire.status import Status
 
 __all__ = ["NS_PER_S", "OK", "ros_name", "WARN", "ERROR", "STALE", "stamp", "from_stamp", "stamp_problem", "View",
            "FrameView", "view_of_frame", "fixation_point", "fixation_covariance", "Refused", "look_at_pixel",
@@ -81,7 +81,7 @@ def stamp_problem(sec: int, nanosec: int, now_ns: int, max_skew_s: float) -> str
 @dataclass(frozen=True)
 class View:
     """The master camera as the frames describe it: image size, focal length (px), its pan and the common tilt
-    (0, 0 for a fixed master) and the gimbal (vergence.depth). The principal point is (W // 2, H // 2)."""
+    (0, 0 for a fixed master) and the gimbal (vergence.head.depth). The principal point is (W // 2, H // 2)."""
 
     width: int
     height: int
@@ -125,7 +125,7 @@ def view_of_frame(payload: bytes, gimbal: str = "helmholtz") -> View:
 
 def _forward(view: View, u: float, v: float) -> float:
     """The head-forward component of the master's ray (u, v, f) (pixels off the principal point), by the rig
-    model of vergence.depth: the depth Z of a point on that ray is this times its scale."""
+    model of vergence.head.depth: the depth Z of a point on that ray is this times its scale."""
     f, p, t = view.focal_px, view.master_pan_rad, view.tilt_rad
     cp, sp, ct, st = math.cos(p), math.sin(p), math.cos(t), math.sin(t)
     if view.gimbal == "fick":
@@ -175,7 +175,7 @@ def look_at_pixel(point: tuple[float, float, float], view: View, window: int, vs
     """The master pixel (rounded) where `point` (x, y, z in the master's optical frame, m) is seen; Refused
     when it is not finite, not in front of the camera, outside the view, or where the fovea (window, vsearch)
     would not fit."""
-    from ..retina import BorderError, check_point
+    from ..network.retina import BorderError, check_point
 
     x, y, z = (float(c) for c in point)
     if not all(math.isfinite(c) for c in (x, y, z)):
@@ -251,7 +251,7 @@ def _flat(prefix: str, value, out: list[tuple[str, str]]) -> None:
 
 
 def diagnostic(rig: str, status: Status, age_s: float, stale_s: float, bad_before: int | None) -> Diagnostic:
-    """One process's DiagnosticStatus from its latest status (vergence.status.Status), received age_s ago: STALE
+    """One process's DiagnosticStatus from its latest status (vergence.wire.status.Status), received age_s ago: STALE
     when older than stale_s, ERROR when it said it exits, WARN when its `bad` total grew since the previous
     status (bad_before; None: the first one), else OK. Its counters and fields as key-values."""
     values: list[tuple[str, str]] = []

@@ -26,7 +26,7 @@ import threading
 import time
 
 from . import convert as conv
-from ..images import Source, SourceError
+from ..io.images import Source, SourceError
 from ..spec import Key, SpecError, parse
 
 __all__ = ["SourceStall", "Ros2Source", "parse_spec"]

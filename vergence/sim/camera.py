@@ -1,6 +1,6 @@
 """The simulated cameras' timing: when each frame is exposed, over how long, and what the image integrates.
 
-vergence.timing.CameraTiming says the numbers (latency, skew, exposure, jitter); this module turns them into
+vergence.head.timing.CameraTiming says the numbers (latency, skew, exposure, jitter); this module turns them into
 the simulator's schedule (Schedule: frame i's master exposure at i / rate off its schedule by the jitter,
 the slave's skew later, read latency after the later one) and into images (expose: each view the mean of
 sub-views rendered across its exposure, so that a moving target or a turning slave blurs, then the sensor's
@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from ..timing import CameraTiming
+from ..head.timing import CameraTiming
 from .optics import Region
 
 __all__ = ["Schedule", "sub_times", "expose", "SUB_S"]

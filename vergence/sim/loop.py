@@ -1,15 +1,15 @@
 """The closed loop in one process: expose -> read -> vergence.match -> controller -> safety -> simulated motor.
 
 The same steps as the distributed service, with a virtual clock and a real camera's timing
-(vergence.timing.CameraTiming, vergence.sim.camera): frame i's master is exposed at i / rate_hz (off its
+(vergence.head.timing.CameraTiming, vergence.sim.camera): frame i's master is exposed at i / rate_hz (off its
 schedule by the jitter), the slave skew_s after it, each integrating the scene and the slave's motion over
 the exposure; the pair is read latency_s after the later exposure, decided delay_s after the read (the
 pipeline: capture, workers, reducer), and its command reaches the motor then. The motor is integrated in
 between and publishes its encoder reading (whole ticks) at state_hz and after each command, as the actuator
 does, and at each slave exposure; the controller gets the slave's pan at its exposure from that history
-(vergence.timing.PanHistory), as the capture gives it. (The reading at the exposure is what the service's sim
+(vergence.head.timing.PanHistory), as the capture gives it. (The reading at the exposure is what the service's sim
 source amounts to: it renders the slave at the pan its frame carries. A real camera's image is older than the
-motor's newest report, so the capture interpolates between two reports; tests/vergence/test_timing.py checks
+motor's newest report, so the capture interpolates between two reports; tests/vergence/head/test_timing.py checks
 that interpolation.) Events run in time order, so a frame's command may come after the next frames'
 exposures (a latency longer than a frame); runs are deterministic and as fast as the maths."""
 
@@ -23,12 +23,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..control import ControlSettings, Controller
-from ..match import match
-from ..params import Params
+from ..head.control import ControlSettings, Controller
+from ..network.match import match
+from ..network.params import Params
 from ..motors.base import MotorSettings, Safety
 from ..motors.simulated import SimMotor
-from ..timing import CameraTiming, PanHistory
+from ..head.timing import CameraTiming, PanHistory
 from .camera import Schedule, expose, sub_times
 from .optics import Region
 from .rig import Rig

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..images import read_image
+from ..io.images import read_image
 from .motion import Motion, parse_motion
 from .optics import Region, intrinsics, option_number, rotation
 from .scene import texture

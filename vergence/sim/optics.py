@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..depth import GIMBALS  # (vergence.choices.Gimbal's words)
+from ..head.depth import GIMBALS  # (vergence.choices.Gimbal's words)
 
 __all__ = ["GIMBALS", "Region", "option_number", "rotation", "intrinsics", "homography"]
 

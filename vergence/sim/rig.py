@@ -26,7 +26,7 @@ import math
 import cv2
 import numpy as np
 
-from ..images import read_image
+from ..io.images import read_image
 from ..spec import Key, parse
 from .moving import MovingRig
 from .optics import GIMBALS, Region, homography, option_number, rotation

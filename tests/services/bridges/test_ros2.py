@@ -17,10 +17,10 @@ import pytest
 
 import rosnode
 from procs import Procs, free_port, wait_for
-from vergence import keys
-from vergence.frames import make_frame
-from vergence.messages import Fixate, MotorState, Preview, Profile, Decision
-from vergence.params import Params
+from vergence.wire import keys
+from vergence.stages.frames import make_frame
+from vergence.wire.messages import Fixate, MotorState, Preview, Profile, Decision
+from vergence.network.params import Params
 
 pytestmark = pytest.mark.slow
 

@@ -18,12 +18,12 @@ from services.pipeline.fovea import Fovea
 from services.clients.fixate import refusal
 from services.runtime.health import Health
 from vergence.observe import monitor, plots, screen
-from vergence.control import Controller
-from vergence.frames import make_frame
-from vergence.gather import Reduced
-from vergence.params import Params
-from vergence.shards import compute_correlation
-from vergence.messages import SCHEMA, Fixate, Frame, MotorState, Decision, replace as replace_message
+from vergence.head.control import Controller
+from vergence.stages.frames import make_frame
+from vergence.stages.gather import Reduced
+from vergence.network.params import Params
+from vergence.stages.shards import compute_correlation
+from vergence.wire.messages import SCHEMA, Fixate, Frame, MotorState, Decision, replace as replace_message
 from vergence.sim import Rig
 from vergence.sim.fixation import truth_at
 
@@ -59,7 +59,7 @@ def test_fovea_moves_on_a_valid_request_and_nothing_else():
 
 
 def test_the_command_reads_only_its_own_refusal():
-    head = {"role": "capture", "id": "c-1"}  # a status (vergence.status): who sent it
+    head = {"role": "capture", "id": "c-1"}  # a status (vergence.wire.status): who sent it
     ok = json.dumps(dict(head, fovea=[1, 2], fixate_rejection={"t_ns": 7, "why": "(1, 2): does not fit"})).encode()
     assert refusal(ok, 7) == "(1, 2): does not fit"
     assert refusal(ok, 8) is None  # another request's

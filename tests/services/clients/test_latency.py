@@ -8,7 +8,7 @@ import time
 import pytest
 
 from procs import Procs, free_port, gives_up_without_a_router, run, wait_for
-from vergence.messages import Decision
+from vergence.wire.messages import Decision
 
 
 @pytest.mark.slow

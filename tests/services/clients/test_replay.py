@@ -12,8 +12,8 @@ import time
 import pytest
 
 from procs import Procs, gives_up_without_a_router, textured_pair, wait_for
-from vergence.messages import Frame, Profile
-from vergence.recording import Writer, read
+from vergence.wire.messages import Frame, Profile
+from vergence.io.recording import Writer, read
 
 pytestmark = pytest.mark.slow  # every test here runs real processes
 

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from procs import VERGENCE, Procs, free_port, gives_up_without_a_router, wait_for
-from vergence import messages as M
-from vergence.recording import Writer
+from vergence.wire import messages as M
+from vergence.io.recording import Writer
 
 rr = pytest.importorskip("rerun", reason="rerun-sdk (the [view] extra, part of [test]) is not installed")
 from rerun.chunk import RrdReader  # noqa: E402

@@ -1,5 +1,5 @@
 """`vergence accuracy` as a user runs it: a real process on a pair written to files (PNG + a .npz disparity), its
-figures those of the library (vergence.evaluate), one-line errors with exit status 2."""
+figures those of the library (vergence.tools.evaluate), one-line errors with exit status 2."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import vergence
-from vergence import evaluate
+from vergence.tools import evaluate
 from middlebury import load, needs_data
 from procs import run
 

@@ -101,7 +101,7 @@ def test_executed_lags_take_the_first_state_naming_each_frame():
     """A frame's command is executed when the first motor state naming it goes out; the periodic states after it
     name it again (at 100 Hz with the motor's 50 Hz ticks, every other frame): they must not count (they once
     made the p50 -1.8e12 ms)."""
-    from vergence.messages import MotorState
+    from vergence.wire.messages import MotorState
 
     def st(frame, t_capture, t):
         return MotorState(rig="r", t_ns=t, pan_rad=0.0, goal_rad=0.0, min_rad=-1.0, max_rad=1.0, status="ok",

@@ -20,7 +20,7 @@ from emulators.line import LineEmulator
 from emulators.pty import PtyDevice
 from procs import VERGENCE, Procs, wait_for
 
-from vergence.messages import Command, MotorState
+from vergence.wire.messages import Command, MotorState
 from vergence.motors.dynamixel import Inst, instruction_packet
 
 pytestmark = pytest.mark.slow  # every test here runs real processes

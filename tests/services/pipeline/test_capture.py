@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from vergence.timing import CameraTiming, PanHistory
+from vergence.head.timing import CameraTiming, PanHistory
 from services.pipeline.capture_time import ExposureClock, PanLookup
 
 MS = 1_000_000
@@ -104,7 +104,7 @@ def test_with_a_trusted_replica_the_exposure_waits_for_the_motor_to_count_the_co
 
 
 def test_a_motor_state_from_our_future_is_forgotten_when_the_true_ones_come():
-    from vergence.messages import MessageError, MotorState
+    from vergence.wire.messages import MessageError, MotorState
     from services.pipeline.capture_time import remember
 
     def state(t_ns, pan):

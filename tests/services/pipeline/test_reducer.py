@@ -1,7 +1,7 @@
 """The reducer's own state in its process (no router): the hold a client puts on its commands, and what the
 actuator says of its motor."""
 
-from vergence.messages import MAX_HOLD_S, Hold
+from vergence.wire.messages import MAX_HOLD_S, Hold
 from services.pipeline.reducer import Lease
 
 
@@ -33,7 +33,7 @@ def test_a_hold_lasts_until_its_time_and_a_hold_too_far_ahead_is_not_believed():
 
 
 def test_the_reducer_sends_nothing_while_the_motor_is_absent_and_goes_on_by_itself():
-    from vergence.messages import MotorState
+    from vergence.wire.messages import MotorState
     from services.pipeline.reducer import MotorPresence
 
     def state(status):

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from vergence.config import ConfigError, from_dict
-from vergence.messages import MotorState
+from vergence.wire.messages import MotorState
 from vergence.motors import Disconnected, MotorSettings, NoAnswer, PortError, Safety, TransientError, make_driver
 from vergence.motors.base import Driver
 from vergence.motors.runner import MotorLoop

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vergence import messages as m
+from vergence.wire import messages as m
 from vergence.observe.monitor import Monitor
 from vergence.observe.screen import profile_bars, render_text
 from vergence.observe.plots import lines as plot_lines, monitor_figure, monitor_png, png_bytes

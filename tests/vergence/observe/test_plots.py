@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from vergence.observe import plots
-from vergence.control import ControlSettings
-from vergence.decide import centre_offset
+from vergence.head.control import ControlSettings
+from vergence.network.decide import centre_offset
 from vergence.sim import Rig, generate
 from vergence.sim.loop import closed_loop, tracking_error
 from vergence.sim.moving import Head, MovingRig

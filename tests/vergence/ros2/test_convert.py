@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from vergence.ros2 import convert as conv
-from vergence.frames import make_frame
-from vergence.params import Params
+from vergence.stages.frames import make_frame
+from vergence.network.params import Params
 from vergence.sim.optics import rotation
 
 
@@ -96,8 +96,8 @@ def test_joint_velocity_and_correlation_layout():
 
 
 def test_diagnostic_levels_and_values():
-    from vergence.messages import MessageError
-    from vergence.status import status_of
+    from vergence.wire.messages import MessageError
+    from vergence.wire.status import status_of
 
     raw = {"role": "reducer", "id": "r-1", "pid": 4, "t_ns": 7, "counters": {"profiles": 10}, "bad": {"frame": 0},
            "gatherer": {"dropped": 2}, "published_hz": 29.97}

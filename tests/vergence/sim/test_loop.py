@@ -17,8 +17,8 @@ import sweeps
 import vergence
 from middlebury import SCENES, load, needs_data, points, visible
 from procs import Procs, free_port, run as cli, wait_for
-from vergence.evaluate import IDEAL_MOTOR, P_CONTROL, started_off
-from vergence.messages import MotorState
+from vergence.tools.evaluate import IDEAL_MOTOR, P_CONTROL, started_off
+from vergence.wire.messages import MotorState
 from vergence.sim import Rig, generate
 from vergence.sim.loop import closed_loop, frames_to_converge
 
@@ -77,7 +77,8 @@ def test_generated_scene_is_consistent(scene):
 # limit or encoder ticks, and the "p" controller. They measure the network's accuracy in the loop on still
 # scenes; the servo-like default motor (whose whole ticks alone leave up to half a tick, 0.39 px at f = 512)
 # and the predictive default controller are tests/scenarios/test_tracking.py's (README: what the predictive one costs
-# on these still scenes). IDEAL_MOTOR and P_CONTROL are vergence.evaluate's: `vergence accuracy --loop` runs this loop.
+# on these still scenes). IDEAL_MOTOR and P_CONTROL are vergence.tools.evaluate's: `vergence accuracy --loop` runs
+# this loop.
 def run(rig, frames=8, params=None, **kw):
     kw.setdefault("motor", IDEAL_MOTOR)
     kw.setdefault("control", P_CONTROL)

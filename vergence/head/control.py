@@ -1,0 +1,442 @@
+"""From the network's decision to a pan set-point: pixels -> angle, gain, dead band, then the motor's limits.
+
+Every measurement is referred to the instant the slave's image was exposed (vergence.head.timing): the pan it
+is given is the slave's pan then, t_s that exposure's time, t_now the time of the command.
+
+Two modes ([control] mode):
+- "p": each confident decision sets the target pan at exposure + gain x the measured correction; an
+  abstention does not move the slave. Its gain is at most 1 for an image older than LATE_S (above 1 the loop
+  overshoots more, the older the image).
+- "predictive": each confident decision is a measurement of where the target was (the pan at exposure + the
+  measured correction) at the slave's exposure; the command is the target's pan predicted for t_now +
+  `lead_s` + half a decision interval (when the motor will be acting on it), however old the image. Three
+  predictions, refereed by how well each has predicted (Referee): hold (the filter's pan), a constant-velocity
+  Kalman filter (Predictor) of the target's pan and rate, and, with `periodic`, a periodic fit (Periodic) that
+  predicts a target moving to and fro far past where any polynomial holds. A measurement far off the filter's
+  prediction (gate_px) restarts them all (a jump, not a motion). An abstention coasts on the filter's
+  estimate (its rate fading with the time constant coast_s / 2) for at most coast_s, then the slave holds.
+  No command within dead_band_px of the present pan, nor of the last set-point while the motor is there
+  (within 1 px or 0.1 degree: a motor settles on its nearest tick).
+
+The pan limits and the step limit are the motor's ([actuator.motor] min_deg, max_deg, max_step_deg): the
+Controller holds no copy of them, it asks the motor's safety layer (vergence.motors.base.Safety.limit_step)
+to bound every set-point, so a set-point never leaves them; the actuator's own Safety bounds whatever
+arrives again (the last line). Its dead band is the larger of [control] dead_band_px (the measurement's: at
+the focal length, a correction smaller than this many pixels is noise) and the motor's dead_band_deg (a goal
+change the actuator would hold anyway).
+
+The default is "predictive": in `vergence bench tracking` p's error is 3-7 times its own on sines from
+0.5 Hz on (p lags by the loop's latency, about a frame plus the motor, and more with an old image), 1.3-2
+times at 0.25 Hz, and both settle alike on a step; the predictors were chosen by measurement
+(docs/SIMULATOR.md, "A real camera's timing"); its cost, on still Middlebury scenes, is a few points of
+convergence where the matcher hesitates between offsets a pixel apart. Its filter is kept calm
+(accel_deg_s2 700, noise_px 1): a livelier one (1000 / 0.5) tracked a 2 Hz sine a little closer but rang
+by +-2 px with the paper's network, whose whole-pixel decisions feed the filter a loop-correlated error.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from ..motors.base import MotorSettings, Safety
+from ..choices import ControlMode
+from ..ranges import Range, check
+from .timing import MAX_AGE_S
+
+__all__ = ["pixels_to_angle", "ControlSettings", "Controller", "Predictor", "MODES"]
+
+MODES = tuple(ControlMode)  # (vergence.choices)
+
+
+def pixels_to_angle(offset_px: float, focal_px: float, centre_px: float = 0.0) -> float:
+    """The pan (radians) that brings the content at `offset_px` right of the principal point to it.
+
+    With a rotating pinhole camera, a column u px right of the principal point lies atan(u / f) off the
+    optical axis; centre_px is the fovea window's own offset from the principal point (0 at the centre)."""
+    return math.atan((offset_px + centre_px) / focal_px) - math.atan(centre_px / focal_px)
+
+
+@dataclass(frozen=True)
+class ControlSettings:
+    """mode: "p" or "predictive" (see the module's docstring). gain: fraction of the measured correction
+    applied per decision (p); dead_band_px: no move for a correction below it (pixels at the focal length:
+    the measurement's dead band; the motor's, in degrees, is [actuator.motor] dead_band_deg). The pan limits
+    and the step limit are not here: they are the motor's ([actuator.motor], vergence.motors.base.Safety).
+    predictive: lead_s: how far past the capture the command aims, besides half the interval between
+    decisions (capture-to-command latency + motor latency + the motor's time constant); accel_deg_s2: the
+    standard deviation of the target's acceleration (the filter's process noise); noise_px: the
+    measurement's noise; gate_px: a measurement further than this from the prediction restarts the filter; coast_s: how
+    long abstentions coast on the estimate before the slave holds; max_rate_deg_s: the estimated rate is
+    bounded by it; min_rate_deg_s: the rate extrapolated is the estimate less this (soft threshold)."""
+
+    mode: str = "predictive"
+    gain: float = 1.0
+    dead_band_px: float = 0.25
+    lead_s: float = 0.015
+    accel_deg_s2: float = 700.0
+    periodic: bool = True
+    noise_px: float = 1.0
+    gate_px: float = 10.0
+    coast_s: float = 0.25
+    max_rate_deg_s: float = 90.0
+    min_rate_deg_s: float = 1.0
+
+    RANGES: ClassVar[dict[str, Range]] = {
+        "gain": Range(0, 2, lo_open=True, hi_open=True, note="at 2 and above each correction overshoots by as "
+                      "much as it corrects: the loop never settles"),
+        "dead_band_px": Range(0, 100, note="pixels"),
+        "lead_s": Range(0, 1, note="seconds"),
+        "accel_deg_s2": Range(0, 1e6),
+        "noise_px": Range(0, 1000, lo_open=True),
+        "gate_px": Range(0, 10_000),
+        "coast_s": Range(0, 60),
+        "max_rate_deg_s": Range(0, 10_000),
+        "min_rate_deg_s": Range(0, 10_000),
+    }
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise ValueError(f"mode={self.mode!r}: must be one of {', '.join(MODES)}")
+        check(self, self.RANGES)
+
+
+class Predictor:
+    """A constant-velocity Kalman filter of the target's pan (radians) over exposure times (seconds).
+
+    update(t, z) takes a measurement z of the target's pan exposed at t; at(t) is the estimate there.
+    q: the variance of the target's acceleration (rad^2/s^4, piecewise constant between measurements),
+    r: the measurement variance (rad^2), gate: the largest innovation (rad) taken as motion (larger:
+    restart at z), vmax: the bound of the estimated rate (rad/s)."""
+
+    def __init__(self, q: float, r: float, gate: float, vmax: float):
+        self.q, self.r, self.gate, self.vmax = q, r, gate, vmax
+        self.t: float | None = None
+        self.x = self.v = 0.0
+        self.p = [[0.0, 0.0], [0.0, 0.0]]
+        self.restarts = 0
+
+    def reset(self) -> None:
+        self.t = None
+
+    def _start(self, t: float, z: float) -> None:
+        self.t, self.x, self.v = t, z, 0.0
+        self.p = [[self.r, 0.0], [0.0, (self.vmax / 2) ** 2]]
+
+    def update(self, t: float, z: float) -> None:
+        if self.t is None or t < self.t - 1.0:  # none yet, or time went back (a new capture): start over
+            self._start(t, z)
+            return
+        dt = max(0.0, t - self.t)
+        (p00, p01), (_, p11) = self.p
+        x = self.x + self.v * dt
+        q = self.q  # piecewise-constant white acceleration of variance q
+        p00 = p00 + dt * (2 * p01 + dt * p11) + q * dt ** 4 / 4
+        p01 = p01 + dt * p11 + q * dt ** 3 / 2
+        p11 = p11 + q * dt ** 2
+        y = z - x
+        if abs(y) > self.gate:
+            self.restarts += 1
+            self._start(t, z)
+            return
+        s = p00 + self.r
+        k0, k1 = p00 / s, p01 / s
+        self.x = x + k0 * y
+        self.v = max(-self.vmax, min(self.vmax, self.v + k1 * y))
+        self.p = [[(1 - k0) * p00, (1 - k0) * p01], [(1 - k0) * p01, p11 - k1 * p01]]
+        self.t = t
+
+    def at(self, t: float) -> float:
+        """The estimated pan at time t (the last estimate carried at the estimated rate)."""
+        return self.x + self.v * (t - self.t)
+
+
+class Periodic:
+    """A target that moves back and forth: its pan over the last window_s as a constant plus `harmonics`
+    harmonics of one frequency (least squares), the frequency the one whose fit leaves the least residual
+    (searched every `every` samples kept over a log grid from the lowest of which `cycles` periods fit in the
+    history, to max_hz, then refined over a fine grid between the best one's neighbours); predict(at)
+    extrapolates the fit. None while the history is shorter than min_s.
+
+    Where a target repeats its motion (a hand moving an object to and fro, a pendulum, the simulator's
+    sines), this predicts far past where any polynomial holds, as primate smooth pursuit does for periodic
+    targets to overcome its own latency of about 100 ms; where it does not, its predictions are poor, and the
+    Referee leaves them out.
+
+    Its cost does not grow with the frame rate: the history keeps samples at least MIN_DT_S apart (a newer
+    one closer than that replaces the newest; at 60 Hz every sample is kept), the fit is made again only when
+    a sample is kept, and every grid is fitted at once (the normal equations of all its frequencies in one
+    batch, the harmonics by the angle-addition recurrence; its figures: docs/PERFORMANCE.md)."""
+
+    MIN_DT_S = 1 / 64  # the history's spacing: 3 harmonics of max_hz need 24 Hz; 64 Hz keeps a 60 Hz camera's
+    GRID, FINE = 40, 33  # the search's log grid, and its fine grid between the best point's neighbours
+
+    def __init__(self, harmonics: int = 3, window_s: float = 3.0, min_s: float = 0.4, max_hz: float = 4.0,
+                 cycles: float = 0.6, every: int = 10):
+        self.k, self.window_s, self.min_s, self.max_hz, self.every = harmonics, window_s, min_s, max_hz, every
+        self.cycles = cycles
+        self.t: deque[float] = deque()
+        self.z: deque[float] = deque()
+        self.hz: float | None = None
+        self.kept = 0  # samples appended since the last search (a replaced newest one not counted)
+        self.appended = 0  # samples appended, ever
+        self._fit: tuple | None = None  # (appended, hz, the newest time, coefficients) of the latest fit
+
+    def reset(self) -> None:
+        self.t.clear()
+        self.z.clear()
+        self.hz = None
+        self._fit = None
+
+    def add(self, t: float, z: float) -> None:
+        if self.t and t <= self.t[-1]:
+            return
+        if len(self.t) >= 2 and self.t[-1] - self.t[-2] < self.MIN_DT_S:
+            # the newest is closer than MIN_DT_S to the one before it: this one takes its place (the newest is
+            # always the latest measurement; the ones before it are MIN_DT_S apart at least)
+            self.t[-1], self.z[-1] = t, z
+        else:
+            self.t.append(t)
+            self.z.append(z)
+            self.kept += 1
+            self.appended += 1
+        while self.t[-1] - self.t[0] > self.window_s:
+            self.t.popleft()
+            self.z.popleft()
+
+    def _design(self, tt: np.ndarray, hz: np.ndarray) -> np.ndarray:
+        """(len(hz), 2 harmonics + 1, len(tt)): the constant, then cos, sin of each harmonic at each time."""
+        w = 2 * math.pi * np.asarray(hz, float)[:, None] * np.asarray(tt, float)[None, :]
+        x = np.empty((len(w), 2 * self.k + 1, w.shape[1]))
+        x[:, 0] = 1.0
+        c1, s1 = np.cos(w, out=x[:, 1]), np.sin(w, out=x[:, 2])
+        for j in range(1, self.k):
+            c, sn = x[:, 2 * j - 1], x[:, 2 * j]
+            np.subtract(c * c1, sn * s1, out=x[:, 2 * j + 1])
+            np.add(sn * c1, c * s1, out=x[:, 2 * j + 2])
+        return x
+
+    def _fits(self, tt: np.ndarray, zs: np.ndarray, hz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The residual sum of squares and the coefficients of the fit at each frequency of hz (batched normal
+        equations; the mean taken out of zs first, which the constant takes back, for their conditioning)."""
+        x = self._design(tt, hz)
+        mean = float(np.mean(zs))
+        zc = zs - mean
+        rhs = x @ zc
+        try:
+            coef = np.linalg.solve(x @ x.transpose(0, 2, 1), rhs[..., None])[..., 0]
+        except np.linalg.LinAlgError:  # a degenerate history (repeated times): least squares one by one
+            coef = np.stack([np.linalg.lstsq(xi.T, zc, rcond=None)[0] for xi in x])
+        res = float(zc @ zc) - np.sum(coef * rhs, axis=1)
+        coef[:, 0] += mean
+        return res, coef
+
+    def _search(self, tt: np.ndarray, zs: np.ndarray, span: float) -> float:
+        grid = np.geomspace(self.cycles / span, self.max_hz, self.GRID)
+        i = int(np.argmin(self._fits(tt, zs, grid)[0]))
+        fine = np.linspace(grid[max(0, i - 1)], grid[min(len(grid) - 1, i + 1)], self.FINE)
+        return float(fine[int(np.argmin(self._fits(tt, zs, fine)[0]))])
+
+    def predict(self, at: float) -> float | None:
+        if len(self.t) < 4 * self.k + 4 or self.t[-1] - self.t[0] < self.min_s:
+            return None
+        span = self.t[-1] - self.t[0]
+        if self.hz is None or self.kept >= self.every or self.hz < self.cycles / span:
+            ts, zs = np.fromiter(self.t, float), np.fromiter(self.z, float)
+            self.hz = self._search(ts - ts[-1], zs, span)
+            self.kept = 0
+        if self._fit is None or self._fit[:2] != (self.appended, self.hz):  # refit on a new sample kept
+            ts, zs = np.fromiter(self.t, float), np.fromiter(self.z, float)
+            self._fit = (self.appended, self.hz, ts[-1], self._fits(ts - ts[-1], zs, np.array([self.hz]))[1][0])
+        _, hz, t_ref, coef = self._fit
+        # the fit at one instant: _design's recurrence in plain floats (a dozen numpy calls cost 30x more)
+        w = 2 * math.pi * hz * (at - t_ref)
+        c1, s1 = math.cos(w), math.sin(w)
+        c, sn = c1, s1
+        z = float(coef[0]) + float(coef[1]) * c + float(coef[2]) * sn
+        for j in range(1, self.k):
+            c, sn = c * c1 - sn * s1, sn * c1 + c * s1
+            z += float(coef[2 * j + 1]) * c + float(coef[2 * j + 2]) * sn
+        return z
+
+
+class Referee:
+    """Which predictions to trust, by how well each predicted: every prediction made for an instant is scored
+    once the measurements around that instant are in (the measurement interpolated there), its squared error
+    averaged (exponentially, over about `memory` scores). blend(preds) weighs the predictions (None: that
+    predictor has none now) by the inverse square of their mean squared errors, so the one that predicts
+    best all but decides; the first is the fallback, alone until another has `warm` scores."""
+
+    PENDING = 64  # predictions kept awaiting their measurement (a second at 64 Hz; older ones are dropped)
+
+    def __init__(self, n: int, memory: int = 30, warm: int = 8, power: float = 2.0):
+        self.alpha, self.warm, self.power = 1.0 / memory, warm, power
+        self.pending: deque[tuple[float, list]] = deque()
+        self.mse: list[float | None] = [None] * n
+        self.scored = [0] * n
+        self.last: tuple[float, float] | None = None
+
+    def reset(self) -> None:
+        """After a jump: the scores start again (a fit of the motion before says nothing of the one after)."""
+        self.pending.clear()
+        self.last = None
+        self.mse = [None] * len(self.mse)
+        self.scored = [0] * len(self.scored)
+
+    def predicted(self, at: float, preds: list) -> None:
+        self.pending.append((at, preds))
+        while len(self.pending) > self.PENDING:
+            self.pending.popleft()
+
+    def measured(self, t: float, z: float) -> None:
+        last, self.last = self.last, (t, z)
+        while self.pending and self.pending[0][0] <= t:
+            at, preds = self.pending.popleft()
+            if last is None or at < last[0]:
+                continue
+            truth = last[1] + (z - last[1]) * (at - last[0]) / (t - last[0]) if t > last[0] else z
+            for k, p in enumerate(preds):
+                if p is not None:
+                    e = (p - truth) ** 2
+                    self.mse[k] = e if self.mse[k] is None else self.mse[k] + self.alpha * (e - self.mse[k])
+                    self.scored[k] += 1
+
+    def blend(self, preds: list) -> float:
+        use = [(p, self.mse[k]) for k, p in enumerate(preds)
+               if p is not None and self.mse[k] is not None and (k == 0 or self.scored[k] >= self.warm)]
+        if len(use) < 2:
+            return preds[0]
+        w = [1.0 / max(m, 1e-18) ** self.power for _, m in use]
+        return sum(wi * p for wi, (p, _) in zip(w, use)) / sum(w)
+
+
+LATE_S = 0.02  # an image older than this when its command goes out: p's gain is at most 1
+PREDICTORS = ("hold", "rate", "periodic")  # what the predictive mode's Referee weighs, in this order
+PERIOD_ALPHA = 0.1  # the decisions' interval is smoothed with this weight per decision (about 10 decisions)
+PERIOD_GAP_S = 1.0  # an interval this long or longer is a pause, not the decisions' rate
+log = logging.getLogger("vergence.control")
+
+
+class Controller:
+    """Turns decisions into absolute pan targets for the slave, each bounded by the motor's limits.
+
+    limits: the motor's safety layer (a Safety, whose inside / limit_step / dead_band_rad it asks; only
+    those, never its state), or the MotorSettings to build one from ([actuator.motor]); default
+    MotorSettings()."""
+
+    def __init__(self, settings: ControlSettings | None = None, limits: Safety | MotorSettings | None = None):
+        self.s = settings or ControlSettings()
+        self.limits = limits if isinstance(limits, Safety) else Safety(limits or MotorSettings())
+        self.predictor: Predictor | None = None
+        self.gain_lowered = 0  # p commands whose gain was lowered to 1 (an old image)
+        self.periodic: Periodic | None = None
+        self.referee: Referee | None = None
+        self.t_confident: float | None = None  # capture time of the last confident decision
+        self.coasting = 0  # abstentions answered from the estimate
+        self.last_goal: float | None = None  # the predictive mode's last set-point
+        self.t_prev: float | None = None  # the last decision's capture time
+        self.period: float | None = None  # the decisions' interval, smoothed
+
+    def _bounded(self, pan_at_capture: float, step: float) -> float:
+        """The set-point pan_at_capture + step, as the motor's Safety bounds it (limits, step)."""
+        return self.limits.limit_step(pan_at_capture, pan_at_capture + step)
+
+    def target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool = True,
+               centre_px: float = 0.0, t_s: float | None = None, t_now: float | None = None) -> float | None:
+        """The new absolute pan (radians) or None when the camera should not move (not confident, inside
+        the dead band, or a non-finite input). pan_at_capture: the slave's pan at its exposure; t_s: that
+        exposure's time in seconds (any epoch; the predictive mode needs it, and acts as "p" without it);
+        t_now: the time of this command on the same clock (default t_s: an image with no latency)."""
+        if self.s.mode == "predictive" and t_s is not None and math.isfinite(t_s):
+            # (an image older than MAX_AGE_S is not believed: vergence.head.timing)
+            now = t_s if t_now is None or not math.isfinite(t_now) else min(max(t_s, t_now), t_s + MAX_AGE_S)
+            return self._predictive(pan_at_capture, offset_px, focal_px, confident, centre_px, t_s, now)
+        if not confident or not all(math.isfinite(v) for v in (pan_at_capture, offset_px, focal_px)):
+            return None
+        if focal_px <= 0 or abs(offset_px) < self.s.dead_band_px:
+            return None
+        step = self._gain(t_s, t_now) * pixels_to_angle(offset_px, focal_px, centre_px)
+        if abs(step) < self.limits.dead_band_rad:
+            return None
+        return self._bounded(pan_at_capture, step)
+
+    def _gain(self, t_s: float | None, t_now: float | None) -> float:
+        """p's gain: [control] gain, but at most 1 for an image older than LATE_S when its command goes out.
+        Referred to the pan at its exposure, each command is (1 - g) x that pan + g x the target there: at
+        gain <= 1 a low-pass of the target, stable at any latency; above 1 it overshoots, and the motor's own
+        lag makes that grow with the latency (gain 1.9 at 100 ms never converged on a still target)."""
+        g = self.s.gain
+        if g > 1 and t_s is not None and t_now is not None and t_now - t_s > LATE_S:
+            if not self.gain_lowered:
+                log.warning("p controller: gain %.2f lowered to 1 for images %.0f ms old (above 1 the loop "
+                            "overshoots more the older the image)", g, (t_now - t_s) * 1e3)
+            self.gain_lowered += 1
+            return 1.0
+        return g
+
+    def _predictive(self, pan: float, offset_px: float, focal_px: float, confident: bool, centre_px: float,
+                    t: float, now: float) -> float | None:
+        if not (math.isfinite(pan) and math.isfinite(focal_px) and focal_px > 0):
+            return None
+        if self.predictor is None:
+            one = math.atan(1.0 / focal_px)
+            self.predictor = Predictor(q=math.radians(self.s.accel_deg_s2) ** 2, r=(self.s.noise_px * one) ** 2,
+                                       gate=self.s.gate_px * one, vmax=math.radians(self.s.max_rate_deg_s))
+        f = self.predictor
+        if self.periodic is None and self.s.periodic:
+            self.periodic, self.referee = Periodic(), Referee(len(PREDICTORS))
+        if self.t_prev is not None and 0 < t - self.t_prev < PERIOD_GAP_S:
+            dt = t - self.t_prev
+            self.period = dt if self.period is None else (1 - PERIOD_ALPHA) * self.period + PERIOD_ALPHA * dt
+        self.t_prev = t
+        # a set-point holds until the next decision: aim at the middle of that interval, from when the motor
+        # acts on this command (now + lead_s), however old the image it comes from
+        at = now + self.s.lead_s + 0.5 * (self.period or 0.0)
+        if confident and math.isfinite(offset_px):
+            z = pan + pixels_to_angle(offset_px, focal_px, centre_px)
+            restarts = f.restarts
+            f.update(t, z)
+            self.t_confident = t
+            if self.periodic is not None:
+                if f.restarts != restarts:  # a jump: what the target did before it says nothing now
+                    self.periodic.reset()
+                    self.referee.reset()
+                self.referee.measured(t, z)
+                self.periodic.add(t, z)
+            # the rate, less min_rate_deg_s (soft threshold): the noise of a still target's rate estimate
+            # (whole-tick encoder readings during small moves, a hesitating matcher) is not extrapolated
+            vmin = math.radians(self.s.min_rate_deg_s)
+            v = math.copysign(max(0.0, abs(f.v) - vmin), f.v)
+            goal = f.x + v * (at - f.t)
+            if self.periodic is not None:
+                preds = [f.x, goal, self.periodic.predict(at)]
+                self.referee.predicted(at, preds)
+                goal = self.referee.blend(preds)
+        elif f.t is None or self.t_confident is None or t - self.t_confident > self.s.coast_s \
+                or t < self.t_confident:
+            f.reset()  # nothing to coast on, or coasted long enough: hold
+            self.last_goal = None
+            return None
+        else:
+            # coast on the estimate, its rate fading (time constant coast_s / 2): never more than
+            # rate x coast_s / 2 past the last estimate
+            self.coasting += 1
+            tau = self.s.coast_s / 2
+            goal = f.x + f.v * tau * (1 - math.exp(-max(0.0, at - f.t) / tau)) if tau > 0 else f.x
+        # the dead band around the present pan, and around the set-point already sent while the motor is
+        # there (re-sending about the same goal would only pass the estimate's noise, and the encoder's
+        # whole ticks, to the motor); a set-point the motor is not at (lost, or no motor listening) is sent
+        # again
+        db = max(math.atan(self.s.dead_band_px / focal_px), self.limits.dead_band_rad)
+        if abs(goal - pan) < db:
+            return None
+        if self.last_goal is not None and abs(goal - self.last_goal) < db \
+                and abs(self.last_goal - pan) <= max(math.atan(1.0 / focal_px), math.radians(0.1)):
+            return None
+        self.last_goal = self._bounded(pan, goal - pan)
+        return self.last_goal
