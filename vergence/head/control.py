@@ -25,13 +25,10 @@ arrives again (the last line). Its dead band is the larger of [control] dead_ban
 the focal length, a correction smaller than this many pixels is noise) and the motor's dead_band_deg (a goal
 change the actuator would hold anyway).
 
-The default is "predictive": in `vergence bench tracking` p's error is 3-7 times its own on sines from
-0.5 Hz on (p lags by the loop's latency, about a frame plus the motor, and more with an old image), 1.3-2
-times at 0.25 Hz, and both settle alike on a step; the predictors were chosen by measurement
-(docs/SIMULATOR.md, "A real camera's timing"); its cost, on still Middlebury scenes, is a few points of
-convergence where the matcher hesitates between offsets a pixel apart. Its filter is kept calm
-(accel_deg_s2 700, noise_px 1): a livelier one (1000 / 0.5) tracked a 2 Hz sine a little closer but rang
-by +-2 px with the paper's network, whose whole-pixel decisions feed the filter a loop-correlated error.
+The default is "predictive": "p" lags by the loop's latency, so its error grows with the target's speed; the
+predictive filter is kept calm (accel_deg_s2, noise_px) because the paper's whole-pixel decisions feed a livelier
+one a loop-correlated error. The figures behind both choices, and their commands: docs/SIMULATOR.md, "Why the
+predictive controller is the default, and its cost".
 """
 
 from __future__ import annotations

@@ -75,18 +75,30 @@ def _parabola(ym: float, y0: float, yp: float) -> float:
 def decide(scores: np.ndarray, window: int, *, k_centre: int | None = None, subpixel: bool = Params.subpixel,
            tex: float | None = None, min_texture: float = Params.min_texture, min_margin: float = Params.min_margin,
            rival_radius: int | None = None, vshift_cost: float = Params.vshift_cost) -> Decision:
-    """Winner-takes-all over layer 4 and the two output neurons.
+    """Winner-takes-all over layer 4 and the two output neurons (layer 5), with the confidence.
 
-    scores: y(k) (1-D) or y(v, k) with vertical search (row v is the shift v - R). The band is
-    W = K + w - 1 wide; k_centre defaults to W/2 - floor(w/2). The confidence is the margin between the
-    winner and the best rival more than rival_radius (default w // 2) offsets away, as a fraction of the
-    rival's dissimilarity (255 * w * w - y); confident needs that margin >= min_margin and the fovea's texture
-    (when given) >= min_texture. min_margin=0 and min_texture=0 give the paper's behaviour: always confident.
-    The defaults are Params' (vergence.match's): the checks that need the images (decide_scores) are not here.
-    vshift_cost: with vertical
-    search, each row of shift |v| costs this much per pixel (the 0..255 scale of layer 3) in the
-    winner-takes-all and the margin, so that a shifted row wins only where it is clearly better; the
-    decision's score stays the row's own y."""
+    The confidence is the margin between the winner and the best rival more than rival_radius offsets away, as a
+    fraction of the rival's dissimilarity (255 * w * w - y). The defaults are Params' (vergence.match's); the
+    checks that need the images (decide_scores) are not here. min_margin=0 and min_texture=0 give the paper's
+    behaviour: always confident.
+
+    Args:
+        scores: y(k) (1-D) or y(v, k) with vertical search (row v is the shift v - R); the band is W = K + w - 1
+            wide.
+        window: w. k_centre: the centred window's offset, W/2 - floor(w/2) by default. subpixel: parabola
+            through the winner's neighbours.
+        tex, min_texture: the fovea's mean gradient (when given) must be at least min_texture.
+        min_margin: the confidence needed. rival_radius: w // 2 by default.
+        vshift_cost: with vertical search, what each row of shift |v| costs per pixel (layer 3's 0..255 scale) in
+            the winner-takes-all and the margin, so that a shifted row wins only where it is clearly better
+            (the decision's score stays the row's own y).
+
+    Returns:
+        A Decision: the winner k (sub-pixel k_sub, vertical shift v), the layer-5 direction and magnitude,
+        offset_px, the confidence and whether it is confident.
+
+    Raises:
+        ValueError: no offsets to decide between."""
     y2 = np.atleast_2d(np.asarray(scores, dtype=np.float64))
     nv, kk = y2.shape
     if kk < 1:

@@ -215,8 +215,19 @@ def scores_from_sad(s: np.ndarray, window: int, weight_sum: int | None = None) -
 
 def correlate(fovea: np.ndarray, band: np.ndarray, k0: int = 0, k1: int | None = None, *,
               circular: bool = True, weights: np.ndarray | None = None) -> np.ndarray:
-    """Layer-4 scores y(k) for offsets k0..k1-1: 1-D when the band is w rows tall, (2R + 1, k1 - k0) when
-    it is taller (vertical search, row v is the vertical shift v - R)."""
+    """Layers 2-4: the scores y(k) of the fovea against every window of the band, for offsets k0..k1-1.
+
+    Args:
+        fovea, band: features() planes, (3, w, w) and (3, w + 2R, W), uint8.
+        k0, k1: the offsets to score (a shard's range; all W - w + 1 by default).
+        circular: compare the direction D on the circle. weights: (w, w) support weights, or None.
+
+    Returns:
+        y(k), 1-D when the band is w rows tall; (2R + 1, k1 - k0) when it is taller (row v is the vertical
+        shift v - R).
+
+    Raises:
+        ValueError, TypeError: planes of the wrong type or shape, offsets outside the band, bad weights."""
     s = sad(fovea, band, k0, k1, circular=circular, weights=weights)
     w = fovea.shape[1]
     y = scores_from_sad(s, w, None if weights is None else int(weights.astype(np.int64).sum()))

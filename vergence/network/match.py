@@ -56,10 +56,21 @@ def match(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = No
           params: Params | None = None, **overrides) -> Match:
     """Decide where the master fovea at `at` = (x, y) (default: the image centre) lies in the slave band.
 
-    Images: uint8 gray or BGR of the same size. Keyword overrides are Params fields (faithful=True for the
-    paper's network). With params.clip_fallback, where every window abstains with the master clipped like the
-    slave (clip_master), every window is tried again with the master as it is. Raises retina.BorderError when
-    the window does not fit, ValueError on bad images."""
+    With params.clip_fallback, where every window abstains with the master clipped like the slave (clip_master),
+    every window is tried again with the master as it is.
+
+    Args:
+        master, slave: uint8 images, gray or BGR, of the same size.
+        at: the fixation point (x, y) in the master image.
+        params: the network's settings (Params(): every extension on). overrides: Params fields by keyword
+            (faithful=True for the paper's network).
+
+    Returns:
+        A Match: the point, the window that decided and its Decision, and the layer-4 scores decided on.
+
+    Raises:
+        BorderError: the window does not fit around `at`.
+        ValueError: the images differ in size or are not images."""
     if params is None:
         params = Params.build(**overrides)
     elif overrides:

@@ -25,9 +25,9 @@ class Params:
     circular: compare the direction D on the circle. subpixel: parabola through the winner's neighbours.
     min_margin, min_texture: abstain below this peak-to-rival margin or this mean fovea gradient.
     min_correlation: abstain unless the winning slave window's intensities correlate with the fovea's (Pearson
-    r, see pearson()) by at least this: the independent sensor noise of two cameras looking at a flat
-    wall correlates by less than 0.25 even at the best of all offsets (a black wall, its noise clipped at 0, once
-    by 0.31), a real match mostly by 0.6 to 1.
+    r, see pearson()) by at least this: two cameras' independent noise on a flat wall correlates weakly even at
+    the best of all offsets, a real match strongly (the figures: docs/MEASUREMENTS.md, "Why min_correlation is
+    0.35").
     lr_check: match the winning slave window back into the master band; abstain unless it lands within
     lr_tolerance px of the fovea. support: adaptive support weights (Yoon & Kweon) on the fovea, with
     support_gamma (intensity) and support_radius (distance, px, at the base window; it grows in proportion with

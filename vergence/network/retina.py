@@ -203,10 +203,20 @@ def slave_band_strip(master: np.ndarray, slave: np.ndarray, y: int, window: int,
 
 def features(master: np.ndarray, slave: np.ndarray, at: tuple[int, int] | None = None, window: int = 15,
              vsearch: int = 0, photometric: str = "none") -> tuple[np.ndarray, np.ndarray]:
-    """Layer 1 for one fixation point: (fovea (3, w, w), band (3, w + 2R, W)), both uint8.
+    """Layer 1 for one fixation point: the features I, G, D of the master's fovea and of the slave's band.
 
-    at is (x, y) in the master image, the image centre (W // 2, H // 2) by default. photometric: map the
-    slave band's intensities onto the master's first (see photometric())."""
+    Args:
+        master, slave: uint8 images (gray or BGR) of the same size.
+        at: (x, y) in the master image; the image centre (W // 2, H // 2) by default.
+        window: w, the fovea's side (odd). vsearch: R, rows searched above and below.
+        photometric: map the slave band's intensities onto the master's first ("none", "affine", "histogram").
+
+    Returns:
+        (fovea (3, w, w), band (3, w + 2R, W)), both uint8.
+
+    Raises:
+        BorderError: the window (with its vertical search) does not fit around `at`.
+        ValueError, TypeError: the images differ in size or are not 8-bit."""
     if master.shape[:2] != slave.shape[:2]:
         raise ValueError(f"master and slave differ in size: {master.shape[1]} x {master.shape[0]} and "
                          f"{slave.shape[1]} x {slave.shape[0]}")
