@@ -253,6 +253,7 @@ def test_observers_never_publish_commands():
 TESTED_ELSEWHERE = {
     "vergence.tools.bench": "tests/services/offline/test_bench.py (the benchmarks run from the CLI)",
     "vergence.head.control": "tests/scenarios/test_tracking.py (the controller in the closed loop)",
+    "vergence.head.predict": "tests/scenarios/test_tracking.py (the predictors, and the controller that runs them)",
     "vergence.io.images": "tests/vergence/io/test_sources.py (read_image's errors, through the sources)",
     "vergence.network.params": "tests/vergence/network/test_decide.py, test_match.py (the parameters' effects)",
     "vergence.network.photometric": "tests/vergence/network/test_retina.py (the mapping through the retina's strips)",

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from enum import StrEnum
 
-__all__ = ["Side", "Gimbal", "Photometric", "ControlMode", "check"]
+__all__ = ["Side", "Gimbal", "Photometric", "ControlMode", "Fault", "check"]
 
 
 class Side(StrEnum):
@@ -37,6 +37,15 @@ class ControlMode(StrEnum):
 
     P = "p"
     PREDICTIVE = "predictive"
+
+
+class Fault(StrEnum):
+    """What the loop found wrong with its own eyes or motor (vergence.head.doubt): it holds until it clears."""
+
+    SLAVE_FROZEN = "slave_frozen"
+    REVERSED = "reversed"
+    STALLED = "stalled"
+    MASTER_FROZEN = "master_frozen"
 
 
 def check(kind: type[StrEnum], value, name: str) -> None:

@@ -21,10 +21,12 @@ from vergence.head import depth
 from vergence.config import ConfigError, load
 from vergence.choices import ControlMode, Gimbal
 from vergence.sim import Rig
+from vergence.sim.faults import FAULT_KEYS, Faults
 from vergence.sim.fixation import truth_at
 from vergence.sim.loop import DELAY_S, closed_loop, frames_to_converge, tracking_error
 from vergence.sim.moving import MovingRig
 from vergence.head.timing import CameraTiming
+from vergence.spec import parse
 
 from services.runtime.args import number, whole, xy
 
@@ -101,6 +103,10 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="frames to run after the starting one (default 20)")
     p.add_argument("--rate", type=number(0, 1000, lo_open=True), default=30.0,
                    help="frames per second of the virtual clock (default 30)")
+    p.add_argument("--faults", metavar="SPEC", default="",
+                   help="the simulator's lies (vergence/sim/faults.py): freeze=T0-T1, freeze_master=T0-T1, "
+                        "black=T0-T1, reverse, slip=T0-T1, stall=T0-T1, backlash=DEG, focal_true=PX, "
+                        "encoder_noise=DEG, joined by ':' (times in s from the first exposure)")
     p.add_argument("--faithful", action="store_true", help="the paper's network: every extension off")
     p.add_argument("--config", metavar="FILE", help="settings TOML: [network], [control], [actuator.motor]")
     p.add_argument("--json", action="store_true", help="one JSON line per frame, the starting state first")
@@ -120,7 +126,11 @@ def _setup(args: argparse.Namespace):
     control = settings.control if args.mode is None else dataclasses.replace(settings.control, mode=args.mode)
     delay = DELAY_S if args.delay_ms is None else args.delay_ms / 1000.0
     timing = camera_timing(args)
+    faults = Faults.take(parse(args.faults, FAULT_KEYS, "--faults"))
     rig = _rig(args, static)
+    told = rig.focal_px  # the focal length the settings say; focal_true renders the images at another
+    if faults.focal_true is not None:
+        rig = _rig(argparse.Namespace(**{**vars(args), "focal": str(faults.focal_true)}), static)
     if args.frames < 0 or not args.rate > 0:
         raise ValueError(f"--frames must be >= 0 and --rate > 0, got {args.frames} and {args.rate}")
     if args.start_off is not None:
@@ -135,7 +145,7 @@ def _setup(args: argparse.Namespace):
     if not (math.isfinite(baseline) and baseline > 0):
         raise ValueError(f"--baseline {baseline}: must be a positive number of metres")
     fixations = _fixations(args, rig)
-    return settings, params, control, delay, timing, rig, baseline, fixations
+    return settings, params, control, delay, timing, rig, baseline, fixations, faults, told
 
 
 def _rig(args: argparse.Namespace, static: dict):
@@ -169,7 +179,7 @@ def _fixations(args: argparse.Namespace, rig) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        settings, params, control, delay, timing, rig, baseline, fixations = _setup(args)
+        settings, params, control, delay, timing, rig, baseline, fixations, faults, told = _setup(args)
     except (ValueError, ConfigError) as e:
         print(f"vergence sim: {e}", file=sys.stderr)
         return 2
@@ -183,7 +193,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         run_ = closed_loop(rig, args.frames, params, control, settings.actuator.motor, args.rate, delay,
                            fixations=fixations, timing=timing, state_hz=settings.actuator.state_hz,
-                           seed=int(args.seed or 0))
+                           seed=int(args.seed or 0), faults=faults, focal_px=told)
         first = next(run_)
     except ValueError as e:
         print(f"vergence sim: {e}", file=sys.stderr)

@@ -224,7 +224,8 @@ class Reducer:
     def fields(self) -> dict:
         with self.lock:
             return dict(gatherer=dict(self.gatherer.counters), pending=len(self.gatherer.pending),
-                        shed=dict(self.inbox.shed), **(self.presence.fields() if self.presence else {}))
+                        shed=dict(self.inbox.shed), **(self.presence.fields() if self.presence else {}),
+                        **self.gatherer.controller.doubt.status())
 
     def open(self, node: Node) -> None:
         """The subscriptions, the publishers and the forwarder threads, then the liveliness token."""
@@ -303,6 +304,7 @@ class Reducer:
                 msgs.append(m)
         msgs += [m for m in (self.decode(k, x) for k, x in batch if k == "correlation") if m is not None]
         with self.lock:
+            fault = self.gatherer.controller.doubt.fault
             for m in newest_first(msgs):
                 try:
                     if isinstance(m, Frame):
@@ -311,6 +313,9 @@ class Reducer:
                         self.publish(self.gatherer.add_correlation(m))
                 except Exception as e:  # a message that validates but cannot be decided on: never fatal
                     self.health.reject(m.KIND, e)
+            changed = self.gatherer.controller.doubt.fault != fault
+        if changed:
+            self.node.status()  # a fault named or cleared is said at once, not at the next second
 
     def workers_report(self) -> bytes:
         with self.lock:

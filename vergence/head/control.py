@@ -35,15 +35,15 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import deque
 from dataclasses import dataclass
 from typing import ClassVar
 
-import numpy as np
 
 from ..motors.base import MotorSettings, Safety
 from ..choices import ControlMode
 from ..ranges import Range, check
+from .doubt import Doubt
+from .predict import Periodic, Predictor, Referee
 from .timing import MAX_AGE_S
 
 __all__ = ["pixels_to_angle", "ControlSettings", "Controller", "Predictor", "MODES"]
@@ -103,215 +103,6 @@ class ControlSettings:
         check(self, self.RANGES)
 
 
-class Predictor:
-    """A constant-velocity Kalman filter of the target's pan (radians) over exposure times (seconds).
-
-    update(t, z) takes a measurement z of the target's pan exposed at t; at(t) is the estimate there.
-    q: the variance of the target's acceleration (rad^2/s^4, piecewise constant between measurements),
-    r: the measurement variance (rad^2), gate: the largest innovation (rad) taken as motion (larger:
-    restart at z), vmax: the bound of the estimated rate (rad/s)."""
-
-    def __init__(self, q: float, r: float, gate: float, vmax: float):
-        self.q, self.r, self.gate, self.vmax = q, r, gate, vmax
-        self.t: float | None = None
-        self.x = self.v = 0.0
-        self.p = [[0.0, 0.0], [0.0, 0.0]]
-        self.restarts = 0
-
-    def reset(self) -> None:
-        self.t = None
-
-    def _start(self, t: float, z: float) -> None:
-        self.t, self.x, self.v = t, z, 0.0
-        self.p = [[self.r, 0.0], [0.0, (self.vmax / 2) ** 2]]
-
-    def update(self, t: float, z: float) -> None:
-        if self.t is None or t < self.t - 1.0:  # none yet, or time went back (a new capture): start over
-            self._start(t, z)
-            return
-        dt = max(0.0, t - self.t)
-        (p00, p01), (_, p11) = self.p
-        x = self.x + self.v * dt
-        q = self.q  # piecewise-constant white acceleration of variance q
-        p00 = p00 + dt * (2 * p01 + dt * p11) + q * dt ** 4 / 4
-        p01 = p01 + dt * p11 + q * dt ** 3 / 2
-        p11 = p11 + q * dt ** 2
-        y = z - x
-        if abs(y) > self.gate:
-            self.restarts += 1
-            self._start(t, z)
-            return
-        s = p00 + self.r
-        k0, k1 = p00 / s, p01 / s
-        self.x = x + k0 * y
-        self.v = max(-self.vmax, min(self.vmax, self.v + k1 * y))
-        self.p = [[(1 - k0) * p00, (1 - k0) * p01], [(1 - k0) * p01, p11 - k1 * p01]]
-        self.t = t
-
-    def at(self, t: float) -> float:
-        """The estimated pan at time t (the last estimate carried at the estimated rate)."""
-        return self.x + self.v * (t - self.t)
-
-
-class Periodic:
-    """A target that moves back and forth: its pan over the last window_s as a constant plus `harmonics`
-    harmonics of one frequency (least squares), the frequency the one whose fit leaves the least residual
-    (searched every `every` samples kept over a log grid from the lowest of which `cycles` periods fit in the
-    history, to max_hz, then refined over a fine grid between the best one's neighbours); predict(at)
-    extrapolates the fit. None while the history is shorter than min_s.
-
-    Where a target repeats its motion (a hand moving an object to and fro, a pendulum, the simulator's
-    sines), this predicts far past where any polynomial holds, as primate smooth pursuit does for periodic
-    targets to overcome its own latency of about 100 ms; where it does not, its predictions are poor, and the
-    Referee leaves them out.
-
-    Its cost does not grow with the frame rate: the history keeps samples at least MIN_DT_S apart (a newer
-    one closer than that replaces the newest; at 60 Hz every sample is kept), the fit is made again only when
-    a sample is kept, and every grid is fitted at once (the normal equations of all its frequencies in one
-    batch, the harmonics by the angle-addition recurrence; its figures: docs/PERFORMANCE.md)."""
-
-    MIN_DT_S = 1 / 64  # the history's spacing: 3 harmonics of max_hz need 24 Hz; 64 Hz keeps a 60 Hz camera's
-    GRID, FINE = 40, 33  # the search's log grid, and its fine grid between the best point's neighbours
-
-    def __init__(self, harmonics: int = 3, window_s: float = 3.0, min_s: float = 0.4, max_hz: float = 4.0,
-                 cycles: float = 0.6, every: int = 10):
-        self.k, self.window_s, self.min_s, self.max_hz, self.every = harmonics, window_s, min_s, max_hz, every
-        self.cycles = cycles
-        self.t: deque[float] = deque()
-        self.z: deque[float] = deque()
-        self.hz: float | None = None
-        self.kept = 0  # samples appended since the last search (a replaced newest one not counted)
-        self.appended = 0  # samples appended, ever
-        self._fit: tuple | None = None  # (appended, hz, the newest time, coefficients) of the latest fit
-
-    def reset(self) -> None:
-        self.t.clear()
-        self.z.clear()
-        self.hz = None
-        self._fit = None
-
-    def add(self, t: float, z: float) -> None:
-        if self.t and t <= self.t[-1]:
-            return
-        if len(self.t) >= 2 and self.t[-1] - self.t[-2] < self.MIN_DT_S:
-            # the newest is closer than MIN_DT_S to the one before it: this one takes its place (the newest is
-            # always the latest measurement; the ones before it are MIN_DT_S apart at least)
-            self.t[-1], self.z[-1] = t, z
-        else:
-            self.t.append(t)
-            self.z.append(z)
-            self.kept += 1
-            self.appended += 1
-        while self.t[-1] - self.t[0] > self.window_s:
-            self.t.popleft()
-            self.z.popleft()
-
-    def _design(self, tt: np.ndarray, hz: np.ndarray) -> np.ndarray:
-        """(len(hz), 2 harmonics + 1, len(tt)): the constant, then cos, sin of each harmonic at each time."""
-        w = 2 * math.pi * np.asarray(hz, float)[:, None] * np.asarray(tt, float)[None, :]
-        x = np.empty((len(w), 2 * self.k + 1, w.shape[1]))
-        x[:, 0] = 1.0
-        c1, s1 = np.cos(w, out=x[:, 1]), np.sin(w, out=x[:, 2])
-        for j in range(1, self.k):
-            c, sn = x[:, 2 * j - 1], x[:, 2 * j]
-            np.subtract(c * c1, sn * s1, out=x[:, 2 * j + 1])
-            np.add(sn * c1, c * s1, out=x[:, 2 * j + 2])
-        return x
-
-    def _fits(self, tt: np.ndarray, zs: np.ndarray, hz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The residual sum of squares and the coefficients of the fit at each frequency of hz (batched normal
-        equations; the mean taken out of zs first, which the constant takes back, for their conditioning)."""
-        x = self._design(tt, hz)
-        mean = float(np.mean(zs))
-        zc = zs - mean
-        rhs = x @ zc
-        try:
-            coef = np.linalg.solve(x @ x.transpose(0, 2, 1), rhs[..., None])[..., 0]
-        except np.linalg.LinAlgError:  # a degenerate history (repeated times): least squares one by one
-            coef = np.stack([np.linalg.lstsq(xi.T, zc, rcond=None)[0] for xi in x])
-        res = float(zc @ zc) - np.sum(coef * rhs, axis=1)
-        coef[:, 0] += mean
-        return res, coef
-
-    def _search(self, tt: np.ndarray, zs: np.ndarray, span: float) -> float:
-        grid = np.geomspace(self.cycles / span, self.max_hz, self.GRID)
-        i = int(np.argmin(self._fits(tt, zs, grid)[0]))
-        fine = np.linspace(grid[max(0, i - 1)], grid[min(len(grid) - 1, i + 1)], self.FINE)
-        return float(fine[int(np.argmin(self._fits(tt, zs, fine)[0]))])
-
-    def predict(self, at: float) -> float | None:
-        if len(self.t) < 4 * self.k + 4 or self.t[-1] - self.t[0] < self.min_s:
-            return None
-        span = self.t[-1] - self.t[0]
-        if self.hz is None or self.kept >= self.every or self.hz < self.cycles / span:
-            ts, zs = np.fromiter(self.t, float), np.fromiter(self.z, float)
-            self.hz = self._search(ts - ts[-1], zs, span)
-            self.kept = 0
-        if self._fit is None or self._fit[:2] != (self.appended, self.hz):  # refit on a new sample kept
-            ts, zs = np.fromiter(self.t, float), np.fromiter(self.z, float)
-            self._fit = (self.appended, self.hz, ts[-1], self._fits(ts - ts[-1], zs, np.array([self.hz]))[1][0])
-        _, hz, t_ref, coef = self._fit
-        # the fit at one instant: _design's recurrence in plain floats (a dozen numpy calls cost 30x more)
-        w = 2 * math.pi * hz * (at - t_ref)
-        c1, s1 = math.cos(w), math.sin(w)
-        c, sn = c1, s1
-        z = float(coef[0]) + float(coef[1]) * c + float(coef[2]) * sn
-        for j in range(1, self.k):
-            c, sn = c * c1 - sn * s1, sn * c1 + c * s1
-            z += float(coef[2 * j + 1]) * c + float(coef[2 * j + 2]) * sn
-        return z
-
-
-class Referee:
-    """Which predictions to trust, by how well each predicted: every prediction made for an instant is scored
-    once the measurements around that instant are in (the measurement interpolated there), its squared error
-    averaged (exponentially, over about `memory` scores). blend(preds) weighs the predictions (None: that
-    predictor has none now) by the inverse square of their mean squared errors, so the one that predicts
-    best all but decides; the first is the fallback, alone until another has `warm` scores."""
-
-    PENDING = 64  # predictions kept awaiting their measurement (a second at 64 Hz; older ones are dropped)
-
-    def __init__(self, n: int, memory: int = 30, warm: int = 8, power: float = 2.0):
-        self.alpha, self.warm, self.power = 1.0 / memory, warm, power
-        self.pending: deque[tuple[float, list]] = deque()
-        self.mse: list[float | None] = [None] * n
-        self.scored = [0] * n
-        self.last: tuple[float, float] | None = None
-
-    def reset(self) -> None:
-        """After a jump: the scores start again (a fit of the motion before says nothing of the one after)."""
-        self.pending.clear()
-        self.last = None
-        self.mse = [None] * len(self.mse)
-        self.scored = [0] * len(self.scored)
-
-    def predicted(self, at: float, preds: list) -> None:
-        self.pending.append((at, preds))
-        while len(self.pending) > self.PENDING:
-            self.pending.popleft()
-
-    def measured(self, t: float, z: float) -> None:
-        last, self.last = self.last, (t, z)
-        while self.pending and self.pending[0][0] <= t:
-            at, preds = self.pending.popleft()
-            if last is None or at < last[0]:
-                continue
-            truth = last[1] + (z - last[1]) * (at - last[0]) / (t - last[0]) if t > last[0] else z
-            for k, p in enumerate(preds):
-                if p is not None:
-                    e = (p - truth) ** 2
-                    self.mse[k] = e if self.mse[k] is None else self.mse[k] + self.alpha * (e - self.mse[k])
-                    self.scored[k] += 1
-
-    def blend(self, preds: list) -> float:
-        use = [(p, self.mse[k]) for k, p in enumerate(preds)
-               if p is not None and self.mse[k] is not None and (k == 0 or self.scored[k] >= self.warm)]
-        if len(use) < 2:
-            return preds[0]
-        w = [1.0 / max(m, 1e-18) ** self.power for _, m in use]
-        return sum(wi * p for wi, (p, _) in zip(w, use)) / sum(w)
-
-
 LATE_S = 0.02  # an image older than this when its command goes out: p's gain is at most 1
 PREDICTORS = ("hold", "rate", "periodic")  # what the predictive mode's Referee weighs, in this order
 PERIOD_ALPHA = 0.1  # the decisions' interval is smoothed with this weight per decision (about 10 decisions)
@@ -338,17 +129,54 @@ class Controller:
         self.last_goal: float | None = None  # the predictive mode's last set-point
         self.t_prev: float | None = None  # the last decision's capture time
         self.period: float | None = None  # the decisions' interval, smoothed
+        self.doubt = Doubt()  # whether the image follows the motor, and the leash it keeps (issue #35)
 
     def _bounded(self, pan_at_capture: float, step: float) -> float:
         """The set-point pan_at_capture + step, as the motor's Safety bounds it (limits, step)."""
         return self.limits.limit_step(pan_at_capture, pan_at_capture + step)
 
     def target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool = True,
-               centre_px: float = 0.0, t_s: float | None = None, t_now: float | None = None) -> float | None:
+               centre_px: float = 0.0, t_s: float | None = None, t_now: float | None = None,
+               slave: int | None = None, master: int | None = None,
+               fovea: tuple[int, int] | None = None) -> float | None:
         """The new absolute pan (radians) or None when the camera should not move (not confident, inside
-        the dead band, or a non-finite input). pan_at_capture: the slave's pan at its exposure; t_s: that
-        exposure's time in seconds (any epoch; the predictive mode needs it, and acts as "p" without it);
-        t_now: the time of this command on the same clock (default t_s: an image with no latency)."""
+        the dead band, a non-finite input, or a fault: vergence.head.doubt). pan_at_capture: the slave's pan at
+        its exposure; t_s: that exposure's time in seconds (any epoch; the predictive mode needs it, and acts as
+        "p" without it); t_now: the time of this command on the same clock (default t_s: an image with no
+        latency); slave, master: the images' digests (frozen cameras repeat them), None when not known; fovea: the
+        master point decided at (a new one is a new target)."""
+        d = self.doubt
+        if t_s is not None and math.isfinite(t_s) and math.isfinite(pan_at_capture):
+            ok = confident and math.isfinite(offset_px) and math.isfinite(focal_px) and focal_px > 0
+            a = pixels_to_angle(offset_px, focal_px, centre_px) if ok else None
+            before = d.fault
+            d.observe(t_s, pan_at_capture, a, slave, master, fovea)
+            if d.fault != before:
+                self.reset()  # what the filter learnt while the image lied (or before the fault) says nothing now
+            if d.focal_ratio is not None and math.isfinite(focal_px):
+                focal_px = focal_px * d.focal_ratio  # the measured focal length
+        now = t_now if t_now is not None and math.isfinite(t_now) else t_s
+        if d.fault is not None:
+            return d.gate(pan_at_capture, None, now if now is not None else 0.0)
+        goal = self._aim(pan_at_capture, offset_px, focal_px, confident, centre_px, t_s, t_now)
+        if goal is None or now is None:
+            return goal
+        gated = d.gate(pan_at_capture, goal, now)
+        return None if gated is None else self.limits.limit_step(pan_at_capture, gated)
+
+    def reset(self) -> None:
+        """Forget the target's estimate (a fault began or ended): the next decision starts afresh."""
+        if self.predictor is not None:
+            self.predictor.reset()
+        if self.periodic is not None:
+            self.periodic.reset()
+            self.referee.reset()
+        self.last_goal = None
+        self.t_confident = None
+
+    def _aim(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool, centre_px: float,
+             t_s: float | None, t_now: float | None) -> float | None:
+        """The controller's set-point, before the doubt's leash (target's arguments)."""
         if self.s.mode == "predictive" and t_s is not None and math.isfinite(t_s):
             # (an image older than MAX_AGE_S is not believed: vergence.head.timing)
             now = t_s if t_now is None or not math.isfinite(t_now) else min(max(t_s, t_now), t_s + MAX_AGE_S)

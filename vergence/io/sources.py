@@ -213,7 +213,9 @@ class SimSource(Source):
     old when read), skew=S (the slave exposed S after the master), exposure=S (each view integrates the scene
     and the slave's motion over S: motion blur), jitter=S (exposure times off their schedule); stamps=no
     gives no exposure times (as a camera whose backend has none: the capture then takes [camera]
-    latency_s), for measuring the latency from outside (`vergence latency`)."""
+    latency_s), for measuring the latency from outside (`vergence latency`). The camera-side faults of
+    vergence.sim.faults (freeze=T0-T1, freeze_master=, black=, reverse, slip=, backlash=, focal_true=) make it lie
+    as a real head's cameras do; the motor-side ones (stall, encoder_noise) are `vergence sim`'s only."""
 
     TIMING = {"latency": "latency_s", "skew": "skew_s", "exposure": "exposure_s", "jitter": "jitter_s"}
     renders = True
@@ -226,20 +228,30 @@ class SimSource(Source):
                               "('right' is for a real head whose right camera is the fixed one)")
         from ..sim import Rig  # the simulator is only loaded when used
 
+        from ..sim.faults import Faults, Lies
+
         try:
             items, timing, self.stamps = self._timing(spec)
             self.timing = self.camera_timing(timing)
+            faults = Faults.take(items)
+            if faults.stall or faults.encoder_noise:
+                raise ValueError("sim source: stall and encoder_noise are the motor's lies: `vergence sim --faults` "
+                                 "has them (the sim actuator tells the truth)")
             self.rig = Rig.from_items(items)
+            told = float(self.rig.focal_px)  # the focal length the settings say; focal_true renders at another
+            if faults.focal_true is not None:
+                self.rig = Rig.from_items(dict(items, focal=faults.focal_true))
         except (ValueError, OSError) as e:
             raise SourceError(str(e)) from None
         self.size = tuple(self.rig.size)
-        self.focal_px = float(self.rig.focal_px)
+        self.focal_px = told
         self.start_pan_rad = float(self.rig.start_pan_rad)
         # the master's aim and the gimbal, for the depth of the fixated point (services/pipeline/capture.py)
         self.master_pan_rad, self.tilt_rad = float(self.rig.master_pan_rad), float(self.rig.tilt_rad)
         self.gimbal = self.rig.gimbal
         self.t0: int | None = None  # the scene's time 0 (ns): the first exposure
         self.rng = np.random.default_rng(0)
+        self.lies = Lies(faults, float(self.rig.start_pan_rad))
         self._still_truth: tuple = (None, math.nan)  # (fovea, its truth) of the still scene
         self._last: tuple = ([0.0], [(self.start_pan_rad, 0.0)])  # the latest read's instants and pans
 
@@ -257,9 +269,10 @@ class SimSource(Source):
     def _timing(cls, spec: str) -> tuple[dict, dict, bool]:
         """The spec's rig items, the CameraTiming's arguments, and whether to stamp (one parse, vergence.spec)."""
         from ..sim import Rig
+        from ..sim.faults import FAULT_KEYS
 
         keys = [Key(k, unit="s") for k in cls.TIMING] + [Key("stamps", "choice", "yes", choices=("yes", "no"))]
-        items = parse(spec, keys + Rig.spec_keys(), "sim source")
+        items = parse(spec, keys + Rig.spec_keys() + FAULT_KEYS, "sim source")
         timing = {field: items[k] for k, field in cls.TIMING.items() if items[k] is not None}
         for k in cls.TIMING:
             del items[k]
@@ -283,15 +296,16 @@ class SimSource(Source):
         settle = getattr(pan_at, "settle", None)  # the capture's: until the motor has told its pan then
         if settle is not None:
             settle(t_slave + round(tm.exposure_s * 5e8))
-        scene = sub_times((t_master - self.t0) / 1e9, tm.exposure_s)
-        slave = [(pan_of(self.t0 + round(t * 1e9)), t)
-                 for t in sub_times((t_slave - self.t0) / 1e9, tm.exposure_s)]
+        lies, at = self.lies, (t_master - self.t0) / 1e9
+        scene = lies.inputs("master", at, sub_times(at, tm.exposure_s))
+        slave = lies.inputs("slave", at, [(lies.camera(pan_of(self.t0 + round(t * 1e9)), t), t)
+                                          for t in sub_times((t_slave - self.t0) / 1e9, tm.exposure_s)])
         truth = self._truth((t_master - self.t0) / 1e9)
         self.truth_pan_rad = truth if math.isfinite(truth) else None
         self.exposure_ns = (t_master, t_slave) if self.stamps else None
         self._last = (scene, slave)
         if self.rows is None:
-            return expose(self.rig, scene, slave)
+            return lies.images(at, None, *expose(self.rig, scene, slave))
         from ..sim.optics import Region
 
         w, h = self.size
@@ -299,7 +313,7 @@ class SimSource(Source):
         band = expose(self.rig, scene, slave, Region.band(w, y0, y1))
         out = np.zeros((2, h, w), np.uint8)
         out[0, y0:y1], out[1, y0:y1] = band
-        return out[0], out[1]
+        return lies.images(at, (y0, y1), out[0], out[1])
 
     def preview(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
         """The latest pair read, rendered whole at width x height without noise (a preview at the cost of a

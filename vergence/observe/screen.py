@@ -255,6 +255,8 @@ def _status_lines(name: str, d: Status, c) -> list[str]:
     """A process's status: a reducer's gatherer counters, a capture's clipped shares (warned when high)."""
     out = []
     g = d.gatherer() if name.startswith("reducer/") else {}
+    if (fault := d.fault()) is not None:  # the loop holds: say it first, in red, with what to check
+        out.append(c(RED, f"FAULT {fault[0]}: {fault[1]}"))
     if g:
         pending = d.number("pending", 0, 2 ** 53)
         out.append(f"{name}: " + "  ".join(f"{k} {g[k]}" for k in ("frames", "complete", "dropped",

@@ -252,8 +252,9 @@ def _flat(prefix: str, value, out: list[tuple[str, str]]) -> None:
 
 def diagnostic(rig: str, status: Status, age_s: float, stale_s: float, bad_before: int | None) -> Diagnostic:
     """One process's DiagnosticStatus from its latest status (vergence.wire.status.Status), received age_s ago: STALE
-    when older than stale_s, ERROR when it said it exits, WARN when its `bad` total grew since the previous
-    status (bad_before; None: the first one), else OK. Its counters and fields as key-values."""
+    when older than stale_s, ERROR when it said it exits or names a fault (vergence.head.doubt), WARN when its `bad`
+    total grew since the previous status (bad_before; None: the first one), else OK. Its counters and fields as
+    key-values."""
     values: list[tuple[str, str]] = []
     for k, v in status.to_dict().items():
         if k not in ("role", "id"):
@@ -263,6 +264,8 @@ def diagnostic(rig: str, status: Status, age_s: float, stale_s: float, bad_befor
         return Diagnostic(STALE, name, f"no status for {age_s:.1f} s", rig, values)
     if status.exiting:
         return Diagnostic(ERROR, name, "exited", rig, values)
+    if (fault := status.fault()) is not None:
+        return Diagnostic(ERROR, name, f"fault {fault[0]}: {fault[1]}"[:400], rig, values)
     if bad_before is not None and status.bad_total > bad_before:
         kinds = ", ".join(f"{k} {v}" for k, v in sorted(status.bad.items()))
         return Diagnostic(WARN, name, f"bad messages: {kinds}", rig, values)

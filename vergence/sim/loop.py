@@ -24,12 +24,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..head.control import ControlSettings, Controller
+from ..head.doubt import digest
 from ..network.match import match
 from ..network.params import Params
 from ..motors.base import MotorSettings, Safety
 from ..motors.simulated import SimMotor
 from ..head.timing import CameraTiming, PanHistory
 from .camera import Schedule, expose, sub_times
+from .faults import Faults, Lies
 from .optics import Region
 from .rig import Rig
 
@@ -63,6 +65,7 @@ class Step:
     confidence: float
     target_deg: float | None
     scores: np.ndarray
+    fault: str | None = None  # the loop's doubt (vergence.head.doubt): the fault it holds on, None when none
 
     def to_dict(self) -> dict:
         """JSON-ready (NaN, an unknown truth, becomes None)."""
@@ -74,13 +77,14 @@ class Step:
                 "truth_pan_deg": known(self.truth_pan_deg),
                 "error_px": known(self.error_px), "offset_px": self.offset_px, "confident": self.confident,
                 "k": self.k, "v": self.v, "window": self.window, "confidence": self.confidence,
-                "target_deg": self.target_deg}
+                "target_deg": self.target_deg, "fault": self.fault}
 
 
 def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: ControlSettings | None = None,
                 motor: MotorSettings | None = None, rate_hz: float = 30.0, delay_s: float = DELAY_S,
                 fixations: dict[int, tuple[int, int]] | None = None, timing: CameraTiming | None = None,
-                state_hz: float = STATE_HZ, seed: int = 0) -> Iterator[Step]:
+                state_hz: float = STATE_HZ, seed: int = 0, faults: Faults | None = None,
+                focal_px: float | None = None) -> Iterator[Step]:
     """Yield frames + 1 Steps: the starting state (frame 0), then the state at each following exposure.
 
     rig: a Rig (a still scene) or a MovingRig (master_view(t), slave_view(pan, t), truth_pan(t)). motor: the
@@ -89,7 +93,9 @@ def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: Co
     dead band). timing: the cameras' (default: none of it, an image read the instant it is exposed).
     delay_s: from the read to the command. state_hz: the motor's position reports. seed: the jitter's.
     fixations: {frame: (x, y)}, the fovea at (x, y) of the master view from that frame on (default: the view
-    centre); a Step's truth and error stay the centre's (vergence.sim.fixation.truth_at gives the fovea's)."""
+    centre); a Step's truth and error stay the centre's (vergence.sim.fixation.truth_at gives the fovea's).
+    faults: the simulator's lies (vergence.sim.faults); focal_px: the focal length the controller is told (default
+    the rig's: a rig rendered at focal_true is told another)."""
     if not (delay_s >= 0 and math.isfinite(delay_s)):
         raise ValueError(f"delay {delay_s} s must be a finite number >= 0")
     if not (state_hz > 0 and math.isfinite(state_hz)):
@@ -103,7 +109,8 @@ def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: Co
     safety = Safety(ms, drive.open())
     controller = Controller(control, safety)  # asks the motor's limits of the Safety (as the reducer does)
     history = PanHistory(max_gap_s=max(0.1, 3.0 / state_hz))
-    history.add(0.0, drive.read_position())
+    lies = Lies(faults or Faults(), rig.start_pan_rad, seed)
+    history.add(0.0, lies.encoder(drive.read_position()))
     events: list = []  # (time, order, kind, frame, payload)
     order = [0]
 
@@ -122,48 +129,58 @@ def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: Co
         push(tr, "read", i)
     for k in range(1, int(times[-1][2] * state_hz) + 2):
         push(k / state_hz, "state")
+    if lies.f.stall is not None:
+        push(lies.f.stall[0], "stall")
+    focal = rig.focal_px if focal_px is None else focal_px
     at = None
     while events:
         t, _, kind, i, payload = heapq.heappop(events)
         clock[0] = max(clock[0], t)
         if kind == "slave":
-            shafts[i]["slave"].append((drive.shaft, payload))
+            shafts[i]["slave"].append((lies.camera(drive.shaft, payload), payload))
+        elif kind == "stall":
+            drive.write_goal(drive.shaft)  # it stops where it is
         elif kind in ("at_master", "at_slave"):
             shafts[i][kind] = drive.shaft
             if kind == "at_slave":  # the encoder's reading at the slave's exposure (see the docstring)
-                history.add(clock[0], drive.read_position())
+                history.add(clock[0], lies.encoder(drive.read_position()))
         elif kind == "state":
-            history.add(clock[0], drive.read_position())
+            history.add(clock[0], lies.encoder(drive.read_position()))
         elif kind == "read":
             at = (fixations or {}).get(i, at)
             push(t + delay_s, "command", i, _decide(rig, i, shafts.pop(i), times[i], at, params, controller,
-                                                    history, t + delay_s))
+                                                    history, t + delay_s, lies, focal))
         elif kind == "command":
             step, target = payload
             if target is not None:
                 target = safety.command(target).goal
-                if target is not None:
+                if target is not None and not lies.stalled(t):
                     drive.write_goal(target)
-                    history.add(clock[0], drive.read_position())
+                    history.add(clock[0], lies.encoder(drive.read_position()))
             yield replace(step, target_deg=None if target is None else math.degrees(target))
 
 
 def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, params: Params, controller: Controller,
-            history: PanHistory, t_now: float) -> tuple[Step, float | None]:
-    """One frame read: its images, the network's decision, the controller's target (None: no move)."""
+            history: PanHistory, t_now: float, lies: Lies, focal: float) -> tuple[Step, float | None]:
+    """One frame read: its images (as the cameras lie), the network's decision, the controller's target (None: no
+    move)."""
     t_master, t_slave, _ = times
-    master, slave = _band(rig, seen, at, params)
+    shown = dict(seen, slave=lies.inputs("slave", t_master, seen["slave"]),
+                 master_t=lies.inputs("master", t_master, seen["master_t"]))
+    master, slave = lies.images(t_master, at, *_band(rig, shown, at, params))
     m = match(master, slave, at, params)
     d = m.decision
     pan = history.at(t_slave)  # the slave's pan at its exposure, as the encoder reports it
     target = None
     if pan is not None:
-        target = controller.target(pan, d.offset_px, rig.focal_px, d.confident, t_s=t_slave, t_now=t_now,
-                                   centre_px=0.0 if at is None else at[0] - master.shape[1] // 2)
+        target = controller.target(pan, d.offset_px, focal, d.confident, t_s=t_slave, t_now=t_now,
+                                   centre_px=0.0 if at is None else at[0] - master.shape[1] // 2,
+                                   slave=digest(slave), master=digest(master), fovea=at)
     step = Step(frame=frame, t_s=t_master, pan_deg=math.degrees(seen["at_slave"]),
                 truth_pan_deg=math.degrees(rig.truth_pan(t_master)), error_px=rig.error_px(seen["at_master"], t_master),
                 offset_px=d.offset_px, confident=d.confident, k=d.k, v=d.v, window=m.window,
-                confidence=d.confidence, target_deg=None, scores=np.atleast_2d(m.scores)[d.v + params.vsearch])
+                confidence=d.confidence, target_deg=None, scores=np.atleast_2d(m.scores)[d.v + params.vsearch],
+                fault=None if controller.doubt.fault is None else str(controller.doubt.fault))
     return step, target
 
 

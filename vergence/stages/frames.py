@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 
+from ..head.doubt import digest
 from ..network import retina
 from ..config import LimitSettings
 from ..wire.messages import Frame, MessageError
@@ -58,7 +59,8 @@ def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, p
                  x=x, y=y, window=w, vsearch=params.vsearch, focal_px=float(focal_px), fovea=fovea.tobytes(),
                  band=band.tobytes(), plan=plan, circular=params.circular, support=params.support,
                  master_band=b"" if mband is None else mband.tobytes(), support_gamma=params.support_gamma,
-                 support_radius=params.support_radius_at(w))
+                 support_radius=params.support_radius_at(w), master_digest=digest(master),
+                 slave_digest=digest(slave))
 
 
 def frame_cost(frame: Frame) -> int:

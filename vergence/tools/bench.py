@@ -201,7 +201,8 @@ def bench_tracking(hzs=(0.25, 0.5, 1.0, 2.0), rates=(30.0, 60.0, 120.0), modes=(
             for mode in modes:
                 spec = f"sine:z=0.8,amp=0.3,hz={hz:g}"
                 steps = loop(spec, rate, mode, int(round(seconds * rate)))
-                row = dict(motion=spec, rate_hz=rate, mode=mode, **tracking_error(steps, int(round(rate))))
+                row = dict(motion=spec, rate_hz=rate, mode=mode, **tracking_error(steps, int(round(rate))),
+                           fault_frames=_faulted(steps))
                 rows.append(row)
                 if progress:
                     progress(row)
@@ -215,7 +216,8 @@ def bench_tracking(hzs=(0.25, 0.5, 1.0, 2.0), rates=(30.0, 60.0, 120.0), modes=(
             # overshoot is a negative error
             over = max(0.0, -min(s.error_px for s in after))
             row = dict(motion=spec, rate_hz=rate, mode=mode, settle_frames=settle,
-                       overshoot_px=over, **tracking_error(steps, int(round(rate)) + (settle or 0)))
+                       overshoot_px=over, **tracking_error(steps, int(round(rate)) + (settle or 0)),
+                       fault_frames=_faulted(steps))
             rows.append(row)
             if progress:
                 progress(row)
@@ -224,6 +226,11 @@ def bench_tracking(hzs=(0.25, 0.5, 1.0, 2.0), rates=(30.0, 60.0, 120.0), modes=(
             if isinstance(v, float) and not math.isfinite(v):
                 r[k] = None
     return rows
+
+
+def _faulted(steps) -> int:
+    """The frames of a run on which the loop's doubt held a fault (a clean run: none)."""
+    return sum(1 for s in steps if s.fault is not None)
 
 
 CAMERA_VARIANTS = {"-": {}, "skew 8 ms": {"skew_s": 0.008}, "exposure 8 ms": {"exposure_s": 0.008}}
@@ -258,7 +265,7 @@ def bench_camera(latencies=(0.0, 0.033, 0.066, 0.1), rates=(30.0, 60.0), hzs=(0.
                         e = tracking_error(steps, int(round(rate)))
                         row = dict(motion=spec, latency_ms=round(latency * 1e3, 1), rate_hz=rate, variant=variant,
                                    mode=mode, **{k: (v if math.isfinite(v) else None) if isinstance(v, float) else v
-                                                 for k, v in e.items()})
+                                                 for k, v in e.items()}, fault_frames=_faulted(steps))
                         rows.append(row)
                         if progress:
                             progress(row)

@@ -141,6 +141,9 @@ class Frame(Message):
     skew_ns: int = 0
     t_read_ns: int = 0
     pan_stale: bool = False
+    # the CRC-32 of each whole image as read (0: not known): a frozen camera repeats its bytes (vergence.head.doubt)
+    master_digest: int = 0
+    slave_digest: int = 0
 
     @property
     def t_slave_ns(self) -> int:

@@ -68,6 +68,16 @@ class Status(msgspec.Struct, frozen=True, kw_only=True):
             return {}
         return {cam: float(v) for cam, v in c.items() if cam in ("master", "slave") and _number(v, 0.0, 1.0)}
 
+    def fault(self) -> tuple[str, str] | None:
+        """A reducer's named fault (vergence.head.doubt: slave_frozen, reversed, stalled, master_frozen) and what to
+        check, or None; a name that is not one of them is not believed."""
+        from ..choices import Fault
+
+        f, note = self.extra.get("fault"), self.extra.get("fault_note")
+        if isinstance(f, str) and f in tuple(Fault):
+            return f, note[:400] if isinstance(note, str) else ""
+        return None
+
     def fixate_rejection(self) -> tuple[int, str] | None:
         """A capture's refusal of a fixate request: (the request's t_ns, why), or None."""
         r = self.extra.get("fixate_rejection")

@@ -1,0 +1,69 @@
+"""Issue #35 through real processes: `vergence up` with the sim source lying (a frozen slave camera, a camera that
+turns against the encoder), a Zenoh client reading the motor's states and the reducer's status. The slave never runs
+off: it stays within a few degrees of where it started, the status names the fault (and what to check), and a
+camera that thaws is followed again."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from procs import Procs, free_port, wait_for
+from vergence.sim import Rig
+from vergence.wire.messages import MotorState
+from vergence.wire.status import decode_status
+
+FOCAL = 500.0
+
+
+def _up(P, tmp_path, spec: str):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    P.endpoint = endpoint
+    P.start("up", "up", "--listen", endpoint, "--source", spec, "--workers", "2", "--rate", "60", connect=False)
+    s = P.session()
+    states = P.collect(s, P.key("motor_state"))
+    statuses = P.collect(s, P.key("status/reducer/*"))
+
+    def pans():
+        return [MotorState.from_bytes(b).pan_rad for _, b, _ in states.snapshot()]
+
+    def faults():
+        return [decode_status(b).fault() for _, b, _ in statuses.snapshot()]
+
+    return pans, faults
+
+
+def _truth() -> float:
+    """The converged pan at the centre of the default sim scene at f = 500 px (-2.75 degrees: 24 px from the sim
+    actuator's start at 0)."""
+    return Rig.from_spec(f"focal={FOCAL:g}").truth_pan_rad
+
+
+@pytest.mark.slow
+def test_up_with_a_reversed_camera_stays_within_3_degrees_and_names_it(tmp_path):
+    start = 0.0  # the sim actuator's
+    with Procs(tmp_path) as P:
+        pans, faults = _up(P, tmp_path, f"sim:focal={FOCAL:g}:reverse")
+        wait_for(lambda: any(f and f[0] == "reversed" for f in faults()), 40, "the reducer naming the fault",
+                 logs=P.logs)
+        note = next(f for f in faults() if f)[1]
+        assert "flip [actuator.motor] direction" in note
+        n = len(pans())
+        wait_for(lambda: len(pans()) >= n + 50, 10, "a second of motor states", logs=P.logs)
+        assert max(abs(math.degrees(p) - start) for p in pans()) <= 3.0
+
+
+@pytest.mark.slow
+def test_up_with_a_frozen_slave_holds_then_follows_when_it_thaws(tmp_path):
+    truth, start = _truth(), 0.0
+    with Procs(tmp_path) as P:
+        pans, faults = _up(P, tmp_path, f"sim:focal={FOCAL:g}:freeze=0-8")
+        wait_for(lambda: any(f and f[0] == "slave_frozen" for f in faults()), 40, "the reducer naming the fault",
+                 logs=P.logs)
+        assert max(abs(math.degrees(p) - start) for p in pans()) <= 3.0  # held near where it started
+        tol = math.atan(1.0 / FOCAL)
+        wait_for(lambda: faults()[-1] is None and abs(pans()[-1] - truth) <= tol, 30,
+                 "the fault cleared and the slave within 1 px of the truth after the thaw", logs=P.logs)
+        assert json.dumps(faults()[-1]) == "null"

@@ -1,0 +1,360 @@
+"""Whether the slave's image follows the motor (issue #35): every decision is checked against the motor's own
+motion, and a measurement that the motion cannot explain is a fault to name and hold on, never a target to chase.
+
+The check. A confident decision at the slave's exposure t says the target's pan is z = pan + a (a: the angle of
+its offset at the frame's focal length). Between a reference decision i and a newer one j the image moved by
+m = -(a_j - a_i) while the motor moved p = pan_j - pan_i; if the image follows, m = p less the target's own
+motion, which is predicted from the controller's estimate of its rate at i (v): r = (m + v dt) / p is 1. Where the
+motor moved enough (|p| >= MIN_MOVE) for what the prediction cannot know (the target's acceleration, the
+measurement's and the encoder's noise: the pair's slack) to be small against it, the pair is decisive: r below
+FOLLOWS_MIN says the image did not follow (near 0: a frozen slave camera or a slipping coupling; near -1: a camera
+turning the other way than the encoder says), r in FOLLOWS_MIN..FOLLOWS_MAX that it did (r away from 1: the focal
+length is off by r). A byte-identical slave image after the motor moved is a frozen camera outright. Good pursuit
+(an offset near 0 while the motor moves) is explained by the target's predicted motion, so it is not "frozen".
+
+The leash. Until the image has been seen to follow (at the start, after a fault), no command goes further than
+UNTRUSTED_DEG from the last pan where it followed (the anchor). Once it has, no command goes further than LEASH_DEG
+past the pan the last consistent measurement asked for (its z, moved on at its predicted rate): an image that
+stops following can take the slave at most that far before two decisive pairs name the fault.
+
+A fault: the slave goes back to the anchor and holds; the only moves are probes (PROBE_DEG from the anchor, one
+every PROBE_S), and when the image follows one again (or, for a stalled motor, the encoder moves) the loop resumes
+by itself. A frozen master camera (byte-identical master images for FROZEN_MASTER_S where they used to change)
+holds until it changes. A motor that does not move for STALL_S while commanded MIN_MOVE or more away is stalled.
+The library only: the reducer and `vergence sim` both run it through the Controller."""
+
+from __future__ import annotations
+
+import logging
+import math
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..choices import Fault
+
+__all__ = ["Doubt", "Fault", "ADVICE", "digest"]
+
+log = logging.getLogger("vergence.doubt")
+
+MIN_MOVE_DEG = 0.6  # a pair is decisive only where the motor moved at least this much
+SLACK_DEG = 0.15  # the encoder's ticks and noise, and the offset's, in a pair
+TARGET_ACCEL_DEG_S2 = 50.0  # what the target's predicted motion may be off by: accel x dt^2 / 2
+DECISIVE = 0.35  # a pair is decisive where its slack is at most this fraction of the motor's motion
+JUDGE_RATE_DEG_S = 36.0  # a pair is judged where the motor moved faster than this beyond the target's learnt rate
+TRACKING_DEG = 0.3  # an offset below this: tracking, not correcting (the target's rate is learnt) ...
+LEARN_RATE_DEG_S = 12.0  # ... as it is where the motor moved slower than this
+FOLLOWS_MIN, FOLLOWS_MAX = 0.5, 2.2  # r in this range: the image follows (r: image motion / motor motion)
+REVERSED_MAX = -0.35  # r at most this: the camera turns the other way
+FAILS = 2  # decisive pairs that did not follow, in a row, to name a fault
+TARGET_RATE_DEG_S = 30.0  # a target's rate: what seems faster is a jump (vergence of a sine of 2 Hz, 0.5-1.1 m: 23)
+LEAD_S = 0.1  # the leash widens by the target's motion over this (a set-point aims ahead of the last measurement)
+REF_MAX_S = 0.3  # a reference older than this is replaced by the newest decision (the leash's centre stays)
+UNTRUSTED_DEG = 2.5  # the leash about the anchor until the image has been seen to follow
+LEASH_DEG = 1.5  # the leash past the pan the last consistent measurement asked for
+PROBE_DEG, PROBE_S = 0.5, 1.0  # during a fault: a probing move this far from the anchor, at most one a period
+PROBE_MIN_DEG = 0.3  # a probe's pair counts when the motor moved at least this much
+SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within this
+IDENTICAL_MOVE_DEG = 0.5  # a byte-identical slave image after the motor moved this much is frozen
+FROZEN_MASTER_S = 0.3  # byte-identical master images for this long, where they used to change
+STALL_S = 0.5  # commanded MIN_MOVE or more away, and no move of STALL_MOVE_DEG for this long: stalled
+STALL_MOVE_DEG = 0.2
+PRECISE = 0.1  # a decisive pair whose slack is at most this fraction of the motion counts for the focal length
+FOCAL_PAIRS = 8  # such pairs before the focal length's ratio is named
+FOCAL_OFF = 0.2  # |median r - 1| above this: the focal length is off
+
+ADVICE = {
+    Fault.SLAVE_FROZEN: "the slave's image does not follow the motor: a frozen slave camera (the driver repeating "
+                        "its last image) or a slipping coupling between the motor and the camera; check the "
+                        "camera's cable and driver, and the coupling",
+    Fault.REVERSED: "the slave's image moves against the motor: the motor turns the other way than the encoder "
+                    "says; flip [actuator.motor] direction (or the camera's mounting) and restart",
+    Fault.STALLED: "the motor does not follow its commands: stalled, jammed, or its torque off (an overload); "
+                   "check the motor's power, its torque and what blocks it",
+    Fault.MASTER_FROZEN: "the master camera repeats the same image: a frozen master camera; check its cable and "
+                         "driver",
+}
+
+
+def digest(img: np.ndarray) -> int:
+    """The CRC-32 of an image's bytes (a frozen camera repeats them); never 0, which says "not known" in a Frame."""
+    return zlib.crc32(np.ascontiguousarray(img)) or 1
+
+
+@dataclass
+class _Seen:
+    t: float  # the slave's exposure, s
+    pan: float  # the slave's pan then, rad
+    a: float  # the angle of the measured offset, rad
+
+    @property
+    def z(self) -> float:
+        return self.pan + self.a  # where the target is, as this decision says
+
+
+class Doubt:
+    """The check and its leash for one slave camera (see the module's text). observe() every decision,
+    gate() every command; `fault` is the present fault (None: the image follows), `note` what to check."""
+
+    def __init__(self, start_pan: float | None = None):
+        self.fault: Fault | None = None
+        self.anchor: float | None = start_pan  # the last pan at which the image followed
+        self.trusted = False  # the image has been seen to follow since the start or the last fault
+        self.ref: _Seen | None = None  # the reference decision of the next pair
+        self.centre: _Seen | None = None  # the last consistent measurement (the leash's centre)
+        self.rate = 0.0  # the target's rate (rad/s), from consistent measurements only
+        self.fails: list[str] = []
+        self.t_fail = 0.0  # when the last pair did not follow
+        self.ratios: list[float] = []  # decisive pairs' r that followed (the focal length's ratio)
+        self.focal_ratio: float | None = None  # named when the ratios say the focal length is off
+        self.t_fault: float | None = None
+        self.t_probe: float | None = None
+        self.probe_sign = 1.0
+        self.returned = False  # the fault's move back to the anchor was sent
+        self.last_slave: tuple[int, float] | None = None  # (digest, pan) of the last frame
+        self.last_master: int | None = None
+        self.master_same_since: float | None = None
+        self.master_changes = 0
+        self.stall: tuple[float, float] | None = None  # (t, pan) since which a command far away has not moved it
+        self.faults = 0  # faults named so far
+        self.resumed = 0
+        self.t_last: float | None = None
+        self.fovea: tuple[int, int] | None = None
+
+    @property
+    def note(self) -> str:
+        if self.fault is not None:
+            return f"{self.fault}: {ADVICE[self.fault]}"
+        if self.focal_ratio is not None:
+            return f"focal length off: the image moves {self.focal_ratio:.2f} x what [rig] focal_px predicts"
+        return ""
+
+    # -- decisions ---------------------------------------------------------------------------------------------------
+    def observe(self, t: float, pan: float, a: float | None, slave: int | None = None,
+                master: int | None = None, fovea: tuple[int, int] | None = None) -> Fault | None:
+        """One decided frame: t the slave's exposure (s), pan the slave's pan then (rad), a the angle of a
+        confident decision's offset (None: no confident decision), slave and master the images' digests (None:
+        unknown), fovea the master point it was decided at (a new one is a new target). Returns the present
+        fault."""
+        if not (math.isfinite(t) and math.isfinite(pan)) or (self.t_last is not None and t <= self.t_last):
+            return self.fault  # out of order or not a time: nothing to learn
+        self.t_last = t
+        if fovea != self.fovea:
+            self.fovea, self.ref, self.centre, self.rate = fovea, None, None, 0.0  # a new target: afresh
+        if self.anchor is None:
+            self.anchor = pan
+        self._master(t, master)
+        frozen = self._identical(pan, slave)
+        self._stalled(t, pan)
+        if self.fault is not None:
+            self._probe_result(t, pan, a, frozen)
+            return self.fault
+        if frozen:
+            return self._fail(t, "frozen", f"a byte-identical slave image though the motor moved {IDENTICAL_MOVE_DEG}")
+        if a is None or not math.isfinite(a):
+            return self.fault
+        now = _Seen(t, pan, a)
+        if self.fails and t - self.t_fail > REF_MAX_S:
+            self.fails.clear()  # a suspicion nothing confirmed
+        if self.ref is None or t - self.ref.t > REF_MAX_S:
+            self.ref = now  # (the leash's centre stays where the last consistent measurement put it)
+            if self.centre is None:
+                self.centre = now
+            return self.fault
+        self._pair(self.ref, now)
+        return self.fault
+
+    def _pair(self, i: _Seen, j: _Seen) -> None:
+        """What the pair (i, j) says. Where the motor moved faster than any target (JUDGE_RATE_DEG_S, beyond the
+        target's learnt rate) and far enough, the image must show most of that motion, whatever the target did: the
+        pair is judged, the image followed (j's pan is verified) or did not (a fail). Otherwise nothing is judged:
+        a pair that agrees with the motor and the learnt rate, one where the target moved by itself (or jumped), or
+        one where the motor was no faster than a target, is consistent (the next reference and the leash's centre);
+        a fast move not yet far enough keeps i as the reference."""
+        dt = j.t - i.t
+        p = j.pan - i.pan
+        pred = self.rate * dt  # the target's predicted motion
+        moved = -(j.a - i.a) + pred  # the image's motion, the target's predicted motion taken out
+        e = moved - p  # what the motor's motion does not explain
+        slack = math.radians(SLACK_DEG + 0.5 * TARGET_ACCEL_DEG_S2 * dt * dt)
+        own = abs(p - pred)  # the motor's motion beyond the target's predicted one
+        big = abs(p) >= math.radians(MIN_MOVE_DEG) and slack <= DECISIVE * abs(p)
+        # (a pair that did not follow arms the judge: the next one that moved far enough is judged, fast or not)
+        if big and own >= math.radians(MIN_MOVE_DEG) and (self.fails or own >= math.radians(JUDGE_RATE_DEG_S) * dt):
+            r = moved / p
+            if r < FOLLOWS_MIN:
+                kind = "reversed" if r <= REVERSED_MAX else "frozen"
+                self._fail(j.t, kind, f"r = {r:.2f} over {math.degrees(p):.2f} deg")
+                return
+            if r <= FOLLOWS_MAX:
+                self._followed(j, r, slack <= PRECISE * abs(p))
+            self._consistent(i, j, learn=False)  # the motor was fast: its motion says nothing of the target's
+        elif abs(e) <= slack + 0.5 * abs(p):
+            if big:
+                self._followed(j, moved / p, False)
+            elif self.trusted and abs(p) < math.radians(SAME_PAN_DEG):
+                self.anchor = j.pan  # at rest where the image agrees: the pan to go back to
+            self._consistent(i, j)
+        elif abs(p) < 0.5 * abs(e) or abs(p) < math.radians(JUDGE_RATE_DEG_S) * dt:
+            self._consistent(i, j)  # the target moved by itself (or jumped), or the motor was no faster than it
+
+    def _followed(self, j: _Seen, r: float, precise: bool) -> None:
+        """A decisive pair whose image followed the motor: j's pan is verified (and a precise one's r counts
+        towards the focal length's ratio)."""
+        self.fails.clear()
+        if precise:
+            self.ratios = (self.ratios + [r])[-4 * FOCAL_PAIRS:]
+            self._focal()
+        self.trusted = True
+        self.anchor = j.pan
+
+    def _consistent(self, i: _Seen, j: _Seen, learn: bool = True) -> None:
+        """j agrees with i (or the target moved by itself between them): j is the next reference and the leash's
+        centre, and, while tracking (i's offset small) or where the motor moved slowly, the target's rate is learnt
+        (a jump faster than any target: the rate is 0): the image of a correction under way could teach the motor's
+        own motion (a slipping coupling's does)."""
+        dt = j.t - i.t
+        slow = abs(j.pan - i.pan) < math.radians(LEARN_RATE_DEG_S) * dt
+        if learn and dt > 0 and (slow or abs(i.a) < math.radians(TRACKING_DEG)):
+            v = (j.z - i.z) / (j.t - i.t)
+            vmax = math.radians(TARGET_RATE_DEG_S)
+            self.rate = 0.0 if abs(v) > vmax else 0.5 * self.rate + 0.5 * v
+        self.ref = self.centre = j
+
+    def _focal(self) -> None:
+        if len(self.ratios) >= FOCAL_PAIRS:
+            med = sorted(self.ratios)[len(self.ratios) // 2]
+            named = abs(med - 1) > FOCAL_OFF
+            if named and self.focal_ratio is None:
+                log.warning("the focal length is off: the image moves %.2f x what focal_px predicts", med)
+            self.focal_ratio = med if named else None
+
+    def _fail(self, t: float, kind: str, why: str) -> Fault | None:
+        if self.fails and self.fails[-1] != kind:
+            self.fails.clear()  # a fault is named by pairs that agree on it
+        self.fails.append(kind)
+        self.t_fail = t
+        if why.startswith("a byte-identical"):
+            self.fails.append(kind)  # the bytes say it outright
+        if len(self.fails) >= FAILS:
+            fault = Fault.REVERSED if kind == "reversed" else Fault.SLAVE_FROZEN
+            self._raise(t, fault, why)
+        return self.fault
+
+    def _raise(self, t: float, fault: Fault, why: str) -> None:
+        self.fault, self.t_fault, self.t_probe, self.returned = fault, t, t, False
+        self.trusted = False
+        self.fails.clear()
+        self.faults += 1
+        self.ref = None
+        log.error("fault %s (%s): holding at %.2f deg; %s", fault, why,
+                  math.degrees(self.anchor if self.anchor is not None else math.nan), ADVICE[fault])
+
+    def _clear(self, t: float, pan: float, how: str) -> None:
+        log.warning("fault %s cleared (%s): resuming from %.2f deg", self.fault, how, math.degrees(pan))
+        self.fault, self.t_fault = None, None
+        self.resumed += 1
+        self.anchor = pan
+        self.trusted = True
+        self.ref = self.centre = None
+        self.rate = 0.0
+        self.stall = None
+
+    def _identical(self, pan: float, slave: int | None) -> bool:
+        """The slave's image byte for byte what it was when first seen, though the motor moved IDENTICAL_MOVE_DEG
+        since (more than a backlash or the encoder's noise)."""
+        if slave is None:
+            return False
+        if self.last_slave is None or self.last_slave[0] != slave:
+            self.last_slave = (slave, pan)
+            return False
+        return abs(pan - self.last_slave[1]) >= math.radians(IDENTICAL_MOVE_DEG)
+
+    def _master(self, t: float, master: int | None) -> None:
+        if master is None:
+            return
+        if master != self.last_master:
+            if self.last_master is not None:
+                self.master_changes += 1
+            self.last_master, self.master_same_since = master, t
+            if self.fault is Fault.MASTER_FROZEN:
+                self._clear(t, self.anchor, "the master's images change again")
+            return
+        if self.fault is None and self.master_changes >= 3 and t - self.master_same_since >= FROZEN_MASTER_S:
+            self._raise(t, Fault.MASTER_FROZEN, f"the same master image for {t - self.master_same_since:.2f} s")
+
+    def _stalled(self, t: float, pan: float) -> None:
+        if self.stall is None or self.fault is not None:
+            return
+        t0, p0 = self.stall
+        if abs(pan - p0) >= math.radians(STALL_MOVE_DEG):
+            self.stall = None
+        elif t - t0 >= STALL_S:
+            self.anchor = pan  # the encoder tells the truth: the motor is here
+            self._raise(t, Fault.STALLED, f"no move in {t - t0:.2f} s")
+
+    def _probe_result(self, t: float, pan: float, a: float | None, frozen: bool) -> None:
+        if self.fault is Fault.MASTER_FROZEN or self.anchor is None:
+            return
+        away = pan - self.anchor
+        if self.fault is Fault.STALLED:
+            if self.t_probe is not None and abs(away) >= math.radians(PROBE_MIN_DEG):
+                self._clear(t, pan, "the motor moved again")
+            return
+        if a is None or not math.isfinite(a):
+            return
+        if abs(away) < math.radians(SAME_PAN_DEG):
+            self.ref = _Seen(t, pan, a)  # a fresh reference at the anchor for the next probe
+            return
+        if self.ref is None or frozen or abs(pan - self.ref.pan) < math.radians(PROBE_MIN_DEG):
+            return
+        r = -(a - self.ref.a) / (pan - self.ref.pan)
+        if FOLLOWS_MIN <= r <= FOLLOWS_MAX:
+            self._clear(t, pan, f"a probe of {math.degrees(pan - self.ref.pan):+.2f} deg moved the image r = {r:.2f}")
+
+    # -- commands ----------------------------------------------------------------------------------------------------
+    def gate(self, pan: float, goal: float | None, t_now: float) -> float | None:
+        """The command the doubt lets out for the controller's `goal` (None: no move) at the present `pan`."""
+        if self.fault is not None:
+            return self._during_fault(pan, t_now)
+        if goal is None or not math.isfinite(goal):
+            return None
+        if self.trusted and self.centre is not None:
+            c = self.centre
+            centre = c.z + self.rate * max(0.0, t_now - c.t)
+            lim = math.radians(LEASH_DEG) + abs(self.rate) * LEAD_S
+        elif self.anchor is not None:
+            centre, lim = self.anchor, math.radians(UNTRUSTED_DEG)
+        else:
+            return goal
+        goal = min(max(goal, centre - lim), centre + lim)
+        if self.fails and self.anchor is not None and abs(goal - self.anchor) > abs(pan - self.anchor):
+            goal = pan  # a pair did not follow: no further from the last pan that did, until the next says
+        if abs(goal - pan) >= math.radians(MIN_MOVE_DEG):
+            if self.stall is None:
+                self.stall = (t_now, pan)
+        else:
+            self.stall = None
+        return goal
+
+    def _during_fault(self, pan: float, t_now: float) -> float | None:
+        if self.fault is Fault.MASTER_FROZEN or self.anchor is None:
+            return None
+        if not self.returned:
+            self.returned = True
+            return self.anchor  # back to the last pan at which the image followed
+        if self.t_probe is not None and t_now - self.t_probe >= PROBE_S:
+            self.t_probe = t_now
+            self.probe_sign = -self.probe_sign
+            return self.anchor + self.probe_sign * math.radians(PROBE_DEG)
+        if self.t_probe is not None and t_now - self.t_probe >= PROBE_S / 2 and abs(pan - self.anchor) > math.radians(
+                SAME_PAN_DEG):
+            return self.anchor  # a probe's time is over: back to the anchor
+        return None
+
+    def status(self) -> dict:
+        """For the reducer's status: the fault (or None), what to check, and the counts."""
+        return {"fault": None if self.fault is None else str(self.fault), "fault_note": self.note,
+                "faults": self.faults, "faults_cleared": self.resumed,
+                "focal_ratio": None if self.focal_ratio is None else round(self.focal_ratio, 3)}
