@@ -1,4 +1,4 @@
-"""`vergence bench kernel|match|messages|pipeline|tracking|ros2|start`: benchmarks that print ratios against
+"""`vergence bench kernel|match|messages|pipeline|tracking|faults|ros2|start`: benchmarks that print ratios against
 baselines run alongside (tracking: the p controller is the predictive one's baseline, in the same virtual-time
 runs; start: the later starts are the first's)."""
 
@@ -37,6 +37,13 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "rates (default 30,60) x sine 0.5/1 Hz x {-, skew 8 ms, exposure 8 ms} x predictive/p, the "
                         "slave starting parallel (as vergence sim --camera-latency runs it)")
     t.add_argument("--latencies", default="0,0.033,0.066,0.1", help="--camera: seconds (default 0,0.033,0.066,0.1)")
+    f = sub.add_parser("faults", help="the simulator's lies (frozen, slipping, reversed, stalled, black cameras and "
+                                      "motors) against the loop's doubt: time to name each, excursion, recovery, and "
+                                      "false faults on clean runs (simulated, virtual time)")
+    f.add_argument("--json", action="store_true", help="one JSON object per row")
+    f.add_argument("--seeds", default="0", help="the scenes' textures and noise (default 0; e.g. 0,1,2)")
+    f.add_argument("--rates", default="30,60", help="camera rates, Hz (default 30,60)")
+    f.add_argument("--latencies", default="0,0.066", help="the images' age when read, s (default 0,0.066)")
     try:
         importlib.import_module("services.offline.bench_pipeline").configure(
             sub.add_parser("pipeline", help="capture-to-command latency and throughput over Zenoh"))
@@ -148,6 +155,36 @@ def _tracking(args) -> int:
     return 0
 
 
+def _faults(args) -> int:
+    from vergence.tools.faults import bench_faults
+
+    try:
+        rates, latencies = _numbers(args.rates), _numbers(args.latencies)
+        seeds = tuple(int(v) for v in args.seeds.split(","))
+        if not rates or min(rates) <= 0 or min(latencies, default=0) < 0 or min(seeds, default=0) < 0:
+            raise ValueError
+    except ValueError:
+        print("vergence bench faults: --rates, --latencies and --seeds are comma-separated numbers (rates > 0, "
+              "latencies >= 0, seeds whole >= 0)", file=sys.stderr)
+        return 2
+
+    def fmt(v, spec):
+        return "-" if v is None else format(v, spec)
+
+    def show(r):
+        if args.json:
+            print(json.dumps(r), flush=True)
+            return
+        print(f"{r['lie']:14s} {r['scene']:7s} {r['rate_hz']:4.0f} Hz {r['latency_ms']:3d} ms seed {r['seed']}  "
+              f"fault {fmt(r.get('fault'), '14s')} after {fmt(r.get('diagnosed_s'), '5.3f')} s  excursion "
+              f"{fmt(r.get('excursion_deg'), '5.2f')} deg {fmt(r.get('excursion_px'), '6.1f')} px  commands "
+              f"{fmt(r.get('commands_in_fault'), '3d')}  back {fmt(r.get('recovered_s'), '5.2f')} s  false "
+              f"{r['false_fault_frames']}", flush=True)
+
+    bench_faults(rates, latencies, seeds, progress=show)
+    return 0
+
+
 def _camera(args, latencies, rates, hzs) -> int:
     from vergence.tools.bench import bench_camera
 
@@ -176,6 +213,8 @@ def run(args: argparse.Namespace) -> int:
         return _messages(args)
     if args.bench == "tracking":
         return _tracking(args)
+    if args.bench == "faults":
+        return _faults(args)
     if args.bench == "kernel":
         return _kernel(args)
     if args.bench == "match":

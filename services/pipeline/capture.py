@@ -335,6 +335,7 @@ class Capture:
                                t_capture_ns=t_ns, clip=clip, clipped=clipped)
             frame.master_pan_rad, frame.tilt_rad = self.master_pan, self.tilt
             frame.skew_ns, frame.t_read_ns, frame.pan_stale = t_slave - t_ns, t_read, stale
+            frame.follows = self.source.follows_pan
         except retina.BorderError:
             windows.reset()
             return False

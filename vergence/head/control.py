@@ -138,14 +138,17 @@ class Controller:
     def target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool = True,
                centre_px: float = 0.0, t_s: float | None = None, t_now: float | None = None,
                slave: int | None = None, master: int | None = None,
-               fovea: tuple[int, int] | None = None) -> float | None:
+               fovea: tuple[int, int] | None = None, doubt: bool = True) -> float | None:
         """The new absolute pan (radians) or None when the camera should not move (not confident, inside
         the dead band, a non-finite input, or a fault: vergence.head.doubt). pan_at_capture: the slave's pan at
         its exposure; t_s: that exposure's time in seconds (any epoch; the predictive mode needs it, and acts as
         "p" without it); t_now: the time of this command on the same clock (default t_s: an image with no
         latency); slave, master: the images' digests (frozen cameras repeat them), None when not known; fovea: the
-        master point decided at (a new one is a new target)."""
+        master point decided at (a new one is a new target); doubt: False where the slave's image cannot follow the
+        motor (a still pair, a video: nothing to check)."""
         d = self.doubt
+        if not doubt:
+            return self._aim(pan_at_capture, offset_px, focal_px, confident, centre_px, t_s, t_now)
         if t_s is not None and math.isfinite(t_s) and math.isfinite(pan_at_capture):
             ok = confident and math.isfinite(offset_px) and math.isfinite(focal_px) and focal_px > 0
             a = pixels_to_angle(offset_px, focal_px, centre_px) if ok else None

@@ -51,7 +51,7 @@ FAILS = 2  # decisive pairs that did not follow, in a row, to name a fault
 TARGET_RATE_DEG_S = 30.0  # a target's rate: what seems faster is a jump (vergence of a sine of 2 Hz, 0.5-1.1 m: 23)
 LEAD_S = 0.1  # the leash widens by the target's motion over this (a set-point aims ahead of the last measurement)
 REF_MAX_S = 0.3  # a reference older than this is replaced by the newest decision (the leash's centre stays)
-UNTRUSTED_DEG = 2.5  # the leash about the anchor until the image has been seen to follow
+UNTRUSTED_DEG = 2.9  # the leash about the anchor until the image has been seen to follow
 LEASH_DEG = 1.5  # the leash past the pan the last consistent measurement asked for
 PROBE_DEG, PROBE_S = 0.5, 1.0  # during a fault: a probing move this far from the anchor, at most one a period
 PROBE_MIN_DEG = 0.3  # a probe's pair counts when the motor moved at least this much
@@ -78,8 +78,12 @@ ADVICE = {
 
 
 def digest(img: np.ndarray) -> int:
-    """The CRC-32 of an image's bytes (a frozen camera repeats them); never 0, which says "not known" in a Frame."""
-    return zlib.crc32(np.ascontiguousarray(img)) or 1
+    """The CRC-32 of an image's bytes (a frozen camera repeats them); never 0, which says "not known" in a Frame,
+    as it is for a flat image (a black frame repeats itself and is no frozen camera)."""
+    img = np.ascontiguousarray(img)
+    if img.size == 0 or img.min() == img.max():
+        return 0
+    return zlib.crc32(img) or 1
 
 
 @dataclass
@@ -117,6 +121,10 @@ class Doubt:
         self.master_same_since: float | None = None
         self.master_changes = 0
         self.stall: tuple[float, float] | None = None  # (t, pan) since which a command far away has not moved it
+        self.t_bound: float | None = None  # since when a head not yet seen to follow is held at its leash's end
+        self.probe_ref: _Seen | None = None  # ... and the decision before its probe
+        self.probe_goal = 0.0
+        self.last_seen: _Seen | None = None  # the latest confident decision
         self.faults = 0  # faults named so far
         self.resumed = 0
         self.t_last: float | None = None
@@ -155,6 +163,10 @@ class Doubt:
         if a is None or not math.isfinite(a):
             return self.fault
         now = _Seen(t, pan, a)
+        self.last_seen = now
+        if self.probe_ref is not None and not self.trusted:
+            self._untrusted_probe(t, now)
+            return self.fault
         if self.fails and t - self.t_fail > REF_MAX_S:
             self.fails.clear()  # a suspicion nothing confirmed
         if self.ref is None or t - self.ref.t > REF_MAX_S:
@@ -326,6 +338,8 @@ class Doubt:
             lim = math.radians(LEASH_DEG) + abs(self.rate) * LEAD_S
         elif self.anchor is not None:
             centre, lim = self.anchor, math.radians(UNTRUSTED_DEG)
+            if (probe := self._stuck(pan, goal, t_now, lim)) is not None:
+                return probe
         else:
             return goal
         goal = min(max(goal, centre - lim), centre + lim)
@@ -337,6 +351,38 @@ class Doubt:
         else:
             self.stall = None
         return goal
+
+    def _stuck(self, pan: float, goal: float, t_now: float, lim: float) -> float | None:
+        """A head not yet seen to follow, held at its leash's end for PROBE_S (its image was not confident while it
+        moved, say): a probe PROBE_DEG back toward the anchor, whose image shows whether it follows (observe). The
+        probe's goal, or None."""
+        if self.probe_ref is not None:
+            return self.probe_goal if t_now - self.t_bound < 2 * PROBE_S else self._unprobe()
+        if abs(goal - self.anchor) <= lim or abs(abs(pan - self.anchor) - lim) > math.radians(SAME_PAN_DEG):
+            self.t_bound = None
+        elif self.t_bound is None:
+            self.t_bound = t_now
+        elif t_now - self.t_bound >= PROBE_S and self.last_seen is not None:
+            self.probe_ref, self.t_bound = self.last_seen, t_now
+            self.probe_goal = pan - math.copysign(math.radians(PROBE_DEG), goal - self.anchor)
+            return self.probe_goal
+        return None
+
+    def _unprobe(self) -> None:
+        self.probe_ref = self.t_bound = None
+
+    def _untrusted_probe(self, t: float, now: _Seen) -> None:
+        """The image of an untrusted head's probe: it followed (the head is trusted) or not (a fail)."""
+        ref, p = self.probe_ref, now.pan - self.probe_ref.pan
+        if abs(p) < math.radians(PROBE_MIN_DEG):
+            return
+        r = -(now.a - ref.a) / p
+        self._unprobe()
+        if FOLLOWS_MIN <= r <= FOLLOWS_MAX:
+            self._followed(now, r, False)
+            self.ref = self.centre = now
+        else:
+            self._fail(t, "reversed" if r <= REVERSED_MAX else "frozen", f"a probe moved the image r = {r:.2f}")
 
     def _during_fault(self, pan: float, t_now: float) -> float | None:
         if self.fault is Fault.MASTER_FROZEN or self.anchor is None:

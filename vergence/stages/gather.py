@@ -90,7 +90,7 @@ def _command(frame: Frame, d: Decision, controller: Controller, now_ns: int | No
     target = controller.target(frame.pan_rad, d.offset_px, frame.focal_px, d.confident,
                                centre_px=frame.x - frame.width // 2, t_s=frame.t_slave_ns / 1e9, t_now=now / 1e9,
                                slave=frame.slave_digest or None, master=frame.master_digest or None,
-                               fovea=(frame.x, frame.y))
+                               fovea=(frame.x, frame.y), doubt=frame.follows)
     if target is None:
         return None
     return Command(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, pan_rad=target,

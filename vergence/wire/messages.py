@@ -144,6 +144,9 @@ class Frame(Message):
     # the CRC-32 of each whole image as read (0: not known): a frozen camera repeats its bytes (vergence.head.doubt)
     master_digest: int = 0
     slave_digest: int = 0
+    # the slave's image moves with the slave motor (a camera, the simulator; not a still pair or a video, taken at
+    # one pan): only then is each decision checked against the motor's motion
+    follows: bool = True
 
     @property
     def t_slave_ns(self) -> int:

@@ -1,0 +1,83 @@
+"""`vergence bench faults` (issue #35): each of the simulator's lies (vergence.sim.faults) at 30 and 60 Hz, with and
+without 66 ms of camera latency, on the moving target and on the still scene, in `vergence sim`'s loop (virtual
+time, f 500 px, b 0.06 m): how long the loop took to name the fault, how far the slave went past the pan the last
+decision before the lie asked for (a reversed camera: from where it started), the commands sent during the fault,
+and how long after the lie ended the fault had cleared with the slave within 1 px of the truth; and the same runs
+without a lie, whose faults are false ones. One dict per row."""
+
+from __future__ import annotations
+
+import math
+
+__all__ = ["bench_faults", "LIES"]
+
+# the lie of each row, over WINDOW; None: the clean run (its faults are false ones)
+LIES = (None, "freeze", "slip", "reverse", "stall", "freeze_master", "black")
+WINDOW = (1.0, 3.0)  # s: the lie from 1 to 3 s (reverse: from the start, the whole run)
+SECONDS = 6.0
+STILL_OFF_PX = 60.0  # the still scene: the slave starts this far off, and the lie begins as it corrects
+
+
+def _spec(lie: str | None, start: float) -> str:
+    if lie is None:
+        return ""
+    if lie == "reverse":
+        return "reverse"
+    return f"{lie}={start:g}-{WINDOW[1]:g}"
+
+
+def _row(steps, lie: str | None, start: float, focal: float) -> dict:
+    """The figures of one run (see the module's text)."""
+    faulted = [s for s in steps if s.fault]
+    if lie is None:
+        return dict(false_fault_frames=len(faulted))
+    end = SECONDS if lie == "reverse" else WINDOW[1]
+    before = max((s for s in steps if s.t_s < start and s.confident), key=lambda s: s.t_s, default=steps[0])
+    # the pan the last decision before the lie asked for, and how far past it (beyond, in the move's direction)
+    asked = before.pan_deg + math.degrees(math.atan(before.offset_px / focal)) if before.confident else before.pan_deg
+    way = 1.0 if asked >= before.pan_deg else -1.0
+    during = [s for s in steps if start <= s.t_s < end]
+    first = next((s for s in faulted if s.t_s >= start), None)
+    excursion = max((max(0.0, way * (s.pan_deg - asked)) for s in during), default=0.0)
+    if lie == "reverse":  # from the start: how far from where it started
+        excursion = max((abs(s.pan_deg - before.pan_deg) for s in during), default=0.0)
+    # back: the first frame after the lie with the fault cleared and the slave within 1 px of the truth
+    back = None if lie == "reverse" else next(
+        (s.t_s - end for s in steps if s.t_s >= end and not s.fault and abs(s.error_px) <= 1), None)
+    return dict(fault=first.fault if first else None, diagnosed_s=None if first is None else first.t_s - start,
+                excursion_deg=excursion, excursion_px=focal * math.tan(math.radians(excursion)),
+                commands_in_fault=sum(1 for s in faulted if s.target_deg is not None and s.t_s < end),
+                recovered_s=back, false_fault_frames=sum(1 for s in faulted if s.t_s < start))
+
+
+def bench_faults(rates=(30.0, 60.0), latencies=(0.0, 0.066), seeds=(0,), lies=LIES, progress=None) -> list[dict]:
+    """Every lie x scene x rate x latency x seed (the scene's texture and the noise), as the module says."""
+    from ..head.control import ControlSettings
+    from ..head.timing import CameraTiming
+    from ..sim.faults import FAULT_KEYS, Faults
+    from ..sim.loop import closed_loop
+    from ..sim.moving import MovingRig
+    from ..spec import parse
+
+    rows = []
+    for scene in ("moving", "still"):
+        for lie in lies:
+            if lie == "freeze_master" and scene == "still":
+                continue  # a clean still scene repeats its master: nothing tells a frozen one
+            for rate in rates:
+                for latency in latencies:
+                    for seed in seeds:
+                        motion = "sine:z=0.8,amp=0.3,hz=0.5" if scene == "moving" else "still:z=0.8"
+                        rig = MovingRig.from_options(motion=motion, focal="500", seed=str(seed), noise="1")
+                        rig.start_pan_rad = rig.truth_pan(0.0) - (math.atan(STILL_OFF_PX / 500)
+                                                                  if scene == "still" else 0.0)
+                        start = 0.0 if lie == "reverse" else (0.05 if scene == "still" else WINDOW[0])
+                        faults = Faults.take(parse(_spec(lie, start), FAULT_KEYS, "bench faults"))
+                        steps = list(closed_loop(rig, int(round(SECONDS * rate)), None, ControlSettings(), None,
+                                                 rate, timing=CameraTiming(latency), faults=faults, seed=seed))
+                        row = dict(lie=lie or "-", scene=scene, rate_hz=rate, latency_ms=round(latency * 1e3),
+                                   seed=seed, **_row(steps, lie, start, rig.focal_px))
+                        rows.append(row)
+                        if progress:
+                            progress(row)
+    return rows
