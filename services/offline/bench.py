@@ -110,6 +110,11 @@ def _messages(args) -> int:
     return 0
 
 
+def _fmt(v, spec: str) -> str:
+    """v in spec, or "-" as wide where there is no value."""
+    return format(v, spec) if v is not None else format("-", spec.split(".")[0].rstrip("fds") + "s")
+
+
 def _numbers(text: str) -> tuple[float, ...]:
     return tuple(float(x) for x in text.split(","))
 
@@ -134,17 +139,14 @@ def _tracking(args) -> int:
         print(f"{'motion':28s} {'Hz':>5s} {'mode':>10s} {'RMS px':>7s} {'max px':>7s} {'RMS deg':>8s} "
               f"{'max deg':>8s} {'settle':>6s} {'over px':>7s}")
 
-    def fmt(v, spec):
-        return format(v, spec) if v is not None else format("-", spec.split(".")[0].rstrip("f") + "s")
-
     def show(r):
         if args.json:
             print(json.dumps(r), flush=True)
             return
-        print(f"{r['motion']:28s} {r['rate_hz']:5.0f} {r['mode']:>10s} {fmt(r['rms_px'], '7.2f')} "
-              f"{fmt(r['max_px'], '7.2f')} {fmt(r['rms_deg'], '8.3f')} {fmt(r['max_deg'], '8.3f')} "
-              f"{fmt(r.get('settle_frames'), '6d') if 'settle_frames' in r else ' ' * 6} "
-              f"{fmt(r.get('overshoot_px'), '7.2f') if 'overshoot_px' in r else ''}", flush=True)
+        print(f"{r['motion']:28s} {r['rate_hz']:5.0f} {r['mode']:>10s} {_fmt(r['rms_px'], '7.2f')} "
+              f"{_fmt(r['max_px'], '7.2f')} {_fmt(r['rms_deg'], '8.3f')} {_fmt(r['max_deg'], '8.3f')} "
+              f"{_fmt(r.get('settle_frames'), '6d') if 'settle_frames' in r else ' ' * 6} "
+              f"{_fmt(r.get('overshoot_px'), '7.2f') if 'overshoot_px' in r else ''}", flush=True)
 
     bench_tracking(hzs, rates, seconds=args.seconds, seed=args.seed, progress=show)
     if not args.json:
@@ -168,17 +170,14 @@ def _faults(args) -> int:
               "latencies >= 0, seeds whole >= 0)", file=sys.stderr)
         return 2
 
-    def fmt(v, spec):
-        return "-" if v is None else format(v, spec)
-
     def show(r):
         if args.json:
             print(json.dumps(r), flush=True)
             return
         print(f"{r['lie']:14s} {r['scene']:7s} {r['rate_hz']:4.0f} Hz {r['latency_ms']:3d} ms seed {r['seed']}  "
-              f"fault {fmt(r.get('fault'), '14s')} after {fmt(r.get('diagnosed_s'), '5.3f')} s  excursion "
-              f"{fmt(r.get('excursion_deg'), '5.2f')} deg {fmt(r.get('excursion_px'), '6.1f')} px  commands "
-              f"{fmt(r.get('commands_in_fault'), '3d')}  back {fmt(r.get('recovered_s'), '5.2f')} s  false "
+              f"fault {_fmt(r.get('fault'), '14s')} after {_fmt(r.get('diagnosed_s'), '5.3f')} s  excursion "
+              f"{_fmt(r.get('excursion_deg'), '5.2f')} deg {_fmt(r.get('excursion_px'), '6.1f')} px  commands "
+              f"{_fmt(r.get('commands_in_fault'), '3d')}  back {_fmt(r.get('recovered_s'), '5.2f')} s  false "
               f"{r['false_fault_frames']}", flush=True)
 
     bench_faults(rates, latencies, seeds, progress=show)

@@ -127,3 +127,14 @@ def test_bench_start_times_the_first_start_against_the_later_one():
         assert 0 < row["decision_s"] < row["following_s"] < 180 and row["trouble"] == []
     assert first["following_s"] > later["following_s"] + first["compile_s"] / 2
     assert later["ratio_vs_later"] == 1.0 and first["ratio_vs_later"] == first["following_s"] / later["following_s"]
+
+
+@pytest.mark.slow
+def test_bench_faults_runs_from_the_cli_and_refuses_bad_lists():
+    """`vergence bench faults` (the figures: tests/vergence/tools/test_faults.py): its rows as JSON, each lie's name and
+    a count of false faults in each; a list that is not numbers is refused with exit 2."""
+    rows = _rows("faults", "--rates", "30", "--latencies", "0", "--json", timeout=300)
+    assert [(r["lie"], r["scene"]) for r in rows][:3] == [("-", "moving"), ("freeze", "moving"), ("slip", "moving")]
+    assert len(rows) == 13 and all(r["false_fault_frames"] == 0 for r in rows)
+    r = subprocess.run(CLI + ["faults", "--rates", "fast"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "comma-separated numbers" in r.stderr

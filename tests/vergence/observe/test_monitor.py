@@ -280,6 +280,21 @@ def test_capture_status_says_what_each_camera_clips():
                                                                                color=False)
 
 
+def test_a_named_fault_is_a_red_line_with_what_to_check():
+    """The reducer's `fault` (vergence.head.doubt): first among its lines, in red, with its note; a name that is no
+    fault shows nothing."""
+    mon = Monitor("head")
+    run_stream(mon, 1.0, 100.0)
+    st = {"role": "reducer", "id": "r-1", "pid": 1, "t_ns": T0, "counters": {}, "bad": {}, "gatherer": {"frames": 3},
+          "fault": "slave_frozen", "fault_note": "slave_frozen: check the camera's cable and driver"}
+    mon.feed("vergence/head/status/reducer/r-1", json.dumps(st).encode())
+    s = mon.snapshot(T0 + 2_000 * MS)
+    assert "FAULT slave_frozen: slave_frozen: check the camera's cable and driver" in render_text(s, color=False)
+    assert "\x1b[31mFAULT slave_frozen" in render_text(s, color=True)
+    mon.feed("vergence/head/status/reducer/r-1", json.dumps(dict(st, fault="gremlins")).encode())
+    assert "FAULT" not in render_text(mon.snapshot(T0 + 2_000 * MS), color=False)
+
+
 def test_screen_lines_fit_the_terminal():
     """Each screen line fits the terminal's width (ANSI codes do not count): a line too wide is broken between
     its fields, the rest on the next line indented by 2, nothing lost."""

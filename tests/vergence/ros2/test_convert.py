@@ -108,6 +108,11 @@ def test_diagnostic_levels_and_values():
                               "published_hz": "29.97"}
     assert conv.diagnostic("head", status_of(dict(raw, bad={"frame": 3})), 0.5, 3.0, 0).level == conv.WARN
     assert conv.diagnostic("head", status_of(dict(raw, bad={"frame": 3})), 0.5, 3.0, 3).level == conv.OK
+    # a named fault (vergence.head.doubt) is an ERROR with what to check; a name that is no fault is not believed
+    held = conv.diagnostic("head", status_of(dict(raw, fault="reversed", fault_note="reversed: flip it")), 0.5, 3.0, 0)
+    assert (held.level, held.message) == (conv.ERROR, "fault reversed: reversed: flip it")
+    assert conv.diagnostic("head", status_of(dict(raw, fault="gremlins")), 0.5, 3.0, 0).level == conv.OK
+    assert status_of(dict(raw, fault=None)).fault() is None
     assert conv.diagnostic("head", status_of(dict(raw, exiting=True)), 0.5, 3.0, None).level == conv.ERROR
     assert conv.diagnostic("head", st, 3.5, 3.0, None).level == conv.STALE
     with pytest.raises(MessageError, match="role"):
