@@ -4,18 +4,21 @@ motion, and a measurement that the motion cannot explain is a fault to name and 
 The check. A confident decision at the slave's exposure t says the target's pan is z = pan + a (a: the angle of
 its offset at the frame's focal length). Between a reference decision i and a newer one j the image moved by
 m = -(a_j - a_i) while the motor moved p = pan_j - pan_i; if the image follows, m = p less the target's own
-motion, which is predicted from the controller's estimate of its rate at i (v): r = (m + v dt) / p is 1. Where the
-motor moved enough (|p| >= MIN_MOVE) for what the prediction cannot know (the target's acceleration, the
-measurement's and the encoder's noise: the pair's slack) to be small against it, the pair is decisive: r below
-FOLLOWS_MIN says the image did not follow (near 0: a frozen slave camera or a slipping coupling; near -1: a camera
-turning the other way than the encoder says), r in FOLLOWS_MIN..FOLLOWS_MAX that it did (r away from 1: the focal
-length is off by r). A byte-identical slave image after the motor moved is a frozen camera outright. Good pursuit
-(an offset near 0 while the motor moves) is explained by the target's predicted motion, so it is not "frozen".
+motion, predicted from the target's rate as learnt here (from consistent decisions while tracking or while the
+motor moved slowly: a correction's image could teach the motor's own motion): r = (m + rate dt) / p is 1. Only
+where the motor moved faster than any target (JUDGE_RATE_DEG_S beyond the learnt rate) and at least MIN_MOVE_DEG,
+with the pair's slack (the target's acceleration, the offset's and the encoder's noise) small against it, must the
+image show most of that motion, whatever the target did: such a pair is judged. r below FOLLOWS_MIN says the image
+did not follow (near 0: a frozen slave camera or a slipping coupling; near -1: a camera turning the other way than
+the encoder says), r in FOLLOWS_MIN..FOLLOWS_MAX that it did (r away from 1: the focal length is off by r); two that
+did not, in a row and agreeing, name the fault. Pursuit, slow moves and jumps of the target are never judged. A
+byte-identical slave image after the motor moved IDENTICAL_MOVE_DEG is a frozen camera outright.
 
 The leash. Until the image has been seen to follow (at the start, after a fault), no command goes further than
-UNTRUSTED_DEG from the last pan where it followed (the anchor). Once it has, no command goes further than LEASH_DEG
-past the pan the last consistent measurement asked for (its z, moved on at its predicted rate): an image that
-stops following can take the slave at most that far before two decisive pairs name the fault.
+UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there for PROBE_S probes back to learn
+whether it follows. Once it has, no command goes further than LEASH_DEG past the pan the last consistent decision
+asked for (its z, moved on at the learnt rate); after a pair that did not follow, none further from the anchor
+than the slave already is, until the next pair says.
 
 A fault: the slave goes back to the anchor and holds; the only moves are probes (PROBE_DEG from the anchor, one
 every PROBE_S), and when the image follows one again (or, for a stalled motor, the encoder moves) the loop resumes
