@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import collections
+import json
 import logging
 import math
 
@@ -12,6 +13,7 @@ import numpy as np
 from vergence.wire import keys
 from vergence.wire.messages import Command, Frame, MessageError, MotorState, Preview, Profile, Decision
 from vergence.observe.monitor import decode
+from vergence.wire.status import status_of
 
 log = logging.getLogger("vergence.view")
 # what the cockpit subscribes to under vergence/<rig>/
@@ -41,6 +43,7 @@ ENTITIES = {
     "workers/alive": "the number of live workers",
     "workers/<id>": "1 while worker <id> is alive, 0 after",
     "status/<role>/<id>": "each process's status message (text log)",
+    "fault": "the reducer's named fault and what to check (ERROR), or its clearing (INFO), when it changes",
 }
 
 CONFIDENT, ABSTAINING = (40, 220, 60), (230, 150, 30)  # the match box's and the winner's bar's colours
@@ -88,6 +91,7 @@ class Cockpit:
         self.workers: set[str] = set()
         self.readout_ns: int | None = None  # the capture time of the decision last put in the readout
         self.motor_status: str | None = None  # the latest motor state's status (logged as text when it changes)
+        self.fault: tuple[str, str] | None = None  # the reducer's named fault (logged at `fault` when it changes)
 
     # -- helpers -------------------------------------------------------------------------------------------
 
@@ -248,3 +252,9 @@ class Cockpit:
         text = bytes(payload).decode("utf-8")  # decode() found it a JSON object
         self._time(None, t_ns)
         self._log(rest, self.rr.TextLog(text))
+        if rest.startswith("status/reducer/"):  # the loop's doubt (issue #35): a fault named or cleared is an event
+            fault = status_of(json.loads(text)).fault()
+            if fault != self.fault:
+                self.fault = fault
+                self._log("fault", self.rr.TextLog(f"FAULT {fault[0]}: {fault[1]}" if fault else "fault cleared",
+                                                   level="ERROR" if fault else "INFO"))

@@ -614,6 +614,26 @@ def test_each_change_of_the_motors_status_is_a_text_log_faults_as_errors(tmp_pat
                    ("motor absent: command ignored: motor absent for 2.1 s", "ERROR"), ("motor ok", "INFO")], got
 
 
+def test_a_named_fault_is_an_error_in_the_cockpit_and_its_clearing_an_info(tmp_path):
+    """Issue #35: the reducer's `fault` (vergence.head.doubt) goes to `fault` when it changes, ERROR with what to
+    check; cleared, INFO; the same fault again, or a forged name, logs nothing."""
+    import json
+
+    rec = rr.RecordingStream("vergence-test")
+    path = tmp_path / "f.rrd"
+    rec.save(str(path))
+    c = view.Cockpit(rr, rec)
+    st = {"role": "reducer", "id": "r-1", "counters": {}, "bad": {}}
+    for i, extra in enumerate([{}, {"fault": "reversed", "fault_note": "flip it"},
+                               {"fault": "reversed", "fault_note": "flip it"}, {"fault": "gremlins"},
+                               {"fault": "stalled", "fault_note": "torque"}]):
+        c._status("status/reducer/r-1", json.dumps(dict(st, **extra)).encode(), 1 + i)
+    rec.disconnect()
+    got = [(r["TextLog:text"][0], r["TextLog:level"][0]) for r in read_rrd(path)["/fault"]]
+    assert got == [("FAULT reversed: flip it", "ERROR"), ("fault cleared", "INFO"),
+                   ("FAULT stalled: torque", "ERROR")], got
+
+
 @pytest.mark.slow
 def test_view_save_on_a_full_filesystem_stops_with_one_line(tmp_path, tiny_fs):
     """`vergence view --save` into a 1 MiB tmpfs (issue #29): Rerun's writer fails silently, so the view
