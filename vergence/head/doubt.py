@@ -104,9 +104,9 @@ class Doubt:
     """The check and its leash for one slave camera (see the module's text). observe() every decision,
     gate() every command; `fault` is the present fault (None: the image follows), `note` what to check."""
 
-    def __init__(self, start_pan: float | None = None):
+    def __init__(self):
         self.fault: Fault | None = None
-        self.anchor: float | None = start_pan  # the last pan at which the image followed
+        self.anchor: float | None = None  # the last pan at which the image followed (the first pan seen)
         self.trusted = False  # the image has been seen to follow since the start or the last fault
         self.ref: _Seen | None = None  # the reference decision of the next pair
         self.centre: _Seen | None = None  # the last consistent measurement (the leash's centre)
@@ -115,7 +115,6 @@ class Doubt:
         self.t_fail = 0.0  # when the last pair did not follow
         self.ratios: list[float] = []  # decisive pairs' r that followed (the focal length's ratio)
         self.focal_ratio: float | None = None  # named when the ratios say the focal length is off
-        self.t_fault: float | None = None
         self.t_probe: float | None = None
         self.probe_sign = 1.0
         self.returned = False  # the fault's move back to the anchor was sent
@@ -258,7 +257,7 @@ class Doubt:
         return self.fault
 
     def _raise(self, t: float, fault: Fault, why: str) -> None:
-        self.fault, self.t_fault, self.t_probe, self.returned = fault, t, t, False
+        self.fault, self.t_probe, self.returned = fault, t, False
         self.trusted = False
         self.fails.clear()
         self.faults += 1
@@ -268,7 +267,7 @@ class Doubt:
 
     def _clear(self, t: float, pan: float, how: str) -> None:
         log.warning("fault %s cleared (%s): resuming from %.2f deg", self.fault, how, math.degrees(pan))
-        self.fault, self.t_fault = None, None
+        self.fault = None
         self.resumed += 1
         self.anchor = pan
         self.trusted = True
