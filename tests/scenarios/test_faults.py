@@ -18,10 +18,11 @@ from vergence.wire.status import decode_status
 FOCAL = 500.0
 
 
-def _up(P, tmp_path, spec: str):
+def _up(P, tmp_path, spec: str, *more: str):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     P.endpoint = endpoint
-    P.start("up", "up", "--listen", endpoint, "--source", spec, "--workers", "2", "--rate", "60", connect=False)
+    P.start("up", "up", "--listen", endpoint, "--source", spec, "--workers", "2", "--rate", "60", *more,
+            connect=False)
     s = P.session()
     states = P.collect(s, P.key("motor_state"))
     statuses = P.collect(s, P.key("status/reducer/*"))
@@ -53,6 +54,23 @@ def test_up_with_a_reversed_camera_stays_within_3_degrees_and_names_it(tmp_path)
         n = len(pans())
         wait_for(lambda: len(pans()) >= n + 50, 10, "a second of motor states", logs=P.logs)
         assert max(abs(math.degrees(p) - start) for p in pans()) <= 3.0
+
+
+@pytest.mark.slow
+def test_up_with_a_reversed_camera_and_the_direction_flipped_converges(tmp_path):
+    """What the `reversed` fault's note says to do: [actuator.motor] direction = -1 (applied for every driver, the
+    sim's too, by vergence.motors.runner), and the same reversed camera converges within 1 px, naming no fault."""
+    truth = _truth()
+    conf = tmp_path / "flip.toml"
+    conf.write_text("[actuator.motor]\ndirection = -1\n")
+    with Procs(tmp_path) as P:
+        pans, faults = _up(P, tmp_path, f"sim:focal={FOCAL:g}:reverse", "--config", str(conf))
+        tol = math.atan(1.0 / FOCAL)
+        wait_for(lambda: len(pans()) > 100 and abs(pans()[-1] - truth) <= tol, 40,
+                 "the slave within 1 px of the truth", logs=P.logs)
+        wait_for(lambda: len(faults()) >= 2, 10, "two statuses of the reducer", logs=P.logs)
+        assert all(f is None for f in faults()), faults()
+        assert max(abs(p - truth) for p in pans()[-50:]) <= tol
 
 
 @pytest.mark.slow

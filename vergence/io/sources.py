@@ -251,7 +251,8 @@ class SimSource(Source):
         self.gimbal = self.rig.gimbal
         self.t0: int | None = None  # the scene's time 0 (ns): the first exposure
         self.rng = np.random.default_rng(0)
-        self.lies = Lies(faults, float(self.rig.start_pan_rad))
+        self.lies = Lies(faults)
+        self.direction = 1  # [actuator.motor] direction: the shaft is direction x the pans the motor reports
         self._still_truth: tuple = (None, math.nan)  # (fovea, its truth) of the still scene
         self._last: tuple = ([0.0], [(self.start_pan_rad, 0.0)])  # the latest read's instants and pans
 
@@ -298,7 +299,7 @@ class SimSource(Source):
             settle(t_slave + round(tm.exposure_s * 5e8))
         lies, at = self.lies, (t_master - self.t0) / 1e9
         scene = lies.inputs("master", at, sub_times(at, tm.exposure_s))
-        slave = lies.inputs("slave", at, [(lies.camera(pan_of(self.t0 + round(t * 1e9)), t), t)
+        slave = lies.inputs("slave", at, [(lies.camera(self.direction * pan_of(self.t0 + round(t * 1e9)), t), t)
                                           for t in sub_times((t_slave - self.t0) / 1e9, tm.exposure_s)])
         truth = self._truth((t_master - self.t0) / 1e9)
         self.truth_pan_rad = truth if math.isfinite(truth) else None

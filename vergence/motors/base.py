@@ -34,7 +34,8 @@ class MotorSettings:
 
     id: bus id (Dynamixel). baud: serial speed. ticks_per_rev: encoder ticks per turn (Dynamixel X: 4096).
     zero: the tick count at pan 0 (2048, the centre of an X-series). direction: +1, or -1 when the motor
-    turns the camera toward decreasing image x for increasing ticks. min_deg/max_deg: soft limits of the pan
+    turns the camera the other way (toward decreasing image x for increasing ticks; the doubt's `reversed`):
+    applied by vergence.motors.runner for every driver, which is given direction x pan. min_deg/max_deg: soft limits of the pan
     (the one home of the pan limits, max_step_deg and dead_band_deg: the reducer's controller reads them
     here too, through a Safety; [control] has none).
     max_speed_deg_s: the motor's top speed (the simulator's, and Dynamixel Profile Velocity when
@@ -119,11 +120,12 @@ class MotorSettings:
         return math.radians(self.max_deg)
 
     def to_ticks(self, pan_rad: float) -> int:
-        """Goal Position for a pan: round(zero + direction * pan * ticks_per_rev / 2 pi)."""
-        return int(round(self.zero + self.direction * pan_rad * self.ticks_per_rev / (2 * math.pi)))
+        """Goal Position for the motor's angle (direction x pan, as MotorLoop gives it the driver): round(zero +
+        angle * ticks_per_rev / 2 pi)."""
+        return int(round(self.zero + pan_rad * self.ticks_per_rev / (2 * math.pi)))
 
     def from_ticks(self, ticks: int) -> float:
-        return self.direction * (ticks - self.zero) * 2 * math.pi / self.ticks_per_rev
+        return (ticks - self.zero) * 2 * math.pi / self.ticks_per_rev
 
 
 class MotorError(Exception):

@@ -13,7 +13,10 @@ with the simulated motor and a fake clock:
   bus) is lost the same way: nothing more is written to it, it is probed until it answers (issue #29);
 - lost for absent_s, the status turns "absent" and an error is logged, repeated every ABSENT_REPEAT_S; the
   commands meanwhile are ignored (counted); when it answers again it holds where it is (its goal register is
-  rewritten with its present position, vergence.motors.dynamixel) until a new command.
+  rewritten with its present position, vergence.motors.dynamixel) until a new command;
+- [actuator.motor] direction is applied here, for every driver (issue #35): a driver is given direction x pan
+  and its reading is multiplied by direction, so a motor that turns the other way (the doubt's `reversed`) is
+  fixed by one setting whatever drives it (sim, ROS 2, Dynamixel, line).
 """
 
 from __future__ import annotations
@@ -68,7 +71,7 @@ class MotorLoop:
     def start(self) -> MotorState:
         """Open the driver; a PortError here is fatal (the caller prints it). Disconnected is retried."""
         try:
-            present = self.driver.open()
+            present = self.s.direction * self.driver.open()
         except PortError:
             raise
         except MotorError as e:
@@ -111,7 +114,7 @@ class MotorLoop:
             if v.clamped:
                 self.note = f"clamped: {v.reason}"
                 self._once("clamped", f"command clamped: {v.reason}")
-            if self._io(self.driver.write_goal, v.goal) is not _FAILED:
+            if self._io(self._write, v.goal) is not _FAILED:
                 if self.status in ("hold", "starting", "error"):
                     self.status = "ok"
         self._read()
@@ -138,7 +141,7 @@ class MotorLoop:
         if wd > 0 and not self._held and now - self._last_cmd > wd:
             self._read()
             goal = self.safety.reset(self.pan)
-            self._io(self.driver.write_goal, goal)
+            self._io(self._write, goal)
             self._held = True
             self.status = "hold"
             self.note = f"watchdog: no command for {wd:g} s, holding {math.degrees(goal):.2f} deg"
@@ -172,7 +175,11 @@ class MotorLoop:
             return
         p = self._io(self.driver.read_position)
         if p is not _FAILED and math.isfinite(p):
-            self.pan = p
+            self.pan = self.s.direction * p
+
+    def _write(self, pan: float) -> None:
+        """A goal (already made safe) to the driver, in the motor's own sense of rotation."""
+        self.driver.write_goal(self.s.direction * pan)
 
     def _io(self, fn, *args):
         try:
@@ -209,7 +216,7 @@ class MotorLoop:
 
     def _reconnect(self) -> None:
         try:
-            present = self.driver.open()
+            present = self.s.direction * self.driver.open()
         except MotorError as e:
             self._delay = min(self.backoff[1], self._delay * 2)
             self._retry_at = self.clock() + self._delay
@@ -223,7 +230,7 @@ class MotorLoop:
     def _connected(self, present: float) -> None:
         self.pan = present
         if self.safety.reset(present) != present:  # found outside the soft limits: bring it back in
-            self._io(self.driver.write_goal, self.safety.goal)
+            self._io(self._write, self.safety.goal)
         self.status = "ok"
         self.note = ""
         self._last_cmd = self._answered = self.clock()

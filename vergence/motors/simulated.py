@@ -19,6 +19,7 @@ from the same goals at the same instants, and knows the shaft without waiting fo
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import math
 import time
 from collections import deque
@@ -52,7 +53,9 @@ class SimMotor(Driver):
         s = self.settings
         self.clock_ns = clock_ns if clock is None else (lambda: round(clock() * 1e9))
         self.tick_rad = 2 * math.pi / s.ticks_per_rev
-        self.pan = math.radians(s.start_deg)  # the shaft at the grid step self.k (at self.k * H_NS ns)
+        # the shaft at the grid step self.k (at self.k * H_NS ns), in the motor's own sense (MotorLoop gives it
+        # direction x pan): start_deg is the pan it starts at
+        self.pan = s.direction * math.radians(s.start_deg)
         self.vel = 0.0
         self.goal = self.pan
         self.pending: deque[tuple[int, float]] = deque()  # (the step it reaches the motor at, goal)
@@ -61,7 +64,7 @@ class SimMotor(Driver):
         self.position_ns: int | None = None  # the instant of the latest read_position
         self._written: int | None = None  # the instant of a goal written since the latest read
         self.torque = False
-        self.hard = (s.min_rad - math.radians(1), s.max_rad + math.radians(1))
+        self.hard = tuple(sorted(s.direction * x for x in (s.min_rad - math.radians(1), s.max_rad + math.radians(1))))
         self.vmax = math.radians(s.max_speed_deg_s) or math.inf
         self.amax = math.radians(s.max_accel_deg_s2) or math.inf
 
@@ -186,7 +189,8 @@ class Replica:
     def __init__(self, settings: MotorSettings):
         self.settings = settings
         self._now = 0
-        self.m = SimMotor(settings, clock_ns=lambda: self._now)
+        # the model in the pans the states report (MotorLoop's, direction applied)
+        self.m = SimMotor(dataclasses.replace(settings, direction=1), clock_ns=lambda: self._now)
         self.tick_rad = self.m.tick_rad
         self.trusted = False
         self.mismatches = 0

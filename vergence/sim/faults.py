@@ -71,9 +71,8 @@ class Lies:
     instant of its exposure, slave_inputs() / master_inputs() for what a frozen camera renders, images() for the
     pair as the cameras give it, encoder() for a reading."""
 
-    def __init__(self, faults: Faults, start_pan: float, seed: int = 0):
+    def __init__(self, faults: Faults, seed: int = 0):
         self.f = faults
-        self.start = start_pan
         self.cam: float | None = None  # the camera's pan (backlash, slip)
         self.slipped = 0.0  # how far the camera is behind the shaft after a slip
         self.slip_at: float | None = None  # the shaft's pan when the slip began
@@ -82,7 +81,9 @@ class Lies:
         self.rng = np.random.default_rng(seed)
 
     def camera(self, shaft: float, t: float) -> float:
-        """The slave camera's pan when the shaft is at `shaft` at time t."""
+        """The slave camera's pan when the motor's shaft is at `shaft` (its own sense: direction x pan) at time t;
+        `reverse` mounts the camera the other way about the pan zero (a motor that turns the other way than
+        [actuator.motor] direction says)."""
         f = self.f
         if within(f.slip, t):
             if self.slip_at is None:
@@ -94,7 +95,7 @@ class Lies:
                 self.slip_at = None
             pan = shaft - self.slipped
         if f.reverse:
-            pan = 2 * self.start - pan
+            pan = -pan
         if f.backlash:
             half = math.radians(f.backlash) / 2
             if self.cam is None:

@@ -40,10 +40,26 @@ def test_ticks_default(pan, ticks):
     assert m.to_ticks(pan) == ticks == round(2048 + pan * 4096 / (2 * math.pi))
 
 
-def test_ticks_direction_and_zero():
+def test_ticks_zero_and_a_direction_every_driver_honours():
+    """to_ticks takes the motor's own angle; MotorLoop gives every driver direction x pan (issue #35), so a
+    Dynamixel's Goal Position for pan +90 deg with direction -1 and zero 1000 of 2000 is 500, as before, and the
+    simulated motor's shaft turns the other way while the pans reported are the commanded ones."""
     m = MotorSettings(direction=-1, zero=1000, ticks_per_rev=2000)
-    assert m.to_ticks(math.pi / 2) == 500
-    assert m.from_ticks(500) == pytest.approx(math.pi / 2)
+    assert m.to_ticks(-math.pi / 2) == 500 and m.to_ticks(math.pi / 2) == 1500
+    assert m.from_ticks(500) == pytest.approx(-math.pi / 2)
+    clock = Clock()
+    ms = MotorSettings(direction=-1, start_deg=3.0, tau_s=0.05, max_speed_deg_s=1000, max_step_deg=90, **IDEAL)
+    motor = SimMotor(ms, clock=clock)
+    loop = MotorLoop(motor, ms, clock=clock, wall_ns=lambda: 7)
+    assert loop.start().pan_rad == pytest.approx(3 * DEG) and motor.shaft == pytest.approx(-3 * DEG)
+    loop.command(cmd(0.05))
+    assert motor.goal == pytest.approx(-0.05)
+    clock.t += 0.5
+    assert loop.tick().pan_rad == pytest.approx(0.05, abs=1e-4) and motor.shaft == pytest.approx(-0.05, abs=1e-4)
+    loop.command(cmd(math.radians(60)))  # past max_deg 45: clamped in the pan's terms, then turned
+    clock.t += 0.5
+    assert loop.tick().pan_rad == pytest.approx(math.radians(45), abs=1e-3)
+    assert motor.shaft == pytest.approx(-math.radians(45), abs=1e-3)
 
 
 def test_config_motor_table_and_errors():
@@ -383,7 +399,7 @@ WALL_NS = 1_764_000_000 * 10**9  # the states' wall clock: a real epoch (seconds
 def _drive(ms: MotorSettings, seconds: float, delay, seed: int = 0, period: float = 0.02):
     """The sim actuator (MotorLoop and SimMotor on one fake clock) under random commands every 3-12 ms and its
     periodic states, each state handed to a Replica `delay(i)` s after it was published (in order, as one
-    Zenoh key keeps them). Yields (t, the true shaft, the replica) every 0.25 ms."""
+    Zenoh key keeps them). Yields (t, the true shaft as a pan (direction x it), the replica) every 0.25 ms."""
     import numpy as np
 
     from vergence.motors.simulated import Replica
@@ -414,17 +430,17 @@ def _drive(ms: MotorSettings, seconds: float, delay, seed: int = 0, period: floa
         while inbox and inbox[0][0] <= clock.t:
             st = inbox.pop(0)[1]
             rep.observe(st.t_ns, st.pan_rad, st.goal_rad, torque=st.status != "stopped")
-        yield clock.t, motor.shaft, rep
+        yield clock.t, ms.direction * motor.shaft, rep
 
 
-@pytest.mark.parametrize("seed", [1, 2])
-def test_replica_is_within_a_tick_of_the_shaft_without_waiting_for_reports(seed):
+@pytest.mark.parametrize("seed, direction", [(1, 1), (2, 1), (3, -1)])
+def test_replica_is_within_a_tick_of_the_shaft_without_waiting_for_reports(seed, direction):
     """States arrive 0.2-1.5 ms after they are published: the replica's shaft at every instant up to now (and
     30 ms back: a camera's latency) is the sim motor's (well within the issue's one encoder tick), and it is
     trusted from its first 20 ms on (two states on the goal at rest)."""
     import numpy as np
 
-    ms = MotorSettings()
+    ms = MotorSettings(direction=direction)  # -1: the shaft turns the other way, the pans reported do not
     rng = np.random.default_rng(seed + 100)
     errs, past, untrusted = [], [], 0
     history: list[tuple[float, float]] = []
