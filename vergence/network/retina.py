@@ -101,11 +101,19 @@ def direction_table() -> np.ndarray:
     process in tens of ms). Computed in float64, where every entry is ALGORITHM.md's exact D on any CPU: no
     integer gradient's angle comes nearer than 4e-6 of a step to a rounding boundary (test_retina), far past
     float64's error; float32 atan2 per pixel, as before, rounded 10 of the 4.2M entries the other way (and
-    SIMD builds of numpy may differ there), and took a third of a worker's time per frame."""
-    g = np.arange(-GRAD_MAX, GRAD_MAX + 1, dtype=np.float64)
-    ang = np.arctan2(g[:, None], g[None, :]) % (2 * math.pi)
-    table = (np.floor(ang * (128 / math.pi) + 0.5).astype(np.int64) & 255).astype(np.uint8)
-    table[GRAD_MAX, GRAD_MAX] = 0  # no gradient, no direction
+    SIMD builds of numpy may differ there), and took a third of a worker's time per frame. atan2 is evaluated on
+    one quadrant only (every process start pays for it: 0.06 s instead of 0.23): the others are its mirror
+    images, exact in whole steps since no step lies on a boundary (x -> -x: 128 - s; y -> -y: -s, mod 256)."""
+    g = np.arange(0, GRAD_MAX + 1, dtype=np.float64)
+    quad = np.floor(np.arctan2(g[:, None], g[None, :]) * (128 / math.pi) + 0.5).astype(np.int16)  # 0..64
+    n = 2 * GRAD_MAX + 1
+    table = np.empty((n, n), np.int16)
+    c = GRAD_MAX
+    table[c:, c:] = quad  # gy >= 0, gx >= 0
+    table[c:, :c + 1] = (128 - quad)[:, ::-1]  # gx <= 0
+    table[:c + 1, :] = (-table[c:, :])[::-1, :]  # gy <= 0
+    table = (table & 255).astype(np.uint8)
+    table[c, c] = 0  # no gradient, no direction
     table.flags.writeable = False
     return table
 
