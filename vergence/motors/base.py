@@ -34,8 +34,9 @@ class MotorSettings:
 
     id: bus id (Dynamixel). baud: serial speed. ticks_per_rev: encoder ticks per turn (Dynamixel X: 4096).
     zero: the tick count at pan 0 (2048, the centre of an X-series). direction: +1, or -1 when the motor
-    turns the camera the other way (toward decreasing image x for increasing ticks; the doubt's `reversed`):
-    applied by vergence.motors.runner for every driver, which is given direction x pan. min_deg/max_deg: soft limits of the pan
+    turns the camera the other way (toward decreasing image x for increasing ticks; the doubt's
+    `reversed`): applied by vergence.motors.runner for every driver, which is given direction x pan.
+    min_deg/max_deg: soft limits of the pan
     (the one home of the pan limits, max_step_deg and dead_band_deg: the reducer's controller reads them
     here too, through a Safety; [control] has none).
     max_speed_deg_s: the motor's top speed (the simulator's, and Dynamixel Profile Velocity when
