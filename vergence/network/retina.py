@@ -102,7 +102,7 @@ def direction_table() -> np.ndarray:
     integer gradient's angle comes nearer than 4e-6 of a step to a rounding boundary (test_retina), far past
     float64's error; float32 atan2 per pixel, as before, rounded 10 of the 4.2M entries the other way (and
     SIMD builds of numpy may differ there), and took a third of a worker's time per frame. atan2 is evaluated on
-    one quadrant only (every process start pays for it: 0.06 s instead of 0.23): the others are its mirror
+    one quadrant only (every process start pays for it: 0.04 s instead of 0.23): the others are its mirror
     images, exact in whole steps since no step lies on a boundary (x -> -x: 128 - s; y -> -y: -s, mod 256)."""
     g = np.arange(0, GRAD_MAX + 1, dtype=np.float64)
     quad = np.floor(np.arctan2(g[:, None], g[None, :]) * (128 / math.pi) + 0.5).astype(np.int16)  # 0..64
