@@ -98,6 +98,15 @@ def draw(name: str, seed: int, n: int, gain: float = 1.0, offset: float = 0.0, f
 
 
 
+# -- tests/vergence/tools/test_faults.py -------------------------------------------------------------------------------
+
+def faults(rates: tuple[float, ...], latencies: tuple[float, ...], seeds: tuple[int, ...], lies: tuple) -> list[dict]:
+    """vergence.tools.faults.bench_faults's rows (`vergence bench faults`: virtual time, so done anywhere alike)."""
+    from vergence.tools.faults import bench_faults
+
+    return bench_faults(rates=rates, latencies=latencies, seeds=seeds, lies=lies)
+
+
 # -- tests/test_layout.py ----------------------------------------------------------------------------------------------
 
 def probe(code: str, name: str) -> tuple[str, int, str, str]:

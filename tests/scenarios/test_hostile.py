@@ -308,10 +308,13 @@ def test_reducer_serves_the_newest_frame_first():
 RATE = 30
 
 
-@pytest.fixture
-def rig(tmp_path):
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    """One rig for the tests below (each forges at it and checks it goes on: they measure from their own start, and
+    none leaves it other than it found it)."""
     from procs import Procs, textured_pair, wait_for
 
+    tmp_path = tmp_path_factory.mktemp("hostile")
     source = textured_pair(tmp_path)
     cfg = tmp_path / "settings.toml"
     cfg.write_text("[network]\nmax_window = 0\n[capture]\npreview_hz = 0\n")
@@ -451,7 +454,10 @@ def test_a_command_from_the_future_locks_nothing_out(rig):
     assert all(st.goal_rad == pytest.approx(goal) for st in states)  # the forged goal never became one
     assert states[-1].ignored >= 1
     # within the skew (1.5 s ahead): not refused, taken once (unless a real command superseded it in the motor
-    # loop's inbox, which keeps the newest only: then never taken), and the real commands take over again at once
+    # loop's inbox, which keeps the newest only: then never taken), and the real commands take over again at once.
+    # Taken, it stands for a frame captured at its arrival (its time clamped to the motor's clock): the real commands
+    # of frames captured before that instant and still on their way (the pipeline's latency, a frame or two at
+    # 30 Hz) are stale behind it and refused, and only those
     t_b, base = before(c)
     refused = MotorState.from_bytes(c["state"].snapshot()[-1][1]).ignored
     s.put(P.key("command"), Command(rig=P.rig, frame=BIG_FRAME, t_capture_ns=time.time_ns() + 3 * S // 2,
@@ -459,7 +465,7 @@ def test_a_command_from_the_future_locks_nothing_out(rig):
                                     confidence=1.0).to_bytes())
     after(P, c, t_b, base)
     states = [(t, MotorState.from_bytes(b)) for t, b, _ in c["state"].snapshot() if t > t_b]
-    assert states[-1][1].ignored == refused
+    assert refused <= states[-1][1].ignored <= refused + 2, states[-1][1].note
     moved = [t for t, st in states if st.goal_rad == pytest.approx(forged)]
     back = [t for t, st in states if t > (moved or [t_b])[0] and st.goal_rad == pytest.approx(goal)]
     assert back and (back[0] - t_b) / 1e9 <= 1.0

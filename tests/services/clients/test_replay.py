@@ -37,13 +37,16 @@ def test_record_then_replay_gives_the_same_profiles(tmp_path, pair):
         s = P.session()
         P.wait_alive(s, "worker", 2)
         P.wait_alive(s, "reducer", 1)
-        rec = P.start("record", "record", str(path), "--duration", "6")
+        rec = P.start("record", "record", str(path), "--duration", "30")
         P.wait_alive(s, "record", 1)
         wait_for(lambda: "recording vergence/" in rec.text(), 15, "the recorder's subscription", logs=P.logs)
+        seen = P.collect(s, P.key("profile"))
         cap = P.start("capture", "capture", "--source", source, "--rate", "20", "--frames", str(FRAMES),
                       "--config", cfg)
         assert cap.wait(20) == 0, cap.tail()
-        assert rec.wait(20) == 0, rec.tail()
+        # the profiles here too (as the recorder gets them), then SIGINT ends the recording: exit 0, the file whole
+        wait_for(lambda: len(seen) >= FRAMES - 2, 10, "the run's profiles", logs=P.logs)
+        assert rec.stop() == 0, rec.tail()
         header, records, truncated = read(path)
         assert header["rig"] == P.rig and not truncated
         frames = [Frame.from_bytes(r.payload) for r in records if r.key == P.key("frame")]

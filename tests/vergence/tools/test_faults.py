@@ -5,12 +5,17 @@ from __future__ import annotations
 
 import pytest
 
-from vergence.tools.faults import bench_faults
+import background
+import sweeps
+
+# the rows, small: 60 Hz, no latency, three lies (done ahead in the background: tests/background.py)
+SMALL = ((60.0,), (0.0,), (2,), (None, "freeze", "reverse"))
+background.ahead(sweeps.faults, *SMALL, tests="test_bench_faults_rows_name_each_lie_and_bound_it")
 
 
 @pytest.mark.slow
 def test_bench_faults_rows_name_each_lie_and_bound_it():
-    rows = bench_faults(rates=(60.0,), latencies=(0.0,), seeds=(2,), lies=(None, "freeze", "reverse"))
+    rows = background.get(sweeps.faults, *SMALL)
     by = {(r["lie"], r["scene"]): r for r in rows}
     assert sorted(by) == [(lie, scene) for lie in ("-", "freeze", "reverse") for scene in ("moving", "still")]
     assert all(by[("-", scene)]["false_fault_frames"] == 0 for scene in ("moving", "still"))
