@@ -77,7 +77,7 @@ def test_up_with_a_reversed_camera_and_the_direction_flipped_converges(tmp_path)
 def test_up_with_a_frozen_slave_holds_then_follows_when_it_thaws(tmp_path):
     truth, start = _truth(), 0.0
     with Procs(tmp_path) as P:
-        pans, faults = _up(P, tmp_path, f"sim:focal={FOCAL:g}:freeze=0-8")
+        pans, faults = _up(P, tmp_path, f"sim:focal={FOCAL:g}:freeze=0-5")
         wait_for(lambda: any(f and f[0] == "slave_frozen" for f in faults()), 40, "the reducer naming the fault",
                  logs=P.logs)
         assert max(abs(math.degrees(p) - start) for p in pans()) <= 3.0  # held near where it started
