@@ -438,9 +438,10 @@ def _interp(ts, vs, t):
 
 def _up_tracking(tmp_path, spec: str) -> tuple[np.ndarray, str]:
     """`vergence up --source SPEC --workers 2 --rate 60` (router, sim actuator, 2 workers, reducer, capture as
-    real processes): the error of each decided frame over 6 s (three periods of the sine) after 2 s, from the recorded stream (its slave
-    pan at exposure, as the decision says, against the truth the frame carries), and a line saying it and the
-    error of the motor itself (the motor states' pan, interpolated at each exposure, against that truth)."""
+    real processes): the error of each decided frame over 6 s (three periods of the sine) after 2 s, from the
+    recorded stream (its slave pan at exposure, as the decision says, against the truth the frame carries), and a
+    line saying it and the error of the motor itself (the motor states' pan, interpolated at each exposure, against
+    that truth)."""
     from procs import Procs, free_port, wait_for
     from vergence.wire.messages import Frame, MotorState, Decision
 
