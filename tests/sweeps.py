@@ -7,6 +7,7 @@ which no test of these reads and which would be 20 MB a run to carry back."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -14,6 +15,7 @@ import vergence
 from middlebury import load, points, visible
 from vergence.tools import evaluate
 from vergence.head.control import ControlSettings
+from vergence.head.timing import CameraTiming
 from vergence.tools.evaluate import IDEAL_MOTOR, P_CONTROL, started_off
 from vergence.sim.loop import closed_loop, frames_to_converge
 from vergence.sim.moving import Head, MovingRig
@@ -105,6 +107,24 @@ def faults(rates: tuple[float, ...], latencies: tuple[float, ...], seeds: tuple[
     from vergence.tools.faults import bench_faults
 
     return bench_faults(rates=rates, latencies=latencies, seeds=seeds, lies=lies)
+
+
+# -- tests/vergence/head/test_search.py --------------------------------------------------------------------------------
+
+def lost(seed: int, kind: int, z: float, latency: float, rate: float = 60.0):
+    """The sim's loop from a pan where the target is outside the band: (time first within 1 px or None, largest
+    |pan| deg, faults)."""
+    rig = MovingRig.from_options(motion=f"still:z={z}", focal="500", seed=str(seed), noise="1")
+    truth = rig.truth_pan(0.0)
+    rng = np.random.default_rng(seed)
+    if kind < 2:
+        rig.start_pan_rad = (45 if kind == 0 else -45) * math.pi / 180
+    else:
+        rig.start_pan_rad = truth + math.atan(rng.uniform(350, 450) * (1 if kind == 2 else -1) / F)
+    steps = list(closed_loop(rig, int(4 * rate), None, ControlSettings(), None, rate, timing=CameraTiming(latency),
+                             seed=seed))
+    found = next((s.t_s for s in steps if abs(s.error_px) <= 1), None)
+    return found, max(abs(s.pan_deg) for s in steps), {s.fault for s in steps if s.fault}
 
 
 # -- tests/test_layout.py ----------------------------------------------------------------------------------------------

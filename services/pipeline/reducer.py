@@ -225,7 +225,7 @@ class Reducer:
         with self.lock:
             return dict(gatherer=dict(self.gatherer.counters), pending=len(self.gatherer.pending),
                         shed=dict(self.inbox.shed), **(self.presence.fields() if self.presence else {}),
-                        **self.gatherer.controller.doubt.status())
+                        **self.gatherer.controller.doubt.status(), **self.gatherer.controller.search.status())
 
     def open(self, node: Node) -> None:
         """The subscriptions, the publishers and the forwarder threads, then the liveliness token."""

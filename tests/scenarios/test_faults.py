@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import pytest
 
@@ -85,3 +86,24 @@ def test_up_with_a_frozen_slave_holds_then_follows_when_it_thaws(tmp_path):
         wait_for(lambda: faults()[-1] is None and abs(pans()[-1] - truth) <= tol, 30,
                  "the fault cleared and the slave within 1 px of the truth after the thaw", logs=P.logs)
         assert json.dumps(faults()[-1]) == "null"
+
+
+@pytest.mark.slow
+def test_up_with_the_slave_started_far_off_searches_and_finds_the_target(tmp_path):
+    """Issue #35 item 3 through real processes: the sim actuator starts at 40 degrees ([actuator.motor] start_deg),
+    463 px from the target at f 500 px, outside the band; the reducer says it searches, then found, and the slave is
+    within 1 px of the truth, never past its limits, no fault named."""
+    truth = _truth()
+    conf = tmp_path / "far.toml"
+    conf.write_text("[actuator.motor]\nstart_deg = 40\n")
+    with Procs(tmp_path) as P:
+        pans, faults = _up(P, tmp_path, f"sim:focal={FOCAL:g}", "--config", str(conf))
+        statuses = P.collect(P.session(), P.key("status/reducer/*"))
+        tol = math.atan(1.0 / FOCAL)
+        wait_for(lambda: len(pans()) > 10 and abs(pans()[-1] - truth) <= tol, 30,
+                 "the slave within 1 px of the truth", logs=P.logs)
+        assert math.degrees(pans()[0]) == pytest.approx(40.0, abs=0.1)
+        wait_for(lambda: any(decode_status(b).get("found", 0) >= 1 for _, b, _ in statuses.snapshot()), 10,
+                 "a status saying the search found it", logs=P.logs)
+        assert all(abs(math.degrees(p)) <= 45.0 for p in pans()) and all(f is None for f in faults())
+        assert re.search(r"search: no confident match for 0\.\d+ s with a textured fovea", P.procs[-1].text())

@@ -43,6 +43,7 @@ from ..motors.base import MotorSettings, Safety
 from ..choices import ControlMode
 from ..ranges import Range, check
 from .doubt import Doubt
+from .search import Search
 from .predict import Periodic, Predictor, Referee
 from .timing import MAX_AGE_S
 
@@ -130,6 +131,7 @@ class Controller:
         self.t_prev: float | None = None  # the last decision's capture time
         self.period: float | None = None  # the decisions' interval, smoothed
         self.doubt = Doubt()  # whether the image follows the motor, and the leash it keeps (issue #35)
+        self.search = Search()  # lost: where to look (issue #35)
 
     def _bounded(self, pan_at_capture: float, step: float) -> float:
         """The set-point pan_at_capture + step, as the motor's Safety bounds it (limits, step)."""
@@ -138,14 +140,17 @@ class Controller:
     def target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool = True,
                centre_px: float = 0.0, t_s: float | None = None, t_now: float | None = None,
                slave: int | None = None, master: int | None = None,
-               fovea: tuple[int, int] | None = None, doubt: bool = True) -> float | None:
+               fovea: tuple[int, int] | None = None, doubt: bool = True, textured: bool = True,
+               width_px: int | None = None) -> float | None:
         """The new absolute pan (radians) or None when the camera should not move (not confident, inside
         the dead band, a non-finite input, or a fault: vergence.head.doubt). pan_at_capture: the slave's pan at
         its exposure; t_s: that exposure's time in seconds (any epoch; the predictive mode needs it, and acts as
         "p" without it); t_now: the time of this command on the same clock (default t_s: an image with no
         latency); slave, master: the images' digests (frozen cameras repeat them), None when not known; fovea: the
         master point decided at (a new one is a new target); doubt: False where the slave's image cannot follow the
-        motor (a still pair, a video: nothing to check)."""
+        motor (a still pair, a video: nothing to check); textured: the fovea has texture (False: a black or flat
+        frame, which holds; an unconfident textured one for long is lost, and searches: vergence.head.search);
+        width_px: the images' width (the band's reach, which sizes the search's steps)."""
         d = self.doubt
         if not doubt:
             return self._aim(pan_at_capture, offset_px, focal_px, confident, centre_px, t_s, t_now)
@@ -160,7 +165,18 @@ class Controller:
                 focal_px = focal_px * d.focal_ratio  # the measured focal length
         now = t_now if t_now is not None and math.isfinite(t_now) else t_s
         if d.fault is not None:
+            self.search.reset()
             return d.gate(pan_at_capture, None, now if now is not None else 0.0)
+        if t_s is not None and math.isfinite(t_s):
+            was = self.search.searching
+            look = self.search.observe(t_s, pan_at_capture, confident, textured, offset_px, focal_px, width_px,
+                                       centre_px, self.limits.lo, self.limits.hi)
+            if look is not None:
+                d.stall = None  # a search's stops are not commands the motor failed to follow
+                return self.limits.limit_step(pan_at_capture, look)
+            if was and not self.search.searching:
+                d.relocate(pan_at_capture)  # found: from here, not yet trusted
+                self.reset()
         goal = self._aim(pan_at_capture, offset_px, focal_px, confident, centre_px, t_s, t_now)
         if goal is None or now is None:
             return goal

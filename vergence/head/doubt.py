@@ -22,8 +22,9 @@ than the slave already is, until the next pair says.
 
 A fault: the slave goes back to the anchor and holds; the only moves are probes (PROBE_DEG from the anchor, one
 every PROBE_S), and when the image follows one again (or, for a stalled motor, the encoder moves) the loop resumes
-by itself. A frozen master camera (byte-identical master images for FROZEN_MASTER_S where they used to change)
-holds until it changes. A motor that does not move for STALL_S while commanded MIN_MOVE or more away is stalled.
+by itself. A frozen master camera (byte-identical master images for FROZEN_MASTER_S where they used to change every
+frame, MASTER_LIVE in a row at least) holds until it changes. A motor that does not move for STALL_S while
+commanded MIN_MOVE or more away is stalled.
 The library only: the reducer and `vergence sim` both run it through the Controller."""
 
 from __future__ import annotations
@@ -60,7 +61,8 @@ PROBE_DEG, PROBE_S = 0.5, 1.0  # during a fault: a probing move this far from th
 PROBE_MIN_DEG = 0.3  # a probe's pair counts when the motor moved at least this much
 SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within this
 IDENTICAL_MOVE_DEG = 0.5  # a byte-identical slave image after the motor moved this much is frozen
-FROZEN_MASTER_S = 0.3  # byte-identical master images for this long, where they used to change
+FROZEN_MASTER_S = 0.3  # byte-identical master images for this long, where they used to change ...
+MASTER_LIVE = 5  # ... every frame, this many in a row at least (a live camera's noise)
 STALL_S = 0.5  # commanded MIN_MOVE or more away, and no move of STALL_MOVE_DEG for this long: stalled
 STALL_MOVE_DEG = 0.2
 PRECISE = 0.1  # a decisive pair whose slack is at most this fraction of the motion counts for the focal length
@@ -121,7 +123,8 @@ class Doubt:
         self.last_slave: tuple[int, float] | None = None  # (digest, pan) of the last frame
         self.last_master: int | None = None
         self.master_same_since: float | None = None
-        self.master_changes = 0
+        self.master_changes = 0  # the longest run of master images that changed frame to frame
+        self.master_run = 0  # the present run
         self.stall: tuple[float, float] | None = None  # (t, pan) since which a command far away has not moved it
         self.t_bound: float | None = None  # since when a head not yet seen to follow is held at its leash's end
         self.probe_ref: _Seen | None = None  # ... and the decision before its probe
@@ -275,6 +278,16 @@ class Doubt:
         self.rate = 0.0
         self.stall = None
 
+    def relocate(self, pan: float) -> None:
+        """A search found a candidate at `pan` (vergence.head.search): the loop goes on from there as at the start,
+        its image not yet seen to follow (the leash about it until a move shows it does)."""
+        self.anchor, self.trusted = pan, False
+        self.ref = self.centre = None
+        self.rate = 0.0
+        self.fails.clear()
+        self.stall = None
+        self._unprobe()
+
     def _identical(self, pan: float, slave: int | None) -> bool:
         """The slave's image byte for byte what it was when first seen, though the motor moved IDENTICAL_MOVE_DEG
         since (more than a backlash or the encoder's noise)."""
@@ -289,13 +302,16 @@ class Doubt:
         if master is None:
             return
         if master != self.last_master:
-            if self.last_master is not None:
-                self.master_changes += 1
+            # a live camera's images change every frame (its noise, the scene): a run of MASTER_LIVE changes in a
+            # row says so, where a few changes apart (the rows a simulator renders as the window grows) do not
+            self.master_run = self.master_run + 1 if self.last_master is not None else 0
+            self.master_changes = max(self.master_changes, self.master_run)
             self.last_master, self.master_same_since = master, t
             if self.fault is Fault.MASTER_FROZEN:
                 self._clear(t, self.anchor, "the master's images change again")
             return
-        if self.fault is None and self.master_changes >= 3 and t - self.master_same_since >= FROZEN_MASTER_S:
+        self.master_run = 0
+        if self.fault is None and self.master_changes >= MASTER_LIVE and t - self.master_same_since >= FROZEN_MASTER_S:
             self._raise(t, Fault.MASTER_FROZEN, f"the same master image for {t - self.master_same_since:.2f} s")
 
     def _stalled(self, t: float, pan: float) -> None:

@@ -15,7 +15,7 @@ import numpy as np
 from . import kernel, retina
 from .params import Params
 
-__all__ = ["Decision", "decide", "centre_offset", "texture", "decide_scores", "apply_checks", "pearson",
+__all__ = ["Decision", "decide", "centre_offset", "texture", "has_texture", "decide_scores", "apply_checks", "pearson",
            "lr_consistent", "halves_consistent", "HALVES_TOLERANCE"]
 
 
@@ -63,6 +63,13 @@ def _mean(a: np.ndarray) -> float:
 def texture(fovea: np.ndarray) -> float:
     """Mean gradient magnitude G (0..255) of the fovea: near 0 for a flat or black fovea."""
     return _mean(fovea[1])
+
+
+def has_texture(d: Decision, params: Params) -> bool:
+    """Whether the fovea of a decision had texture to match: at least min_texture, and at least one grey level a pixel
+    whatever the settings (a black or flat frame has none). An unconfident decision on a textured fovea is a lost
+    target's (vergence.head.search searches), one on a black or flat frame holds."""
+    return d.texture == d.texture and d.texture >= max(params.min_texture, 1.0)
 
 
 def _parabola(ym: float, y0: float, yp: float) -> float:

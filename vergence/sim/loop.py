@@ -25,6 +25,7 @@ import numpy as np
 
 from ..head.control import ControlSettings, Controller
 from ..head.doubt import digest
+from ..network.decide import has_texture
 from ..network.match import match
 from ..network.params import Params
 from ..motors.base import MotorSettings, Safety
@@ -176,7 +177,8 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
     if pan is not None:
         target = controller.target(pan, d.offset_px, focal, d.confident, t_s=t_slave, t_now=t_now,
                                    centre_px=0.0 if at is None else at[0] - master.shape[1] // 2,
-                                   slave=digest(slave) or None, master=digest(master) or None, fovea=at)
+                                   slave=digest(slave) or None, master=digest(master) or None, fovea=at,
+                                   textured=has_texture(d, params), width_px=master.shape[1])
     step = Step(frame=frame, t_s=t_master, pan_deg=math.degrees(seen["at_slave"]),
                 truth_pan_deg=math.degrees(rig.truth_pan(t_master)), error_px=rig.error_px(seen["at_master"], t_master),
                 offset_px=d.offset_px, confident=d.confident, k=d.k, v=d.v, window=m.window,

@@ -22,7 +22,7 @@ from ..network import retina
 from ..config import LimitSettings
 from ..head.control import ControlSettings, Controller
 from ..motors.base import MotorSettings, Safety
-from ..network.decide import Decision, apply_checks, decide_scores
+from ..network.decide import Decision, apply_checks, decide_scores, has_texture
 from ..wire import messages
 from ..wire.messages import Command, Frame, Correlation, Profile
 from ..network.params import Params
@@ -79,7 +79,8 @@ def make_profile(frame: Frame, scores: np.ndarray, d: Decision, t_reduced_ns: in
                    workers=[str(e[0]) for e in frame.plan])
 
 
-def _command(frame: Frame, d: Decision, controller: Controller, now_ns: int | None = None) -> Command | None:
+def _command(frame: Frame, d: Decision, controller: Controller, now_ns: int | None = None,
+             textured: bool = True) -> Command | None:
     """The command of a decided frame (None: no move). The measurement is the slave's pan at its exposure plus
     the correction, referred to the slave's exposure time; the controller aims for when the command acts
     (now_ns, this host's clock: default the read time). A frame whose pan at exposure is not known (pan_stale)
@@ -90,7 +91,8 @@ def _command(frame: Frame, d: Decision, controller: Controller, now_ns: int | No
     target = controller.target(frame.pan_rad, d.offset_px, frame.focal_px, d.confident,
                                centre_px=frame.x - frame.width // 2, t_s=frame.t_slave_ns / 1e9, t_now=now / 1e9,
                                slave=frame.slave_digest or None, master=frame.master_digest or None,
-                               fovea=(frame.x, frame.y), doubt=frame.follows)
+                               fovea=(frame.x, frame.y), doubt=frame.follows, textured=textured,
+                               width_px=frame.width)
     if target is None:
         return None
     return Command(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, pan_rad=target,
@@ -123,7 +125,7 @@ class Reduced:
            t_reduced_ns: int | None = None) -> "Reduced":
         d = decide_frame(frame, scores, params)
         now = time.time_ns() if t_reduced_ns is None else t_reduced_ns
-        return cls(frame, d, _command(frame, d, controller, now), scores, now)
+        return cls(frame, d, _command(frame, d, controller, now, has_texture(d, params)), scores, now)
 
     @property
     def message(self) -> messages.Decision:

@@ -1,0 +1,105 @@
+"""vergence.head.search (issue #35, item 3): a textured fovea with no confident match for LOST_S searches (back to
+the last converged pan, then a sweep inside the limits in steps of part of the band) until a candidate appears; black
+or flat frames hold. First the sweep on hand-made decisions, then `vergence sim`'s loop lost at either limit or
+350-450 px off the target, on draws of their own (seeds 501-516: scenes, textures, depths and starts none of the other
+tests use)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+import background
+import sweeps
+from vergence.head.control import ControlSettings, Controller
+from vergence.head.search import LOST_S, STEP_OF_BAND, Search
+
+DEG = math.pi / 180
+DT = 1 / 60
+LO, HI = -45 * DEG, 45 * DEG
+F, W = 500.0, 640
+
+
+def run(s: Search, pan: float, n: int, t0: float = 0.0, confident=False, textured=True, offset=0.0):
+    """n decisions 60 Hz apart, the motor at each goal by the next exposure: (t, goal) of each (goal None: none)."""
+    out = []
+    for k in range(n):
+        t = t0 + k * DT
+        goal = s.observe(t, pan, confident, textured, offset, F, W, 0.0, LO, HI)
+        out.append((t, goal))
+        if goal is not None:
+            pan = goal
+    return out
+
+
+def stops(goals) -> list[float]:
+    """The distinct goals in order, degrees."""
+    seen = []
+    for _, g in goals:
+        if g is not None and (not seen or abs(seen[-1] - g / DEG) > 1e-9):
+            seen.append(g / DEG)
+    return seen
+
+
+def test_lost_at_a_limit_sweeps_inward_to_the_other_limit_and_starts_over():
+    s = Search()
+    out = run(s, 45 * DEG, 400)
+    first = next(t for t, g in out if g is not None)
+    assert first == pytest.approx(LOST_S, abs=DT)  # lost after LOST_S of textured, unconfident exposures
+    step = STEP_OF_BAND * math.degrees(math.atan((W / 2 - 16) / F))  # 18.78 deg: 0.6 of the band's 31.3
+    assert step == pytest.approx(18.78, abs=0.01)
+    got = stops(out)
+    assert got[:5] == pytest.approx([45 - step, 45 - 2 * step, 45 - 3 * step, 45 - 4 * step, -45], abs=1e-6)
+    assert got[5] == pytest.approx(45 - step)  # the sweep done: again (45 itself is where it was lost)
+    assert all(-45 <= g <= 45 for g in got) and s.searching and s.searches == 1
+
+
+def test_first_back_to_the_last_converged_pan_then_about_it_alternating_from_where_it_was():
+    s = Search()
+    run(s, 5 * DEG, 3, confident=True, offset=0.4)  # converged at 5 deg
+    got = stops(run(s, 30 * DEG, 600, t0=1.0))
+    step = 18.78
+    # the side it was lost on first; 5 + 2 x 18.78 = 42.56 is within a quarter step of the limit: no stop at 45
+    assert got[:7] == pytest.approx([5.0, 5 + step, 5 - step, 5 + 2 * step, 5 - 2 * step, -45.0, 5.0], abs=0.01)
+
+
+def test_black_frames_hold_and_a_confident_decision_ends_the_search():
+    s = Search()
+    assert all(g is None for _, g in run(s, 10 * DEG, 120, textured=False))  # 2 s of black: no search
+    out = run(s, 10 * DEG, 60, t0=3.0)
+    assert s.searching and any(g is not None for _, g in out)
+    assert run(s, 0.0, 1, t0=5.0, confident=True, offset=-40.0) == [(5.0, None)]
+    assert not s.searching and s.found == 1 and s.status() == {"searching": False, "searches": 1, "found": 1}
+
+
+def test_the_controller_searches_only_where_the_image_can_follow_and_holds_in_a_fault():
+    c = Controller(ControlSettings(mode="p"))
+    goals = [c.target(0.2, 0.0, F, False, t_s=k * DT, width_px=W) for k in range(60)]
+    assert goals[-1] is not None and c.search.searching  # lost, searching
+    still = Controller(ControlSettings(mode="p"))
+    assert all(still.target(0.2, 0.0, F, False, t_s=k * DT, width_px=W, doubt=False) is None for k in range(60))
+
+
+# at a limit (either) or 350-450 px off (either side), depths 0.6-1.5 m, 0 and 66 ms of camera latency
+DRAWS = [(501 + i, i % 4, (0.6, 0.9, 1.2, 1.5)[i // 4 % 4], 0.066 if i % 2 else 0.0) for i in range(16)]
+
+
+for _d in DRAWS[2:]:
+    background.ahead(sweeps.lost, *_d, tests="test_a_lost_slave_is_found_within_3_s_in_16_draws")
+
+
+@pytest.mark.parametrize("seed,kind,z,latency", DRAWS[:2])
+def test_a_lost_slave_finds_the_target_within_3_s_inside_the_limits(seed, kind, z, latency):
+    found, widest, faults = sweeps.lost(seed, kind, z, latency)
+    assert found is not None and found <= 3.0 and widest <= 45.0 + 1e-9 and not faults, (found, widest, faults)
+
+
+@pytest.mark.slow
+def test_a_lost_slave_is_found_within_3_s_in_16_draws():
+    """The issue's 95 %: all 16 here (40 of 40 measured at 60 Hz and at 30 Hz with 66 ms, and 40 of 40 on a sine
+    with 100 ms: docs/FAULTS.md). The draws are done ahead in the background (tests/background.py)."""
+    got = [(d, background.get(sweeps.lost, *d)) for d in DRAWS]
+    bad = [(d, r) for d, r in got if not (r[0] is not None and r[0] <= 3.0 and r[1] <= 45.0 + 1e-9 and not r[2])]
+    print("\nfound after (s):", sorted(round(r[0], 2) for _, r in got if r[0] is not None))
+    assert bad == []

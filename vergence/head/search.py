@@ -1,0 +1,132 @@
+"""Lost, and found again (issue #35, item 3): a slave whose band holds no confident match searches instead of waiting.
+
+Lost. The fovea has texture (the frames are not black or flat: those hold, as before) but no decision has been
+confident for LOST_S of exposures: the target is outside the band (further off than the slave image reaches, at a
+limit after a fault, or started there), or the slave looks at something else.
+
+The search. First back to the last pan at which the loop was converged (where the target was last seen), then a
+sweep about it, nearer stops first, alternating sides (without such a pan: about the present one, toward the middle
+of the range first), in steps of STEP_OF_BAND of the angle the band reaches from the fovea (at 640 px and f 500 px,
+32 degrees: 19-degree steps), so that each stop's band overlaps the last one's; the last stop on each side is the
+limit itself. Every stop is inside the motor's limits (and the Safety bounds each command
+as it bounds every other). At each stop the motor is given ARRIVE_S to get there (within ARRIVED_DEG, by the pan at
+the exposures), then DWELL_S of decisions there; when the sweep is done it starts over.
+
+Found. The first confident decision ends the search: the loop takes over from that pan, not yet trusted
+(vergence.head.doubt's leash: the image must follow a first move, which tells a true candidate, whose offset changes
+by the move, from a false one). The library only: the Controller runs it, for the reducer and `vergence sim` alike."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+__all__ = ["Search"]
+
+log = logging.getLogger("vergence.search")
+
+LOST_S = 0.4  # textured frames and no confident decision for this long: lost
+ARRIVE_S = 1.0  # the motor's time to reach a stop (then the next one regardless: a stall is the doubt's to name)
+ARRIVED_DEG = 0.5  # at a stop: the pan at the exposure within this of it
+DWELL_S = 0.2  # the decisions taken at a stop, after it arrived
+STEP_OF_BAND = 0.6  # the sweep's step: this fraction of the angle the band reaches
+MIN_STEP_DEG = 2.0  # a band narrower than this still steps this far
+MARGIN_PX = 16  # the band's reach: half the image width less this (a window's half) less the fovea's offset
+
+
+class Search:
+    """observe() every decision of a slave whose image can follow the motor: the search's goal (radians) while it
+    searches, else None. `searching` says whether it does; `searches` and `found` count them."""
+
+    def __init__(self):
+        self.t_lost: float | None = None  # the first textured, unconfident exposure since the last confident one
+        self.converged: float | None = None  # the last pan at which the loop was converged (within 1 px)
+        self.stops: list[float] = []
+        self.goal: float | None = None
+        self.t_goal = 0.0  # when the present stop was set
+        self.t_arrived: float | None = None
+        self.searching = False
+        self.searches = 0
+        self.found = 0
+        self.step = math.radians(15.0)
+        self._all: list[float] = []  # the whole sweep, to start over from
+
+    def reset(self) -> None:
+        """Forget being lost (a fault began: the doubt holds; or a new target)."""
+        self.t_lost = None
+        self._stop()
+
+    def _stop(self) -> None:
+        self.searching, self.stops, self.goal, self.t_arrived = False, [], None, None
+
+    def observe(self, t: float, pan: float, confident: bool, textured: bool, offset_px: float, focal_px: float,
+                width_px: int | None, centre_px: float, lo: float, hi: float) -> float | None:
+        """One decided frame (t: the slave's exposure, s; pan: its pan then, rad; lo, hi: the motor's soft limits,
+        rad): the search's goal, or None (not lost, found, or held: black or flat frames)."""
+        if not (math.isfinite(t) and math.isfinite(pan)):
+            return None
+        if confident and math.isfinite(offset_px):
+            if math.isfinite(focal_px) and focal_px > 0 and abs(offset_px) <= 1.0:
+                self.converged = pan
+            if self.searching:
+                self.found += 1
+                log.warning("search: a candidate at %.2f deg (offset %+.1f px): the loop takes over", math.degrees(pan),
+                            offset_px)
+            self.t_lost = None
+            self._stop()
+            return None
+        if not textured:
+            self.t_lost = None  # black or flat frames: hold, as always
+            self._stop()
+            return None
+        if self.t_lost is None:
+            self.t_lost = t
+        if not self.searching:
+            if t - self.t_lost < LOST_S:
+                return None
+            self._start(t, pan, focal_px, width_px, centre_px, lo, hi)
+        return self._next(t, pan, lo, hi)
+
+    def _start(self, t: float, pan: float, focal_px: float, width_px: int | None, centre_px: float, lo: float,
+               hi: float) -> None:
+        if width_px and math.isfinite(focal_px) and focal_px > 0:
+            reach = max(0.0, width_px / 2 - MARGIN_PX - abs(centre_px))
+            self.step = max(math.radians(MIN_STEP_DEG), STEP_OF_BAND * math.atan(reach / focal_px))
+        c = self.converged if self.converged is not None and lo <= self.converged <= hi else pan
+        c = min(max(c, lo), hi)
+        stops = [c] if abs(c - pan) > self.step / 2 else []
+        up = [c + n * self.step for n in range(1, int((hi - c) / self.step) + 1)]
+        down = [c - n * self.step for n in range(1, int((c - lo) / self.step) + 1)]
+        if hi - (up[-1] if up else c) > self.step / 4:
+            up.append(hi)
+        if (down[-1] if down else c) - lo > self.step / 4:
+            down.append(lo)
+        # the side it is on first; from nowhere known, the side toward the middle of the range (where a head looks
+        # parallel or converges: the pan zero of most heads)
+        side = pan - c if c != pan else (lo + hi) / 2 - pan
+        first, second = (up, down) if side >= 0 else (down, up)
+        for n in range(max(len(up), len(down))):
+            stops += [s[n] for s in (first, second) if n < len(s)]
+        self.stops = [s for s in stops if abs(s - pan) > math.radians(ARRIVED_DEG)] or [c]
+        self.searching, self.goal, self.t_arrived = True, None, None
+        self.searches += 1
+        log.warning("search: no confident match for %.1f s with a textured fovea: searching %d pans in steps of "
+                    "%.1f deg from %.2f deg", t - self.t_lost, len(self.stops), math.degrees(self.step),
+                    math.degrees(c))
+        self._all = list(self.stops)
+
+    def _next(self, t: float, pan: float, lo: float, hi: float) -> float:
+        if self.goal is not None:
+            if self.t_arrived is None and abs(pan - self.goal) <= math.radians(ARRIVED_DEG):
+                self.t_arrived = t
+            done = (self.t_arrived is not None and t - self.t_arrived >= DWELL_S) or \
+                (self.t_arrived is None and t - self.t_goal >= ARRIVE_S)
+            if not done:
+                return self.goal
+        if not self.stops:
+            self.stops = list(self._all)  # the sweep is done: again
+        self.goal, self.t_goal, self.t_arrived = min(max(self.stops.pop(0), lo), hi), t, None
+        return self.goal
+
+    def status(self) -> dict:
+        return {"searching": self.searching, "searches": self.searches, "found": self.found}
