@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -28,22 +29,25 @@ if HERE not in sys.path:
 from reaper import pytest_configure, pytest_runtest_setup, pytest_unconfigure  # noqa: E402, F401
 
 import background  # noqa: E402
+from services.runtime import warm  # noqa: E402  (no numba: compiled() only looks at the cache)
+
+# On a fresh install the kernels are compiled once, in a process of their own, while pytest collects (as `vergence up`
+# does on a first start: else the first processes of the tests all compile them at once, inside timed tests, and the
+# in-process tests compile them too); pytest_collection_finish waits for it.
+_T0 = time.monotonic()
+_compile = None if warm.compiled() else subprocess.Popen([sys.executable, "-m", "services.runtime.warm"],
+                                                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def pytest_collection_finish(session):
-    """On a fresh install with slow tests selected, the kernels are compiled once first (as `vergence up` does on a
-    first start: else the first processes of the tests all compile them at once, inside timed tests); then the slow
-    tests' long computations start in the background, ahead of the tests (tests/background.py)."""
-    from services.runtime import warm
-
-    if any(item.get_closest_marker("slow") for item in session.items) and not warm.compiled():
-        import time
-
+    """The kernels compiled (see above) before the first test; then the slow tests' long computations start in the
+    background, ahead of the tests (tests/background.py)."""
+    if _compile is not None and _compile.returncode is None:
         t0 = time.monotonic()
-        r = subprocess.run([sys.executable, "-m", "services.runtime.warm"], capture_output=True, text=True,
-                           timeout=600)
-        print(f"\ncompiled the kernels once before the tests (numba's cache was empty): {time.monotonic() - t0:.1f} s"
-              + ("" if r.returncode == 0 else f", failed (exit {r.returncode}): {r.stderr[-500:]}"))
+        _, err = _compile.communicate(timeout=600)
+        print(f"\ncompiled the kernels once while the tests were collected (numba's cache was empty): "
+              f"{time.monotonic() - _T0:.1f} s, {time.monotonic() - t0:.1f} s of it after the collection"
+              + ("" if _compile.returncode == 0 else f", failed (exit {_compile.returncode}): {err[-500:]}"))
     background.start(session.items)
 
 
