@@ -67,8 +67,11 @@ def main(argv: list[str] | None = None) -> int:
     if name not in COMMANDS:
         build_parser().print_help()
         return 0 if name is None and any(a in ("-h", "--help") for a in argv) else 2
-    args = build_parser(name).parse_args(argv)
-    mod = importlib.import_module(COMMANDS[name][0])
+    try:
+        args = build_parser(name).parse_args(argv)
+        mod = importlib.import_module(COMMANDS[name][0])
+    except KeyboardInterrupt:  # Ctrl-C, or `vergence up` stopping a child still importing: no traceback
+        return 130
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
     try:

@@ -37,3 +37,17 @@ def test_a_closed_pipe_ends_the_command_quietly_with_141(argv):
     assert r.stdout.startswith("{" if argv else "frame   0")
     assert "Traceback" not in r.stderr and "BrokenPipe" not in r.stderr, r.stderr[-2000:]
     assert r.returncode == 141, (r.returncode, r.stderr[-2000:])
+
+
+def test_ctrl_c_while_a_command_still_imports_ends_it_quietly_with_130():
+    """`vergence up` stops a child it just started (a standby, say) with SIGINT while that child still imports numpy and
+    zenoh: exit 130, no traceback. SIGINT 0.2 s in: the reducer's imports take 0.4 s or more here."""
+    import signal
+    import time
+
+    p = subprocess.Popen([sys.executable, "-m", "services.ops.cli", "reducer", "--connect", "tcp/127.0.0.1:9"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(0.2)  # (the instant under test: inside the imports)
+    p.send_signal(signal.SIGINT)
+    out, err = p.communicate(timeout=30)
+    assert (p.returncode, "Traceback" in err) == (130, False), err[-2000:]
