@@ -170,7 +170,7 @@ class Controller:
         if t_s is not None and math.isfinite(t_s):
             was = self.search.searching
             look = self.search.observe(t_s, pan_at_capture, confident, textured, offset_px, focal_px, width_px,
-                                       centre_px, self.limits.lo, self.limits.hi)
+                                       self.limits.lo, self.limits.hi)
             if look is not None:
                 d.stall = None  # a search's stops are not commands the motor failed to follow
                 return self.limits.limit_step(pan_at_capture, look)

@@ -2,11 +2,13 @@
 
 Lost. The fovea has texture (the frames are not black or flat: those hold, as before) but no decision has been
 confident for LOST_S of exposures: the target is outside the band (further off than the slave image reaches, at a
-limit after a fault, or started there), or the slave looks at something else.
+limit after a fault, or started there), or the slave looks at something else. Where the last confident decision said
+converged and the slave is still at that pan, HELD_S: a fovea whose matches are sparse (near the image's edge, say)
+converges, then decides confidently only now and then, and a search would take it away from where it is right.
 
 The search. First back to the last pan at which the loop was converged (where the target was last seen), then a
 sweep about it, nearer stops first, alternating sides (without such a pan: about the present one, toward the middle
-of the range first), in steps of STEP_OF_BAND of the angle the band reaches from the fovea (at 640 px and f 500 px,
+of the range first), in steps of STEP_OF_BAND of the angle half the band spans (at 640 px and f 500 px,
 32 degrees: 19-degree steps), so that each stop's band overlaps the last one's; the last stop on each side is the
 limit itself. Every stop is inside the motor's limits (and the Safety bounds each command
 as it bounds every other). At each stop the motor is given ARRIVE_S to get there (within ARRIVED_DEG, by the pan at
@@ -25,13 +27,15 @@ __all__ = ["Search"]
 
 log = logging.getLogger("vergence.search")
 
-LOST_S = 0.4  # textured frames and no confident decision for this long: lost
+LOST_S = 0.4  # textured frames and no confident decision for this long: lost ...
+HELD_S = 3.0  # ... or this long where the last confident one said converged, at the pan it holds (a fovea whose
+# matches are sparse, near the image's edge say, converges and then decides confidently only now and then)
 ARRIVE_S = 1.0  # the motor's time to reach a stop (then the next one regardless: a stall is the doubt's to name)
 ARRIVED_DEG = 0.5  # at a stop: the pan at the exposure within this of it
 DWELL_S = 0.2  # the decisions taken at a stop, after it arrived
 STEP_OF_BAND = 0.6  # the sweep's step: this fraction of the angle the band reaches
 MIN_STEP_DEG = 2.0  # a band narrower than this still steps this far
-MARGIN_PX = 16  # the band's reach: half the image width less this (a window's half) less the fovea's offset
+MARGIN_PX = 16  # the band's reach: half the image width less this (a window's half)
 
 
 class Search:
@@ -41,6 +45,7 @@ class Search:
     def __init__(self):
         self.t_lost: float | None = None  # the first textured, unconfident exposure since the last confident one
         self.converged: float | None = None  # the last pan at which the loop was converged (within 1 px)
+        self.held = False  # the last confident decision said converged
         self.stops: list[float] = []
         self.goal: float | None = None
         self.t_goal = 0.0  # when the present stop was set
@@ -60,13 +65,14 @@ class Search:
         self.searching, self.stops, self.goal, self.t_arrived = False, [], None, None
 
     def observe(self, t: float, pan: float, confident: bool, textured: bool, offset_px: float, focal_px: float,
-                width_px: int | None, centre_px: float, lo: float, hi: float) -> float | None:
+                width_px: int | None, lo: float, hi: float) -> float | None:
         """One decided frame (t: the slave's exposure, s; pan: its pan then, rad; lo, hi: the motor's soft limits,
         rad): the search's goal, or None (not lost, found, or held: black or flat frames)."""
         if not (math.isfinite(t) and math.isfinite(pan)):
             return None
         if confident and math.isfinite(offset_px):
-            if math.isfinite(focal_px) and focal_px > 0 and abs(offset_px) <= 1.0:
+            self.held = abs(offset_px) <= 1.0
+            if self.held:
                 self.converged = pan
             if self.searching:
                 self.found += 1
@@ -82,15 +88,16 @@ class Search:
         if self.t_lost is None:
             self.t_lost = t
         if not self.searching:
-            if t - self.t_lost < LOST_S:
+            held = self.held and self.converged is not None and abs(pan - self.converged) <= math.radians(ARRIVED_DEG)
+            if t - self.t_lost < (HELD_S if held else LOST_S):
                 return None
-            self._start(t, pan, focal_px, width_px, centre_px, lo, hi)
+            self._start(t, pan, focal_px, width_px, lo, hi)
         return self._next(t, pan, lo, hi)
 
-    def _start(self, t: float, pan: float, focal_px: float, width_px: int | None, centre_px: float, lo: float,
-               hi: float) -> None:
+    def _start(self, t: float, pan: float, focal_px: float, width_px: int | None, lo: float, hi: float) -> None:
         if width_px and math.isfinite(focal_px) and focal_px > 0:
-            reach = max(0.0, width_px / 2 - MARGIN_PX - abs(centre_px))
+            # half the band's span of offsets, wherever the fovea is (off centre, the band reaches further one way)
+            reach = max(0.0, width_px / 2 - MARGIN_PX)
             self.step = max(math.radians(MIN_STEP_DEG), STEP_OF_BAND * math.atan(reach / focal_px))
         c = self.converged if self.converged is not None and lo <= self.converged <= hi else pan
         c = min(max(c, lo), hi)

@@ -13,7 +13,7 @@ import pytest
 import background
 import sweeps
 from vergence.head.control import ControlSettings, Controller
-from vergence.head.search import LOST_S, STEP_OF_BAND, Search
+from vergence.head.search import HELD_S, LOST_S, STEP_OF_BAND, Search
 
 DEG = math.pi / 180
 DT = 1 / 60
@@ -26,7 +26,7 @@ def run(s: Search, pan: float, n: int, t0: float = 0.0, confident=False, texture
     out = []
     for k in range(n):
         t = t0 + k * DT
-        goal = s.observe(t, pan, confident, textured, offset, F, W, 0.0, LO, HI)
+        goal = s.observe(t, pan, confident, textured, offset, F, W, LO, HI)
         out.append((t, goal))
         if goal is not None:
             pan = goal
@@ -62,6 +62,18 @@ def test_first_back_to_the_last_converged_pan_then_about_it_alternating_from_whe
     step = 18.78
     # the side it was lost on first; 5 + 2 x 18.78 = 42.56 is within a quarter step of the limit: no stop at 45
     assert got[:7] == pytest.approx([5.0, 5 + step, 5 - step, 5 + 2 * step, 5 - 2 * step, -45.0, 5.0], abs=0.01)
+
+
+def test_converged_and_held_with_sparse_confident_decisions_waits_held_s_not_lost_s():
+    s = Search()
+    run(s, 2 * DEG, 1, confident=True, offset=0.3)  # converged at 2 deg
+    out = run(s, 2 * DEG, 240, t0=DT)  # then 4 s of abstentions, still at 2 deg
+    first = next(t for t, g in out if g is not None)
+    assert first == pytest.approx(DT + HELD_S, abs=DT) and HELD_S > LOST_S
+    moved = Search()
+    run(moved, 2 * DEG, 1, confident=True, offset=0.3)
+    first = next(t for t, g in run(moved, 10 * DEG, 60, t0=DT) if g is not None)  # elsewhere than where it converged
+    assert first == pytest.approx(DT + LOST_S, abs=DT)
 
 
 def test_black_frames_hold_and_a_confident_decision_ends_the_search():
