@@ -31,6 +31,15 @@ from reaper import pytest_configure, pytest_runtest_setup, pytest_unconfigure  #
 import background  # noqa: E402
 from services.runtime import warm  # noqa: E402  (no numba: compiled() only looks at the cache)
 
+# Where the environment says not to write bytecode (PYTHONDONTWRITEBYTECODE, as this machine and its CI do), every
+# process the tests start would compile vergence and services from source at each start (the editable install leaves
+# them uncompiled): compiled once here, the processes read the .pyc (each import checks it against its source).
+if sys.flags.dont_write_bytecode:
+    import compileall
+
+    for _pkg in ("vergence", "services"):
+        compileall.compile_dir(str(Path(HERE).parent / _pkg), quiet=1, workers=0)
+
 # On a fresh install the kernels are compiled once, in a process of their own, while pytest collects (as `vergence up`
 # does on a first start: else the first processes of the tests all compile them at once, inside timed tests, and the
 # in-process tests compile them too); pytest_collection_finish waits for it.
