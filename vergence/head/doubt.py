@@ -58,7 +58,6 @@ REF_MAX_S = 0.3  # a reference older than this is replaced by the newest decisio
 UNTRUSTED_DEG = 2.9  # the leash about the anchor until the image has been seen to follow
 LEASH_DEG = 1.5  # the leash past the pan the last consistent measurement asked for
 PROBE_DEG, PROBE_S = 0.5, 1.0  # during a fault: a probing move this far from the anchor, at most one a period
-STUCK_S = 1.0  # a head not yet seen to follow, held this long at its leash's end, probes
 PROBE_MIN_DEG = 0.3  # a probe's pair counts when the motor moved at least this much
 SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within this
 IDENTICAL_MOVE_DEG = 0.5  # a byte-identical slave image after the motor moved this much is frozen
@@ -381,7 +380,7 @@ class Doubt:
             self.t_bound = None
         elif self.t_bound is None:
             self.t_bound = t_now
-        elif t_now - self.t_bound >= STUCK_S and self.last_seen is not None:
+        elif t_now - self.t_bound >= PROBE_S and self.last_seen is not None:
             self.probe_ref, self.t_bound = self.last_seen, t_now
             self.probe_goal = pan - math.copysign(math.radians(PROBE_DEG), goal - self.anchor)
             return self.probe_goal
