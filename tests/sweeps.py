@@ -109,6 +109,29 @@ def faults(rates: tuple[float, ...], latencies: tuple[float, ...], seeds: tuple[
     return bench_faults(rates=rates, latencies=latencies, seeds=seeds, lies=lies)
 
 
+# -- tests/vergence/head/test_doubt.py ---------------------------------------------------------------------------------
+
+def teddy_rig(**kw):
+    """Middlebury's Teddy on the simulated rig, fixated at (400, 240), 640 x 480."""
+    from middlebury import ROOT
+    from vergence.sim import Rig
+
+    d = ROOT / "teddy"
+    return Rig.from_options(left=str(d / "left.png"), right=str(d / "right.png"), disparity=str(d / "disparity.png"),
+                            dscale="4", size="640x480", fixate="400,240", **kw)
+
+
+def teddy_lie(lie: str, latency: float) -> list:
+    """Teddy at 60 Hz with sensor noise 1, the fovea moved at frame 30 to (150, 200), the slave lying (`lie`: freeze
+    or slip) from 0.4 to 2.4 s, the image `latency` old when read: the loop's Steps over 5 s."""
+    from vergence.sim.faults import FAULT_KEYS, Faults
+    from vergence.spec import parse
+
+    faults = Faults.take(parse(f"{lie}=0.4-2.4", FAULT_KEYS, "test"))
+    return _lean(closed_loop(teddy_rig(noise="1"), 300, None, ControlSettings(), None, 60.0, fixations={30: (150, 200)},
+                             timing=CameraTiming(latency), faults=faults, seed=0))
+
+
 # -- tests/vergence/head/test_search.py --------------------------------------------------------------------------------
 
 def lost(seed: int, kind: int, z: float, latency: float, rate: float = 60.0):

@@ -97,13 +97,14 @@ def test_the_controller_searches_only_where_the_image_can_follow_and_holds_in_a_
 DRAWS = [(501 + i, i % 4, (0.6, 0.9, 1.2, 1.5)[i // 4 % 4], 0.066 if i % 2 else 0.0) for i in range(16)]
 
 
-for _d in DRAWS[2:]:
-    background.ahead(sweeps.lost, *_d, tests="test_a_lost_slave_is_found_within_3_s_in_16_draws")
+for _d in DRAWS:
+    background.ahead(sweeps.lost, *_d, tests=("test_a_lost_slave_is_found_within_3_s_in_16_draws",
+                                              "test_a_lost_slave_finds_the_target_within_3_s_inside_the_limits"))
 
 
 @pytest.mark.parametrize("seed,kind,z,latency", DRAWS[:2])
 def test_a_lost_slave_finds_the_target_within_3_s_inside_the_limits(seed, kind, z, latency):
-    found, widest, faults = sweeps.lost(seed, kind, z, latency)
+    found, widest, faults = background.get(sweeps.lost, seed, kind, z, latency)
     assert found is not None and found <= 3.0 and widest <= 45.0 + 1e-9 and not faults, (found, widest, faults)
 
 
