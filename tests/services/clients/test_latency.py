@@ -18,12 +18,14 @@ def test_vergence_latency_measures_the_sim_camera_within_5_ms(tmp_path, latency,
     time (as a camera whose backend gives no timestamps, [camera] latency_s 0), so the measurement has to find
     the whole latency from the image offsets and the motor's history. At latency 0 the sim camera renders the
     pan its replica of the motor has at the read, stamped a little before it (what the capture's status says of its
-    stamps is the truth there, a millisecond or less): the measured figure may then be a little below 0."""
+    stamps is the truth there, a millisecond or less): the measured figure may then be a little below 0. The rig runs
+    at 60 Hz: the fit's spread is a fraction of the frame interval (at 30 Hz -5.2 to +2.9 ms at 0 ms, once 5.5 off;
+    at 60 Hz, 8 runs, within 1.6 ms of the truth)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with Procs(tmp_path) as P:
         P.endpoint = endpoint
         P.start("up", "up", "--listen", endpoint, "--source", f"sim:latency={latency}:stamps={stamps}",
-                "--workers", "1", "--rate", "30", connect=False)
+                "--workers", "1", "--rate", "60", connect=False)
         s = P.session()
         decisions = P.collect(s, P.key("decision"))
         status = P.collect(s, P.key("status/capture/*"))
@@ -40,12 +42,12 @@ def test_vergence_latency_measures_the_sim_camera_within_5_ms(tmp_path, latency,
         toml = float(re.search(r"latency_s = ([\d.]+)", r.stdout)[1])
         assert toml == pytest.approx(max(0.0, got / 1e3), abs=0.0005)
         # the hold is over (`vergence latency` released it as it ended): the rig decides on, and commands again where
-        # its decisions ask for a move (none where the slave is back where it wants it): a command, or a second of
-        # decisions of frames captured after the release
+        # its decisions ask for a move (none where the slave is back where it wants it): a command, or five decisions
+        # of frames captured after the release
         released = time.time_ns()
         held = P.collect(s, P.key("command"))
-        wait_for(lambda: len(held) > 0 or sum(Decision.from_bytes(b).t_capture_ns > released + 10**9
-                                              for _, b, _ in decisions.snapshot()[-5:]) > 0, 20,
+        wait_for(lambda: len(held) > 0 or sum(Decision.from_bytes(b).t_capture_ns > released
+                                              for _, b, _ in decisions.snapshot()[-5:]) == 5, 20,
                  "commands, or decisions, after the hold", logs=P.logs)
 
 
