@@ -92,7 +92,7 @@ class Search:
             if t - self.t_lost < (HELD_S if held else LOST_S):
                 return None
             self._start(t, pan, focal_px, width_px, lo, hi)
-        return self._next(t, pan, lo, hi)
+        return self._next(t, pan)
 
     def _start(self, t: float, pan: float, focal_px: float, width_px: int | None, lo: float, hi: float) -> None:
         if width_px and math.isfinite(focal_px) and focal_px > 0:
@@ -122,7 +122,7 @@ class Search:
                     math.degrees(c))
         self._all = list(self.stops)
 
-    def _next(self, t: float, pan: float, lo: float, hi: float) -> float:
+    def _next(self, t: float, pan: float) -> float:
         if self.goal is not None:
             if self.t_arrived is None and abs(pan - self.goal) <= math.radians(ARRIVED_DEG):
                 self.t_arrived = t
@@ -132,7 +132,7 @@ class Search:
                 return self.goal
         if not self.stops:
             self.stops = list(self._all)  # the sweep is done: again
-        self.goal, self.t_goal, self.t_arrived = min(max(self.stops.pop(0), lo), hi), t, None
+        self.goal, self.t_goal, self.t_arrived = self.stops.pop(0), t, None  # (_start made every stop inside)
         return self.goal
 
     def status(self) -> dict:
