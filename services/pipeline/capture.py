@@ -114,8 +114,8 @@ class Capture:
         # the sim motor's replica, for a source that renders the slave (its states tell whether it is the sim)
         self.renders = getattr(source, "renders", False)  # (the ros2 source is not a vergence.io.sources.Source)
         self.replica = Replica(settings.actuator.motor) if self.renders else None
-        if self.renders:  # the sim camera sits on the shaft, which turns direction x the pan reported
-            source.direction = settings.actuator.motor.direction
+        if self.renders:  # the sim camera sits on the shaft, which turns direction x (the pan reported - offset)
+            source.shaft = settings.actuator.motor.to_motor
         rate = self.cs.rate_hz
         self.clock = ExposureClock(settings.camera.timing(), 1.0 / rate if rate > 0 else 0.0)
         self.rates = Rates()

@@ -214,8 +214,8 @@ class SimSource(Source):
     and the slave's motion over S: motion blur), jitter=S (exposure times off their schedule); stamps=no
     gives no exposure times (as a camera whose backend has none: the capture then takes [camera]
     latency_s), for measuring the latency from outside (`vergence latency`). The camera-side faults of
-    vergence.sim.faults (freeze=T0-T1, freeze_master=, black=, reverse, slip=, backlash=, focal_true=) make it lie
-    as a real head's cameras do; the motor-side ones (stall, encoder_noise) are `vergence sim`'s only."""
+    vergence.sim.faults (freeze=T0-T1, freeze_master=, black=, reverse, slip=, backlash=, focal_true=, zero=) make it
+    lie as a real head's cameras do; the motor-side ones (stall, encoder_noise) are `vergence sim`'s only."""
 
     TIMING = {"latency": "latency_s", "skew": "skew_s", "exposure": "exposure_s", "jitter": "jitter_s"}
     renders = True
@@ -252,7 +252,8 @@ class SimSource(Source):
         self.t0: int | None = None  # the scene's time 0 (ns): the first exposure
         self.rng = np.random.default_rng(0)
         self.lies = Lies(faults)
-        self.direction = 1  # [actuator.motor] direction: the shaft is direction x the pans the motor reports
+        # [actuator.motor] direction and offset_deg: the shaft's angle for a pan the motor reports (to_motor)
+        self.shaft = float
         self._still_truth: tuple = (None, math.nan)  # (fovea, its truth) of the still scene
         self._last: tuple = ([0.0], [(self.start_pan_rad, 0.0)])  # the latest read's instants and pans
 
@@ -299,7 +300,7 @@ class SimSource(Source):
             settle(t_slave + round(tm.exposure_s * 5e8))
         lies, at = self.lies, (t_master - self.t0) / 1e9
         scene = lies.inputs("master", at, sub_times(at, tm.exposure_s))
-        slave = lies.inputs("slave", at, [(lies.camera(self.direction * pan_of(self.t0 + round(t * 1e9)), t), t)
+        slave = lies.inputs("slave", at, [(lies.camera(self.shaft(pan_of(self.t0 + round(t * 1e9))), t), t)
                                           for t in sub_times((t_slave - self.t0) / 1e9, tm.exposure_s)])
         truth = self._truth((t_master - self.t0) / 1e9)
         self.truth_pan_rad = truth if math.isfinite(truth) else None

@@ -36,6 +36,10 @@ class MotorSettings:
     zero: the tick count at pan 0 (2048, the centre of an X-series). direction: +1, or -1 when the motor
     turns the camera the other way (toward decreasing image x for increasing ticks; the doubt's
     `reversed`): applied by vergence.motors.runner for every driver, which is given direction x pan.
+    offset_deg: the slave camera's pan where the motor reads 0 (the pan zero's error, a float where zero is
+    whole ticks; `vergence calibrate --distance` measures it): the pan the loop uses is direction x the
+    motor's angle + offset, applied with direction for every driver (to_motor, from_motor); the limits below
+    are of that pan.
     min_deg/max_deg: soft limits of the pan
     (the one home of the pan limits, max_step_deg and dead_band_deg: the reducer's controller reads them
     here too, through a Safety; [control] has none).
@@ -61,6 +65,7 @@ class MotorSettings:
     ticks_per_rev: int = 4096
     zero: int = 2048
     direction: int = 1
+    offset_deg: float = 0.0
     min_deg: float = -45.0
     max_deg: float = 45.0
     max_speed_deg_s: float = 180.0
@@ -87,6 +92,7 @@ class MotorSettings:
         "ticks_per_rev": Range(1, 1 << 24, integer=True),
         "zero": Range(-(1 << 31), (1 << 31) - 1, integer=True, note="ticks"),
         "direction": Range(-1, 1, integer=True, note="1 or -1"),
+        "offset_deg": Range(-30, 30, note="degrees"),
         "min_deg": Range(-180, 180),
         "max_deg": Range(-180, 180),
         "max_speed_deg_s": Range(0, 1e6, note="0: the motor's own maximum"),
@@ -119,6 +125,18 @@ class MotorSettings:
     @property
     def max_rad(self) -> float:
         return math.radians(self.max_deg)
+
+    @property
+    def offset_rad(self) -> float:
+        return math.radians(self.offset_deg)
+
+    def to_motor(self, pan_rad: float) -> float:
+        """The motor's own angle for a pan of the loop: direction x (pan - offset)."""
+        return self.direction * (pan_rad - self.offset_rad)
+
+    def from_motor(self, angle_rad: float) -> float:
+        """The loop's pan for the motor's own angle: direction x angle + offset."""
+        return self.direction * angle_rad + self.offset_rad
 
     def to_ticks(self, pan_rad: float) -> int:
         """Goal Position for the motor's angle (direction x pan, as MotorLoop gives it the driver): round(zero +

@@ -14,9 +14,10 @@ with the simulated motor and a fake clock:
 - lost for absent_s, the status turns "absent" and an error is logged, repeated every ABSENT_REPEAT_S; the
   commands meanwhile are ignored (counted); when it answers again it holds where it is (its goal register is
   rewritten with its present position, vergence.motors.dynamixel) until a new command;
-- [actuator.motor] direction is applied here, for every driver (issue #35): a driver is given direction x pan
-  and its reading is multiplied by direction, so a motor that turns the other way (the doubt's `reversed`) is
-  fixed by one setting whatever drives it (sim, ROS 2, Dynamixel, line).
+- [actuator.motor] direction and offset_deg are applied here, for every driver (issues #35, #36): a driver is
+  given direction x (pan - offset) and its reading r is taken as direction x r + offset, so a motor that turns
+  the other way (the doubt's `reversed`), or a camera whose pan zero is off its encoder's, is fixed by one
+  setting whatever drives it (sim, ROS 2, Dynamixel, line).
 """
 
 from __future__ import annotations
@@ -71,7 +72,7 @@ class MotorLoop:
     def start(self) -> MotorState:
         """Open the driver; a PortError here is fatal (the caller prints it). Disconnected is retried."""
         try:
-            present = self.s.direction * self.driver.open()
+            present = self.s.from_motor(self.driver.open())
         except PortError:
             raise
         except MotorError as e:
@@ -175,11 +176,11 @@ class MotorLoop:
             return
         p = self._io(self.driver.read_position)
         if p is not _FAILED and math.isfinite(p):
-            self.pan = self.s.direction * p
+            self.pan = self.s.from_motor(p)
 
     def _write(self, pan: float) -> None:
         """A goal (already made safe) to the driver, in the motor's own sense of rotation."""
-        self.driver.write_goal(self.s.direction * pan)
+        self.driver.write_goal(self.s.to_motor(pan))
 
     def _io(self, fn, *args):
         try:
@@ -216,7 +217,7 @@ class MotorLoop:
 
     def _reconnect(self) -> None:
         try:
-            present = self.s.direction * self.driver.open()
+            present = self.s.from_motor(self.driver.open())
         except MotorError as e:
             self._delay = min(self.backoff[1], self._delay * 2)
             self._retry_at = self.clock() + self._delay
@@ -245,7 +246,7 @@ class MotorLoop:
                           goal_rad=g, min_rad=s.lo, max_rad=s.hi, status=self.status, driver=self.driver.name,
                           frame=self.frame, t_capture_ns=self.t_capture_ns, at_limit=at_limit,
                           clamped=s.clamped, ignored=s.ignored, errors=self.driver.errors, note=self.note,
-                          malformed=self.malformed, commands=self.commands)
+                          malformed=self.malformed, commands=self.commands, offset_deg=self.s.offset_deg)
 
 
 _FAILED = object()

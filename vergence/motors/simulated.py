@@ -19,7 +19,6 @@ from the same goals at the same instants, and knows the shaft without waiting fo
 from __future__ import annotations
 
 import bisect
-import dataclasses
 import math
 import time
 from collections import deque
@@ -54,8 +53,9 @@ class SimMotor(Driver):
         self.clock_ns = clock_ns if clock is None else (lambda: round(clock() * 1e9))
         self.tick_rad = 2 * math.pi / s.ticks_per_rev
         # the shaft at the grid step self.k (at self.k * H_NS ns), in the motor's own sense (MotorLoop gives it
-        # direction x pan): start_deg is the pan it starts at
-        self.pan = s.direction * math.radians(s.start_deg)
+        # direction x (pan - offset)): start_deg is the pan it starts at, on the nearest tick (a pan offset by a
+        # fraction of a tick would leave it between two, where no model of it that reads the encoder can put it)
+        self.pan = self._quantise(s.to_motor(math.radians(s.start_deg)))
         self.vel = 0.0
         self.goal = self.pan
         self.pending: deque[tuple[int, float]] = deque()  # (the step it reaches the motor at, goal)
@@ -64,7 +64,7 @@ class SimMotor(Driver):
         self.position_ns: int | None = None  # the instant of the latest read_position
         self._written: int | None = None  # the instant of a goal written since the latest read
         self.torque = False
-        self.hard = tuple(sorted(s.direction * x for x in (s.min_rad - math.radians(1), s.max_rad + math.radians(1))))
+        self.hard = tuple(sorted(s.to_motor(x) for x in (s.min_rad - math.radians(1), s.max_rad + math.radians(1))))
         self.vmax = math.radians(s.max_speed_deg_s) or math.inf
         self.amax = math.radians(s.max_accel_deg_s2) or math.inf
 
@@ -189,12 +189,13 @@ class Replica:
     def __init__(self, settings: MotorSettings):
         self.settings = settings
         self._now = 0
-        # the model in the pans the states report (MotorLoop's, direction applied)
-        self.m = SimMotor(dataclasses.replace(settings, direction=1), clock_ns=lambda: self._now)
+        # the model is the actuator's SimMotor, in the motor's own angle: the pans the states report (MotorLoop's,
+        # direction and offset applied) are turned into it, and the shafts it gives back into pans
+        self.m = SimMotor(settings, clock_ns=lambda: self._now)
         self.tick_rad = self.m.tick_rad
         self.trusted = False
         self.mismatches = 0
-        self.goal: float | None = None  # the newest goal reported
+        self.goal: float | None = None  # the newest goal reported (in the motor's angle)
         self._rest: tuple[int, float] | None = None  # (t_ns, goal) of a state seen on its goal, not yet trusted
         self.snaps: deque[tuple] = deque()
         self.out: deque[int] = deque()  # the arrivals (monotonic ns) of commands seen, not yet counted by the motor
@@ -266,8 +267,8 @@ class Replica:
         """The shaft at t_ns, or None while the model is not trusted (or t_ns before what it keeps)."""
         if not self.trusted:
             return None
-        pan = self._shaft(t_ns)
-        return pan if math.isfinite(pan) else None
+        shaft = self._shaft(t_ns)
+        return self.settings.from_motor(shaft) if math.isfinite(shaft) else None
 
     def commanded(self, now_ns: int) -> None:
         """A command seen on the command key (now_ns: its arrival, monotonic): out until a state counts it (or
@@ -311,6 +312,7 @@ class Replica:
         checked against the reading. False when the check failed (the model is then not trusted until the
         motor rests on its goal)."""
         m = self.m
+        pan, goal = self.settings.to_motor(pan), self.settings.to_motor(goal)  # the model's own angle
         if self.trusted and goal != self.goal:
             if t_ns < m.k * H_NS and not self._rewind(t_ns):
                 self.trusted = False

@@ -5,9 +5,10 @@ Camera side (the images): freeze=T0-T1 (the slave camera repeats its last image,
 freeze_master=T0-T1, black=T0-T1 (both cameras black), reverse (the camera turns against the encoder), slip=T0-T1
 (the encoder moves, the camera does not; after T1 it follows again, off by what slipped), backlash=DEG (the camera
 lags the shaft within a dead zone of DEG), focal_true=F (images rendered at focal length F px, while the settings
-say the spec's focal). Motor side (`vergence sim` only; the service's sim actuator tells the truth): stall=T0-T1
-(nothing moves; the encoder says so), encoder_noise=DEG (Gaussian noise on each encoder reading). Times are seconds
-from the first exposure."""
+say the spec's focal), zero=DEG (the slave camera sits DEG further than its encoder says: a pan zero that is off,
+which `vergence calibrate --distance` measures and [actuator.motor] offset_deg corrects). Motor side (`vergence sim`
+only; the service's sim actuator tells the truth): stall=T0-T1 (nothing moves; the encoder says so),
+encoder_noise=DEG (Gaussian noise on each encoder reading). Times are seconds from the first exposure."""
 
 from __future__ import annotations
 
@@ -23,7 +24,8 @@ __all__ = ["Faults", "Lies", "FAULT_KEYS"]
 FAULT_KEYS = [Key("freeze", "range", lo=0, unit="s"), Key("freeze_master", "range", lo=0, unit="s"),
               Key("black", "range", lo=0, unit="s"), Key("reverse", "flag"), Key("slip", "range", lo=0, unit="s"),
               Key("stall", "range", lo=0, unit="s"), Key("backlash", lo=0, hi=10, unit="deg"),
-              Key("focal_true", above=0, hi=1e5, unit="px"), Key("encoder_noise", lo=0, hi=5, unit="deg")]
+              Key("focal_true", above=0, hi=1e5, unit="px"), Key("encoder_noise", lo=0, hi=5, unit="deg"),
+              Key("zero", lo=-30, hi=30, unit="deg")]
 
 
 @dataclass(frozen=True)
@@ -39,6 +41,7 @@ class Faults:
     backlash: float | None = None
     focal_true: float | None = None
     encoder_noise: float | None = None
+    zero: float | None = None
 
     @classmethod
     def take(cls, items: dict) -> Faults:
@@ -83,7 +86,7 @@ class Lies:
     def camera(self, shaft: float, t: float) -> float:
         """The slave camera's pan when the motor's shaft is at `shaft` (its own sense: direction x pan) at time t;
         `reverse` mounts the camera the other way about the pan zero (a motor that turns the other way than
-        [actuator.motor] direction says)."""
+        [actuator.motor] direction says); `zero` turns it that much further than the encoder says."""
         f = self.f
         if within(f.slip, t):
             if self.slip_at is None:
@@ -102,6 +105,8 @@ class Lies:
                 self.cam = pan
             self.cam = min(max(self.cam, pan - half), pan + half)
             pan = self.cam
+        if f.zero:
+            pan += math.radians(f.zero)
         return pan
 
     def inputs(self, which: str, t: float, now):

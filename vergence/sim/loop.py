@@ -107,12 +107,12 @@ def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: Co
     ms = replace(motor or MotorSettings(), start_deg=math.degrees(rig.start_pan_rad))
     clock = [0.0]
     drive = SimMotor(ms, clock=lambda: clock[0])
-    d = ms.direction  # the motor turns d x the pan (a MotorLoop's job in the actuator, done here)
-    safety = Safety(ms, d * drive.open())
+    # the motor turns direction x (pan - offset) (a MotorLoop's job in the actuator, done here)
+    safety = Safety(ms, ms.from_motor(drive.open()))
     controller = Controller(control, safety)  # asks the motor's limits of the Safety (as the reducer does)
     history = PanHistory(max_gap_s=max(0.1, 3.0 / state_hz))
     lies = Lies(faults or Faults(), seed)
-    history.add(0.0, lies.encoder(d * drive.read_position()))
+    history.add(0.0, lies.encoder(ms.from_motor(drive.read_position())))
     events: list = []  # (time, order, kind, frame, payload)
     order = [0]
 
@@ -143,11 +143,11 @@ def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: Co
         elif kind == "stall":
             drive.write_goal(drive.shaft)  # it stops where it is
         elif kind in ("at_master", "at_slave"):
-            shafts[i][kind] = d * drive.shaft  # (the pan the encoder would read)
+            shafts[i][kind] = ms.from_motor(drive.shaft)  # (the pan the encoder would read)
             if kind == "at_slave":  # the encoder's reading at the slave's exposure (see the docstring)
-                history.add(clock[0], lies.encoder(d * drive.read_position()))
+                history.add(clock[0], lies.encoder(ms.from_motor(drive.read_position())))
         elif kind == "state":
-            history.add(clock[0], lies.encoder(d * drive.read_position()))
+            history.add(clock[0], lies.encoder(ms.from_motor(drive.read_position())))
         elif kind == "read":
             at = (fixations or {}).get(i, at)
             push(t + delay_s, "command", i, _decide(rig, i, shafts.pop(i), times[i], at, params, controller,
@@ -157,8 +157,8 @@ def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: Co
             if target is not None:
                 target = safety.command(target).goal
                 if target is not None and not lies.stalled(t):
-                    drive.write_goal(d * target)
-                    history.add(clock[0], lies.encoder(d * drive.read_position()))
+                    drive.write_goal(ms.to_motor(target))
+                    history.add(clock[0], lies.encoder(ms.from_motor(drive.read_position())))
             yield replace(step, target_deg=None if target is None else math.degrees(target))
 
 

@@ -341,9 +341,10 @@ class MotorState(Message):
     note: str = ""
     malformed: int = 0  # command messages that failed to decode, skipped
     commands: int = 0  # command messages received (valid or not)
+    offset_deg: float = 0.0  # [actuator.motor] offset_deg, applied to every pan here (vergence calibrate reads it)
 
     def validate(self) -> None:
-        _finite("motor_state.pan_rad", self.pan_rad, self.goal_rad, self.min_rad, self.max_rad)
+        _finite("motor_state.pan_rad", self.pan_rad, self.goal_rad, self.min_rad, self.max_rad, self.offset_deg)
 
 
 class Preview(Message):

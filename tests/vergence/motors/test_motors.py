@@ -62,6 +62,31 @@ def test_ticks_zero_and_a_direction_every_driver_honours():
     assert motor.shaft == pytest.approx(-math.radians(45), abs=1e-3)
 
 
+def test_an_offset_every_driver_honours():
+    """[actuator.motor] offset_deg (issue #36, `vergence calibrate` writes it): the pans the loop commands and
+    reports are the motor's angle (times direction) plus the offset; the limits are the pan's."""
+    m = MotorSettings(direction=-1, offset_deg=0.3)
+    assert m.to_motor(math.radians(1.0)) == pytest.approx(-math.radians(0.7))
+    assert m.from_motor(-math.radians(0.7)) == pytest.approx(math.radians(1.0))
+    clock = Clock()
+    ms = MotorSettings(direction=-1, offset_deg=-1.5, start_deg=2.0, tau_s=0.05, max_speed_deg_s=1000,
+                       max_step_deg=90, **IDEAL)
+    motor = SimMotor(ms, clock=clock)
+    loop = MotorLoop(motor, ms, clock=clock, wall_ns=lambda: 7)
+    st = loop.start()
+    assert st.pan_rad == pytest.approx(2 * DEG) and motor.shaft == pytest.approx(-3.5 * DEG) and st.offset_deg == -1.5
+    loop.command(cmd(0.05))
+    assert motor.goal == pytest.approx(-(0.05 + 1.5 * DEG))
+    clock.t += 0.5
+    assert loop.tick().pan_rad == pytest.approx(0.05, abs=1e-4)
+    loop.command(cmd(math.radians(-60)))  # past min_deg -45: clamped in the pan's terms, then offset and turned
+    clock.t += 0.5
+    assert loop.tick().pan_rad == pytest.approx(-math.radians(45), abs=1e-3)
+    assert motor.shaft == pytest.approx(math.radians(43.5), abs=1e-3)
+    with pytest.raises(ConfigError, match="offset_deg"):
+        from_dict({"actuator": {"motor": {"offset_deg": 31}}})
+
+
 def test_config_motor_table_and_errors():
     s = from_dict({"actuator": {"driver": "dynamixel", "port": "loop://",
                                 "motor": {"id": 7, "min_deg": -20, "max_step_deg": 2.5}}})
@@ -430,17 +455,18 @@ def _drive(ms: MotorSettings, seconds: float, delay, seed: int = 0, period: floa
         while inbox and inbox[0][0] <= clock.t:
             st = inbox.pop(0)[1]
             rep.observe(st.t_ns, st.pan_rad, st.goal_rad, torque=st.status != "stopped")
-        yield clock.t, ms.direction * motor.shaft, rep
+        yield clock.t, ms.from_motor(motor.shaft), rep
 
 
-@pytest.mark.parametrize("seed, direction", [(1, 1), (2, 1), (3, -1)])
-def test_replica_is_within_a_tick_of_the_shaft_without_waiting_for_reports(seed, direction):
+@pytest.mark.parametrize("seed, direction, offset", [(1, 1, 0.0), (2, 1, 0.0), (3, -1, 0.0), (4, -1, 0.3137)])
+def test_replica_is_within_a_tick_of_the_shaft_without_waiting_for_reports(seed, direction, offset):
     """States arrive 0.2-1.5 ms after they are published: the replica's shaft at every instant up to now (and
     30 ms back: a camera's latency) is the sim motor's (well within the issue's one encoder tick), and it is
     trusted from its first 20 ms on (two states on the goal at rest)."""
     import numpy as np
 
-    ms = MotorSettings(direction=direction)  # -1: the shaft turns the other way, the pans reported do not
+    # -1: the shaft turns the other way, the pans reported do not; offset: the pans reported are the shaft's plus it
+    ms = MotorSettings(direction=direction, offset_deg=offset)
     rng = np.random.default_rng(seed + 100)
     errs, past, untrusted = [], [], 0
     history: list[tuple[float, float]] = []
