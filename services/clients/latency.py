@@ -50,6 +50,7 @@ class Recorder:
         self.lock = threading.Lock()
         self.decisions: list[Decision] = []
         self.states: list[MotorState] = []
+        self.sent: list[int] = []  # when each of our commands was sent (ns)
 
     def on_decision(self, sample) -> None:
         self._keep(sample, Decision, self.decisions)
@@ -95,6 +96,7 @@ class Mover:
     def command(self, pan: float) -> None:
         decisions, _ = self.rec.snapshot()
         t = max([d.t_capture_ns for d in decisions] + [time.time_ns() - 10**9]) + 1
+        self.rec.sent.append(time.time_ns())
         self.s.put(keys.command(self.rig), Command(rig=self.rig, frame=-1, t_capture_ns=t, pan_rad=pan,
                                                    correction_rad=0.0, direction=0, magnitude_px=0.0,
                                                    confidence=1.0, t_sent_ns=time.time_ns()).to_bytes())
@@ -110,21 +112,32 @@ class Mover:
             self.command(pan)
 
 
-def record(node: Node, rec: Recorder, rig: str, amplitude_deg: float, hold_s: float, wait: float):
-    """In the node's block: the rig's decisions and motor states while the slave steps through the plan, as
-    (decisions, states, t_start); or the exit code (1) when the rig does not answer."""
+def record(node: Node, rec: Recorder, rig: str, amplitude_deg: float, hold_s: float, wait: float,
+           planner=motion_plan, name: str = "latency", ready=None):
+    """In the node's block: the rig's decisions and motor states while the slave steps through the plan
+    (planner(p0, lo, hi, amplitude rad, hold_s)), as (decisions, states, t_start); or the exit code: 1 when the rig
+    does not answer, 2 when ready() (called once the rig answers) says why not to move (it prints why)."""
     node.subscriber(keys.decision(rig), rec.on_decision)
     node.subscriber(keys.motor_state(rig), rec.on_state)
     mover = Mover(node.session, rig, rec)
     try:
         if not _wait(lambda: all(rec.snapshot()), wait):
             d, m = rec.snapshot()
-            print(f"vergence latency: no {'decisions' if not d else 'motor states'} on rig {rig!r} within "
+            print(f"vergence {name}: no {'decisions' if not d else 'motor states'} on rig {rig!r} within "
                   f"{wait:g} s: start the rig first (vergence up), with a still textured scene", file=sys.stderr)
             return 1
+        if ready is not None and not ready():
+            return 2
         state = rec.snapshot()[1][-1]
         p0 = state.pan_rad
-        plan = motion_plan(p0, state.min_rad, state.max_rad, math.radians(amplitude_deg), hold_s)
+        plan = planner(p0, state.min_rad, state.max_rad, math.radians(amplitude_deg), hold_s)
+        room = max(p for _, p in plan) - min(p for _, p in plan)
+        if room < math.radians(0.2):
+            print(f"vergence {name}: the motor's limits ({math.degrees(state.min_rad):+.2f}, "
+                  f"{math.degrees(state.max_rad):+.2f} deg) leave {math.degrees(room):.2f} deg to step about its pan "
+                  f"{math.degrees(p0):+.2f}: move the slave off the limit (or widen [actuator.motor] min_deg, "
+                  "max_deg) and try again", file=sys.stderr)
+            return 2
         print(f"holding the reducer, stepping the slave +-{amplitude_deg:g} deg about {math.degrees(p0):+.2f} "
               f"deg for {len(plan) * hold_s:.1f} s ...", file=sys.stderr)
         t_start = time.time_ns()

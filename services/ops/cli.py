@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "actuator": ("services.pipeline.actuator", "drive the slave pan motor"),
     "fixate": ("services.clients.fixate", "move the running capture's fovea to a master pixel"),
     "latency": ("services.clients.latency", "measure the camera's exposure-to-read latency on the running head"),
+    "calibrate": ("services.clients.calibrate", "measure the running head: direction, focal length, latency, pan zero"),
     "monitor": ("services.observe.monitor", "live view of the correlation topics"),
     "record": ("services.observe.record", "record every vergence/<rig>/** message to a file"),
     "replay": ("services.clients.replay", "publish a recording again"),

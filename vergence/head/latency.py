@@ -85,10 +85,11 @@ def _best(t, off, st, sp, grid) -> tuple[float, float, float]:
 
 def fit_latency(decisions: list[tuple[int, int, float]], states: list[tuple[int, float]],
                 search_s: tuple[float, float] = (-0.3, 0.7), step_s: float = 0.001, boots: int = 60,
-                seed: int = 0) -> LatencyFit:
+                seed: int = 0, either_sign: bool = False) -> LatencyFit:
     """decisions: [(stamp ns, read ns, offset px)] of confident decisions; states: [(t ns, pan rad)] of the
     motor, in its own time. Raises LatencyError where the motor did not move or the offsets do not follow it
-    (no texture, a moving scene)."""
+    (no texture, a moving scene); with either_sign, offsets that follow it the other way (a positive slope, a
+    camera turning against the motor) are fitted too, for the caller to name."""
     if len(decisions) < 20:
         raise LatencyError(f"only {len(decisions)} confident decisions: the network abstains on this scene "
                            "(point the master at a still, textured scene) or no rig is running")
@@ -104,7 +105,7 @@ def fit_latency(decisions: list[tuple[int, int, float]], states: list[tuple[int,
     st, sp = (s[:, 0] - t0) / 1e9, s[:, 1]
     grid = np.arange(search_s[0], search_s[1] + step_s / 2, step_s)
     delta, slope, r2 = _best(t, off, st, sp, grid)
-    if r2 < 0.5 or slope >= 0:
+    if r2 < 0.5 or (slope >= 0 and not either_sign):
         raise LatencyError(f"the offsets do not follow the motor (r2 {r2:.2f}, slope {slope:.0f} px/rad): the "
                            "scene must be still and textured, the master fixed")
     rng = np.random.default_rng(seed)

@@ -1,0 +1,165 @@
+"""`vergence calibrate [--distance Z] [--write FILE] [--amplitude DEG] [--hold-s S] [--wait S]`: measure the
+running head on itself (issue #36).
+
+As `vergence latency` does, it holds the reducer's commands, steps the slave through known pans about its present
+one (nine levels within +-amplitude and the motor's soft limits, each held hold-s), records the decisions and the
+motor's states, then puts the slave back and releases the hold. From them (vergence.head.calibrate.fit_head):
+- the direction: the image moves the way the settings say, or it says to flip [actuator.motor] direction;
+- the focal length in pixels (the slope of the offsets against the pan), with its sigma;
+- the camera's latency (vergence.head.latency);
+- with --distance Z (metres along the master's optical axis, through the fovea, to the point it fixates: a
+  target the user measured), the pan zero's error, written as [actuator.motor] offset_deg (the one the actuator
+  applies now, from its motor_state, plus the correction).
+It prints each figure with its uncertainty and the TOML lines; --write FILE merges them into FILE (created if
+missing; comments and every other key kept) for `vergence up --config FILE`. Exit 1 when no rig answers, 2 when
+the scene or the motor does not allow the measurement (it says why and what to do).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+import threading
+import time
+
+from vergence.config import ConfigError, load
+from vergence.head.calibrate import (CalibrationError, calibration_plan, fit_head, merge_settings, pan_for_depth,
+                                     settings_text)
+from vergence.ros2.convert import view_of_frame
+from vergence.wire import keys
+
+from services.clients.latency import Recorder, _wait, record
+from services.runtime import session
+from services.runtime.args import number
+from services.runtime.node import Node
+
+log = logging.getLogger("vergence.calibrate")
+
+LOOK_S = 0.5  # the decisions looked at before moving: is anything confident?
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    session.add_options(p)
+    p.add_argument("--distance", type=number(0, 1000, lo_open=True), default=None, metavar="Z",
+                   help="metres along the master's optical axis (through the fovea) to the point the head fixates, "
+                        "measured by you: gives the pan zero ([actuator.motor] offset_deg)")
+    p.add_argument("--write", default=None, metavar="FILE",
+                   help="merge the settings found into this TOML file (created if missing; every other key kept)")
+    p.add_argument("--amplitude", type=number(0, 5, lo_open=True), default=2.0, metavar="DEG",
+                   help="the steps' reach about the present pan, degrees (default 2, at most 5)")
+    p.add_argument("--hold-s", type=number(0.1, 5), default=0.4, metavar="S",
+                   help="how long each step is held (default 0.4)")
+    p.add_argument("--wait", type=number(0, 3600, lo_open=True), default=5.0, metavar="S",
+                   help="how long to wait for the rig's decisions and motor states (default 5)")
+
+
+class FrameKeeper:
+    """The latest frame's bytes (its View is decoded once, at the end: the image size, focal length, master pan)."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.payload: bytes | None = None
+
+    def on_frame(self, sample) -> None:
+        with self.lock:
+            self.payload = sample.payload.to_bytes()
+
+
+def _ready(rec: Recorder) -> bool:
+    """True when the decisions of the last LOOK_S include confident ones; else it prints why not to move."""
+    _wait(lambda: len(rec.snapshot()[0]) >= 5, 2 * LOOK_S)
+    time.sleep(LOOK_S)
+    decisions = rec.snapshot()[0][-60:]
+    if any(d.confident for d in decisions):
+        return True
+    tex = max((d.texture for d in decisions), default=0.0)
+    print(f"vergence calibrate: none of the last {len(decisions)} decisions is confident (the fovea's texture "
+          f"{tex:.1f}): point the master at a still, textured scene (a printed pattern or a photo) and the slave "
+          "near it (vergence fixate moves the fovea), then calibrate again", file=sys.stderr)
+    return False
+
+
+def main(rig: str, conf, distance: float | None, write: str | None, amplitude_deg: float, hold_s: float,
+         wait: float, settings) -> int:
+    rec, frames = Recorder(), FrameKeeper()
+    try:
+        with Node("calibrate", rig, conf, session.Stop(install=False), log=log, timeout=wait, quiet=True) as node:
+            node.subscriber(keys.frame(rig), frames.on_frame)
+            got = record(node, rec, rig, amplitude_deg, hold_s, wait, planner=calibration_plan, name="calibrate",
+                         ready=lambda: _ready(rec))
+    except ConnectionError as e:
+        print(f"vergence calibrate: {e}", file=sys.stderr)
+        return 1
+    if isinstance(got, int):
+        return got
+    decisions, states, t_start = got
+    used = [d for d in decisions if d.confident and d.t_capture_ns >= t_start]
+    try:
+        fit = fit_head([(d.t_capture_ns + d.skew_ns, d.t_read_ns or d.t_capture_ns, d.offset_px) for d in used],
+                       [(m.t_ns, m.pan_rad) for m in states if m.t_ns >= t_start - 10**9], rec.sent)
+        values, lines = report(fit, used, states, frames, distance, settings)
+    except CalibrationError as e:
+        print(f"vergence calibrate: {e}", file=sys.stderr)
+        return 2
+    print("\n".join(lines))
+    print(settings_text(values))
+    if write:
+        try:
+            merge_settings(write, values)
+            load(write)
+        except (CalibrationError, ConfigError, OSError) as e:
+            print(f"vergence calibrate: --write {write}: {e}", file=sys.stderr)
+            return 2
+        print(f"written to {write}: restart the head with `vergence up --config {write}`")
+    return 0
+
+
+def report(fit, used, states, frames: FrameKeeper, distance: float | None, settings):
+    """({table: {key: value}} to write, lines to print); CalibrationError where --distance cannot be used."""
+    with frames.lock:
+        payload = frames.payload
+    try:
+        view = view_of_frame(payload, settings.geometry.gimbal) if payload is not None else None
+    except ValueError as e:
+        raise CalibrationError(f"the rig's frames are not readable ({e})") from None
+    told = view.focal_px if view is not None else settings.geometry.focal_px
+    lines = [f"direction: the image follows the motor ({fit.n} decisions, r2 {fit.r2:.5f}, residual "
+             f"{fit.rms_px:.3f} px)",
+             f"focal length: {fit.focal_px:.1f} +- {fit.focal_sigma_px:.1f} px"
+             + (f" (the frames say {told:g}: {100 * (fit.focal_px / told - 1):+.1f} %)" if told else ""),
+             f"camera latency: {fit.latency.latency_s * 1e3:.1f} +- {fit.latency.sigma_s * 1e3:.1f} ms "
+             f"(the frames' stamps {fit.latency.delta_s * 1e3:+.1f} ms off)"]
+    values: dict[str, dict[str, float]] = {"rig": {"focal_px": round(float(fit.focal_px), 2)}}
+    if abs(fit.latency.delta_s) * 1e3 >= max(2.0, 2 * fit.latency.sigma_s * 1e3):
+        values["camera"] = {"latency_s": round(max(0.0, float(fit.latency.latency_s)), 4)}
+    if distance is None:
+        lines.append("pan zero: not measured (give --distance Z, metres to the fixated point along the master's "
+                     "optical axis)")
+        return values, lines
+    if view is None:
+        raise CalibrationError("no frame seen on the rig: the image size and the master's pan are unknown "
+                               "(is the capture running?)")
+    xs = sorted((d.x, d.y) for d in used if d.x >= 0)
+    x, y = xs[len(xs) // 2] if xs else view.centre
+    u, v = x - view.centre[0], y - view.centre[1]
+    master = settings.geometry.master or settings.capture.master
+    want = pan_for_depth(distance, settings.geometry.baseline_m, fit.focal_px, master_px=(u, v),
+                         master_pan_rad=view.master_pan_rad, tilt_rad=view.tilt_rad, gimbal=view.gimbal,
+                         master=master)
+    err = want - fit.pan0_rad
+    now = next((m.offset_deg for m in reversed(states)), 0.0)
+    offset = now + math.degrees(err)
+    lines.append(f"pan zero: the slave sees the fovea at {math.degrees(fit.pan0_rad):+.4f} deg as the motor reports "
+                 f"it; at {distance:g} m it should be {math.degrees(want):+.4f} deg: off by {math.degrees(err):+.4f} "
+                 f"+- {math.degrees(fit.pan0_sigma_rad):.4f} deg (offset_deg {now:+.4f} now -> {offset:+.4f})")
+    values["actuator.motor"] = {"offset_deg": round(float(offset), 5)}
+    return values, lines
+
+
+def run(args: argparse.Namespace) -> int:
+    settings = load(args.config)
+    rig = args.rig or settings.rig
+    return main(rig, session.config_from_args(args), args.distance, args.write, args.amplitude, args.hold_s,
+                args.wait, settings)

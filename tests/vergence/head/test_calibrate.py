@@ -1,0 +1,160 @@
+"""vergence.head.calibrate: the focal length, the direction and the pan zero from the offsets against the motor's own
+history, and the settings file merge."""
+
+import math
+import tomllib
+
+import numpy as np
+import pytest
+
+from vergence.config import load
+from vergence.head.calibrate import (CalibrationError, calibration_plan, fit_head, merge_settings, pan_for_depth,
+                                     settings_text)
+from vergence.head.depth import depth_from_pans
+
+
+def _run(f: float, p0: float, latency_s: float = 0.03, noise_px: float = 0.05, seed: int = 0, sign: float = 1.0,
+         moves: bool = True, bias_px: float = 0.0):
+    """A motor stepping through calibration_plan about p0 (first order, 10 ms, states at 50 Hz), decisions at 60 Hz
+    whose offsets are sign x f tan(p0 - pan) of the pan latency_s before their read (stamped at the exposure);
+    bias_px: a sub-pixel error that each step keeps (a texture's)."""
+    rng = np.random.default_rng(seed)
+    plan = calibration_plan(p0, -0.7, 0.7, math.radians(2.0), 0.4)
+    goal = lambda t: p0 if not moves or t < 0 else [p for at, p in plan if at <= t][-1]  # noqa: E731
+    dt, pan, hist = 0.001, p0, []
+    for i in range(int(4.0 / dt)):
+        t = i * dt
+        pan += (goal(t) - pan) * dt / 0.01
+        hist.append((t, pan))
+    ts, ps = np.array(hist).T
+    states = [(round(t * 1e9), p) for t, p in hist[::20]]
+    step_bias: dict = {}
+    decisions = []
+    for k in range(1, 230):
+        t_read = 0.05 + k / 60
+        exposed = float(np.interp(t_read - latency_s, ts, ps))
+        b = step_bias.setdefault(round(exposed, 3), rng.normal(0, bias_px) if bias_px else 0.0)
+        off = sign * f * math.tan(p0 - exposed) + rng.normal(0, noise_px) + b
+        decisions.append((round((t_read - latency_s) * 1e9), round(t_read * 1e9), off))
+    return decisions, states, [round(at * 1e9) for at, _ in plan] if moves else None
+
+
+@pytest.mark.parametrize("f,p0_deg,seed", [(540.0, -3.73, 1), (460.0, 1.2, 2), (812.0, -0.4, 3), (500.0, -6.0, 4)])
+def test_the_fit_finds_the_focal_length_and_the_pan_of_zero_offset(f, p0_deg, seed):
+    fit = fit_head(*_run(f, math.radians(p0_deg), seed=seed))
+    assert fit.focal_px == pytest.approx(f, rel=0.002)
+    assert math.degrees(fit.pan0_rad) == pytest.approx(p0_deg, abs=0.002)
+    assert fit.rms_px < 0.1 and fit.r2 > 0.999
+    assert fit.latency.latency_s == pytest.approx(0.03, abs=0.005)  # (states 20 ms apart, a 10 ms approach)
+    # only the settled decisions: a ramp's are left out
+    assert 100 < fit.n < 229
+
+
+def test_the_sigmas_cover_a_bias_that_each_step_keeps():
+    errs_f, sig_f = [], []
+    for seed in range(8):
+        fit = fit_head(*_run(540.0, -0.06, seed=seed, bias_px=0.03))
+        errs_f.append(abs(fit.focal_px - 540.0))
+        sig_f.append(fit.focal_sigma_px)
+    assert np.median(sig_f) > 0.1  # the bootstrap is over the steps: a step's shared error shows
+    assert sum(e <= 3 * s for e, s in zip(errs_f, sig_f)) >= 7
+
+
+def test_a_camera_that_turns_against_the_motor_is_named_with_the_setting_to_flip():
+    with pytest.raises(CalibrationError, match=r"other way.*flip \[actuator.motor\] direction"):
+        fit_head(*_run(500.0, -0.06, sign=-1.0))
+
+
+def test_a_motor_that_does_not_move_is_named():
+    with pytest.raises(CalibrationError, match="does not follow"):
+        fit_head(*_run(500.0, -0.06, moves=False))
+
+
+def test_no_decisions_says_to_point_at_texture():
+    _, states, _ = _run(500.0, -0.06)
+    with pytest.raises(CalibrationError, match="abstains on this scene"):
+        fit_head([], states)
+
+
+def test_a_moving_scene_is_a_poor_fit_and_refused():
+    decisions, states, moves = _run(500.0, -0.06)
+    rng = np.random.default_rng(5)
+    decisions = [(a, b, off + 3 * math.sin(a / 1e9 * 7) + rng.normal(0, 0.5)) for a, b, off in decisions]
+    with pytest.raises(CalibrationError, match=r"residual|r2"):
+        fit_head(decisions, states, moves)
+
+
+@pytest.mark.parametrize("z,master", [(0.5, "left"), (1.0, "left"), (2.0, "right"), (0.9, "left")])
+def test_pan_for_depth_is_the_depth_models_inverse(z, master):
+    for u, v in ((0.0, 0.0), (150.0, -40.0)):
+        p = pan_for_depth(z, 0.06, 500.0, master_px=(u, v), master=master)
+        assert depth_from_pans(0.0, p, 0.06, 500.0, master_px=(u, v), slave_px=(u, v), master=master) == \
+            pytest.approx(z, rel=1e-9)
+    assert math.degrees(pan_for_depth(1.0, 0.06, 500.0)) == pytest.approx(-math.degrees(math.atan(0.06)), abs=1e-9)
+
+
+def test_pan_for_depth_refuses_a_distance_the_rig_cannot_converge_on():
+    with pytest.raises(CalibrationError, match="nearer than"):
+        pan_for_depth(0.005, 0.06, 500.0)
+    with pytest.raises(CalibrationError, match="positive"):
+        pan_for_depth(-1.0, 0.06, 500.0)
+
+
+def test_merge_keeps_every_other_key_and_comment(tmp_path):
+    p = tmp_path / "head.toml"
+    p.write_text('# my head\n[rig]\nbaseline_m = 0.065  # measured\nfocal_px = 500\n\n[actuator]\ndriver = "sim"\n\n'
+                 '[actuator.motor]\nmin_deg = -30\noffset_deg = 0.1\n\n[control]\ngain = 0.8\n')
+    merge_settings(p, {"rig": {"focal_px": 541.25}, "actuator.motor": {"offset_deg": 0.29677},
+                       "camera": {"latency_s": 0.033}})
+    text = p.read_text()
+    got = tomllib.loads(text)
+    assert got == {"rig": {"baseline_m": 0.065, "focal_px": 541.25},
+                   "actuator": {"driver": "sim", "motor": {"min_deg": -30, "offset_deg": 0.29677}},
+                   "control": {"gain": 0.8}, "camera": {"latency_s": 0.033}}
+    assert "# my head" in text and "# measured" in text
+    s = load(p)
+    assert (s.geometry.focal_px, s.actuator.motor.offset_deg, s.camera.latency_s) == (541.25, 0.29677, 0.033)
+
+
+def test_merge_creates_a_missing_file(tmp_path):
+    p = tmp_path / "new.toml"
+    merge_settings(p, {"rig": {"focal_px": 500.5}, "actuator.motor": {"offset_deg": -1.5}})
+    assert tomllib.loads(p.read_text()) == {"rig": {"focal_px": 500.5}, "actuator": {"motor": {"offset_deg": -1.5}}}
+
+
+def test_merge_leaves_a_file_it_cannot_edit_alone_and_says_what_to_put_in(tmp_path):
+    p = tmp_path / "inline.toml"
+    before = "actuator = { motor = { min_deg = -30 } }\n"
+    p.write_text(before)
+    with pytest.raises(CalibrationError, match=r"by hand:\n\[actuator.motor\]\noffset_deg = 0.3"):
+        merge_settings(p, {"actuator.motor": {"offset_deg": 0.3}})
+    assert p.read_text() == before
+    p.write_text("not = toml = at all\n")
+    with pytest.raises(CalibrationError, match="not TOML"):
+        merge_settings(p, {"rig": {"focal_px": 1.0}})
+
+
+def test_settings_text():
+    assert settings_text({"rig": {"focal_px": 541.25}, "actuator.motor": {"offset_deg": 0.3}}) == \
+        "[rig]\nfocal_px = 541.25\n[actuator.motor]\noffset_deg = 0.3"
+
+
+@pytest.mark.parametrize("zero,direction", [(0.3, 1), (-1.5, -1)])
+def test_the_sims_zero_lie_is_undone_by_offset_deg_for_the_in_process_loop(zero, direction):
+    """`zero=DEG` puts the slave camera DEG further than its encoder says: the loop converges with the encoder DEG
+    short of the truth (the image is right, the pan is not: the depth is off); [actuator.motor] offset_deg = DEG,
+    applied to every pan with direction, gives the loop the camera's true pan."""
+    from dataclasses import replace
+
+    from vergence.motors.base import MotorSettings
+    from vergence.sim.faults import Faults
+    from vergence.sim.loop import closed_loop
+    from vergence.sim.moving import MovingRig
+
+    rig = MovingRig.from_options(motion="still:z=0.9", focal="500", seed="41")
+    lie = Faults(zero=zero, reverse=direction == -1)
+    told = MotorSettings(direction=direction)
+    for offset, want in ((0.0, rig.truth_pan(0.0) - math.radians(zero)), (zero, rig.truth_pan(0.0))):
+        steps = list(closed_loop(rig, 40, motor=replace(told, offset_deg=offset), faults=lie))
+        assert abs(steps[-1].offset_px) <= 1.0 and not any(s.fault for s in steps)
+        assert math.radians(steps[-1].pan_deg) == pytest.approx(want, abs=math.atan(1 / 500))

@@ -1,0 +1,256 @@
+"""Calibrating a head on itself (`vergence calibrate`, issue #36): the slave steps through known pans on a still,
+textured scene while the reducer is held, and the decisions' offsets are fitted against the motor's own history.
+
+With the slave's pan p at each image's exposure (the delta of vergence.head.latency), a decision's offset at the
+fovea is f tan(p0 - p): f, the focal length in pixels (the images', whatever the settings say), and p0 the pan at
+which the slave's fovea sees the master's (the offset is zero). Both come from one least-squares fit (Gauss-Newton
+from the straight line's) over the decisions of images exposed while the motor stood still (during a move a
+millisecond of timing is a fraction of a pixel: with them the fit left 0.3-0.5 px of residual and f 0.7-1 % high;
+without, 0.01-0.02 px and within 0.2 %), their sigmas from bootstrap resamples of the steps. The fit's sign is the
+direction: offsets that grow with the pan mean a camera that turns the other way than the motor's settings say.
+
+With the distance Z of the fixated point (along the master's optical axis through the fovea, measured by the
+user), the pan at which the slave should see it follows from the rig's geometry (vergence.head.depth, the master
+pan and tilt as its frames say, 0 and 0 on a real head): the difference from p0 is the pan zero's error, the correction
+to [actuator.motor] offset_deg. A zero off by e shifts every disparity by f tan(e): 2.6 px at 0.3 deg and f 500.
+
+settings_lines and merge_settings write what was found as TOML: merged into an existing file line by line (its
+comments and every other key kept), checked by reading it back.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .depth import depth_from_pans
+from .latency import LatencyError, LatencyFit, fit_latency
+
+__all__ = ["CalibrationError", "HeadFit", "fit_head", "pan_for_depth", "calibration_plan", "merge_settings",
+           "settings_text", "MIN_R2", "MAX_RMS_PX"]
+
+MIN_R2 = 0.98  # of the offsets' variance the motor's motion must explain; a still textured scene gives > 0.999
+MAX_RMS_PX = 0.3  # the fit's residual (px); on a still scene and a settled motor the sim leaves 0.01-0.02
+SETTLE_S = 0.1  # a decision is used where the motor's pan was the same this long before its image's exposure ...
+SETTLED_RAD = math.radians(0.1)  # ... within this (an encoder that flickers by a tick at rest is settled)
+
+
+class CalibrationError(ValueError):
+    """The calibration cannot be made; the message says why and what to do."""
+
+
+@dataclass(frozen=True)
+class HeadFit:
+    """focal_px and its sigma; pan0_rad: the pan (as the motor reports it) at which the slave's fovea sees the
+    master's, and its sigma; rms_px: the fit's residual; latency: the timing fit (vergence.head.latency) whose
+    delta aligned the decisions with the motor; n: decisions used."""
+
+    focal_px: float
+    focal_sigma_px: float
+    pan0_rad: float
+    pan0_sigma_rad: float
+    rms_px: float
+    r2: float
+    latency: LatencyFit
+    n: int
+
+
+def calibration_plan(p0: float, lo: float, hi: float, amplitude_rad: float, hold_s: float) -> list[tuple[float, float]]:
+    """[(seconds from the start, pan)]: nine levels from -amplitude to +amplitude about p0 (alternating sides, so a
+    slow drift does not look like a slope), each held hold_s, then back to p0; every pan within [lo, hi]."""
+    out = []
+    for i, k in enumerate((1.0, -1.0, 0.5, -0.5, 0.75, -0.75, 0.25, -0.25, 0.0)):
+        out.append((i * hold_s, min(hi, max(lo, p0 + k * amplitude_rad))))
+    return out
+
+
+def _tan_fit(pan: np.ndarray, off: np.ndarray, f0: float, p00: float) -> tuple[float, float, np.ndarray]:
+    """(f, p0, residuals) of off = f tan(p0 - pan), Gauss-Newton from (f0, p00)."""
+    f, p0 = f0, p00
+    for _ in range(20):
+        tn = np.tan(p0 - pan)
+        r = off - f * tn
+        jac = np.stack([tn, f / np.cos(p0 - pan) ** 2], 1)
+        step, *_ = np.linalg.lstsq(jac, r, rcond=None)
+        f, p0 = f + float(step[0]), p0 + float(step[1])
+        if abs(step[0]) < 1e-9 * max(1.0, abs(f)) and abs(step[1]) < 1e-12:
+            break
+    return f, p0, off - f * np.tan(p0 - pan)
+
+
+def fit_head(decisions: list[tuple[int, int, float]], states: list[tuple[int, float]],
+             moves_ns: list[int] | None = None, boots: int = 100, seed: int = 0) -> HeadFit:
+    """decisions: [(stamp ns, read ns, offset px)] of the confident decisions during the steps; states: [(t ns, pan
+    rad)] of the motor; moves_ns: when each step was commanded (no decision of an image exposed from SETTLE_S
+    after one to a state interval before one is used: the states' interpolation blurs a step's start). Raises
+    CalibrationError naming the cause and the fix: too few decisions (no texture), a motor that does not move, a
+    camera that turns against it, a poor fit (a moving scene)."""
+    d = np.array(sorted(decisions), float) if decisions else np.zeros((0, 3))
+    s = np.array(sorted(states), float) if states else np.zeros((0, 2))
+    if len(s) >= 10 and np.ptp(s[:, 1]) < math.radians(0.1):
+        raise CalibrationError(f"the motor moved {math.degrees(np.ptp(s[:, 1])):.3f} deg while it was commanded to "
+                               "step: it does not follow (torque off, at a limit, jammed, or another rig's motor)")
+    try:
+        lat = fit_latency(decisions, states, either_sign=True, boots=20)
+    except LatencyError as e:
+        raise CalibrationError(str(e)) from None
+    if lat.slope > 0:
+        raise CalibrationError(f"the image moves against the motor ({lat.slope:+.0f} px/rad, r2 {lat.r2:.3f}): the "
+                               "camera turns the other way than the settings say; flip [actuator.motor] direction "
+                               "(1 -> -1, or back) and restart the head, then calibrate again")
+    t0 = d[0, 0]
+    t = (d[:, 0] - t0) / 1e9 - lat.delta_s
+    st = (s[:, 0] - t0) / 1e9
+    # the decisions of images exposed on a settled motor: its pan the same SETTLE_S before and just after (where
+    # the pan changes under an exposure, a ms of timing error is a fraction of a pixel: 0.3-0.5 px rms with them)
+    pan_at = lambda x: np.interp(x, st, s[:, 1])  # noqa: E731
+    inside = (t - SETTLE_S >= st[0]) & (t + 0.01 <= st[-1])
+    settled = inside & (np.abs(pan_at(t - SETTLE_S) - pan_at(t)) <= SETTLED_RAD) & \
+        (np.abs(pan_at(t + 0.01) - pan_at(t)) <= SETTLED_RAD)
+    after = float(np.median(np.diff(st))) + 0.005 if len(st) > 1 else 0.01  # the states' interpolation spans this
+    for m in (np.asarray(moves_ns, float) - t0) / 1e9 if moves_ns else ():
+        settled &= ~((t - SETTLE_S <= m) & (m <= t + after))
+    if settled.sum() < 20:
+        raise CalibrationError(f"only {int(settled.sum())} decisions of images exposed while the motor stood still "
+                               "(20 at least): hold each step longer (--hold-s) or run the camera faster")
+    pan, off = pan_at(t[settled]), d[settled, 2]
+    inside = settled
+    line = np.polyfit(pan, off, 1)
+    f, p0, res = _tan_fit(pan, off, -line[0], -line[1] / line[0])
+    tot = float(np.sum((off - off.mean()) ** 2))
+    rms = float(np.sqrt(np.mean(res ** 2)))
+    r2 = 1.0 - float(np.sum(res ** 2)) / tot if tot > 0 else 0.0
+    if r2 < MIN_R2 or rms > MAX_RMS_PX:
+        raise CalibrationError(f"the offsets do not follow the motor well enough (r2 {r2:.4f}, want {MIN_R2}; residual "
+                               f"{rms:.2f} px, want at most {MAX_RMS_PX}): keep the scene and the master still, "
+                               "point the fovea at a textured surface, and try again")
+    # the sigmas: bootstrap over the steps, not the decisions (each pan's sub-pixel error is shared by its
+    # decisions: resampling them alone gave 0.03-0.05 px of focal sigma where the error was 0.4-1.1 px)
+    step = np.concatenate([[0], np.cumsum(np.abs(np.diff(pan)) > SETTLED_RAD / 2)])
+    groups = [np.flatnonzero(step == k) for k in range(step[-1] + 1)]
+    rng = np.random.default_rng(seed)
+    fs, ps = [], []
+    for _ in range(boots):
+        i = np.concatenate([groups[k] for k in rng.integers(0, len(groups), len(groups))])
+        if np.ptp(pan[i]) < math.radians(0.1):
+            continue
+        bf, bp, _ = _tan_fit(pan[i], off[i], f, p0)
+        fs.append(bf)
+        ps.append(bp)
+    return HeadFit(focal_px=f, focal_sigma_px=float(np.std(fs)), pan0_rad=p0, pan0_sigma_rad=float(np.std(ps)),
+                   rms_px=rms, r2=r2, latency=lat, n=int(inside.sum()))
+
+
+def pan_for_depth(z_m: float, baseline_m: float, focal_px: float, *, master_px: tuple[float, float] = (0.0, 0.0),
+                  master_pan_rad: float = 0.0, tilt_rad: float = 0.0, gimbal: str = "helmholtz",
+                  master: str = "left") -> float:
+    """The slave's pan at which its pixel master_px (off its principal point) sees the point at depth z_m that the
+    master sees at master_px: vergence.head.depth.depth_from_pans solved for the slave's pan (bisection)."""
+    if not (z_m > 0 and math.isfinite(z_m)):
+        raise CalibrationError(f"--distance {z_m}: must be a positive number of metres")
+    s = 1.0 if master == "left" else -1.0
+
+    def z(p: float) -> float:
+        v = depth_from_pans(master_pan_rad, p, baseline_m, focal_px, tilt_rad=tilt_rad, master_px=master_px,
+                            slave_px=master_px, gimbal=gimbal, master=master)
+        return v if math.isfinite(v) else math.inf
+
+    # for a left master the slave (on the right) turns toward negative pans to converge: nearer as it turns
+    far = master_pan_rad
+    near = next((far - s * a for a in (1.4, 1.2, 1.0, 0.8, 0.6) if z(far - s * a) < math.inf), far - s * 0.4)
+    if not z(near) < z_m:
+        raise CalibrationError(f"--distance {z_m:g} m: nearer than the rig can converge on (baseline "
+                               f"{baseline_m:g} m)")
+    for _ in range(200):
+        mid = 0.5 * (near + far)
+        if z(mid) > z_m:
+            far = mid
+        else:
+            near = mid
+    return 0.5 * (near + far)
+
+
+def settings_text(values: dict[str, dict[str, float]]) -> str:
+    """{table: {key: value}} as TOML lines."""
+    out = []
+    for table, kv in values.items():
+        out.append(f"[{table}]")
+        out += [f"{k} = {_value(v)}" for k, v in kv.items()]
+    return "\n".join(out)
+
+
+def _value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return repr(round(v, 6))
+    return repr(v) if not isinstance(v, str) else '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+_HEADER = re.compile(r"^\s*\[\s*([A-Za-z0-9_.\- ]+?)\s*\]\s*(#.*)?$")
+
+
+def merge_settings(path: str | Path, values: dict[str, dict[str, float]]) -> str:
+    """Merge {table: {key: value}} into the TOML file at path (created if missing): a key's line is replaced where
+    it is, a missing key is added at the end of its table, a missing table at the end of the file; comments and
+    every other key are kept. The result is read back and compared with what was meant before it is written; where
+    the file says a key another way (an inline table, a dotted key), CalibrationError says which lines to put in
+    by hand, and the file is left alone. Returns the new text."""
+    path = Path(path)
+    text = path.read_text() if path.exists() else ""
+    try:
+        before = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise CalibrationError(f"{path}: not TOML ({e}); nothing written") from None
+    lines = text.splitlines()
+    for table, kv in values.items():
+        start = next((i for i, ln in enumerate(lines) if (m := _HEADER.match(ln)) and m.group(1) == table), None)
+        if start is None:
+            if lines and lines[-1].strip():
+                lines.append("")
+            lines.append(f"[{table}]")
+            lines += [f"{k} = {_value(v)}" for k, v in kv.items()]
+            continue
+        end = next((i for i in range(start + 1, len(lines)) if _HEADER.match(lines[i]) or
+                    lines[i].lstrip().startswith("[[")), len(lines))
+        last = start
+        for i in range(start + 1, end):
+            if lines[i].strip() and not lines[i].lstrip().startswith("#"):
+                last = i
+        for k, v in kv.items():
+            at = next((i for i in range(start + 1, end) if re.match(rf"^\s*{re.escape(k)}\s*=", lines[i])), None)
+            if at is not None:
+                lines[at] = f"{k} = {_value(v)}"
+            else:
+                last += 1
+                end += 1
+                lines.insert(last, f"{k} = {_value(v)}")
+    new = "\n".join(lines) + "\n"
+    want = _merged(before, values)
+    try:
+        got = tomllib.loads(new)
+    except tomllib.TOMLDecodeError:
+        got = None
+    if got != want:
+        raise CalibrationError(f"{path}: its tables are written in a way this merge does not edit (an inline table "
+                               "or dotted keys); nothing written. Put these lines in by hand:\n" +
+                               settings_text(values))
+    path.write_text(new)
+    return new
+
+
+def _merged(before: dict, values: dict[str, dict[str, float]]) -> dict:
+    import copy
+
+    out = copy.deepcopy(before)
+    for table, kv in values.items():
+        node = out
+        for part in table.split("."):
+            node = node.setdefault(part, {})
+        node.update(kv)
+    return out
