@@ -286,6 +286,60 @@ def test_bridge_topics_values_stamps_hashes_and_look_at(tmp_path, monkeypatch):
         assert b.bridge.stop() == 0 and f"ros2 {own['id']} exits" in b.bridge.text()
 
 
+def test_bridge_under_the_deployed_acl_look_at_off_unless_turned_on(tmp_path, monkeypatch):
+    """Under the deployed ACL (deploy/router-tcp.json5 and make-certs.sh's client configs): a bridge with the
+    monitor's identity and no [ros2] look_at has look_at off: a look_at moves nothing (no Fixate) and is named in
+    its log; one with the ros2 role's identity and `look_at = true` passes a look_at on as a Fixate, through the
+    router's rules, and its status gets through."""
+    rosnode.require()
+    from deploy_helpers import client_config_file, client_session, make_secrets, router_config, start_router
+    from geometry_msgs.msg import PointStamped
+    from procs import VERGENCE
+
+    domain = rosnode.ros_env(monkeypatch)
+    secrets = make_secrets(tmp_path / "secrets", "localhost", "127.0.0.1")
+    conf, endpoint = router_config("tcp", secrets, tmp_path / "router.json5")
+    on = tmp_path / "on.toml"
+    on.write_text("[ros2]\nlook_at = true\n")
+    with Procs(tmp_path) as P, rosnode.TestNode(domain) as t:
+        start_router(P, conf, endpoint)
+
+        def bridge(name: str, role: str, ns: str, *extra: str):
+            c = client_config_file(secrets, role, "tcp", endpoint, tmp_path / f"{name}.json5")
+            return P.spawn(name, [VERGENCE, "ros2", "--rig", P.rig, "--namespace", ns, "--zenoh-config", str(c),
+                                  *extra])
+
+        b_on = bridge("ros2on", "ros2", "/acl_on", "--config", str(on))
+        b_off = bridge("ros2off", "monitor", "/acl_off")
+        watch = client_session(secrets, "monitor", "tcp", endpoint)
+        cap = client_session(secrets, "capture", "tcp", endpoint)
+        try:
+            fixates = P.collect(watch, P.key("fixate"))
+            statuses = P.collect(watch, keys.status(P.rig, "ros2", "*"))
+            put_until(cap, P.key("frame"), frame_bytes(P.rig), lambda: any(
+                json.loads(b)["counters"].get("frames") for _, b, _ in statuses.snapshot()), 30,
+                "the ros2 role's bridge counting a frame", P.logs)
+            point = _point(-0.1, 0.05, 1.0)  # pixel (120, 140)
+            look_off = t.publisher(PointStamped, "/acl_off/look_at", logs=P.logs)
+            look_off.publish(point)
+            wait_for(lambda: "look_at is off, the fovea stays" in b_off.text(), 10, "the refusal logged",
+                     logs=P.logs)
+            assert "ros2 bridge: look_at off (a deployed ACL (the Zenoh session authenticates as user 'monitor'); " \
+                   "[ros2] look_at = true, with the ros2 role's client config, turns it on)" in b_off.text()
+            t.publisher(PointStamped, "/acl_on/look_at", logs=P.logs).publish(point)
+            req = Fixate.from_bytes(fixates.wait(1, 10)[0][1])
+            assert (req.x, req.y) == (120.0, 140.0)
+            own = json.loads(wait_for(lambda: next((b for _, b, _ in reversed(statuses.snapshot())
+                                                    if json.loads(b)["counters"].get("look_at_sent")), None), 10,
+                                      "the look_at counted", logs=P.logs))
+            assert own["look_at"] == "on" and own["counters"]["look_at_sent"] == 1
+            assert "ros2 bridge: look_at on ([ros2] look_at = true)" in b_on.text()
+            assert len(fixates) == 1  # the look_at while off sent nothing
+        finally:
+            watch.close()
+            cap.close()
+
+
 def _verdicts(c, after_ns: int = 0) -> list[tuple[int, Decision]]:
     return [(t, Decision.from_bytes(b)) for t, b, _ in c.snapshot() if t >= after_ns]
 
