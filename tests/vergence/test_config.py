@@ -44,7 +44,8 @@ def test_settings_from_toml(tmp_path):
     ({"control": {"gain": 2.0}}, r"control\.gain: must be above 0 and below 2 \(at 2 and above"),
     ({"camera": {"latency_s": 1.5}}, r"camera\.latency_s: must be from 0 to 1 \(seconds\), got 1\.5"),
     ({"camera": {"skew_s": "x"}}, r"camera\.skew_s: expected `float`, got `str`"),
-    ({"ros2": {"look_at": "yes"}}, r"ros2\.look_at: expected `bool` \(true or false; left out: the default\), got `str`"),
+    ({"ros2": {"look_at": "yes"}},
+     r"ros2\.look_at: expected `bool` \(true or false; left out: the default\), got `str`"),
     ({"ros2": {"discovery": "lan"}}, r"ros2\.discovery: must be one of localhost, subnet, environment, got 'lan'"),
     ({"ros2": {"lookat": True}}, r"ros2\.lookat: unknown setting; known here: discovery, look_at$"),
 ])
