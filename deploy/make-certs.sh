@@ -20,7 +20,7 @@
 set -eu
 
 OUT=deploy/secrets
-ROLES=capture,worker,reducer,actuator,monitor,record,replay,fixate
+ROLES=capture,worker,reducer,actuator,monitor,record,replay,fixate,ros2
 DAYS=825
 SECRETS_DIR=${SECRETS_DIR:-/etc/vergence/secrets}
 ROUTER_PORT=${ROUTER_PORT:-7447}

@@ -19,7 +19,7 @@ from procs import VERGENCE, Proc, Procs, free_port, wait_for
 ROOT = Path(__file__).resolve().parent.parent
 DEPLOY = ROOT / "deploy"
 SECRETS_IN_CONFIGS = "/etc/vergence/secrets"
-ROLES = ("capture", "worker", "reducer", "actuator", "monitor", "record", "replay", "fixate")
+ROLES = ("capture", "worker", "reducer", "actuator", "monitor", "record", "replay", "fixate", "ros2")
 
 
 def make_secrets(out: Path, *router_names: str) -> Path:

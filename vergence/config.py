@@ -20,6 +20,7 @@ values for one limit would leave the reader guessing which one holds).
     [supervise] # `vergence up`: heartbeat_s, start_grace_s, stall_s (liveness by heartbeat, issue #29);
                 # restart_s, restart_max_s (the back-off before a restart)
     [limits]    # what a message may claim before it is believed (clock skew, frame window, sizes, membership)
+    [ros2]      # the ROS 2 bridge: look_at (unset: on unless a deployed ACL is in force), discovery (localhost)
 """
 
 from __future__ import annotations
@@ -42,7 +43,8 @@ from .ranges import Range, check
 from .head.timing import CameraTiming
 
 __all__ = ["ConfigError", "MOVED", "RigSettings", "CaptureSettings", "CameraSettings", "ReducerSettings",
-           "ActuatorSettings", "LimitSettings", "SuperviseSettings", "Settings", "load", "from_dict"]
+           "ActuatorSettings", "LimitSettings", "SuperviseSettings", "Ros2Settings", "DISCOVERY", "Settings", "load",
+           "from_dict"]
 
 
 class ConfigError(ValueError):
@@ -227,6 +229,31 @@ class SuperviseSettings:
                              f"{self.restart_max_s}")
 
 
+DISCOVERY = ("localhost", "subnet", "environment")
+
+
+@dataclass(frozen=True)
+class Ros2Settings:
+    """The `[ros2]` table, the ROS 2 bridge's (`vergence ros2`, `up --ros2`; docs/ROS2.md, docs/CLUSTER.md).
+
+    look_at: whether a look_at from the ROS 2 graph moves the fovea. Unset: on where the bridge's Zenoh session
+    is not authenticated (a plain `vergence up --ros2`), off where it is (a client config of deploy/make-certs.sh:
+    a deployed ACL is in force, and look_at would let any node in reach of the bridge move the fovea that the
+    ACL lets only the fixate role move); true or false wins. While off, a look_at moves nothing: it is counted
+    (look_at_off), logged at most once a second and shown as a WARN on /diagnostics.
+    discovery: the range the bridge's own ROS 2 node discovers in: localhost (this host only: the default), subnet
+    (ROS 2 Jazzy's default range), environment (ROS_AUTOMATIC_DISCOVERY_RANGE and ROS_STATIC_PEERS as the
+    environment sets them). The ros2 source's and the ros2 driver's nodes always keep the environment's range
+    (cameras and controllers may be on other hosts)."""
+
+    look_at: bool | None = None
+    discovery: str = "localhost"
+
+    def __post_init__(self):
+        if self.discovery not in DISCOVERY:
+            raise ValueError(f"discovery: must be one of {', '.join(DISCOVERY)}, got {self.discovery!r}")
+
+
 @dataclass(frozen=True)
 class Settings:
     rig: str = "head"
@@ -239,6 +266,7 @@ class Settings:
     actuator: ActuatorSettings = field(default_factory=ActuatorSettings)
     limits: LimitSettings = field(default_factory=LimitSettings)
     supervise: SuperviseSettings = field(default_factory=SuperviseSettings)
+    ros2: Ros2Settings = field(default_factory=Ros2Settings)
 
 
 _CHECKS: dict[type, type] = {}
@@ -310,6 +338,7 @@ def _error(e: msgspec.ValidationError, cls) -> ConfigError:
         names = sorted({"rig" if n == "geometry" and cls is Settings and not where else n for n in _known(cls, where)})
         return ConfigError(f"{'.'.join(path + [unknown[1]])}: unknown setting; known here: {', '.join(names)}")
     what = what.replace("Expected `object`", "expected a table").replace("Expected", "expected")
+    what = what.replace("`bool | null`", "`bool` (true or false; left out: the default)")  # TOML has no null
     # a table's own check (__post_init__, vergence.ranges) names its field first: capture.rate_hz: must be ...
     named = re.match(r"(\w+)[:= ]", what)
     table = _table(cls, ["geometry" if p == "rig" and cls is Settings else p for p in path]) if path else None

@@ -21,6 +21,17 @@ as a warning on /diagnostics; nothing moves. A publisher of another type on look
 connects to us) is found in the graph once a second, counted (look_at_wrong_type) and named the same way.
 More than LOOK_AT_HZ requests a second: the extra ones are counted (look_at_flood) and dropped.
 
+Frames as the camera names them: the fixation is published in the master image's own frame_id (the Frame's,
+from the ros2 source; checked by vergence.ros2.convert.frame_id_problem, else ignored and counted:
+frame_id_ignored) unless --frame-id is given, else in <rig>_master_optical_frame; a look_at in either name (or
+with an empty frame_id) is taken.
+
+[ros2] look_at (vergence.config.Ros2Settings): unset, look_at is on unless the bridge's Zenoh session
+authenticates (a client config of deploy/make-certs.sh: a deployed ACL is in force); true or false wins. While
+off, a look_at moves nothing: counted (look_at_off), logged at most once a second, a WARN on /diagnostics
+saying what to set. [ros2] discovery: this node's ROS 2 discovery range, set in this process's environment
+before rclpy starts (localhost by default; subnet; environment: as given). The start's log line says both.
+
 Its own counters go out as every service's status (vergence/<rig>/status/ros2/<id>). SIGINT/SIGTERM: the
 node, then the Zenoh session, close. Exit 2 when rclpy cannot be imported (the message says how to get it).
 """
@@ -29,7 +40,9 @@ from __future__ import annotations
 
 import argparse
 import array
+import json
 import logging
+import os
 import sys
 import threading
 import time
@@ -58,9 +71,27 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--namespace", default=None, metavar="NS", help="ROS 2 namespace (default /vergence/<rig>)")
     p.add_argument("--joint", default=None, metavar="NAME", help="the slave pan's joint name (default <rig>_slave_pan)")
     p.add_argument("--frame-id", default=None, metavar="FRAME",
-                   help="the master camera's optical frame (default <rig>_master_optical_frame)")
+                   help="the master camera's optical frame (default: the master image's own frame_id, from the "
+                        "ros2 source, else <rig>_master_optical_frame)")
     p.add_argument("--domain", type=whole(0, 232), default=None, metavar="ID",
                    help="ROS_DOMAIN_ID (default: the environment's)")
+
+
+def _conf_get(conf, key: str):
+    try:
+        return json.loads(conf.get_json(key))
+    except Exception:  # not in this zenoh's config: not set
+        return None
+
+
+def session_identity(conf) -> str | None:
+    """Who the bridge's Zenoh session authenticates as (the user of a deploy/make-certs.sh client config, or its
+    TLS certificate), or None: not authenticated (a plain `vergence up`, no deployed ACL)."""
+    user = _conf_get(conf, "transport/auth/usrpwd/user")
+    if user:
+        return f"user {user!r}"
+    cert = _conf_get(conf, "transport/link/tls/connect_certificate")
+    return f"certificate {cert}" if cert else None
 
 
 def _header(msg, t_ns: int, frame_id: str) -> None:
@@ -73,13 +104,15 @@ class Bridge:
     take Zenoh payloads (from zenoh's threads); on_look_at runs in the rclpy thread."""
 
     def __init__(self, ros: RosNode, rig: str, joint: str, frame_id: str, settings, health, put_fixate,
-                 profiles=None):
+                 profiles=None, explicit_frame: bool = False, look_at: bool = True):
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float32MultiArray
 
         self.ros, self.rig, self.joint, self.frame_id = ros, rig, joint, frame_id
+        self.explicit_frame = explicit_frame  # --frame-id given: it names the optical frame, whatever the camera's
+        self.look_at = look_at  # [ros2] look_at (look_at_mode): off, a look_at moves nothing
         self.settings, self.health, self.put_fixate = settings, health, put_fixate
         self.profiles = profiles  # profiles(True | False): follow vergence/<rig>/profile or not
         self.following = False
@@ -99,6 +132,7 @@ class Bridge:
         self.look_times: list[float] = []
         self.wrong_types: set[tuple[str, str, str]] = set()
         self._last_log = -1e9
+        self._said_frame_id: set[str] = set()
         self.timer = n.create_timer(1.0, self.publish_diagnostics)
 
     # -- Zenoh -> ROS 2 ---------------------------------------------------------------------------------------
@@ -129,9 +163,22 @@ class Bridge:
         except ValueError as e:
             self.health.reject("frame", e)
             return
+        if view.bad_frame_id:
+            self.health.count("frame_id_ignored")
+            if view.bad_frame_id not in self._said_frame_id and len(self._said_frame_id) < 10:
+                self._said_frame_id.add(view.bad_frame_id)
+                log.warning("the frame's %s: not taken as the optical frame's name (further ones are only "
+                            "counted); using %s", view.bad_frame_id, self.frame_id)
         with self.lock:
             self.view = view
         self.health.count("frames")
+
+    def optical_frame(self, view: conv.View | None) -> str:
+        """The name of the master's optical frame: --frame-id when given, else the master image's own frame_id
+        (the latest frame's, when it had one), else <rig>_master_optical_frame."""
+        if self.explicit_frame or view is None or not view.frame_id:
+            return self.frame_id
+        return view.frame_id
 
     def on_decision(self, payload: bytes) -> None:
         from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
@@ -150,8 +197,9 @@ class Bridge:
             return
         try:
             msg, cov = PointStamped(), PoseWithCovarianceStamped()
-            _header(msg, v.t_capture_ns, self.frame_id)
-            _header(cov, v.t_capture_ns, self.frame_id)
+            frame_id = self.optical_frame(view)
+            _header(msg, v.t_capture_ns, frame_id)
+            _header(cov, v.t_capture_ns, frame_id)
         except ValueError as e:
             self.health.reject("decision", e)
             return
@@ -207,7 +255,7 @@ class Bridge:
             out.append(conv.Diagnostic(level, f"vergence/{self.rig}/motor", motor.note or motor.status, self.rig, vals))
         mine = conv.diagnostic(self.rig, own, 0.0, STALE_S, None)
         if refusal is not None and now - refusal[0] < WARN_FOR_S:
-            mine.level, mine.message = conv.WARN, f"look_at refused: {refusal[1]}"
+            mine.level, mine.message = conv.WARN, refusal[1]
         out.append(mine)
         return out
 
@@ -249,28 +297,33 @@ class Bridge:
 
     # -- ROS 2 -> Zenoh --------------------------------------------------------------------------------------------
 
-    def refuse(self, why: str) -> None:
-        self.health.count("look_at_refused")
+    def refuse(self, why: str, counter: str = "look_at_refused", say: str = "look_at refused") -> None:
+        self.health.count(counter)
         with self.lock:
-            self.refusal = (time.monotonic(), why)
+            self.refusal = (time.monotonic(), f"{say}: {why}")
         now = time.monotonic()
         if now - self._last_log >= 1.0:
             self._last_log = now
-            log.warning("look_at refused, the fovea stays: %s", why)
+            log.warning("%s, the fovea stays: %s", say, why)
 
     def on_look_at(self, msg) -> None:
         self.health.count("look_at")
+        if not self.look_at:
+            return self.refuse("set [ros2] look_at = true in the settings (under a deployed ACL, with the ros2 "
+                               "role's client config) to let look_at move the fovea", "look_at_off", "look_at is off")
         now = time.monotonic()
         self.look_times = [t for t in self.look_times if now - t < 1.0]
         if len(self.look_times) >= LOOK_AT_HZ:
             self.health.count("look_at_flood")
             return
         self.look_times.append(now)
-        if msg.header.frame_id not in ("", self.frame_id):
-            return self.refuse(f"frame_id {msg.header.frame_id[:80]!r}: want {self.frame_id!r} (the master's "
-                               "optical frame; this node does no tf lookup)")
         with self.lock:
             view = self.view
+        names = [self.frame_id] + ([view.frame_id] if view is not None and view.frame_id not in ("", self.frame_id)
+                                   else [])
+        if msg.header.frame_id not in ("", *names):
+            return self.refuse(f"frame_id {msg.header.frame_id[:80]!r}: want {' or '.join(map(repr, names))} (the "
+                               "master's optical frame; this node does no tf lookup)")
         if view is None:
             return self.refuse("no frame seen yet: the master's view is unknown (is the capture running?)")
         net = self.settings.network
@@ -301,18 +354,33 @@ class ProfileSwitch:
 
 
 def main(settings, conf, stop: session.Stop, namespace: str, joint: str, frame_id: str,
-         domain: int | None = None) -> int:
+         domain: int | None = None, explicit_frame: bool = False) -> int:
     rig = settings.rig
+    look_at, why = conv.look_at_mode(settings.ros2.look_at, session_identity(conf))
+    changes, reach = conv.discovery_env(settings.ros2.discovery, os.environ)
+    for name, value in changes.items():  # this process's only (`up` starts the bridge as a process of its own)
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
     try:
         ros = RosNode("vergence_bridge", namespace=namespace, domain_id=domain)
     except RosUnavailable as e:
         print(f"vergence ros2: {e}", file=sys.stderr)
         return 2
+    log.info("ros2 bridge: look_at %s (%s), discovery %s", "on" if look_at else "off", why, reach)
+    user = _conf_get(conf, "transport/auth/usrpwd/user") if look_at else None
+    if user and user not in ("ros2", "fixate"):
+        log.warning("look_at is on, but the Zenoh session authenticates as %r: the deployed ACL lets only the ros2 "
+                    "(and fixate) role put a fixate, so no look_at will move the fovea; run the bridge with "
+                    "secrets/clients/ros2-tls.json5 (deploy/README.md)", user)
+    fields = {"look_at": "on" if look_at else "off", "discovery": settings.ros2.discovery}
     try:
-        with Node("ros2", rig, conf, stop, log=log) as node:
+        with Node("ros2", rig, conf, stop, log=log, fields=lambda: fields) as node:
             pub_fixate = node.publisher(keys.fixate(rig))
             profiles = ProfileSwitch(node)
-            b = Bridge(ros, rig, joint, frame_id, settings, node.health, pub_fixate.put, profiles)
+            b = Bridge(ros, rig, joint, frame_id, settings, node.health, pub_fixate.put, profiles,
+                       explicit_frame=explicit_frame, look_at=look_at)
             profiles.bridge = b
             node.subscriber(keys.motor_state(rig), lambda s: b.on_motor(s.payload.to_bytes()))
             node.subscriber(keys.frame(rig), lambda s: b.on_frame(s.payload.to_bytes()))
@@ -322,7 +390,7 @@ def main(settings, conf, stop: session.Stop, namespace: str, joint: str, frame_i
                 str(s.key_expr), s.payload.to_bytes()))
             node.ready()
             log.info("ros2 %s: vergence/%s/** <-> ROS 2 %s (joint %s, frame %s)", node.ident, rig, namespace, joint,
-                     frame_id)
+                     frame_id if explicit_frame else f"the master image's frame_id, else {frame_id}")
             try:
                 node.run_status()
             finally:
@@ -346,4 +414,4 @@ def run(args: argparse.Namespace) -> int:
     name = conv.ros_name(rig)
     stop = session.Stop()
     return main(settings, session.config_from_args(args), stop, namespace, args.joint or f"{name}_slave_pan",
-                args.frame_id or f"{name}_master_optical_frame", args.domain)
+                args.frame_id or f"{name}_master_optical_frame", args.domain, explicit_frame=bool(args.frame_id))

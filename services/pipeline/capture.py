@@ -350,6 +350,7 @@ class Capture:
                 while len(self.unclipped) > 1024:
                     del self.unclipped[next(iter(self.unclipped))]
         frame.truth_pan_rad = self.source.truth_pan_rad  # the simulator's ground truth at the fovea, else None
+        frame.frame_id = getattr(self.source, "frame_id", "")  # the master image's own frame id (ros2), else ""
         self.pub_frame.put(frame.to_bytes())
         self.rates.published += 1
         self.health.count("published")

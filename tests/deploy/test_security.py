@@ -2,8 +2,9 @@
 `vergence router` processes on 127.0.0.1 and zenoh clients of the test or real services:
 - no credentials or a wrong password cannot connect; a wrong CA, a client certificate from another CA or none
   at all fails TLS;
-- only the reducer's identity gets a command through, only the actuator's a motor state; wildcard puts
-  do not bypass the rules; the real `vergence actuator --driver sim` never receives a forged command;
+- only the reducer's identity gets a command through, only the actuator's a motor state, of these roles only the
+  ROS 2 bridge's a fixate; wildcard puts do not bypass the rules; the real `vergence actuator --driver sim` never
+  receives a forged command;
 - the real services, each with its own identity, still run under these rules.
 """
 
@@ -87,6 +88,10 @@ def test_router_configs_share_one_acl():
     assert [p for p, keys in can.items() if "vergence/*/command" in keys] == ["reducer"]
     assert [p for p, keys in can.items() if "vergence/*/motor_state" in keys] == ["actuator"]
     assert not any("**" in k for keys in can.values() for k in keys)
+    # the fovea is moved by the fixate role and the ROS 2 bridge's (its look_at, when the settings turn it on),
+    # which puts nothing else but its own status and token
+    assert [p for p, keys in can.items() if "vergence/*/fixate" in keys] == ["fixate", "ros2"]
+    assert can["ros2"] == ["vergence/*/fixate", "vergence/*/status/ros2/*", "vergence/*/alive/ros2/*"]
 
 
 @pytest.mark.slow
@@ -146,14 +151,15 @@ def test_only_the_reducer_commands_and_only_the_actuator_reports(tmp_path, secre
     with Procs(tmp_path) as P:
         start_router(P, conf, endpoint)
         got = puts_through_acl(secrets, variant, endpoint,
-                               ("capture", "worker", "monitor", "replay", "reducer", "actuator"),
+                               ("capture", "worker", "monitor", "replay", "ros2", "reducer", "actuator"),
                                ("vergence/r/command", "vergence/r/motor_state", "vergence/r/frame", "vergence/**",
                                 "vergence/*/command", "vergence/r/*", "vergence/*/motor/*", "vergence/replay/frame",
-                                "vergence/r/workers"), until=("vergence/r/motor_state", b"actuator"))
+                                "vergence/r/workers", "vergence/r/fixate"),
+                               until=("vergence/r/motor_state", b"actuator"))
     assert sorted(got) == sorted([
         ("vergence/r/frame", b"capture"), ("vergence/replay/frame", b"capture"), ("vergence/replay/frame", b"replay"),
         ("vergence/r/command", b"reducer"), ("vergence/*/command", b"reducer"), ("vergence/r/workers", b"reducer"),
-        ("vergence/r/motor_state", b"actuator"),
+        ("vergence/r/motor_state", b"actuator"), ("vergence/r/fixate", b"ros2"),
     ])
 
 

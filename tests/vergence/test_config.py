@@ -37,13 +37,17 @@ def test_settings_from_toml(tmp_path):
                                             r"got 0\.1"),
     ({"actuator": {"motor": {"silent_s": -1}}}, r"actuator\.motor\.silent_s: must be from 0 to 3600, got -1"),
     ({"colour": 1}, "colour: unknown setting; known here: actuator, camera, capture, control, limits, network, "
-                    "reducer, rig, supervise$"),
+                    "reducer, rig, ros2, supervise$"),
     (5, "settings: expected a table, got `int`"),
     ({"control": {"min_deg": -20}}, r"control\.min_deg: moved to \[actuator\.motor\] min_deg"),
     ({"control": {"gain": 1, "max_step_deg": 3}}, r"control\.max_step_deg: moved to \[actuator\.motor\] max_step_deg"),
     ({"control": {"gain": 2.0}}, r"control\.gain: must be above 0 and below 2 \(at 2 and above"),
     ({"camera": {"latency_s": 1.5}}, r"camera\.latency_s: must be from 0 to 1 \(seconds\), got 1\.5"),
     ({"camera": {"skew_s": "x"}}, r"camera\.skew_s: expected `float`, got `str`"),
+    ({"ros2": {"look_at": "yes"}},
+     r"ros2\.look_at: expected `bool` \(true or false; left out: the default\), got `str`"),
+    ({"ros2": {"discovery": "lan"}}, r"ros2\.discovery: must be one of localhost, subnet, environment, got 'lan'"),
+    ({"ros2": {"lookat": True}}, r"ros2\.lookat: unknown setting; known here: discovery, look_at$"),
 ])
 def test_bad_settings_name_the_field(data, says):
     with pytest.raises(ConfigError, match=says):
@@ -59,6 +63,18 @@ def test_old_settings_with_control_limits_say_where_they_live_now(tmp_path):
         load(p)
     p.write_text("[control]\ngain = 1.0\n[actuator.motor]\nmin_deg = -30.0\nmax_deg = 30.0\n")
     assert (load(p).actuator.motor.min_deg, load(p).actuator.motor.max_deg) == (-30.0, 30.0)
+
+
+def test_ros2_settings_look_at_unset_true_or_false(tmp_path):
+    """[ros2] look_at: left out, None (the bridge decides: on unless a deployed ACL is in force); true or false as
+    written. discovery: localhost unless widened."""
+    p = tmp_path / "v.toml"
+    p.write_text("[ros2]\ndiscovery = \"subnet\"\n")
+    assert (load(p).ros2.look_at, load(p).ros2.discovery) == (None, "subnet")
+    for text, want in (("true", True), ("false", False)):
+        p.write_text(f"[ros2]\nlook_at = {text}\n")
+        assert (load(p).ros2.look_at, load(p).ros2.discovery) == (want, "localhost")
+    assert (Settings().ros2.look_at, Settings().ros2.discovery) == (None, "localhost")
 
 
 def test_unreadable_or_bad_toml_says_which_file(tmp_path):

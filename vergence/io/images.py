@@ -44,6 +44,7 @@ class Source(abc.ABC):
     # renders may leave the others black (the simulator: a band is a tenth of the cost of a view)
     exposure_ns: tuple[int, int] | None = None
     fovea: tuple[int, int] | None = None  # where the capture's fovea is (None: the centre); the truth's point
+    frame_id: str = ""  # the master image's own name of its optical frame, where the source has one (ros2)
 
     def __init__(self, master: str = "left"):
         if master not in tuple(Side):

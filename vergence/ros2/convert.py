@@ -9,6 +9,9 @@ the same clock as time.time_ns(), and an image's stamp is its exposure time.
 - fixation_point: a converged decision (fovea pixel and depth along the head's forward axis) -> the fixated 3-D
   point in the master's optical frame; fixation_covariance its 3 x 3 covariance (the depth sigma along the
   viewing ray, the pixel's quantisation across it), as the position block of a PoseWithCovariance.
+- view_of_frame: a Frame's bytes -> the master's View (size, focal length, pan and tilt, and the image's own frame
+  id when it passes frame_id_problem: the camera's name for its optical frame is a claim, checked).
+- look_at_mode, discovery_env: the bridge's [ros2] look_at and discovery as it applies them.
 - look_at_pixel: a 3-D point in the master's optical frame -> the master pixel a Fixate asks for, or Refused
   with the reason (not finite, behind the camera, outside the view, where the fovea does not fit).
 - diagnostic: one process's status (the JSON of services.runtime.health) -> one DiagnosticStatus's fields.
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field
 
 import cv2
@@ -30,14 +34,18 @@ import numpy as np
 from ..wire.status import Status
 
 __all__ = ["NS_PER_S", "OK", "ros_name", "WARN", "ERROR", "STALE", "stamp", "from_stamp", "stamp_problem", "View",
-           "FrameView", "view_of_frame", "fixation_point", "fixation_covariance", "Refused", "look_at_pixel",
-           "pan_at", "joint_velocity", "correlation_layout", "Diagnostic", "diagnostic", "ImageError", "ENCODINGS",
+           "FrameView", "view_of_frame", "MAX_FRAME_ID", "frame_id_problem", "fixation_point", "fixation_covariance",
+           "Refused", "look_at_pixel",
+           "pan_at", "joint_velocity", "look_at_mode", "DISCOVERY_ENV", "discovery_env",
+           "correlation_layout", "Diagnostic", "diagnostic", "ImageError", "ENCODINGS",
            "image_gray", "compressed_gray", "Pairer"]
 
 NS_PER_S = 1_000_000_000
 OK, WARN, ERROR, STALE = 0, 1, 2, 3  # diagnostic_msgs/msg/DiagnosticStatus levels (a byte)
 INT32_MAX = 2**31 - 1
 PIXEL_SIGMA = 1.0 / math.sqrt(12.0)  # a fovea centre rounded to the pixel: its uniform quantisation's sigma
+MAX_FRAME_ID = 128  # the longest frame id taken from a camera (tf2 names are short)
+_FRAME_ID = re.compile(r"[!-~]+")  # printable ASCII without spaces
 UNKNOWN_VARIANCE = -1.0  # the orientation rows of a point's PoseWithCovariance: not estimated (as sensor_msgs/Imu)
 
 
@@ -76,6 +84,41 @@ def stamp_problem(sec: int, nanosec: int, now_ns: int, max_skew_s: float) -> str
     return None
 
 
+# -- the bridge's settings -----------------------------------------------------------------------------------
+
+def look_at_mode(setting: bool | None, identity: str | None) -> tuple[bool, str]:
+    """Whether look_at moves the fovea, and why (for the start's log line): [ros2] look_at when set, else on
+    without a deployed ACL (an unauthenticated session) and off under one."""
+    if setting is not None:
+        return setting, f"[ros2] look_at = {str(setting).lower()}"
+    if identity is None:
+        return True, "no deployed ACL (the Zenoh session is not authenticated)"
+    return False, (f"a deployed ACL (the Zenoh session authenticates as {identity}); [ros2] look_at = true, with "
+                   "the ros2 role's client config, turns it on")
+
+
+DISCOVERY_ENV = {"localhost": "LOCALHOST", "subnet": "SUBNET"}
+
+
+def discovery_env(discovery: str, environ) -> tuple[dict[str, str | None], str]:
+    """The environment changes ({name: value, or None to remove}) that give the bridge's rclpy context the range
+    [ros2] discovery asks for (rcl reads them when the context starts), and the range as the log says it.
+    localhost drops ROS_STATIC_PEERS too (they would widen it); environment changes nothing."""
+    if discovery == "environment":
+        rng = environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "SYSTEM_DEFAULT"
+        if environ.get("ROS_LOCALHOST_ONLY") == "1" and not environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE"):
+            rng = "LOCALHOST (ROS_LOCALHOST_ONLY=1)"
+        peers = environ.get("ROS_STATIC_PEERS")
+        return {}, f"the environment's: {rng}" + (f", static peers {peers}" if peers else "")
+    changes: dict[str, str | None] = {"ROS_AUTOMATIC_DISCOVERY_RANGE": DISCOVERY_ENV[discovery],
+                                      "ROS_LOCALHOST_ONLY": None}
+    if discovery == "localhost":
+        changes["ROS_STATIC_PEERS"] = None
+        return changes, "localhost (this host only)"
+    peers = environ.get("ROS_STATIC_PEERS")
+    return changes, "subnet" + (f", static peers {peers}" if peers else "")
+
+
 # -- the master's view ------------------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -89,6 +132,8 @@ class View:
     master_pan_rad: float = 0.0
     tilt_rad: float = 0.0
     gimbal: str = "helmholtz"
+    frame_id: str = ""  # the master image's own frame id, checked (frame_id_problem); "": not known
+    bad_frame_id: str = ""  # why the frame id the Frame claimed was not taken ("": it was, or there was none)
 
     @property
     def centre(self) -> tuple[int, int]:
@@ -103,6 +148,7 @@ class FrameView(msgspec.Struct, tag_field="v", tag=1):
     focal_px: float
     master_pan_rad: float = 0.0
     tilt_rad: float = 0.0
+    frame_id: str = ""
 
 
 _FRAME_VIEW = msgspec.msgpack.Decoder(FrameView)
@@ -120,7 +166,22 @@ def view_of_frame(payload: bytes, gimbal: str = "helmholtz") -> View:
         raise ValueError(f"frame: focal_px {f.focal_px}")
     if not (math.isfinite(f.master_pan_rad) and math.isfinite(f.tilt_rad)):
         raise ValueError("frame: master pan or tilt not finite")
-    return View(f.width, f.height, float(f.focal_px), float(f.master_pan_rad), float(f.tilt_rad), gimbal)
+    why = frame_id_problem(f.frame_id) if f.frame_id else None
+    return View(f.width, f.height, float(f.focal_px), float(f.master_pan_rad), float(f.tilt_rad), gimbal,
+                "" if why else f.frame_id, why or "")
+
+
+def frame_id_problem(frame_id: str) -> str | None:
+    """Why a frame id that a camera (or a Frame) claims is not taken as the name of the master's optical frame:
+    empty, longer than MAX_FRAME_ID characters, or other than printable ASCII without spaces (what tf2's frame
+    names are). None: taken."""
+    if not frame_id:
+        return "empty"
+    if len(frame_id) > MAX_FRAME_ID:
+        return f"frame_id of {len(frame_id)} characters (at most {MAX_FRAME_ID})"
+    if not _FRAME_ID.fullmatch(frame_id):
+        return f"frame_id {frame_id[:40]!r}: not printable ASCII without spaces"
+    return None
 
 
 def _forward(view: View, u: float, v: float) -> float:

@@ -9,6 +9,10 @@ within `slop` seconds (default 0.005; vergence.ros2.convert.Pairer) and the stam
 gives the focal length (k[0], fx) when it comes within `wait` s of the first pair; vergence's model puts the
 principal point at the view centre, and a camera_info whose (cx, cy) is more than 2 px off it is logged.
 
+The master image's header.frame_id, the camera's name of its optical frame, is `frame_id` after each read (the
+capture puts it in the Frame, the ROS 2 bridge publishes the fixation in it); one that is too long or not
+printable ASCII without spaces is not taken (counted: bad_frame_id, and logged once; the image is used).
+
 Refused images are counted (`counters`) and logged once per kind: an encoding it cannot use, undecodable
 data, a stamp of 0 or more than `skew` s (default 2) off this machine's clock, a size other than the first
 pair's (the message says the stream changed size: restart the capture to take the new size). A topic with
@@ -81,6 +85,9 @@ class Ros2Source(Source):
         self.size: tuple[int, int] = (0, 0)
         self.focal_px = 0.0
         self.exposure_ns: tuple[int, int] = (0, 0)
+        self.frame_id = ""  # the master image's header.frame_id, once checked (conv.frame_id_problem); "": none
+        self._frame_ids = ["", ""]  # the latest checked frame id of each topic
+        self._raw_ids: list[str | None] = [None, None]  # the latest header.frame_id of each topic, as it came
         self.counters: dict[str, int] = {}
         self._logged: set[str] = set()
         self.cond = threading.Condition()
@@ -193,6 +200,19 @@ class Ros2Source(Source):
         except conv.ImageError as e:
             return self._reject("image", f"{self.topics[i]}: {e}")
         size = (img.shape[1], img.shape[0])
+        fid = msg.header.frame_id
+        if fid != self._raw_ids[i]:  # a camera names its frame once: checked when it changes
+            self._raw_ids[i] = fid
+            why = conv.frame_id_problem(fid) if fid else None
+            if why is not None:
+                self._count("bad_frame_id")
+                if "frame_id" not in self._logged:
+                    self._logged.add("frame_id")
+                    log.warning("ros2 source: %s: the image's %s is not taken (the image is; further ones are only "
+                                "counted): the bridge names the optical frame itself", self.topics[i], why)
+            self._frame_ids[i] = "" if why else fid
+        elif fid and not self._frame_ids[i]:
+            self._count("bad_frame_id")  # the same refused frame id again: counted per image
         with self.cond:
             if self.size != (0, 0) and size != self.size:
                 return self._reject("size", f"{self.topics[i]}: the stream changed size from {self.size[0]} x "
@@ -222,11 +242,13 @@ class Ros2Source(Source):
                 raise SourceStall(f"ros2 source: no new pair from {', '.join(self.topics)} in {STALL_S:g} s")
             tl, left, tr, right = self.latest
             self.served = tl
+            self.frame_id = self._frame_ids[1 if self.swap else 0]
         self.exposure_ns = self._order(tl, tr)
         return self._order(left, right)
 
     def status(self) -> dict:
-        """Counters for the capture's status: images, pairs, unmatched, stalls, bad_stamp, bad_image, bad_size;
+        """Counters for the capture's status: images, pairs, unmatched, stalls, bad_stamp, bad_image, bad_size,
+        bad_frame_id (the image was used, its frame id not);
         pair_age_ms: the median and largest time from a pair's later exposure stamp to its pairing here (the
         camera driver's and the transport's latency) over the latest 300 pairs."""
         with self.cond:

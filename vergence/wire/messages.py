@@ -147,6 +147,9 @@ class Frame(Message):
     # the slave's image moves with the slave motor (a camera, the simulator; not a still pair or a video, taken at
     # one pan): only then is each decision checked against the motor's motion
     follows: bool = True
+    # the master image's own frame id as its camera named it (a ROS 2 header.frame_id; "": not known): the ROS 2
+    # bridge publishes the fixation in it and accepts look_at in it (a claim: it checks it, vergence.ros2.convert)
+    frame_id: str = ""
 
     @property
     def t_slave_ns(self) -> int:

@@ -210,6 +210,47 @@ def _diagnostics_and_bad_zenoh(b: Bridged) -> None:
     assert (len(b.joints), len(b.fixes), len(b.corrs)) == before
 
 
+def _frames_as_the_camera_names_them(b: Bridged) -> None:
+    """A frame whose master image names its optical frame (the ros2 source's header.frame_id): the fixation is
+    published in that name, and a look_at in it is taken; a frame_id that is no plausible name (a space) is
+    ignored and counted, and the fixation is back in <rig>_master_optical_frame."""
+    from geometry_msgs.msg import PointStamped
+
+    P, s, t = b.P, b.s, b.t
+    frame = make_frame(np.random.default_rng(1).integers(0, 256, (H, W), np.uint8),
+                       np.zeros((H, W), np.uint8), rig=P.rig, frame=1, pan_rad=0.0, focal_px=F, params=Params(),
+                       plan=[["w", 0, W - 15 + 1]])
+
+    def fixation_in(name: str, fid: str):
+        """Put the frame (named fid) and a converged decision until a fixation in `name` comes (the frame and the
+        decision arrive on subscribers of their own, in no set order)."""
+        frame.frame_id = fid
+        n = len(b.fixes)
+
+        def got():
+            s.put(P.key("frame"), frame.to_bytes())
+            s.put(P.key("decision"), verdict(P.rig, 9, True).to_bytes())
+            return next((m for _, m in b.fixes[n:] if m.header.frame_id == name), None)
+
+        return wait_for(got, 10, f"a fixation in {name}", interval=0.1, logs=P.logs)
+
+    fx = fixation_in("cam_left_optical", "cam_left_optical")
+    assert (fx.point.x, fx.point.y, fx.point.z) == pytest.approx((40 * 0.8 / F, -20 * 0.8 / F, 0.8), abs=1e-12)
+    _, cov = t.wait_until(lambda: [c for c in b.covs if c[1].header.frame_id == "cam_left_optical"][:1], 5,
+                          "its covariance in cam_left_optical", P.logs)[0]
+    look = t.publisher(PointStamped, f"{b.ns}/look_at", logs=P.logs)
+    sent, n = b.status()["counters"]["look_at_sent"], len(b.fixates)
+    look.publish(_point(-0.1, 0.05, 1.0, frame="cam_left_optical"))  # the image's own name: taken
+    own = b.status(lambda st: st["counters"]["look_at_sent"] > sent, "the look_at in the image's frame sent")
+    req = Fixate.from_bytes(b.fixates.wait(n + 1, 10)[-1][1])
+    assert (req.x, req.y) == (120.0, 140.0) and own["counters"]["look_at_sent"] == sent + 1
+
+    fixation_in(f"{P.rig}_master_optical_frame", "cam left\n")
+    own = b.status(lambda st: st["counters"].get("frame_id_ignored"), "the bad frame_id counted")
+    assert own["counters"]["frame_id_ignored"] >= 1 and own["counters"]["look_at_sent"] == sent + 1
+    assert "not printable ASCII without spaces: not taken as the optical frame's name" in b.bridge.text()
+
+
 def _type_hashes(b: Bridged) -> None:
     """Type names and hashes as rclpy reports them, equal to rosbags' (an independent computation)."""
     from rosbags.typesys import Stores, get_typestore
@@ -236,9 +277,67 @@ def test_bridge_topics_values_stamps_hashes_and_look_at(tmp_path, monkeypatch):
         _fixation_and_correlation(b)
         _look_at(b)
         _diagnostics_and_bad_zenoh(b)
+        _frames_as_the_camera_names_them(b)
         _type_hashes(b)
+        assert "ros2 bridge: look_at on (no deployed ACL (the Zenoh session is not authenticated)), discovery " \
+               "localhost (this host only)" in b.bridge.text()
         own = b.status()
+        assert (own["look_at"], own["discovery"]) == ("on", "localhost")
         assert b.bridge.stop() == 0 and f"ros2 {own['id']} exits" in b.bridge.text()
+
+
+def test_bridge_under_the_deployed_acl_look_at_off_unless_turned_on(tmp_path, monkeypatch):
+    """Under the deployed ACL (deploy/router-tcp.json5 and make-certs.sh's client configs): a bridge with the
+    monitor's identity and no [ros2] look_at has look_at off: a look_at moves nothing (no Fixate) and is named in
+    its log; one with the ros2 role's identity and `look_at = true` passes a look_at on as a Fixate, through the
+    router's rules, and its status gets through."""
+    rosnode.require()
+    from deploy_helpers import client_config_file, client_session, make_secrets, router_config, start_router
+    from geometry_msgs.msg import PointStamped
+    from procs import VERGENCE
+
+    domain = rosnode.ros_env(monkeypatch)
+    secrets = make_secrets(tmp_path / "secrets", "localhost", "127.0.0.1")
+    conf, endpoint = router_config("tcp", secrets, tmp_path / "router.json5")
+    on = tmp_path / "on.toml"
+    on.write_text("[ros2]\nlook_at = true\n")
+    with Procs(tmp_path) as P, rosnode.TestNode(domain) as t:
+        start_router(P, conf, endpoint)
+
+        def bridge(name: str, role: str, ns: str, *extra: str):
+            c = client_config_file(secrets, role, "tcp", endpoint, tmp_path / f"{name}.json5")
+            return P.spawn(name, [VERGENCE, "ros2", "--rig", P.rig, "--namespace", ns, "--zenoh-config", str(c),
+                                  *extra])
+
+        b_on = bridge("ros2on", "ros2", "/acl_on", "--config", str(on))
+        b_off = bridge("ros2off", "monitor", "/acl_off")
+        watch = client_session(secrets, "monitor", "tcp", endpoint)
+        cap = client_session(secrets, "capture", "tcp", endpoint)
+        try:
+            fixates = P.collect(watch, P.key("fixate"))
+            statuses = P.collect(watch, keys.status(P.rig, "ros2", "*"))
+            put_until(cap, P.key("frame"), frame_bytes(P.rig), lambda: any(
+                json.loads(b)["counters"].get("frames") for _, b, _ in statuses.snapshot()), 30,
+                "the ros2 role's bridge counting a frame", P.logs)
+            point = _point(-0.1, 0.05, 1.0)  # pixel (120, 140)
+            look_off = t.publisher(PointStamped, "/acl_off/look_at", logs=P.logs)
+            look_off.publish(point)
+            wait_for(lambda: "look_at is off, the fovea stays" in b_off.text(), 10, "the refusal logged",
+                     logs=P.logs)
+            assert "ros2 bridge: look_at off (a deployed ACL (the Zenoh session authenticates as user 'monitor'); " \
+                   "[ros2] look_at = true, with the ros2 role's client config, turns it on)" in b_off.text()
+            t.publisher(PointStamped, "/acl_on/look_at", logs=P.logs).publish(point)
+            req = Fixate.from_bytes(fixates.wait(1, 10)[0][1])
+            assert (req.x, req.y) == (120.0, 140.0)
+            own = json.loads(wait_for(lambda: next((b for _, b, _ in reversed(statuses.snapshot())
+                                                    if json.loads(b)["counters"].get("look_at_sent")), None), 10,
+                                      "the look_at counted", logs=P.logs))
+            assert own["look_at"] == "on" and own["counters"]["look_at_sent"] == 1
+            assert "ros2 bridge: look_at on ([ros2] look_at = true)" in b_on.text()
+            assert len(fixates) == 1  # the look_at while off sent nothing
+        finally:
+            watch.close()
+            cap.close()
 
 
 def _verdicts(c, after_ns: int = 0) -> list[tuple[int, Decision]]:
@@ -265,13 +364,13 @@ def _converges_within_3_s(P, t, decisions, fixes, t_first: int, error_px, z_true
 
 
 def _look_at_through_the_loop(P, t, decisions, fixes, z_true: float) -> None:
-    """look_at another point of the target (pixel (90, 150), in the master's optical frame): the next decisions
-    are there, and once the loop has converged there `fixation` says that point; one behind the camera moves
-    nothing."""
+    """look_at another point of the target (pixel (90, 150), in the master's optical frame as the camera names it,
+    left_optical_frame): the next decisions are there, and once the loop has converged there `fixation` says that
+    point; one behind the camera moves nothing."""
     from geometry_msgs.msg import PointStamped
 
     look = t.publisher(PointStamped, f"/vergence/{P.rig}/look_at", logs=P.logs)
-    target = _point((90 - 160) * 0.8 / 256, (150 - 120) * 0.8 / 256, 0.8, frame=f"{P.rig}_master_optical_frame")
+    target = _point((90 - 160) * 0.8 / 256, (150 - 120) * 0.8 / 256, 0.8, frame="left_optical_frame")  # the camera's
     t_look = time.time_ns()
     look.publish(target)
     wait_for(lambda: [v for _, v in _verdicts(decisions, t_look) if (v.x, v.y) == (90, 150)], 5,
@@ -294,8 +393,11 @@ def test_up_with_a_ros2_stereo_camera_converges_and_fixation_depth(tmp_path, mon
     from /vergence/<rig>/joint_states at the exposure (interpolated between two joint states; the images come
     out 30 ms after it); `vergence up --source ros2:LEFT,RIGHT --ros2` (the sim actuator) converges within 1 px
     within 3 s of its first decision (measured: 0.23-0.30 s in 12 runs), and `fixation` says z within 2 % of
-    0.8 m. A look_at point moves the fovea (the next decisions, then `fixation`, there); a bad one nothing."""
+    0.8 m, in the camera's own frame (left_optical_frame). A look_at point in it moves the fovea (the next
+    decisions, then `fixation`, there); a bad one nothing; one to a second bridge with look_at off nothing (issue
+    #36's Must), counted and named."""
     rosnode.require()
+    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PointStamped
     from sensor_msgs.msg import JointState
     from vergence.sim.moving import Head, MovingRig
@@ -322,24 +424,59 @@ def test_up_with_a_ros2_stereo_camera_converges_and_fixation_depth(tmp_path, mon
                 return None
             return interpolate(states, t_ns, 0.0)
 
+        diags = t.collect(DiagnosticArray, "/diagnostics")
         cam = rosnode.StereoCamera(t, lambda p: rig.render(p, 0.0), pan_at, 256.0, hz=30.0)
+        off = tmp_path / "off.toml"
+        off.write_text("[ros2]\nlook_at = false\n")
         try:
             P.start("up", "up", "--listen", P.endpoint, "--source", f"ros2:{cam.LEFT},{cam.RIGHT}:wait=60", "--ros2",
                     "--workers", "2", "--rate", "0", "--no-standby", connect=False)
+            # a second bridge, look_at off, started meanwhile (it waits for up's router)
+            P.start("ros2off", "ros2", "--namespace", "/vergence_off", "--config", str(off))
             s = P.session(60)
             decisions = P.collect(s, P.key("decision"))
             t_first = decisions.wait(1, 90)[0][0]
 
             fx = _converges_within_3_s(P, t, decisions, fixes, t_first, lambda: rig.error_px(pan()), z_true)
             assert (fx.point.x, fx.point.y) == pytest.approx((0.0, 0.0), abs=0.005)  # the fovea: the view centre
-            assert fx.header.frame_id == f"{P.rig}_master_optical_frame"
+            assert fx.header.frame_id == "left_optical_frame"  # the master image's own, without configuration
             # the fixation is stamped with a pair's exposure (the camera's stamps), never later than it arrived
             stamp = fx.header.stamp.sec * 10**9 + fx.header.stamp.nanosec
             assert min(abs(stamp - ts) for ts, _ in cam.sent) < 50_000_000
 
             _look_at_through_the_loop(P, t, decisions, fixes, z_true)
+            _look_at_off_moves_nothing(P, t, s, decisions, diags)
         finally:
             cam.close()
+
+
+def _look_at_off_moves_nothing(P, t, s, decisions, diags) -> None:
+    """A second bridge on the same rig, `[ros2] look_at = false`, under the namespace /vergence_off: a look_at to
+    another pixel (200, 100) there moves nothing (the next 20 decisions stay at (90, 150), where the first
+    bridge's look_at put the fovea), is counted (look_at_off) and named: the log, a WARN on /diagnostics saying
+    what to set."""
+    from geometry_msgs.msg import PointStamped
+
+    statuses = P.collect(s, keys.status(P.rig, "ros2", "*"))
+    off = wait_for(lambda: next((json.loads(b) for _, b, _ in reversed(statuses.snapshot())
+                                 if json.loads(b).get("look_at") == "off"), None), 60, "the second bridge's status",
+                   logs=P.logs)
+    look = t.publisher(PointStamped, "/vergence_off/look_at", logs=P.logs)
+    t_look = time.time_ns()
+    look.publish(_point((200 - 160) * 0.8 / 256, (100 - 120) * 0.8 / 256, 0.8, frame="left_optical_frame"))
+    counted = wait_for(lambda: next((st for st in (json.loads(b) for _, b, _ in statuses.snapshot())
+                                     if st["id"] == off["id"] and st["counters"].get("look_at_off")), None), 10,
+                       "look_at_off counted", logs=P.logs)
+    assert counted["counters"]["look_at_off"] == 1 and "look_at_sent" not in counted["counters"]
+    wait_for(lambda: len(_verdicts(decisions, t_look)) >= 20, 10, "more decisions", logs=P.logs)
+    assert {(v.x, v.y) for _, v in _verdicts(decisions, t_look)} == {(90, 150)}
+    d = t.wait_until(lambda: next((d for _, a in diags for d in a.status
+                                   if d.name == f"vergence/{P.rig}/ros2/{off['id']}" and d.level == b"\x01"), None),
+                     10, "the second bridge's WARN", P.logs)
+    assert d.message.startswith("look_at is off: set [ros2] look_at = true")
+    text = (P.dir / "ros2off.log").read_text()
+    assert "ros2 bridge: look_at off ([ros2] look_at = false), discovery localhost (this host only)" in text
+    assert "look_at is off, the fovea stays" in text
 
 
 def _image(t: "rosnode.TestNode", img, t_ns: int, encoding: str = "mono8"):
@@ -364,11 +501,18 @@ def _source_counters(statuses, cond):
 
 
 def _send_bad_images(t, right, gray, source, logs) -> dict[str, int]:
-    """An unknown encoding, stamps of 0 and 1 h ahead, another size: each counted before the next, each sent
+    """An unknown encoding, a frame_id with a space (the image is used, its frame_id not), stamps of 0 and 1 h ahead,
+    another size: each counted before the next, each sent
     again every 0.5 s until counted (best effort: one may be dropped while the feeder's pairs come). How many of
     each were sent."""
-    sent = {"bad_image": 0, "bad_stamp": 0, "bad_size": 0}
+    def named(fid: str):
+        m = _image(t, np.dstack([gray] * 3), time.time_ns(), "bgr8")
+        m.header.frame_id = fid
+        return m
+
+    sent = {"bad_image": 0, "bad_stamp": 0, "bad_size": 0, "bad_frame_id": 0}
     for kind, n, make in (("bad_image", 1, lambda: _image(t, gray, time.time_ns(), "yuv422")),
+                          ("bad_frame_id", 1, lambda: named("right camera")),
                           ("bad_stamp", 1, lambda: _image(t, gray, 0)),
                           ("bad_stamp", 2, lambda: _image(t, gray, time.time_ns() + 3600 * 10**9)),
                           ("bad_size", 1, lambda: _image(t, np.zeros((60, 80, 3), np.uint8), time.time_ns(), "bgr8"))):
@@ -455,11 +599,13 @@ def test_ros2_source_counts_bad_images_and_goes_on(tmp_path, monkeypatch):
             now = wait_for(source(lambda c: c), 5, "a status", logs=P.logs)
             got = wait_for(source(lambda c: c["pairs"] >= now["pairs"] + 10), 20, "more pairs", logs=P.logs)
             assert 1 <= got["bad_image"] <= sent["bad_image"] and 2 <= got["bad_stamp"] <= sent["bad_stamp"]
-            assert 1 <= got["bad_size"] <= sent["bad_size"]
+            assert 1 <= got["bad_size"] <= sent["bad_size"] and 1 <= got["bad_frame_id"] <= sent["bad_frame_id"]
             assert cap.poll() is None
             text = (tmp_path / "capture.log").read_text()
             assert "encoding 'yuv422' is not one vergence reads" in text and "stamp 0" in text
             assert "the stream changed size from 160 x 120 to 80 x 60" in text
+            assert ("/cam/right/image_raw: the image's frame_id 'right camera': not printable ASCII without spaces is "
+                    "not taken (the image is;") in text
             assert "camera_info without a usable focal length (k[0] = [inf])" in text and "f=128.0 px" in text
         finally:
             stop.set()

@@ -1,15 +1,18 @@
 """vergence.ros2.convert, the ROS 2 conversions without ROS: stamps, the master's view, the fixated point and its
-covariance, look_at's projection and refusals, diagnostics, image decoding, stamp pairing."""
+covariance, look_at's projection and refusals, the image's own frame_id, the bridge's [ros2] settings as applied,
+diagnostics, image decoding, stamp pairing."""
 
 from __future__ import annotations
 
 import math
 
 import cv2
+import msgspec
 import numpy as np
 import pytest
 
 from vergence.ros2 import convert as conv
+from vergence.wire.messages import Frame
 from vergence.stages.frames import make_frame
 from vergence.network.params import Params
 from vergence.sim.optics import rotation
@@ -39,6 +42,46 @@ def test_view_of_a_real_frame_and_garbage():
     for bad in (b"\xc1", b"", f.to_bytes()[:20]):
         with pytest.raises(ValueError):
             conv.view_of_frame(bad)
+
+
+def test_view_takes_the_frames_frame_id_when_plausible():
+    """The master image's frame_id in the Frame is a claim: taken when printable ASCII without spaces and at most
+    MAX_FRAME_ID long; else the view has none and says why. An old Frame without the field decodes, without one."""
+    img = np.random.default_rng(0).integers(0, 256, (240, 320), np.uint8)
+    f = make_frame(img, img, rig="r", frame=1, pan_rad=0.0, focal_px=400.0, params=Params(), plan=[["w", 0, 306]])
+    assert (conv.view_of_frame(f.to_bytes()).frame_id, conv.view_of_frame(f.to_bytes()).bad_frame_id) == ("", "")
+    f.frame_id = "left_optical_frame"
+    assert conv.view_of_frame(f.to_bytes()).frame_id == "left_optical_frame"
+    assert Frame.from_bytes(f.to_bytes()).frame_id == "left_optical_frame"
+    for bad, says in (("x" * (conv.MAX_FRAME_ID + 1), "of 129 characters (at most 128)"),
+                      ("left optical", "not printable ASCII without spaces"), ("cam\x1b[2J", "not printable"),
+                      ("kamera_ø", "not printable")):
+        f.frame_id = bad
+        v = conv.view_of_frame(f.to_bytes())
+        assert v.frame_id == "" and says in v.bad_frame_id, (bad, v)
+    assert conv.frame_id_problem("x" * conv.MAX_FRAME_ID) is None and conv.frame_id_problem("/a/b-c.1") is None
+    old = msgspec.msgpack.decode(f.to_bytes())
+    del old["frame_id"]
+    assert Frame.from_bytes(msgspec.msgpack.encode(old)).frame_id == ""
+
+
+def test_look_at_mode_and_discovery_env():
+    """[ros2] look_at: explicit wins; unset: on without an authenticated session, off under a deployed ACL.
+    [ros2] discovery: localhost sets LOCALHOST and drops static peers and the old ROS_LOCALHOST_ONLY; subnet sets
+    SUBNET; environment changes nothing."""
+    assert conv.look_at_mode(None, None)[0] is True
+    on, why = conv.look_at_mode(None, "user 'monitor'")
+    assert on is False and "deployed ACL" in why and "[ros2] look_at = true" in why
+    assert conv.look_at_mode(True, "user 'ros2'") == (True, "[ros2] look_at = true")
+    assert conv.look_at_mode(False, None) == (False, "[ros2] look_at = false")
+    env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET", "ROS_STATIC_PEERS": "10.0.0.2", "ROS_LOCALHOST_ONLY": "0"}
+    assert conv.discovery_env("localhost", env) == ({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+                                                     "ROS_LOCALHOST_ONLY": None, "ROS_STATIC_PEERS": None},
+                                                    "localhost (this host only)")
+    assert conv.discovery_env("subnet", env) == (
+        {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET", "ROS_LOCALHOST_ONLY": None}, "subnet, static peers 10.0.0.2")
+    assert conv.discovery_env("environment", env) == ({}, "the environment's: SUBNET, static peers 10.0.0.2")
+    assert conv.discovery_env("environment", {}) == ({}, "the environment's: SYSTEM_DEFAULT")
 
 
 def test_fixation_point_lies_at_the_depth_on_the_fovea_ray():
