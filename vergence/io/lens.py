@@ -120,14 +120,14 @@ class Lens:
             raise ValueError(f"camera_info k: {len(k)} numbers, K is 9 (row-major 3 x 3)")
         names = ["k[0] (fx)", "k[1] (skew)", "k[2] (cx)", "k[3]", "k[4] (fy)", "k[5] (cy)", "k[6]", "k[7]", "k[8]"]
         kv = [_finite(v, f"camera_info {n}") for v, n in zip(k, names)]
-        for i, want in ((1, 0.0), (3, 0.0), (6, 0.0), (7, 0.0), (8, 1.0)):
-            if kv[i] != want:
-                raise ValueError(f"camera_info {names[i]}: {kv[i]}, expected {want:g} (K = [fx 0 cx; 0 fy cy; 0 0 1]"
-                                 f"{'; a skewed pixel is not modelled' if i == 1 else ''})")
         for i in (0, 4):
             if kv[i] <= 0:
                 raise ValueError(f"camera_info {names[i]}: {kv[i]} px is not a focal length (> 0; an all-zero K is "
                                  "an uncalibrated camera)")
+        for i, want in ((1, 0.0), (3, 0.0), (6, 0.0), (7, 0.0), (8, 1.0)):
+            if kv[i] != want:
+                raise ValueError(f"camera_info {names[i]}: {kv[i]}, expected {want:g} (K = [fx 0 cx; 0 fy cy; 0 0 1]"
+                                 f"{'; a skewed pixel is not modelled' if i == 1 else ''})")
         for i, n in ((2, w), (5, h)):
             if not 0 <= kv[i] < n:
                 raise ValueError(f"camera_info {names[i]}: {kv[i]} px, the principal point is outside the "
@@ -184,8 +184,9 @@ class Undistorter:
     = K, no rotation), built once for a lens and a (width, height), then `rows` remaps only the rows asked for.
 
     The maps are float32 (x and y); fixed=True converts them to OpenCV's fixed-point CV_16SC2 + interpolation
-    table, which measured no faster for a band (vergence.tools.bench_lens) and differs by 1 gray level on a few
-    percent of the pixels (the rounding of the sub-pixel weights). The interpolation is bilinear; the border is
+    table, which measured no faster for a band (vergence.tools.bench_lens, OpenCV 5.1: from as fast to 1.7 x
+    slower across runs) and differs by 1 gray level on a few percent of the pixels (the rounding of the sub-pixel
+    weights). The interpolation is bilinear; the border is
     replicated: where an undistorted pixel falls outside the distorted image (a pincushion lens's corners, the
     edges of a strong barrel), it takes the nearest edge pixel, smooth across, where a constant black border would
     draw a strong edge at the same image position in both cameras, one the correlation could lock on (a false
