@@ -110,15 +110,39 @@ class CameraSettings:
     """The `[camera]` table: the cameras' timing where the source does not stamp its images (or its stamps
     are not believable): latency_s, from the exposure of the later image to its read (the image is this old
     when the capture gets it; `vergence latency` measures it); skew_s, the slave's exposure after the master's
-    (negative: before). Both in seconds (vergence.head.timing.CameraTiming)."""
+    (negative: before). Both in seconds (vergence.head.timing.CameraTiming). cx, cy, slave_cx, slave_cy: each
+    camera's principal point in pixels (-1: the source's, a camera_info's, else the image centre; issue #36). k1, k2,
+    p1, p2, k3: both cameras' lens distortion, OpenCV's plumb_bob (all 0: the source's, a camera_info's, else none):
+    the capture removes it from the rows a frame reads (vergence.io.lens)."""
 
     latency_s: float = 0.0
     skew_s: float = 0.0
+    cx: float = -1.0
+    cy: float = -1.0
+    slave_cx: float = -1.0
+    slave_cy: float = -1.0
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    k3: float = 0.0
 
-    RANGES: typing.ClassVar[dict[str, Range]] = {k: CameraTiming.RANGES[k] for k in ("latency_s", "skew_s")}
+    RANGES: typing.ClassVar[dict[str, Range]] = {
+        **{k: CameraTiming.RANGES[k] for k in ("latency_s", "skew_s")},
+        **{k: Range(-1, 100_000, note="pixels; -1: the source's, else the image centre")
+           for k in ("cx", "cy", "slave_cx", "slave_cy")},
+        **{k: Range(-10, 10, note="OpenCV's plumb_bob; all 0: the source's, else none")
+           for k in ("k1", "k2", "p1", "p2", "k3")}}
+
+    @property
+    def distortion(self) -> dict[str, float]:
+        """The distortion coefficients set ({}: none)."""
+        d = {k: getattr(self, k) for k in ("k1", "k2", "p1", "p2", "k3")}
+        return d if any(d.values()) else {}
 
     def __post_init__(self):
         self.timing()  # its checks (CameraTiming.RANGES), with their messages
+        check(self, {k: r for k, r in self.RANGES.items() if k not in ("latency_s", "skew_s")})
 
     def timing(self) -> CameraTiming:
         return CameraTiming(latency_s=self.latency_s, skew_s=self.skew_s)

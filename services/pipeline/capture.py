@@ -44,6 +44,7 @@ from vergence.config import load
 from vergence.stages.frames import Roster, WindowControl, make_frame, plan_shards
 from vergence.wire.messages import Command, MessageError, MotorState, Preview, Decision
 from vergence.motors.simulated import Replica, SimMotor
+from vergence.io.lens import band_rows, principal_points, undistorters
 from vergence.io.sources import SourceError, open_source
 from vergence.wire.status import decode_report
 from vergence.head.timing import PanHistory
@@ -99,8 +100,11 @@ class Capture:
     """One capture process: the source, what moves the frames (the fovea, the windows, the workers' roster, the
     motor's history), the callbacks that feed them, and the loop that reads, plans and publishes (run)."""
 
-    def __init__(self, settings, source, focal: float, at: tuple[int, int], conf: zenoh.Config, stop: session.Stop):
+    def __init__(self, settings, source, focal: float, at: tuple[int, int], conf: zenoh.Config, stop: session.Stop,
+                 principal: tuple = ((-1.0, -1.0), (-1.0, -1.0)), lenses: tuple = (None, None)):
         self.settings, self.source, self.focal, self.stop = settings, source, focal, stop
+        self.principal = principal  # (master's, slave's) (cx, cy) for the frames; -1: the image centre
+        self.lenses = lenses  # (master's, slave's) Undistorter (None: a pinhole camera)
         self.rig, self.cs, self.params, self.limits = settings.rig, settings.capture, settings.network, settings.limits
         self.wd, self.ht = source.size
         # the master's pan and the common tilt (the simulated rig aims its master; a real master is fixed: 0, 0)
@@ -254,8 +258,11 @@ class Capture:
         node.subscriber(keys.fixate(rig), lambda sm: self.fovea.on_fixate(sm.payload.to_bytes()))
         retina.warm_up()
         node.ready()
-        log.info("capture %s: %s (%d x %d, f=%.1f px) at %s Hz on %s", node.ident, self.cs.source, self.wd, self.ht,
-                 self.focal, self.cs.rate_hz or "max", keys.frame(rig))
+        pp = " ".join("(" + ", ".join("centre" if v < 0 else f"{v:g}" for v in p) + ")" for p in self.principal)
+        lens = " ".join("pinhole" if u is None else u.lens.model for u in self.lenses)
+        log.info("capture %s: %s (%d x %d, f=%.1f px, principal points %s, lenses %s) at %s Hz on %s", node.ident,
+                 self.cs.source, self.wd, self.ht, self.focal, pp, lens,
+                 self.cs.rate_hz or "max", keys.frame(rig))
         if not self.source.follows_pan:
             log.info("the source's images do not move with the slave motor: every frame carries the pan they were "
                      "taken at, %.1f deg, so the commands hold the motor at one pan instead of winding it to a limit "
@@ -281,8 +288,8 @@ class Capture:
             window = self.windows.state  # this pair's window (a decision may change it meanwhile)
             # the rows its frame reads (a renderer renders only these): the window's half, the vertical search and
             # Sobel's margin around the fovea's
-            margin = window[0] // 2 + self.params.vsearch + 1
-            self.source.rows = (at[1] - margin, at[1] + margin + 1)
+            band = band_rows(at[1], window[0], self.params.vsearch, self.ht)
+            self.source.rows = self._source_rows(band)
             try:
                 master, slave = self.source.read(pan_at)
             except SourceError as e:
@@ -291,8 +298,25 @@ class Capture:
                     continue
                 print(f"vergence capture: {e}", file=sys.stderr)
                 return 2
+            if self.lenses != (None, None):
+                master, slave = (self._undistort(img, und, band) for img, und in zip((master, slave), self.lenses))
             self.step(master, slave, pan_at, at, window)
         return 0
+
+    def _source_rows(self, band: tuple[int, int]) -> tuple[int, int]:
+        """The rows to read of the next pair: the frame's band, and with a lens to undistort the rows it reads."""
+        spans = [band] + [und.source_rows(*band) for und in self.lenses if und is not None]
+        return min(a for a, _ in spans), max(b for _, b in spans)
+
+    @staticmethod
+    def _undistort(img, und, band: tuple[int, int]):
+        """The image with the lens removed from the band's rows (the others as read: the digest of a frozen camera's
+        repeated image stays the same)."""
+        if und is None:
+            return img
+        out = img.copy()
+        out[band[0]:band[1]] = und.rows(img, *band)
+        return out
 
     def step(self, master, slave, pan_at: PanLookup, at: tuple[int, int], window: tuple[int, bool]) -> None:
         """One pair read: stamped, planned, published (when some worker is alive), previewed; the status."""
@@ -338,6 +362,7 @@ class Capture:
             frame.master_pan_rad, frame.tilt_rad = self.master_pan, self.tilt
             frame.skew_ns, frame.t_read_ns, frame.pan_stale = t_slave - t_ns, t_read, stale
             frame.follows = self.source.follows_pan
+            (frame.cx, frame.cy), (frame.slave_cx, frame.slave_cy) = self.principal
         except retina.BorderError:
             windows.reset()
             return False
@@ -384,11 +409,13 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
     x, y = at if at is not None else (wd // 2, ht // 2)
     try:
         retina.check_point((ht, wd), x, y, params.window, params.vsearch)
-    except retina.BorderError as e:
+        principal = principal_points(settings.camera, getattr(source, "principal", None), (wd, ht))
+        lenses = undistorters(settings.camera, getattr(source, "lenses", None), focal, principal, (wd, ht))
+    except (retina.BorderError, ValueError) as e:
         print(f"vergence capture: {e}", file=sys.stderr)
         source.close()
         return 2
-    capture = Capture(settings, source, focal, (x, y), conf, stop)
+    capture = Capture(settings, source, focal, (x, y), conf, stop, principal, lenses)
     with contextlib.closing(source), capture.node:
         capture.open()
         return capture.run(frames)

@@ -8,10 +8,11 @@ from __future__ import annotations
 import json
 import math
 import re
+import time
 
 import pytest
 
-from procs import Procs, free_port, wait_for
+from procs import Procs, free_port, run, wait_for
 from vergence.sim import Rig
 from vergence.wire.messages import MotorState
 from vergence.wire.status import decode_status
@@ -55,6 +56,11 @@ def test_up_with_a_reversed_camera_stays_within_3_degrees_and_names_it(tmp_path)
         n = len(pans())
         wait_for(lambda: len(pans()) >= n + 50, 10, "a second of motor states", logs=P.logs)
         assert max(abs(math.degrees(p) - start) for p in pans()) <= 3.0
+        # `vergence calibrate` (issue #36) on this head: refused within 10 s, saying which setting to flip
+        t0 = time.monotonic()
+        r = run("calibrate", "--connect", P.endpoint, "--rig", P.rig, timeout=60)
+        assert r.returncode == 2 and time.monotonic() - t0 < 10, r.stdout + r.stderr
+        assert re.search(r"the image moves against the motor .*flip \[actuator.motor\] direction", r.stderr), r.stderr
 
 
 @pytest.mark.slow

@@ -1,12 +1,13 @@
 """The distance of the fixated point: from the two cameras' pans (and the decision's sub-pixel residual) to
 Z, and its one-sigma uncertainty from the decision's sub-pixel precision.
 
-The rig model is vergence.sim.rig's: two pinhole cameras of focal length f (px), principal point at the view
-centre (W // 2, H // 2), rotating about their optical centres, which are b metres apart on the baseline (the
-head's x axis; the slave b to the right of a left master, to the left of a right one). Pan 0 and tilt 0 look
-straight ahead, parallel to each other (a rectified pair); a positive pan turns toward increasing image x, a
-positive tilt toward decreasing y. Z is the point's depth along the head's forward axis (perpendicular to the
-baseline), the Z of a rectified pair: Z = b f / d for a disparity of d px.
+The rig model is vergence.sim.rig's: two pinhole cameras of focal length f (px), each with its principal point
+(the frame's: a camera_info's, the settings', else the view centre (W // 2, H // 2); issue #36), rotating about
+their optical centres, which are b metres apart on the baseline (the head's x axis; the slave b to the right of a
+left master, to the left of a right one). Pan 0 and tilt 0 look straight ahead, parallel to each other (a
+rectified pair); a positive pan turns toward increasing image x, a positive tilt toward decreasing y. Z is the
+point's depth along the head's forward axis (perpendicular to the baseline), the Z of a rectified pair: Z = b f / d
+for a disparity of d px.
 
 A pixel (u, v) off the principal point of a camera at (pan p, tilt t) sees along the ray R (u, v, f):
 - helmholtz, R = R_x(t) R_y(p) (both cameras pan on one tilting platform): in the tilted plane the ray is
@@ -119,19 +120,23 @@ NO_DEPTH = Depth(math.nan, math.nan, False)
 def fixated_depth(*, x: float, y: float, width: int, height: int, focal_px: float, slave_pan_rad: float,
                   offset_px: float, v_shift: int, confident: bool, sigma_d_px: float, baseline_m: float,
                   master_pan_rad: float = 0.0, tilt_rad: float = 0.0, gimbal: str = "helmholtz",
-                  master: str = "left", converged_px: float = CONVERGED_PX) -> Depth:
+                  master: str = "left", converged_px: float = CONVERGED_PX,
+                  principal: tuple[float, float] | None = None,
+                  slave_principal: tuple[float, float] | None = None) -> Depth:
     """The depth of a decision: the fovea at master pixel (x, y) of a width x height view, found offset_px to
     the right (v_shift rows down) in the slave at slave_pan_rad. NaN (and converged False) unless the decision
     is confident and within converged_px of the fovea; NaN with converged True when the geometry gives no
-    point in front of the head (or baseline_m is not positive: no rig geometry)."""
+    point in front of the head (or baseline_m is not positive: no rig geometry). principal, slave_principal: each
+    camera's principal point (default: the view centre, (width // 2, height // 2))."""
     values = (x, y, focal_px, slave_pan_rad, offset_px, master_pan_rad, tilt_rad)
     if not confident or not all(math.isfinite(v) for v in values) or not abs(offset_px) <= converged_px:
         return NO_DEPTH
     if not (baseline_m > 0 and focal_px > 0):
         return Depth(math.nan, math.nan, True, sigma_d_px)
-    cx, cy = width // 2, height // 2
+    cx, cy = principal if principal is not None else (width // 2, height // 2)
+    sx, sy = slave_principal if slave_principal is not None else (width // 2, height // 2)
     z = depth_from_pans(master_pan_rad, slave_pan_rad, baseline_m, focal_px, tilt_rad=tilt_rad,
-                        master_px=(x - cx, y - cy), slave_px=(x + offset_px - cx, y + v_shift - cy),
+                        master_px=(x - cx, y - cy), slave_px=(x + offset_px - sx, y + v_shift - sy),
                         gimbal=gimbal, master=master)
     if not math.isfinite(z):
         return Depth(math.nan, math.nan, True, sigma_d_px)
@@ -149,7 +154,8 @@ def decision_fields(frame, decision, scores: np.ndarray, baseline_m: float, gimb
                         slave_pan_rad=frame.pan_rad, offset_px=decision.offset_px, v_shift=decision.v,
                         confident=decision.confident, sigma_d_px=disparity_sigma(row, decision.k, frame.window),
                         baseline_m=baseline_m, master_pan_rad=frame.master_pan_rad, tilt_rad=frame.tilt_rad,
-                        gimbal=gimbal, master=master)
+                        gimbal=gimbal, master=master, principal=frame.principal,
+                        slave_principal=frame.slave_principal)
     return dict(x=frame.x, y=frame.y, converged=dep.converged, depth_m=dep.depth_m,
                 depth_sigma_m=dep.depth_sigma_m)
 

@@ -45,6 +45,12 @@ class Source(abc.ABC):
     exposure_ns: tuple[int, int] | None = None
     fovea: tuple[int, int] | None = None  # where the capture's fovea is (None: the centre); the truth's point
     frame_id: str = ""  # the master image's own name of its optical frame, where the source has one (ros2)
+    # (master's, slave's) principal point (cx, cy) where the source knows it (a camera_info, the simulator's cx=, cy=);
+    # -1: not known (the capture takes [camera] cx, cy where set, else the image centre)
+    principal: tuple = ((-1.0, -1.0), (-1.0, -1.0))
+    # (master's, slave's) vergence.io.lens.Lens where the source knows its cameras' distortion (a camera_info, the
+    # simulator's k1=, k2=): the capture removes it from the rows a frame reads; None: none known
+    lenses: tuple | None = None
 
     def __init__(self, master: str = "left"):
         if master not in tuple(Side):

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 __all__ = ["MODELS", "COEFFICIENTS", "UNDISTORT_CRITERIA", "Lens", "Undistorter", "distort_grid", "distort_point",
-           "undistort_point", "band_rows"]
+           "undistort_point", "band_rows", "principal_points", "undistorters"]
 
 MODELS = ("none", "plumb_bob", "rational_polynomial")
 COEFFICIENTS = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")  # OpenCV's order, ROS's D
@@ -338,3 +338,35 @@ def distort_grid(lens: Lens, size: tuple[int, int], y0: int, y1: int) -> tuple[n
     if not 0 <= y0 < y1 <= h:
         raise ValueError(f"rows {y0}..{y1 - 1}: not inside the {w} x {h} image")
     return _grid(lens, (w, h)).band(y0, y1)
+
+
+# -- the capture's cameras ---------------------------------------------------------------------------------------
+
+def principal_points(cam, source_says, size: tuple[int, int]) -> tuple:
+    """For the capture (cam: the settings' [camera], vergence.config.CameraSettings): (master's, slave's) principal
+    point (cx, cy) for the frames: [camera] cx, cy, slave_cx, slave_cy where set, else the source's (a
+    camera_info's, the simulator's), else -1 (the image centre). ValueError naming the setting that lies outside
+    the image."""
+    said = source_says or ((-1.0, -1.0), (-1.0, -1.0))
+    out = []
+    for i, (kx, ky) in enumerate((("cx", "cy"), ("slave_cx", "slave_cy"))):
+        pt = []
+        for j, (key, most) in enumerate(((kx, size[0]), (ky, size[1]))):
+            v = getattr(cam, key)
+            if v >= 0 and v > most:
+                raise ValueError(f"[camera] {key} = {v:g}: outside the {size[0]} x {size[1]} image (0..{most})")
+            pt.append(float(v if v >= 0 else said[i][j]))
+        out.append(tuple(pt))
+    return tuple(out)
+
+
+def undistorters(cam, source_lenses, focal: float, principal: tuple, size: tuple[int, int]) -> tuple:
+    """For the capture: (master's, slave's) Undistorter, or None for a pinhole camera: [camera] k1.. where set (at
+    the frames' focal length and each camera's principal point), else the source's lenses (a camera_info's, the
+    simulator's). ValueError naming what is wrong."""
+    if cam.distortion:
+        lenses = tuple(Lens(focal, pt[0] if pt[0] >= 0 else size[0] // 2, pt[1] if pt[1] >= 0 else size[1] // 2,
+                            **cam.distortion) for pt in principal)
+    else:
+        lenses = source_lenses or (None, None)
+    return tuple(Undistorter(ln, size) if ln is not None and not ln.is_pinhole else None for ln in lenses)

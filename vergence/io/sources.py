@@ -245,6 +245,11 @@ class SimSource(Source):
             raise SourceError(str(e)) from None
         self.size = tuple(self.rig.size)
         self.focal_px = told
+        head = getattr(self.rig, "head", None)  # the moving target's cameras: their principal point (cx=, cy=)
+        if head is not None and (head.cx is not None or head.cy is not None):
+            self.principal = (head.principal, head.principal)
+        if head is not None and head.lens is not None:
+            self.lenses = (head.lens, head.lens)
         self.start_pan_rad = float(self.rig.start_pan_rad)
         # the master's aim and the gimbal, for the depth of the fixated point (services/pipeline/capture.py)
         self.master_pan_rad, self.tilt_rad = float(self.rig.master_pan_rad), float(self.rig.tilt_rad)
@@ -332,10 +337,11 @@ class SimSource(Source):
 
         w, h = self.size
         at = self.fovea
+        if hasattr(self.rig, "motion"):  # the moving target: its truth changes with t (closed form)
+            x, y = at if at is not None else (w // 2, h // 2)
+            return truth_pan_at(self.rig, x, y, t)
         if at is None or tuple(at) == (w // 2, h // 2):
             return self.rig.truth_pan(t)
-        if hasattr(self.rig, "motion"):  # the moving target: its truth changes with t
-            return truth_pan_at(self.rig, at[0], at[1], t)
         if self._still_truth[0] != at:  # the still scene: once per fovea (a search, some 2 ms)
             self._still_truth = (at, truth_pan_at(self.rig, at[0], at[1]))
         return self._still_truth[1]

@@ -124,7 +124,8 @@ def discovery_env(discovery: str, environ) -> tuple[dict[str, str | None], str]:
 @dataclass(frozen=True)
 class View:
     """The master camera as the frames describe it: image size, focal length (px), its pan and the common tilt
-    (0, 0 for a fixed master) and the gimbal (vergence.head.depth). The principal point is (W // 2, H // 2)."""
+    (0, 0 for a fixed master) and the gimbal (vergence.head.depth). The principal point (cx, cy): the frame's (a
+    camera_info's or the settings'), the image centre (W // 2, H // 2) where it is not known (-1)."""
 
     width: int
     height: int
@@ -134,10 +135,13 @@ class View:
     gimbal: str = "helmholtz"
     frame_id: str = ""  # the master image's own frame id, checked (frame_id_problem); "": not known
     bad_frame_id: str = ""  # why the frame id the Frame claimed was not taken ("": it was, or there was none)
+    cx: float = -1.0
+    cy: float = -1.0
 
     @property
-    def centre(self) -> tuple[int, int]:
-        return self.width // 2, self.height // 2
+    def centre(self) -> tuple[float, float]:
+        """The principal point."""
+        return (self.cx if self.cx >= 0 else self.width // 2, self.cy if self.cy >= 0 else self.height // 2)
 
 
 class FrameView(msgspec.Struct, tag_field="v", tag=1):
@@ -149,6 +153,8 @@ class FrameView(msgspec.Struct, tag_field="v", tag=1):
     master_pan_rad: float = 0.0
     tilt_rad: float = 0.0
     frame_id: str = ""
+    cx: float = -1.0
+    cy: float = -1.0
 
 
 _FRAME_VIEW = msgspec.msgpack.Decoder(FrameView)
@@ -167,8 +173,11 @@ def view_of_frame(payload: bytes, gimbal: str = "helmholtz") -> View:
     if not (math.isfinite(f.master_pan_rad) and math.isfinite(f.tilt_rad)):
         raise ValueError("frame: master pan or tilt not finite")
     why = frame_id_problem(f.frame_id) if f.frame_id else None
+    for v, most in ((f.cx, f.width), (f.cy, f.height)):
+        if not (v == -1.0 or 0 <= v <= most):
+            raise ValueError(f"frame: principal point ({f.cx}, {f.cy}) outside the image")
     return View(f.width, f.height, float(f.focal_px), float(f.master_pan_rad), float(f.tilt_rad), gimbal,
-                "" if why else f.frame_id, why or "")
+                "" if why else f.frame_id, why or "", float(f.cx), float(f.cy))
 
 
 def frame_id_problem(frame_id: str) -> str | None:

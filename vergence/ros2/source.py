@@ -6,8 +6,10 @@ rgb8, bgra8, rgba8, mono16) or sensor_msgs/msg/CompressedImage (jpeg, png), whic
 sensor-data QoS (best effort: matches reliable and best-effort publishers). Images are paired by header.stamp
 within `slop` seconds (default 0.005; vergence.ros2.convert.Pairer) and the stamps, the exposure times, are the pair's
 `exposure_ns` (t_master_ns, t_slave_ns). The camera_info beside each image topic (<topic's namespace>/camera_info)
-gives the focal length (k[0], fx) when it comes within `wait` s of the first pair; vergence's model puts the
-principal point at the view centre, and a camera_info whose (cx, cy) is more than 2 px off it is logged.
+gives the focal length (k[0], fx) when it comes within `wait` s of the first pair, and each camera's principal point
+(k[2], k[5]: `principal`, the frames carry it; issue #36); one outside the image is not taken (logged); and
+each camera's lens distortion (d, distortion_model: `lenses`, vergence.io.lens; the capture removes it from the
+rows a frame reads).
 
 The master image's header.frame_id, the camera's name of its optical frame, is `frame_id` after each read (the
 capture puts it in the Frame, the ROS 2 bridge publishes the fixation in it); one that is too long or not
@@ -84,6 +86,7 @@ class Ros2Source(Source):
         *self.topics, self.opts = parse_spec(rest)
         self.size: tuple[int, int] = (0, 0)
         self.focal_px = 0.0
+        self.principal: tuple = ((-1.0, -1.0), (-1.0, -1.0))  # (master's, slave's) (cx, cy); -1: the centre
         self.exposure_ns: tuple[int, int] = (0, 0)
         self.frame_id = ""  # the master image's header.frame_id, once checked (conv.frame_id_problem); "": none
         self._frame_ids = ["", ""]  # the latest checked frame id of each topic
@@ -159,16 +162,42 @@ class Ros2Source(Source):
                   if i is not None and math.isfinite(i.k[0]) and 0 < i.k[0] < 1e6]
         if usable:
             self.focal_px = float(usable[0].k[0])
-            cx, cy = usable[0].k[2], usable[0].k[5]
-            if not (abs(cx - self.size[0] // 2) <= 2 and abs(cy - self.size[1] // 2) <= 2):
-                log.warning("ros2 source: camera_info's principal point (%.1f, %.1f) is off the view centre (%d, %d) "
-                            "that vergence assumes: fixation points and depths are off by that much", cx, cy,
-                            self.size[0] // 2, self.size[1] // 2)
+            ordered = list(zip(self.info[::-1] if self.swap else self.info, ("master", "slave")))
+            self.principal = tuple(self._principal(i, which) for i, which in ordered)
+            lenses = tuple(self._lens(i, which) for i, which in ordered)
+            self.lenses = lenses if any(ln is not None for ln in lenses) else None
         elif any(self.info):
             log.warning("ros2 source: camera_info without a usable focal length (k[0] = %s): the focal length comes "
                         "from the settings", [float(i.k[0]) for i in self.info if i is not None])
         else:
             log.info("ros2 source: no camera_info beside the image topics: the focal length comes from the settings")
+
+    def _principal(self, info, which: str) -> tuple[float, float]:
+        """(cx, cy) of a camera_info (k[2], k[5]), or (-1, -1) (the image centre) where there is none or it lies
+        outside the image (logged)."""
+        if info is None:
+            return -1.0, -1.0
+        cx, cy = float(info.k[2]), float(info.k[5])
+        if not (0 <= cx <= self.size[0] and 0 <= cy <= self.size[1]):
+            log.warning("ros2 source: the %s's camera_info has its principal point (%s, %s) outside the %d x %d "
+                        "image: the image centre is taken", which, cx, cy, *self.size)
+            return -1.0, -1.0
+        return cx, cy
+
+    def _lens(self, info, which: str):
+        """The camera's vergence.io.lens.Lens of a camera_info with a distortion (None: none, or one that cannot be
+        used: logged, and the images are taken as they are)."""
+        from ..io.lens import Lens
+
+        if info is None:
+            return None
+        try:
+            lens = Lens.from_camera_info(info.k, info.d, info.distortion_model, self.size)
+        except ValueError as e:
+            log.warning("ros2 source: the %s's camera_info: %s; its images are taken as they are (no undistortion)",
+                        which, e)
+            return None
+        return None if lens.is_pinhole else lens
 
     # -- callbacks (the rclpy thread) -------------------------------------------------------------------------------
 

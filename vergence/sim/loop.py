@@ -162,6 +162,12 @@ def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: Co
             yield replace(step, target_deg=None if target is None else math.degrees(target))
 
 
+def _cx(rig) -> float:
+    """The slave's principal point's column (the moving target's cameras may have one off the view centre)."""
+    head = getattr(rig, "head", None)
+    return head.principal[0] if head is not None else rig.size[0] // 2
+
+
 def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, params: Params, controller: Controller,
             history: PanHistory, t_now: float, lies: Lies, focal: float) -> tuple[Step, float | None]:
     """One frame read: its images (as the cameras lie), the network's decision, the controller's target (None: no
@@ -176,7 +182,7 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
     target = None
     if pan is not None:
         target = controller.target(pan, d.offset_px, focal, d.confident, t_s=t_slave, t_now=t_now,
-                                   centre_px=0.0 if at is None else at[0] - master.shape[1] // 2,
+                                   centre_px=(master.shape[1] // 2 if at is None else at[0]) - _cx(rig),
                                    slave=digest(slave) or None, master=digest(master) or None, fovea=at,
                                    textured=has_texture(d, params), width_px=master.shape[1])
     step = Step(frame=frame, t_s=t_master, pan_deg=math.degrees(seen["at_slave"]),

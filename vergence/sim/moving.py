@@ -31,11 +31,17 @@ __all__ = ["Head", "MovingRig"]
 
 @dataclass(frozen=True)
 class Head:
-    """The rig's geometry: baseline (m), focal length (px), view size (W, H)."""
+    """The rig's geometry: baseline (m), focal length (px), view size (W, H), both cameras' principal point
+    (cx, cy) (None: the view centre (W // 2, H // 2)) and radial distortion k1, k2 (OpenCV's plumb_bob; 0: a
+    pinhole)."""
 
     baseline_m: float = 0.06
     focal_px: float = 512.0
     size: tuple[int, int] = (640, 480)
+    cx: float | None = None
+    cy: float | None = None
+    k1: float = 0.0
+    k2: float = 0.0
 
     def __post_init__(self):
         if not (self.baseline_m > 0 and math.isfinite(self.baseline_m)):
@@ -44,6 +50,26 @@ class Head:
             raise ValueError(f"focal={self.focal_px}: must be a positive number of pixels")
         if self.size[0] < 16 or self.size[1] < 16:
             raise ValueError(f"size={self.size[0]}x{self.size[1]}: views must be at least 16 x 16")
+        for key, v, most in (("cx", self.cx, self.size[0]), ("cy", self.cy, self.size[1])):
+            if v is not None and not 0 <= v <= most:
+                raise ValueError(f"{key}={v}: the principal point must lie in the view (0..{most})")
+        if not (abs(self.k1) <= 1 and abs(self.k2) <= 1):
+            raise ValueError(f"k1={self.k1:g}, k2={self.k2:g}: radial distortion coefficients within +-1")
+        self.lens  # noqa: B018 (its own checks)
+
+    @property
+    def lens(self):
+        """Both cameras' vergence.io.lens.Lens (None: pinhole)."""
+        if not (self.k1 or self.k2):
+            return None
+        from ..io.lens import Lens
+
+        return Lens(self.focal_px, *self.principal, k1=self.k1, k2=self.k2)
+
+    @property
+    def principal(self) -> tuple[float, float]:
+        return (self.cx if self.cx is not None else self.size[0] // 2,
+                self.cy if self.cy is not None else self.size[1] // 2)
 
     def disparity_px(self, z_m: float) -> float:
         """d = b f / Z of a point at depth Z on the master's axis."""
@@ -59,7 +85,7 @@ class Head:
 
     @property
     def K(self) -> np.ndarray:
-        return intrinsics(self.focal_px, self.size[0] // 2, self.size[1] // 2)
+        return intrinsics(self.focal_px, *self.principal)
 
 
 class _Noise:
@@ -157,8 +183,7 @@ class MovingRig:
         slave shows the point there (on the target, or else on the background) on the same column x. With
         q = P - C (the point from the slave's centre) a pan p puts it at column cx + f tan(atan2(qx, qz) - p);
         the master's centre pixel gives truth_pan(t)."""
-        w, h = self.size
-        f, cx, cy = self.focal_px, w // 2, h // 2
+        f, (cx, cy) = self.focal_px, self.head.principal
         z = self.motion.z(t)
         u, v = (x - cx) / f, (y - cy) / f
         th, tw = self.target_tex.shape
@@ -181,6 +206,26 @@ class MovingRig:
         return self.head.K @ rotation(pan, 0.0).T @ plane
 
     def _view(self, z: float, centre_x: float, pan: float, region: Region | None = None) -> np.ndarray:
+        lens = self.head.lens
+        if lens is not None and (region is None or not region.scale):  # (a preview stays a pinhole's)
+            return self._distorted(lens, z, centre_x, pan, region)
+        return self._pinhole(z, centre_x, pan, region)
+
+    def _distorted(self, lens, z: float, centre_x: float, pan: float, region: Region | None) -> np.ndarray:
+        """A distorted camera's rows (the region's band, or the whole view): the pinhole render of the part of the
+        view's plane those pixels see (vergence.io.lens.distort_grid), remapped."""
+        from ..io.lens import distort_grid
+
+        y0 = 0 if region is None else region.y0
+        y1 = self.size[1] if region is None else region.y0 + region.size[1]
+        mx, my = distort_grid(lens, self.size, y0, y1)
+        x0, x1 = int(np.floor(mx.min())) - 1, int(np.ceil(mx.max())) + 2
+        r0, r1 = int(np.floor(my.min())) - 1, int(np.ceil(my.max())) + 2
+        pin = self._pinhole(z, centre_x, pan, Region.window(x0, r0, x1, r1))
+        return cv2.remap(pin, mx - np.float32(x0), my - np.float32(r0), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
+
+    def _pinhole(self, z: float, centre_x: float, pan: float, region: Region | None = None) -> np.ndarray:
         size = self.size if region is None else region.size
         hb = self._homography(self.bg_tex.shape, self.bg_s, self.bg_m, centre_x, pan)
         ht = self._homography(self.target_tex.shape, self.target_s, z, centre_x, pan)
@@ -216,14 +261,16 @@ class MovingRig:
 
     # -- construction from text ---------------------------------------------------------------------------
 
-    KEYS = ("motion", "baseline", "focal", "size", "noise", "seed", "pan", "texture", "target", "bg")
+    KEYS = ("motion", "baseline", "focal", "size", "noise", "seed", "pan", "texture", "target", "bg", "cx", "cy", "k1",
+            "k2")
 
     @classmethod
     def from_options(cls, **items: str | None) -> "MovingRig":
         """A moving rig from keyword strings (None: default): motion=SPEC, baseline=M (0.06), focal=PX
         (0.8 x width), size=WxH (640x480), noise=SIGMA, seed=N, pan=DEG (the slave's start pan),
         texture=FILE|flat (the target's; default procedural), target=M (its width), bg=M (the background's
-        distance). A bad key or value raises ValueError naming it."""
+        distance), cx=PX, cy=PX (both cameras' principal point; default the view centre), k1=, k2= (both
+        cameras' radial distortion, OpenCV's; default 0). A bad key or value raises ValueError naming it."""
 
         items = {k: v for k, v in items.items() if v is not None}
         unknown = sorted(set(items) - set(cls.KEYS))
@@ -242,7 +289,8 @@ class MovingRig:
                 except (ValueError, AssertionError):
                     raise ValueError(f"size={items['size']!r} must be WxH") from None
             focal = num("focal", default=0.8 * size[0])
-            head = Head(num("baseline", default=0.06), focal, size)
+            head = Head(num("baseline", default=0.06), focal, size, num("cx"), num("cy"), num("k1", default=0.0),
+                        num("k2", default=0.0))
             tex = items.get("texture")
             if tex is not None and tex != "flat":
                 tex = read_image(tex)

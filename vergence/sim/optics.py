@@ -75,6 +75,12 @@ class Region:
         return cls(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -float(y0)], [0.0, 0.0, 1.0]]), (width, y1 - y0), y0)
 
     @classmethod
+    def window(cls, x0: int, y0: int, x1: int, y1: int) -> "Region":
+        """Columns x0..x1-1 and rows y0..y1-1 of the view's plane, which may reach past the view (what a distorted
+        lens's pixels see: vergence.io.lens.distort_grid)."""
+        return cls(np.array([[1.0, 0.0, -float(x0)], [0.0, 1.0, -float(y0)], [0.0, 0.0, 1.0]]), (x1 - x0, y1 - y0), y0)
+
+    @classmethod
     def scaled(cls, view: tuple[int, int], size: tuple[int, int]) -> "Region":
         sx, sy = size[0] / view[0], size[1] / view[1]
         # pixel centres map onto pixel centres: (x + 0.5) * s - 0.5

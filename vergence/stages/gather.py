@@ -89,7 +89,8 @@ def _command(frame: Frame, d: Decision, controller: Controller, now_ns: int | No
         return None
     now = now_ns if now_ns is not None else (frame.t_read_ns or frame.t_capture_ns)
     target = controller.target(frame.pan_rad, d.offset_px, frame.focal_px, d.confident,
-                               centre_px=frame.x - frame.width // 2, t_s=frame.t_slave_ns / 1e9, t_now=now / 1e9,
+                               centre_px=frame.x - frame.slave_principal[0], t_s=frame.t_slave_ns / 1e9,
+                               t_now=now / 1e9,
                                slave=frame.slave_digest or None, master=frame.master_digest or None,
                                fovea=(frame.x, frame.y), doubt=frame.follows, textured=textured,
                                width_px=frame.width)

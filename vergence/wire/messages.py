@@ -150,6 +150,23 @@ class Frame(Message):
     # the master image's own frame id as its camera named it (a ROS 2 header.frame_id; "": not known): the ROS 2
     # bridge publishes the fixation in it and accepts look_at in it (a claim: it checks it, vergence.ros2.convert)
     frame_id: str = ""
+    # each camera's principal point in its image (px; -1: not known, the image centre (width // 2, height // 2), as
+    # an older capture had it): pixels_to_angle, the depth, look_at and the fixation measure from it (issue #36)
+    cx: float = -1.0
+    cy: float = -1.0
+    slave_cx: float = -1.0
+    slave_cy: float = -1.0
+
+    @property
+    def principal(self) -> tuple[float, float]:
+        """The master's principal point (the image centre where the frame does not say)."""
+        return (self.cx if self.cx >= 0 else self.width // 2, self.cy if self.cy >= 0 else self.height // 2)
+
+    @property
+    def slave_principal(self) -> tuple[float, float]:
+        """The slave's principal point (the image centre where the frame does not say)."""
+        return (self.slave_cx if self.slave_cx >= 0 else self.width // 2,
+                self.slave_cy if self.slave_cy >= 0 else self.height // 2)
 
     @property
     def t_slave_ns(self) -> int:
@@ -183,6 +200,10 @@ class Frame(Message):
         _finite("frame.master_pan_rad", self.master_pan_rad, self.tilt_rad)
         if self.focal_px <= 0:
             raise MessageError("frame.focal_px must be positive")
+        for name, v, most in (("cx", self.cx, self.width), ("cy", self.cy, self.height),
+                              ("slave_cx", self.slave_cx, self.width), ("slave_cy", self.slave_cy, self.height)):
+            if not (v == -1.0 or 0 <= v <= most):
+                raise MessageError(f"frame.{name} {v}: a principal point in the image (0..{most}), or -1")
         self.fovea_strip()
         self.band_strip()
         self.master_band_strip()

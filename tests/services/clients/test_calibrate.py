@@ -18,7 +18,10 @@ ZERO, FOCAL_TRUE, Z, SEED = -1.5, 540.0, 0.8, 31
 
 
 def _source(z: float, extra: str = "") -> str:
-    return f"sim:motion=still:z={z}:focal=500:zero={ZERO}:focal_true={FOCAL_TRUE}:seed={SEED}{extra}"
+    # the camera's images 100 ms old when read, and not stamped: the capture stamps them at their read less [camera]
+    # latency_s (0 until calibrate writes it)
+    return (f"sim:motion=still:z={z}:focal=500:zero={ZERO}:focal_true={FOCAL_TRUE}:seed={SEED}:latency=0.1:stamps=no"
+            f"{extra}")
 
 
 def _depth(P: Procs, name: str, *args: str) -> tuple[float, object]:
@@ -33,32 +36,43 @@ def _depth(P: Procs, name: str, *args: str) -> tuple[float, object]:
 
 
 @pytest.mark.slow
-def test_calibrate_measures_the_zero_and_focal_and_the_head_restarted_with_them_fixates_at_the_depth(tmp_path):
+def test_calibrate_measures_the_zero_focal_and_latency_and_the_head_restarted_with_them_fixates_at_the_depth(
+        tmp_path):
+    """The head's images 100 ms old and not stamped, [camera] latency_s unset: its loop cannot tell the image follows
+    the motor (the doubt names slave_frozen again and again) and its depth is off by the zero; calibrate, which holds
+    the reducer, measures it all, and the head restarted with the file converges at the right depth."""
     from procs import free_port
 
     cfg = tmp_path / "head.toml"
     cfg.write_text("# my head\n[actuator.motor]\nmax_step_deg = 8  # kept\n")
     with Procs(tmp_path) as P:
         P.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        first, up = _depth(P, "up", "--source", _source(Z), "--config", str(cfg))
+        up = P.start("up", "up", "--listen", P.endpoint, "--workers", "1", "--rate", "60", "--source", _source(Z),
+                     "--config", str(cfg), connect=False)
+        got = P.collect(P.session(timeout=30), P.key("decision"))
+        wait_for(lambda: sum(Decision.from_bytes(b).confident for _, b, _ in got.snapshot()) >= 10, 60,
+                 "10 confident decisions", logs=P.logs)
+        got.close()
         t0 = time.monotonic()
         r = run("calibrate", "--connect", P.endpoint, "--rig", P.rig, "--config", str(cfg), "--distance", str(Z),
                 "--write", str(cfg), timeout=60)
         took = time.monotonic() - t0
         assert r.returncode == 0, r.stdout + r.stderr
-        print(f"\n{r.stdout}calibrate took {took:.1f} s; depth before {first:.4f} m (truth {Z})")
+        print(f"\n{r.stdout}calibrate took {took:.1f} s")
         off = float(re.search(r"off by ([-+\d.]+) \+-", r.stdout)[1])
         focal = float(re.search(r"focal length: ([\d.]+) \+-", r.stdout)[1])
+        latency = float(re.search(r"camera latency: ([\d.]+) \+-", r.stdout)[1])
         assert off == pytest.approx(ZERO, abs=0.015)
         assert focal == pytest.approx(FOCAL_TRUE, rel=0.01)
+        assert latency == pytest.approx(100.0, abs=5.0)  # as `vergence latency` measures it (its test: 0, 33, 66 ms)
         assert "the image follows the motor" in r.stdout
         written = tomllib.loads(cfg.read_text())
         assert written["actuator"]["motor"]["max_step_deg"] == 8 and "# kept" in cfg.read_text()
         assert written["actuator"]["motor"]["offset_deg"] == pytest.approx(ZERO, abs=0.015)
-        assert written["rig"]["focal_px"] == pytest.approx(focal, abs=0.01)
-        # without the settings the depth is off (a zero 1.5 deg off at 0.8 m: about +25 %); with them, right
-        assert abs(first / Z - 1) > 0.1
+        assert written["rig"]["focal_px"] == pytest.approx(focal, abs=0.05)  # (printed to 0.1 px)
+        assert written["camera"]["latency_s"] == pytest.approx(latency / 1e3, abs=0.0005)
         up.stop()
+        # without the settings the depth would be off by about +54 % (the zero's 1.5 deg at 0.8 m: docs/DEPTH.md)
         after, _ = _depth(P, "up2", "--source", _source(Z), "--config", str(cfg))
         print(f"depth with the written settings: {after:.4f} m")
         assert after == pytest.approx(Z, rel=0.01)
@@ -66,14 +80,13 @@ def test_calibrate_measures_the_zero_and_focal_and_the_head_restarted_with_them_
 
 @pytest.mark.slow
 def test_calibrate_refuses_a_head_it_cannot_measure_within_10_s_with_the_reason(tmp_path):
-    """Three heads side by side: a camera turning against its motor, a flat scene, a motor too weak to move."""
+    """Two heads side by side: a flat scene, a motor too weak to move (a camera turning against its motor:
+    tests/scenarios/test_faults.py, on its reversed head)."""
     from procs import free_port
 
     slow = tmp_path / "slow.toml"
     slow.write_text("[actuator.motor]\nmax_speed_deg_s = 0.01\n")
-    heads = {"reversed": ("sim:motion=still:z=1.5:seed=32:reverse", None,
-                          r"the image moves against the motor .*flip \[actuator.motor\] direction"),
-             "flat": ("sim:motion=still:z=1.5:seed=33:texture=flat", None, r"none of the last \d+ decisions is "
+    heads = {"flat": ("sim:motion=still:z=1.5:seed=33:texture=flat", None, r"none of the last \d+ decisions is "
                       r"confident .*textured scene"),
              "weak": ("sim:motion=still:z=3:seed=34", slow, r"the motor moved 0.0\d+ deg .*does not follow")}
     with Procs(tmp_path) as P:

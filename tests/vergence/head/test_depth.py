@@ -272,3 +272,56 @@ def test_sim_fixate_at_reconverges_and_measures_the_new_depth():
     assert r.returncode == 2 and "outside the 640 x 480 view" in r.stderr
     r = background.get(sweeps.cli, *FIXATE_AT[3])  # the default 20 frames never reach it
     assert r.returncode == 2 and "after the last frame (--frames 20); run at least --frames 22" in r.stderr
+
+
+@pytest.mark.parametrize("cx,cy,fovea", [(335.0, 228.0, (470, 240)), (305.5, 252.0, (170, 300)),
+                                         (320.0, 240.0, (470, 240))])
+def test_the_depth_measures_from_each_cameras_principal_point(cx, cy, fovea):
+    """The moving target's cameras with their principal point at (cx, cy) (issue #36): at the pan that converges
+    the fovea, fixated_depth gives the target's depth when told the principal point, and is off when it takes
+    the view centre instead (unless that is the principal point)."""
+    from vergence.sim.moving import MovingRig
+
+    rig = MovingRig.from_options(motion="still:z=0.9", focal="500", cx=str(cx), cy=str(cy), seed="5", target="0.6")
+    x, y = fovea
+    pan = rig.truth_at(x, y)
+    kw = dict(x=x, y=y, width=640, height=480, focal_px=500.0, slave_pan_rad=pan, offset_px=0.0, v_shift=0,
+              confident=True, sigma_d_px=0.2, baseline_m=0.06)
+    told = depth.fixated_depth(**kw, principal=(cx, cy), slave_principal=(cx, cy))
+    assert told.depth_m == pytest.approx(0.9, rel=1e-6)
+    centre = depth.fixated_depth(**kw)
+    if (cx, cy) == (320.0, 240.0):
+        assert centre.depth_m == pytest.approx(0.9, rel=1e-6)
+    else:
+        assert abs(centre.depth_m / 0.9 - 1) > 0.003
+
+
+def test_a_frame_carries_the_principal_points_and_refuses_one_outside_the_image():
+    from vergence.network.params import Params
+    from vergence.stages.frames import make_frame
+    from vergence.wire.messages import Frame, MessageError
+
+    img = np.random.default_rng(0).integers(0, 255, (480, 640), np.uint8)
+    p = Params()
+    f = make_frame(img, img, rig="r", frame=1, pan_rad=0.0, focal_px=500.0, params=p,
+                   plan=[["w", 0, 640 - p.window + 1]])
+    assert f.principal == (320, 240) and f.slave_principal == (320, 240)  # not known: the centre
+    f.cx, f.cy, f.slave_cx, f.slave_cy = 335.5, 228.0, 301.0, 250.25
+    g = Frame.from_bytes(f.to_bytes())
+    assert g.principal == (335.5, 228.0) and g.slave_principal == (301.0, 250.25)
+    f.slave_cx = 700.0
+    with pytest.raises(MessageError, match="frame.slave_cx 700"):
+        Frame.from_bytes(f.to_bytes())
+
+
+def test_the_capture_takes_the_settings_principal_point_then_the_sources_then_the_centre():
+    from vergence.io.lens import principal_points
+    from vergence.config import CameraSettings
+
+    src = ((335.0, 228.0), (301.0, 250.0))
+    assert principal_points(CameraSettings(), None, (640, 480)) == ((-1.0, -1.0), (-1.0, -1.0))
+    assert principal_points(CameraSettings(), src, (640, 480)) == src
+    assert principal_points(CameraSettings(cx=330.5, slave_cy=241.0), src, (640, 480)) == \
+        ((330.5, 228.0), (301.0, 241.0))
+    with pytest.raises(ValueError, match=r"\[camera\] slave_cx = 641: outside the 640 x 480 image"):
+        principal_points(CameraSettings(slave_cx=641), src, (640, 480))
