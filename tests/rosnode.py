@@ -126,7 +126,8 @@ class TestNode:
 class StereoCamera:
     """A stereo camera driver played by the test: at `hz`, the pair render(pan) (numpy uint8 gray, master left)
     as sensor_msgs/Image mono8 on LEFT and RIGHT, both stamped with their exposure time, and a
-    sensor_msgs/CameraInfo with fx = fy = focal beside each (<namespace>/camera_info). The images come out
+    sensor_msgs/CameraInfo with fx = fy = focal beside each (<namespace>/camera_info; principal: its (cx, cy), default
+    the image centre; d: its plumb_bob distortion, default none). The images come out
     `latency_s` after their exposure (a real camera's exposure, readout and driver); pan_at(t_ns) says where the
     slave was at the exposure (the test knows it from the rig's joint_states, or from the joint it plays), None
     while it does not know: then no picture is taken (a camera on the shaft always sees its pan; one that
@@ -134,10 +135,12 @@ class StereoCamera:
 
     LEFT, RIGHT = "/stereo/left/image_raw", "/stereo/right/image_raw"
 
-    def __init__(self, t: TestNode, render, pan_at, focal: float, hz: float = 30.0, latency_s: float = 0.03):
+    def __init__(self, t: TestNode, render, pan_at, focal: float, hz: float = 30.0, latency_s: float = 0.03,
+                 principal: tuple[float, float] | None = None, d: list[float] | None = None):
         from sensor_msgs.msg import CameraInfo, Image
 
         self.t, self.render, self.pan_at, self.focal, self.period = t, render, pan_at, focal, 1.0 / hz
+        self.principal, self.d = principal, d
         self.latency_ns = int(latency_s * 1e9)
         self.pubs = [t.node.create_publisher(Image, topic, 10) for topic in (self.LEFT, self.RIGHT)]
         self.infos = [t.node.create_publisher(CameraInfo, topic.rpartition("/")[0] + "/camera_info", 10)
@@ -164,7 +167,10 @@ class StereoCamera:
         m = CameraInfo()
         m.header.stamp.sec, m.header.stamp.nanosec = divmod(t_ns, 10**9)
         m.height, m.width = shape
-        m.k = [self.focal, 0.0, shape[1] // 2, 0.0, self.focal, shape[0] // 2, 0.0, 0.0, 1.0]
+        cx, cy = self.principal or (shape[1] // 2, shape[0] // 2)
+        m.k = [self.focal, 0.0, float(cx), 0.0, self.focal, float(cy), 0.0, 0.0, 1.0]
+        if self.d:
+            m.distortion_model, m.d = "plumb_bob", [float(v) for v in self.d]
         return m
 
     def _loop(self):

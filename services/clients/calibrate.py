@@ -27,8 +27,8 @@ import time
 from vergence.config import ConfigError, load
 from vergence.head.calibrate import (CalibrationError, calibration_plan, fit_head, merge_settings, pan_for_depth,
                                      settings_text)
-from vergence.ros2.convert import view_of_frame
 from vergence.wire import keys
+from vergence.wire.messages import Frame, MessageError
 
 from services.clients.latency import Recorder, _wait, record
 from services.runtime import session
@@ -56,7 +56,7 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 class FrameKeeper:
-    """The latest frame's bytes (its View is decoded once, at the end: the image size, focal length, master pan)."""
+    """The latest frame's bytes, decoded once at the end (its size, focal length, principal points, master pan)."""
 
     def __init__(self):
         self.lock = threading.Lock()
@@ -65,6 +65,16 @@ class FrameKeeper:
     def on_frame(self, sample) -> None:
         with self.lock:
             self.payload = sample.payload.to_bytes()
+
+    def latest(self) -> Frame | None:
+        with self.lock:
+            payload = self.payload
+        if payload is None:
+            return None
+        try:
+            return Frame.from_bytes(payload)
+        except MessageError as e:
+            raise CalibrationError(f"the rig's frames are not readable ({e})") from None
 
 
 def _ready(rec: Recorder) -> bool:
@@ -97,9 +107,13 @@ def main(rig: str, conf, distance: float | None, write: str | None, amplitude_de
     decisions, states, t_start = got
     used = [d for d in decisions if d.confident and d.t_capture_ns >= t_start]
     try:
+        frame = frames.latest()
+        xs = sorted((d.x, d.y) for d in used if d.x >= 0)
+        fovea = xs[len(xs) // 2] if xs else None
+        u = fovea[0] - frame.slave_principal[0] if frame is not None and fovea is not None else 0.0
         fit = fit_head([(d.t_capture_ns + d.skew_ns, d.t_read_ns or d.t_capture_ns, d.offset_px) for d in used],
-                       [(m.t_ns, m.pan_rad) for m in states if m.t_ns >= t_start - 10**9], rec.sent)
-        values, lines = report(fit, used, states, frames, distance, settings)
+                       [(m.t_ns, m.pan_rad) for m in states if m.t_ns >= t_start - 10**9], rec.sent, u_px=u)
+        values, lines = report(fit, fovea, states, frame, distance, settings)
     except CalibrationError as e:
         print(f"vergence calibrate: {e}", file=sys.stderr)
         return 2
@@ -116,15 +130,10 @@ def main(rig: str, conf, distance: float | None, write: str | None, amplitude_de
     return 0
 
 
-def report(fit, used, states, frames: FrameKeeper, distance: float | None, settings):
-    """({table: {key: value}} to write, lines to print); CalibrationError where --distance cannot be used."""
-    with frames.lock:
-        payload = frames.payload
-    try:
-        view = view_of_frame(payload, settings.geometry.gimbal) if payload is not None else None
-    except ValueError as e:
-        raise CalibrationError(f"the rig's frames are not readable ({e})") from None
-    told = view.focal_px if view is not None else settings.geometry.focal_px
+def report(fit, fovea, states, frame, distance: float | None, settings):
+    """({table: {key: value}} to write, lines to print); CalibrationError where --distance cannot be used. fovea:
+    where the decisions were made (master pixels); frame: the rig's latest messages.Frame (None: none seen)."""
+    told = frame.focal_px if frame is not None else settings.geometry.focal_px
     lines = [f"direction: the image follows the motor ({fit.n} decisions, r2 {fit.r2:.5f}, residual "
              f"{fit.rms_px:.3f} px)",
              f"focal length: {fit.focal_px:.1f} +- {fit.focal_sigma_px:.1f} px"
@@ -138,16 +147,15 @@ def report(fit, used, states, frames: FrameKeeper, distance: float | None, setti
         lines.append("pan zero: not measured (give --distance Z, metres to the fixated point along the master's "
                      "optical axis)")
         return values, lines
-    if view is None:
+    if frame is None:
         raise CalibrationError("no frame seen on the rig: the image size and the master's pan are unknown "
                                "(is the capture running?)")
-    xs = sorted((d.x, d.y) for d in used if d.x >= 0)
-    x, y = xs[len(xs) // 2] if xs else view.centre
-    u, v = x - view.centre[0], y - view.centre[1]
+    x, y = fovea if fovea is not None else (frame.width // 2, frame.height // 2)
+    (cx, cy), (sx, sy) = frame.principal, frame.slave_principal
     master = settings.geometry.master or settings.capture.master
-    want = pan_for_depth(distance, settings.geometry.baseline_m, fit.focal_px, master_px=(u, v),
-                         master_pan_rad=view.master_pan_rad, tilt_rad=view.tilt_rad, gimbal=view.gimbal,
-                         master=master)
+    want = pan_for_depth(distance, settings.geometry.baseline_m, fit.focal_px, master_px=(x - cx, y - cy),
+                         slave_px=(x - sx, y - sy), master_pan_rad=frame.master_pan_rad, tilt_rad=frame.tilt_rad,
+                         gimbal=settings.geometry.gimbal, master=master)
     err = want - fit.pan0_rad
     now = next((m.offset_deg for m in reversed(states)), 0.0)
     offset = now + math.degrees(err)

@@ -14,9 +14,10 @@ from vergence.head.depth import depth_from_pans
 
 
 def _run(f: float, p0: float, latency_s: float = 0.03, noise_px: float = 0.05, seed: int = 0, sign: float = 1.0,
-         moves: bool = True, bias_px: float = 0.0):
+         moves: bool = True, bias_px: float = 0.0, u: float = 0.0):
     """A motor stepping through calibration_plan about p0 (first order, 10 ms, states at 50 Hz), decisions at 60 Hz
-    whose offsets are sign x f tan(p0 - pan) of the pan latency_s before their read (stamped at the exposure);
+    whose offsets are sign x (f tan(atan(u / f) + p0 - pan) - u) of the pan latency_s before their read (stamped at
+    the exposure; u: the fovea's column off the principal point);
     bias_px: a sub-pixel error that each step keeps (a texture's)."""
     rng = np.random.default_rng(seed)
     plan = calibration_plan(p0, -0.7, 0.7, math.radians(2.0), 0.4)
@@ -34,7 +35,7 @@ def _run(f: float, p0: float, latency_s: float = 0.03, noise_px: float = 0.05, s
         t_read = 0.05 + k / 60
         exposed = float(np.interp(t_read - latency_s, ts, ps))
         b = step_bias.setdefault(round(exposed, 3), rng.normal(0, bias_px) if bias_px else 0.0)
-        off = sign * f * math.tan(p0 - exposed) + rng.normal(0, noise_px) + b
+        off = sign * (f * math.tan(math.atan2(u, f) + p0 - exposed) - u) + rng.normal(0, noise_px) + b
         decisions.append((round((t_read - latency_s) * 1e9), round(t_read * 1e9), off))
     return decisions, states, [round(at * 1e9) for at, _ in plan] if moves else None
 
@@ -48,6 +49,16 @@ def test_the_fit_finds_the_focal_length_and_the_pan_of_zero_offset(f, p0_deg, se
     assert fit.latency.latency_s == pytest.approx(0.03, abs=0.005)  # (states 20 ms apart, a 10 ms approach)
     # only the settled decisions: a ramp's are left out
     assert 100 < fit.n < 229
+
+
+@pytest.mark.parametrize("u", [-70.0, 150.0])
+def test_a_fovea_off_the_principal_point_moves_f_sec2_per_radian_and_the_fit_knows(u):
+    """At u px off the axis the image moves f (1 + (u / f)^2) per radian: a fit that took the fovea for the axis
+    (u 0) finds that for f; told u, f itself (the ROS 2 test's fovea, 70 px off at f 256: 275 for 256)."""
+    run = _run(256.0, math.radians(-4.4), seed=6, u=u)
+    assert fit_head(*run, u_px=u).focal_px == pytest.approx(256.0, rel=0.003)
+    assert fit_head(*run, u_px=u).pan0_rad == pytest.approx(math.radians(-4.4), abs=math.radians(0.003))
+    assert fit_head(*run).focal_px == pytest.approx(256.0 * (1 + (u / 256.0) ** 2), rel=0.01)
 
 
 def test_the_sigmas_cover_a_bias_that_each_step_keeps():
