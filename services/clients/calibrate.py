@@ -24,11 +24,13 @@ import sys
 import threading
 import time
 
+import numpy as np
+
 from vergence.config import ConfigError, load
 from vergence.head.calibrate import (CalibrationError, calibration_plan, fit_head, merge_settings, pan_for_depth,
-                                     settings_text)
+                                     settings_text, solve_zero)
 from vergence.wire import keys
-from vergence.wire.messages import Frame, MessageError
+from vergence.wire.messages import Fixate, Frame, MessageError
 
 from services.clients.latency import Recorder, _wait, record
 from services.runtime import session
@@ -42,9 +44,12 @@ LOOK_S = 0.5  # the decisions looked at before moving: is anything confident?
 
 def configure(p: argparse.ArgumentParser) -> None:
     session.add_options(p)
-    p.add_argument("--distance", type=number(0, 1000, lo_open=True), default=None, metavar="Z",
+    p.add_argument("--distance", type=number(0, 1000, lo_open=True), action="append", default=None, metavar="Z",
                    help="metres along the master's optical axis (through the fovea) to the point the head fixates, "
-                        "measured by you: gives the pan zero ([actuator.motor] offset_deg)")
+                        "measured by you: gives the pan zero ([actuator.motor] offset_deg); repeated with --at, "
+                        "points at two distances or more give the baseline too ([rig] baseline_m)")
+    p.add_argument("--at", type=pixel, action="append", default=None, metavar="X,Y",
+                   help="the master pixel of each --distance's point, in their order (default: the fovea where it is)")
     p.add_argument("--write", default=None, metavar="FILE",
                    help="merge the settings found into this TOML file (created if missing; every other key kept)")
     p.add_argument("--amplitude", type=number(0, 5, lo_open=True), default=2.0, metavar="DEG",
@@ -53,6 +58,14 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="how long each step is held (default 0.4)")
     p.add_argument("--wait", type=number(0, 3600, lo_open=True), default=5.0, metavar="S",
                    help="how long to wait for the rig's decisions and motor states (default 5)")
+
+
+def pixel(text: str) -> tuple[int, int]:
+    try:
+        x, y = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: want X,Y (master pixels, whole numbers)") from None
+    return x, y
 
 
 class FrameKeeper:
@@ -91,29 +104,53 @@ def _ready(rec: Recorder) -> bool:
     return False
 
 
-def main(rig: str, conf, distance: float | None, write: str | None, amplitude_deg: float, hold_s: float,
-         wait: float, settings) -> int:
+def main(rig: str, conf, distances: list[float] | None, write: str | None, amplitude_deg: float, hold_s: float,
+         wait: float, settings, ats: list[tuple[int, int]] | None = None) -> int:
+    distances, ats = distances or [], ats or []
+    if ats and len(ats) != len(distances):
+        print(f"vergence calibrate: {len(ats)} --at for {len(distances)} --distance: give one --at per --distance "
+              "(or none: the fovea where it is)", file=sys.stderr)
+        return 2
     rec, frames = Recorder(), FrameKeeper()
+    runs = []  # (fovea asked for or None, distance or None, decisions, states, t_start)
     try:
         with Node("calibrate", rig, conf, session.Stop(install=False), log=log, timeout=wait, quiet=True) as node:
             node.subscriber(keys.frame(rig), frames.on_frame)
-            got = record(node, rec, rig, amplitude_deg, hold_s, wait, planner=calibration_plan, name="calibrate",
-                         ready=lambda: _ready(rec))
+            node.subscriber(keys.decision(rig), rec.on_decision)
+            node.subscriber(keys.motor_state(rig), rec.on_state)
+            home = None  # the fovea before calibrate moved it (--at), where it goes back
+            try:
+                for z, at in zip(distances or [None], ats or [None] * max(1, len(distances))):
+                    if at is not None:
+                        if home is None:
+                            home = _home(rec, wait)
+                        if not _fixate(node, rec, rig, at, wait):
+                            return 2
+                    got = record(node, rec, rig, amplitude_deg, hold_s, wait, planner=calibration_plan,
+                                 name="calibrate", ready=lambda: _ready(rec), subscribe=False)
+                    if isinstance(got, int):
+                        return got
+                    runs.append((at, z) + got)
+            finally:
+                if home is not None:
+                    _fixate(node, rec, rig, home, 1.0)
     except ConnectionError as e:
         print(f"vergence calibrate: {e}", file=sys.stderr)
         return 1
-    if isinstance(got, int):
-        return got
-    decisions, states, t_start = got
-    used = [d for d in decisions if d.confident and d.t_capture_ns >= t_start]
     try:
         frame = frames.latest()
-        xs = sorted((d.x, d.y) for d in used if d.x >= 0)
-        fovea = xs[len(xs) // 2] if xs else None
-        u = fovea[0] - frame.slave_principal[0] if frame is not None and fovea is not None else 0.0
-        fit = fit_head([(d.t_capture_ns + d.skew_ns, d.t_read_ns or d.t_capture_ns, d.offset_px) for d in used],
-                       [(m.t_ns, m.pan_rad) for m in states if m.t_ns >= t_start - 10**9], rec.sent, u_px=u)
-        values, lines = report(fit, fovea, states, frame, distance, settings)
+        points = []  # (fit, fovea, distance) of each run
+        for at, z, decisions, states, t_start in runs:
+            used = [d for d in decisions if d.confident and d.t_capture_ns >= t_start and (at is None or
+                                                                                      (d.x, d.y) == at)]
+            xs = sorted((d.x, d.y) for d in used if d.x >= 0)
+            fovea = xs[len(xs) // 2] if xs else None
+            u = fovea[0] - frame.slave_principal[0] if frame is not None and fovea is not None else 0.0
+            fit = fit_head([(d.t_capture_ns + d.skew_ns, d.t_read_ns or d.t_capture_ns, d.offset_px) for d in used],
+                           [(m.t_ns, m.pan_rad) for m in states if m.t_ns >= t_start - 10**9],
+                           [t for t in rec.sent if t >= t_start], u_px=u)
+            points.append((fit, fovea, z))
+        values, lines = report(points, runs[-1][3], frame, settings)
     except CalibrationError as e:
         print(f"vergence calibrate: {e}", file=sys.stderr)
         return 2
@@ -130,39 +167,73 @@ def main(rig: str, conf, distance: float | None, write: str | None, amplitude_de
     return 0
 
 
-def report(fit, fovea, states, frame, distance: float | None, settings):
-    """({table: {key: value}} to write, lines to print); CalibrationError where --distance cannot be used. fovea:
-    where the decisions were made (master pixels); frame: the rig's latest messages.Frame (None: none seen)."""
+def _home(rec: Recorder, wait: float) -> tuple[int, int] | None:
+    """Where the fovea is: the newest decision's (x, y), waiting for one up to `wait` s."""
+    _wait(lambda: rec.snapshot()[0], wait)
+    d = rec.snapshot()[0]
+    return (d[-1].x, d[-1].y) if d and d[-1].x >= 0 else None
+
+
+def _fixate(node: Node, rec: Recorder, rig: str, at: tuple[int, int], wait: float) -> bool:
+    """The fovea moved to `at` (messages.Fixate), and a decision made there within `wait` s; else it says why."""
+    t = time.time_ns()
+    node.session.put(keys.fixate(rig), Fixate(x=at[0], y=at[1], t_ns=t, source="vergence calibrate").to_bytes())
+    if _wait(lambda: any((d.x, d.y) == at and d.t_capture_ns > t for d in rec.snapshot()[0][-30:]), wait):
+        return True
+    print(f"vergence calibrate: no decision at {at[0]},{at[1]} within {wait:g} s of asking the fovea there (outside "
+          "the image, too near its border, or no capture listening on the fixate key)", file=sys.stderr)
+    return False
+
+
+def report(points, states, frame, settings):
+    """({table: {key: value}} to write, lines to print) of the runs' fits (points: [(HeadFit, fovea, distance or
+    None)]); CalibrationError where the distances cannot be used. frame: the rig's latest messages.Frame."""
+    fit = points[0][0]
     told = frame.focal_px if frame is not None else settings.geometry.focal_px
+    f = float(np.mean([p[0].focal_px for p in points]))
     lines = [f"direction: the image follows the motor ({fit.n} decisions, r2 {fit.r2:.5f}, residual "
              f"{fit.rms_px:.3f} px)",
-             f"focal length: {fit.focal_px:.1f} +- {fit.focal_sigma_px:.1f} px"
-             + (f" (the frames say {told:g}: {100 * (fit.focal_px / told - 1):+.1f} %)" if told else ""),
+             f"focal length: {f:.1f} +- {fit.focal_sigma_px:.1f} px"
+             + (f" (the frames say {told:g}: {100 * (f / told - 1):+.1f} %)" if told else ""),
              f"camera latency: {fit.latency.latency_s * 1e3:.1f} +- {fit.latency.sigma_s * 1e3:.1f} ms "
              f"(the frames' stamps {fit.latency.delta_s * 1e3:+.1f} ms off)"]
-    values: dict[str, dict[str, float]] = {"rig": {"focal_px": round(float(fit.focal_px), 2)}}
+    values: dict[str, dict[str, float]] = {"rig": {"focal_px": round(f, 2)}}
     if abs(fit.latency.delta_s) * 1e3 >= max(2.0, 2 * fit.latency.sigma_s * 1e3):
         values["camera"] = {"latency_s": round(max(0.0, float(fit.latency.latency_s)), 4)}
-    if distance is None:
+    known = [p for p in points if p[2] is not None]
+    if not known:
         lines.append("pan zero: not measured (give --distance Z, metres to the fixated point along the master's "
                      "optical axis)")
         return values, lines
     if frame is None:
         raise CalibrationError("no frame seen on the rig: the image size and the master's pan are unknown "
                                "(is the capture running?)")
-    x, y = fovea if fovea is not None else (frame.width // 2, frame.height // 2)
     (cx, cy), (sx, sy) = frame.principal, frame.slave_principal
-    master = settings.geometry.master or settings.capture.master
-    want = pan_for_depth(distance, settings.geometry.baseline_m, fit.focal_px, master_px=(x - cx, y - cy),
-                         slave_px=(x - sx, y - sy), master_pan_rad=frame.master_pan_rad, tilt_rad=frame.tilt_rad,
-                         gimbal=settings.geometry.gimbal, master=master)
-    err = want - fit.pan0_rad
+    geo = dict(master_pan_rad=frame.master_pan_rad, tilt_rad=frame.tilt_rad, gimbal=settings.geometry.gimbal,
+               master=settings.geometry.master or settings.capture.master)
+    obs = []
+    for p_fit, fovea, z in known:
+        x, y = fovea if fovea is not None else (frame.width // 2, frame.height // 2)
+        obs.append((z, p_fit.pan0_rad, p_fit.pan0_sigma_rad, dict(master_px=(x - cx, y - cy), slave_px=(x - sx, y - sy),
+                                                                  **geo)))
+    b0 = settings.geometry.baseline_m
+    distinct = len({round(z, 3) for z, *_ in obs}) >= 2
+    zero, b, b_sigma = solve_zero(obs, f, b0 if not distinct else None)
     now = next((m.offset_deg for m in reversed(states)), 0.0)
-    offset = now + math.degrees(err)
-    lines.append(f"pan zero: the slave sees the fovea at {math.degrees(fit.pan0_rad):+.4f} deg as the motor reports "
-                 f"it; at {distance:g} m it should be {math.degrees(want):+.4f} deg: off by {math.degrees(err):+.4f} "
-                 f"+- {math.degrees(fit.pan0_sigma_rad):.4f} deg (offset_deg {now:+.4f} now -> {offset:+.4f})")
+    offset = now + math.degrees(zero)
+    for z, p0, sig, kw in obs:
+        want = pan_for_depth(z, b, f, **kw)
+        lines.append(f"at {z:g} m: the slave sees the point at {math.degrees(p0):+.4f} deg as the motor reports it, "
+                     f"where it should at {math.degrees(want):+.4f} deg (+- {math.degrees(sig):.4f})")
+    sig0 = math.sqrt(sum(o[2] ** 2 for o in obs)) / len(obs)
+    lines.append(f"pan zero: off by {math.degrees(zero):+.4f} +- {math.degrees(sig0):.4f} deg (offset_deg {now:+.4f} "
+                 f"now -> {offset:+.4f})")
     values["actuator.motor"] = {"offset_deg": round(float(offset), 5)}
+    if distinct:
+        lines.append(f"baseline: {b:.4f} +- {b_sigma:.4f} m (the settings say {b0:g})")
+        values["rig"]["baseline_m"] = round(float(b), 5)
+    elif len(obs) == 1:
+        lines.append(f"baseline: the settings' {b0:g} m (points at two distances or more measure it)")
     return values, lines
 
 
@@ -170,4 +241,4 @@ def run(args: argparse.Namespace) -> int:
     settings = load(args.config)
     rig = args.rig or settings.rig
     return main(rig, session.config_from_args(args), args.distance, args.write, args.amplitude, args.hold_s,
-                args.wait, settings)
+                args.wait, settings, args.at)

@@ -113,12 +113,13 @@ class Mover:
 
 
 def record(node: Node, rec: Recorder, rig: str, amplitude_deg: float, hold_s: float, wait: float,
-           planner=motion_plan, name: str = "latency", ready=None):
+           planner=motion_plan, name: str = "latency", ready=None, subscribe: bool = True):
     """In the node's block: the rig's decisions and motor states while the slave steps through the plan
     (planner(p0, lo, hi, amplitude rad, hold_s)), as (decisions, states, t_start); or the exit code: 1 when the rig
     does not answer, 2 when ready() (called once the rig answers) says why not to move (it prints why)."""
-    node.subscriber(keys.decision(rig), rec.on_decision)
-    node.subscriber(keys.motor_state(rig), rec.on_state)
+    if subscribe:  # (a second record in the same node reuses the first's subscriptions)
+        node.subscriber(keys.decision(rig), rec.on_decision)
+        node.subscriber(keys.motor_state(rig), rec.on_state)
     mover = Mover(node.session, rig, rec)
     try:
         if not _wait(lambda: all(rec.snapshot()), wait):

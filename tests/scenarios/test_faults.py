@@ -58,7 +58,7 @@ def test_up_with_a_reversed_camera_stays_within_3_degrees_and_names_it(tmp_path)
         assert max(abs(math.degrees(p) - start) for p in pans()) <= 3.0
         # `vergence calibrate` (issue #36) on this head: refused within 10 s, saying which setting to flip
         t0 = time.monotonic()
-        r = run("calibrate", "--connect", P.endpoint, "--rig", P.rig, timeout=60)
+        r = run("calibrate", "--hold-s", "0.15", "--connect", P.endpoint, "--rig", P.rig, timeout=60)
         assert r.returncode == 2 and time.monotonic() - t0 < 10, r.stdout + r.stderr
         assert re.search(r"the image moves against the motor .*flip \[actuator.motor\] direction", r.stderr), r.stderr
 

@@ -32,8 +32,8 @@ import numpy as np
 from .depth import depth_from_pans
 from .latency import LatencyError, LatencyFit, fit_latency
 
-__all__ = ["CalibrationError", "HeadFit", "fit_head", "pan_for_depth", "calibration_plan", "merge_settings",
-           "settings_text", "MIN_R2", "MAX_RMS_PX"]
+__all__ = ["CalibrationError", "HeadFit", "fit_head", "pan_for_depth", "solve_zero", "calibration_plan",
+           "merge_settings", "settings_text", "MIN_R2", "MAX_RMS_PX"]
 
 MIN_R2 = 0.98  # of the offsets' variance the motor's motion must explain; a still textured scene gives > 0.999
 MAX_RMS_PX = 0.3  # the fit's residual (px); on a still scene and a settled motor the sim leaves 0.01-0.02
@@ -184,6 +184,43 @@ def pan_for_depth(z_m: float, baseline_m: float, focal_px: float, *, master_px: 
         else:
             near = mid
     return 0.5 * (near + far)
+
+
+def solve_zero(obs, f: float, baseline_m: float | None) -> tuple[float, float, float]:
+    """(the pan zero's error, the baseline, its sigma) from [(distance, p0, sigma, geometry)]: with baseline_m given,
+    the mean of want - p0; else the baseline that makes want - p0 the same at every distance (least squares over
+    the zero and the baseline), its sigma from the p0s' sigmas."""
+    def zero_at(b, p0s):
+        gaps = [pan_for_depth(z, b, f, **kw) - p0 for (z, _, _, kw), p0 in zip(obs, p0s)]
+        return float(np.mean(gaps)), float(np.sum((np.array(gaps) - np.mean(gaps)) ** 2))
+
+    p0s = [o[1] for o in obs]
+    if baseline_m is not None:
+        return zero_at(baseline_m, p0s)[0], baseline_m, 0.0
+
+    def best(p0s):
+        lo, hi = 0.001, 2.0  # metres: golden section on the spread of want - p0 over the points
+        g = (math.sqrt(5) - 1) / 2
+        a, c = hi - g * (hi - lo), lo + g * (hi - lo)
+        fa, fc = zero_at(a, p0s)[1], zero_at(c, p0s)[1]
+        for _ in range(80):
+            if fa < fc:
+                hi, c, fc = c, a, fa
+                a = hi - g * (hi - lo)
+                fa = zero_at(a, p0s)[1]
+            else:
+                lo, a, fa = a, c, fc
+                c = lo + g * (hi - lo)
+                fc = zero_at(c, p0s)[1]
+        return 0.5 * (lo + hi)
+
+    b = best(p0s)
+    var = 0.0
+    for i, (_, p0, sig, _) in enumerate(obs):
+        moved = list(p0s)
+        moved[i] = p0 + sig
+        var += (best(moved) - b) ** 2
+    return zero_at(b, p0s)[0], b, math.sqrt(var)
 
 
 def settings_text(values: dict[str, dict[str, float]]) -> str:

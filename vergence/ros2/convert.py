@@ -3,7 +3,8 @@
 as plain numbers and arrays, so that every rule here is unit-tested without rclpy.
 
 Conventions (docs/ROS2.md): the master camera's optical frame is REP 103's (z forward, x right, y down), its
-principal point vergence's (W // 2, H // 2: vergence.head.depth); a stamp is (sec, nanosec) since the Unix epoch on
+principal point the frame's (a camera_info's or the settings'; the image centre (W // 2, H // 2) where none is
+known: vergence.head.depth); a stamp is (sec, nanosec) since the Unix epoch on
 the same clock as time.time_ns(), and an image's stamp is its exposure time.
 
 - fixation_point: a converged decision (fovea pixel and depth along the head's forward axis) -> the fixated 3-D

@@ -1,9 +1,10 @@
 """A physical rig and a scene that moves in depth: the simulator of dynamic vergence.
 
 The head (Head): two pinhole cameras of focal f px with the principal point at the view centre
-(W // 2, H // 2), the master at the origin looking along +z, the slave baseline_m to its right (+x), both
-upright (y down). A point at depth Z on the master's optical axis has the disparity d = b f / Z, and the
-slave fixates it at the pan -atan(b / Z) (positive pan turns the slave toward +x, as everywhere here).
+(W // 2, H // 2) unless cx=, cy= say otherwise, and radial distortion k1=, k2= (issue #36), the master at the
+origin looking along +z, the slave baseline_m to its right (+x), both upright (y down). A point at depth Z on the
+master's optical axis has the disparity d = b f / Z, and the slave fixates it at the pan -atan(b / Z) (positive pan
+turns the slave toward +x, as everywhere here).
 
 The scene (MovingRig): a textured fronto-parallel target, a square target_m wide centred on the master's
 optical axis at the distance Z(t) of a trajectory (vergence.sim.motion), in front of a textured background

@@ -810,11 +810,11 @@ def test_up_with_the_ros2_driver_against_a_forward_command_controller(tmp_path, 
             s.put(P.key("fixate"), Fixate(x=160, y=120, t_ns=t_back).to_bytes())
             wait_for(lambda: sum((v.x, v.y) == (160, 120) and v.converged for _, v in _verdicts(decisions, t_back))
                      >= 5, 20, "converged decisions at (160, 120)", logs=P.logs)
-            r = run("calibrate", "--connect", P.endpoint, "--rig", P.rig, "--distance", "0.8", "--write", str(cfg),
-                    timeout=60)
+            r = run("calibrate", "--hold-s", "0.3", "--connect", P.endpoint, "--rig", P.rig, "--distance", "0.8",
+                    "--write", str(cfg), timeout=60)
             assert r.returncode == 0, r.stdout + r.stderr
             print(r.stdout)
-            assert float(re.search(r"off by ([-+\d.]+) \+-", r.stdout)[1]) == pytest.approx(0.5, abs=0.03)
+            assert float(re.search(r"pan zero: off by ([-+\d.]+) \+-", r.stdout)[1]) == pytest.approx(0.5, abs=0.03)
             up.stop()
             t_again = time.time_ns()
             P.start("up2", "up", *args, "--config", str(cfg), connect=False)
