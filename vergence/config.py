@@ -150,11 +150,14 @@ class CameraSettings:
 
 @dataclass(frozen=True)
 class ReducerSettings:
-    """deadline_ms: a frame whose shards are not all in by then is dropped and counted."""
+    """deadline_ms: a frame whose shards are not all in by then is dropped and counted. summary_s: how often the
+    reducer logs what the loop is doing (one line: frames, commands, the offset, the pans)."""
 
     deadline_ms: float = 50.0
+    summary_s: float = 5.0
 
-    RANGES: typing.ClassVar[dict[str, Range]] = {"deadline_ms": Range(0, 10_000, lo_open=True)}
+    RANGES: typing.ClassVar[dict[str, Range]] = {"deadline_ms": Range(0, 10_000, lo_open=True),
+                                                 "summary_s": Range(0.5, 3600, note="seconds")}
 
     def __post_init__(self):
         check(self, self.RANGES)

@@ -13,8 +13,8 @@ Publishes messages.Profile on vergence/<rig>/profile and, when the controller mo
 messages.Command on vergence/<rig>/command; never from an incomplete profile. Counters go out as JSON on
 vergence/<rig>/status/reducer/<id> every second and at exit. The profile is only encoded and published while
 someone subscribes to it. Each decision carries the fovea centre (x, y) it was made for and the fixated
-point's depth (vergence.head.depth, with the [rig] table's baseline, gimbal and master). Every SUMMARY_S seconds
-with frames, one log line says what the loop is doing (summary()).
+point's depth (vergence.head.depth, with the [rig] table's baseline, gimbal and master). Every [reducer] summary_s
+seconds (5) with frames, one log line says what the loop is doing (summary()).
 """
 
 from __future__ import annotations
@@ -45,7 +45,6 @@ from services.runtime.node import Node
 from services.runtime.warm import warm_up
 
 log = logging.getLogger("vergence.reducer")
-SUMMARY_S = 5.0
 EXPIRE_S = 0.05  # the longest sleep between deadline checks (frames also expire as messages arrive)
 REPORT_S = 0.1  # the membership evidence (vergence/<rig>/workers) goes out this often
 # zenoh RingChannels: the newest messages kept while the forwarders wait for the interpreter (what they drop
@@ -334,7 +333,8 @@ class Reducer:
     def run(self, stop: session.Stop) -> None:
         """The loop, until stop: what arrived, the deadlines, the membership evidence, the status, the summary."""
         next_report = time.monotonic() + REPORT_S
-        next_summary, seen = time.monotonic() + SUMMARY_S, (0, 0, 0)
+        every = self.settings.reducer.summary_s
+        next_summary, seen = time.monotonic() + every, (0, 0, 0)
         sleep = EXPIRE_S
         while not stop.is_set():
             batch = self.inbox.drain(sleep)
@@ -354,9 +354,9 @@ class Reducer:
                 counts = self.counts()
                 if counts[0] > seen[0]:
                     with self.lock:
-                        log.info("%s", summary(SUMMARY_S, *(a - b for a, b in zip(counts, seen)), self.last[0],
+                        log.info("%s", summary(every, *(a - b for a, b in zip(counts, seen)), self.last[0],
                                                self.window.take()))
-                seen, next_summary = counts, now + SUMMARY_S
+                seen, next_summary = counts, now + every
 
 
 def main(settings, conf: zenoh.Config, stop: session.Stop, deadline_ms: float | None = None) -> int:

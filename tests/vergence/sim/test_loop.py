@@ -363,10 +363,12 @@ def test_up_with_the_simulated_rig_converges(tmp_path):
     rig = Rig.from_spec("")
     truth, tol = rig.truth_pan_rad, rig.one_px_rad
     endpoint = f"tcp/127.0.0.1:{free_port()}"
+    cfg = tmp_path / "summary.toml"
+    cfg.write_text("[reducer]\nsummary_s = 1\n")  # the reducer's line every second (5 by default)
     with Procs(tmp_path) as P:
         P.endpoint = endpoint
         up = P.start("up", "up", "--listen", endpoint, "--source", "sim", "--workers", "2", "--rate", "30",
-                     connect=False)
+                     "--config", str(cfg), connect=False)
         s = P.session()
         states = P.collect(s, P.key("motor_state"))
 
@@ -379,7 +381,7 @@ def test_up_with_the_simulated_rig_converges(tmp_path):
         n = len(pans())
         wait_for(lambda: len(pans()) >= n + 25, 10, "more states", logs=P.logs)  # half a second at 50 Hz
         assert all(abs(p - truth) <= tol for p in pans()[n:])
-        # `vergence up` says so in its log: the reducer's line every 5 s, once converged, reads a residual
+        # `vergence up` says so in its log: the reducer's line every summary_s, once converged, reads a residual
         # offset within 1 px and the window's slave pans within 1 px of the truth
         line = re.compile(r"reducer.*: frames (\d+) decided, (\d+) dropped, commands (\d+); frame \d+: offset "
                           r"([-+\d.]+) px, confident .* slave pan at capture ([-+\d.]+)\.\.([-+\d.]+) deg")
