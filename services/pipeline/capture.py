@@ -179,7 +179,9 @@ class Capture:
             if why is not None:
                 raise MessageError(why)
             with self.history_lock:
-                remember(self.history, st, time.time_ns())
+                if not remember(self.history, st, time.time_ns()):
+                    self.health.count("motor_states_away")  # disconnected or absent: its pan is not known
+                    return
                 if self.replica is not None:
                     self.follow(st)
             self.health.count("motor_states")

@@ -29,17 +29,22 @@ def motor_state_implausible(st: MotorState, motor, now_ns: int, max_skew_s: floa
     return None
 
 
-def remember(history: PanHistory, st: MotorState, now_ns: int) -> None:
-    """A plausible motor state into the history; MessageError when it is not newer than the newest. A newest
+def remember(history: PanHistory, st: MotorState, now_ns: int) -> bool:
+    """A plausible motor state into the history (True); MessageError when it is not newer than the newest. A newest
     state from more than FUTURE_S in our future (a forgery within max_skew_s, or a clock that jumped) is
-    forgotten rather than left to refuse every true state until then."""
+    forgotten rather than left to refuse every true state until then. The state of a motor that is disconnected or
+    absent says a pan it does not know (its goal: an actuator started before its ROS 2 joint's first state said 0
+    while the joint stood at -4.8 deg, and every frame carried 0): left out (False)."""
+    if st.status in ("disconnected", "absent"):
+        return False
     t = st.t_ns / 1e9
     if history.add(t, st.pan_rad):
-        return
+        return True
     if not (history.t and history.t[-1] > now_ns / 1e9 + FUTURE_S):
         raise MessageError("motor state not newer than the last one")
     history.clear()
     history.add(t, st.pan_rad)
+    return True
 
 
 class PanLookup:

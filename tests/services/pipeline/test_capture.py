@@ -121,3 +121,8 @@ def test_a_motor_state_from_our_future_is_forgotten_when_the_true_ones_come():
     remember(h, state(now + 30 * MS, 0.12), now)  # 30 ms ahead: clock skew, kept
     with pytest.raises(MessageError):
         remember(h, state(now + 10 * MS, 0.13), now)
+    # a disconnected or absent motor's state carries its goal, not a pan it knows: left out
+    for status in ("disconnected", "absent"):
+        st = MotorState(rig="r", t_ns=now + 40 * MS, pan_rad=0.0, goal_rad=0.0, min_rad=-1, max_rad=1, status=status)
+        assert remember(h, st, now) is False
+    assert list(h.pan) == [0.11, 0.12]
