@@ -106,7 +106,8 @@ def fit_head(decisions: list[tuple[int, int, float]], states: list[tuple[int, fl
         raise CalibrationError(f"the motor moved {math.degrees(np.ptp(s[:, 1])):.3f} deg while it was commanded to "
                                "step: it does not follow (torque off, at a limit, jammed, or another rig's motor)")
     try:
-        lat = fit_latency(decisions, states, either_sign=True, boots=20)
+        # (a 4 ms grid, refined by its parabola: the steps need the delta to a few ms, and the grid is most of the cost)
+        lat = fit_latency(decisions, states, either_sign=True, boots=20, step_s=0.004)
     except LatencyError as e:
         raise CalibrationError(str(e)) from None
     if lat.slope > 0:
