@@ -1,15 +1,16 @@
-"""`vergence calibrate [--distance Z] [--write FILE] [--amplitude DEG] [--hold-s S] [--wait S]`: measure the
-running head on itself (issue #36).
+"""`vergence calibrate [--distance Z [--at X,Y]] ... [--write FILE] [--amplitude DEG] [--hold-s S] [--wait S]`:
+measure the running head on itself (issue #36).
 
 As `vergence latency` does, it holds the reducer's commands, steps the slave through known pans about its present
-one (nine levels within +-amplitude and the motor's soft limits, each held hold-s), records the decisions and the
+one (17 levels within +-amplitude and the motor's soft limits, each held hold-s), records the decisions and the
 motor's states, then puts the slave back and releases the hold. From them (vergence.head.calibrate.fit_head):
 - the direction: the image moves the way the settings say, or it says to flip [actuator.motor] direction;
 - the focal length in pixels (the slope of the offsets against the pan), with its sigma;
 - the camera's latency (vergence.head.latency);
 - with --distance Z (metres along the master's optical axis, through the fovea, to the point it fixates: a
   target the user measured), the pan zero's error, written as [actuator.motor] offset_deg (the one the actuator
-  applies now, from its motor_state, plus the correction).
+  applies now, from its motor_state, plus the correction); --distance Z --at X,Y repeated: the fovea moved to each
+  point (and back when done), and points at two distances or more give the baseline too ([rig] baseline_m).
 It prints each figure with its uncertainty and the TOML lines; --write FILE merges them into FILE (created if
 missing; comments and every other key kept) for `vergence up --config FILE`. Exit 1 when no rig answers, 2 when
 the scene or the motor does not allow the measurement (it says why and what to do).
@@ -54,8 +55,8 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="merge the settings found into this TOML file (created if missing; every other key kept)")
     p.add_argument("--amplitude", type=number(0, 5, lo_open=True), default=2.0, metavar="DEG",
                    help="the steps' reach about the present pan, degrees (default 2, at most 5)")
-    p.add_argument("--hold-s", type=number(0.1, 5), default=0.4, metavar="S",
-                   help="how long each step is held (default 0.4)")
+    p.add_argument("--hold-s", type=number(0.1, 5), default=0.3, metavar="S",
+                   help="how long each step is held (default 0.3)")
     p.add_argument("--wait", type=number(0, 3600, lo_open=True), default=5.0, metavar="S",
                    help="how long to wait for the rig's decisions and motor states (default 5)")
 

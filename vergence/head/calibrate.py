@@ -37,6 +37,11 @@ __all__ = ["CalibrationError", "HeadFit", "fit_head", "pan_for_depth", "solve_ze
 
 MIN_R2 = 0.98  # of the offsets' variance the motor's motion must explain; a still textured scene gives > 0.999
 MAX_RMS_PX = 0.3  # the fit's residual (px); on a still scene and a settled motor the sim leaves 0.01-0.02
+# the steps about the present pan, in parts of the amplitude, alternating sides: 17 of them, so that the sub-pixel
+# phase of the offsets (where the network's sub-pixel error lies) is sampled finely (with 9 the pan zero of the
+# test's head spread over -1.488..-1.531 deg in 11 runs for -1.5, with 17 over -1.497..-1.511 in 7)
+LEVELS = (1.0, -1.0, 0.5, -0.5, 0.75, -0.75, 0.25, -0.25, 0.875, -0.875, 0.625, -0.625, 0.375, -0.375, 0.125, -0.125,
+          0.0)
 SETTLE_S = 0.1  # a decision is used where the motor's pan was the same this long before its image's exposure ...
 SETTLED_RAD = math.radians(0.1)  # ... within this (an encoder that flickers by a tick at rest is settled)
 
@@ -62,10 +67,10 @@ class HeadFit:
 
 
 def calibration_plan(p0: float, lo: float, hi: float, amplitude_rad: float, hold_s: float) -> list[tuple[float, float]]:
-    """[(seconds from the start, pan)]: nine levels from -amplitude to +amplitude about p0 (alternating sides, so a
-    slow drift does not look like a slope), each held hold_s, then back to p0; every pan within [lo, hi]."""
+    """[(seconds from the start, pan)]: LEVELS from -amplitude to +amplitude about p0 (alternating sides, so a
+    slow drift does not look like a slope), each held hold_s, the last back at p0; every pan within [lo, hi]."""
     out = []
-    for i, k in enumerate((1.0, -1.0, 0.5, -0.5, 0.75, -0.75, 0.25, -0.25, 0.0)):
+    for i, k in enumerate(LEVELS):
         out.append((i * hold_s, min(hi, max(lo, p0 + k * amplitude_rad))))
     return out
 
@@ -106,8 +111,7 @@ def fit_head(decisions: list[tuple[int, int, float]], states: list[tuple[int, fl
         raise CalibrationError(f"the motor moved {math.degrees(np.ptp(s[:, 1])):.3f} deg while it was commanded to "
                                "step: it does not follow (torque off, at a limit, jammed, or another rig's motor)")
     try:
-        # (a 4 ms grid, refined by its parabola: the steps need the delta to a few ms, and the grid is most of the cost)
-        lat = fit_latency(decisions, states, either_sign=True, boots=20, step_s=0.004)
+        lat = fit_latency(decisions, states, either_sign=True, boots=20)
     except LatencyError as e:
         raise CalibrationError(str(e)) from None
     if lat.slope > 0:

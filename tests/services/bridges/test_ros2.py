@@ -810,7 +810,7 @@ def test_up_with_the_ros2_driver_against_a_forward_command_controller(tmp_path, 
             s.put(P.key("fixate"), Fixate(x=160, y=120, t_ns=t_back).to_bytes())
             wait_for(lambda: sum((v.x, v.y) == (160, 120) and v.converged for _, v in _verdicts(decisions, t_back))
                      >= 5, 20, "converged decisions at (160, 120)", logs=P.logs)
-            r = run("calibrate", "--hold-s", "0.3", "--connect", P.endpoint, "--rig", P.rig, "--distance", "0.8",
+            r = run("calibrate", "--connect", P.endpoint, "--rig", P.rig, "--distance", "0.8",
                     "--write", str(cfg), timeout=60)
             assert r.returncode == 0, r.stdout + r.stderr
             print(r.stdout)

@@ -72,7 +72,7 @@ def test_calibrate_measures_the_zero_focal_and_latency_and_the_head_restarted_wi
         print(f"\nvergence latency: {measured:.1f} ms (truth {LATENCY * 1e3:.0f})")
         assert measured == pytest.approx(LATENCY * 1e3, abs=5.0)
         t0 = time.monotonic()
-        r = run("calibrate", "--hold-s", "0.25", "--connect", P.endpoint, "--rig", P.rig, "--config", str(cfg),
+        r = run("calibrate", "--connect", P.endpoint, "--rig", P.rig, "--config", str(cfg),
                 "--distance", str(Z), "--write", str(cfg), timeout=60)
         took = time.monotonic() - t0
         assert r.returncode == 0, r.stdout + r.stderr
@@ -80,7 +80,8 @@ def test_calibrate_measures_the_zero_focal_and_latency_and_the_head_restarted_wi
         off = float(re.search(r"pan zero: off by ([-+\d.]+) \+-", r.stdout)[1])
         focal = float(re.search(r"focal length: ([\d.]+) \+-", r.stdout)[1])
         latency = float(re.search(r"camera latency: ([\d.]+) \+-", r.stdout)[1])
-        assert off == pytest.approx(ZERO, abs=0.02)  # (the Must: 0.015; this draw -0.010 to -0.013 in 3 runs)
+        # the Must; this draw, 7 runs: -1.4968 to -1.5109 (with 9 steps, not 17: -1.488 to -1.531 over 11 runs)
+        assert off == pytest.approx(ZERO, abs=0.015)
         assert focal == pytest.approx(FOCAL_TRUE, rel=0.01)
         assert latency == pytest.approx(LATENCY * 1e3, abs=5.0)
         assert "the image follows the motor" in r.stdout

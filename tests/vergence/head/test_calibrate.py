@@ -20,10 +20,10 @@ def _run(f: float, p0: float, latency_s: float = 0.03, noise_px: float = 0.05, s
     the exposure; u: the fovea's column off the principal point);
     bias_px: a sub-pixel error that each step keeps (a texture's)."""
     rng = np.random.default_rng(seed)
-    plan = calibration_plan(p0, -0.7, 0.7, math.radians(2.0), 0.4)
+    plan = calibration_plan(p0, -0.7, 0.7, math.radians(2.0), 0.3)
     goal = lambda t: p0 if not moves or t < 0 else [p for at, p in plan if at <= t][-1]  # noqa: E731
     dt, pan, hist = 0.001, p0, []
-    for i in range(int(4.0 / dt)):
+    for i in range(int(5.6 / dt)):
         t = i * dt
         pan += (goal(t) - pan) * dt / 0.01
         hist.append((t, pan))
@@ -31,7 +31,7 @@ def _run(f: float, p0: float, latency_s: float = 0.03, noise_px: float = 0.05, s
     states = [(round(t * 1e9), p) for t, p in hist[::20]]
     step_bias: dict = {}
     decisions = []
-    for k in range(1, 230):
+    for k in range(1, 320):
         t_read = 0.05 + k / 60
         exposed = float(np.interp(t_read - latency_s, ts, ps))
         b = step_bias.setdefault(round(exposed, 3), rng.normal(0, bias_px) if bias_px else 0.0)
@@ -48,7 +48,7 @@ def test_the_fit_finds_the_focal_length_and_the_pan_of_zero_offset(f, p0_deg, se
     assert fit.rms_px < 0.1 and fit.r2 > 0.999
     assert fit.latency.latency_s == pytest.approx(0.03, abs=0.005)  # (states 20 ms apart, a 10 ms approach)
     # only the settled decisions: a ramp's are left out
-    assert 100 < fit.n < 229
+    assert 120 < fit.n < 319
 
 
 @pytest.mark.parametrize("u", [-70.0, 150.0])
@@ -56,19 +56,20 @@ def test_a_fovea_off_the_principal_point_moves_f_sec2_per_radian_and_the_fit_kno
     """At u px off the axis the image moves f (1 + (u / f)^2) per radian: a fit that took the fovea for the axis
     (u 0) finds that for f; told u, f itself (the ROS 2 test's fovea, 70 px off at f 256: 275 for 256)."""
     run = _run(256.0, math.radians(-4.4), seed=6, u=u)
-    assert fit_head(*run, u_px=u).focal_px == pytest.approx(256.0, rel=0.003)
-    assert fit_head(*run, u_px=u).pan0_rad == pytest.approx(math.radians(-4.4), abs=math.radians(0.003))
-    assert fit_head(*run).focal_px == pytest.approx(256.0 * (1 + (u / 256.0) ** 2), rel=0.01)
+    told = fit_head(*run, u_px=u, boots=10)
+    assert told.focal_px == pytest.approx(256.0, rel=0.003)
+    assert told.pan0_rad == pytest.approx(math.radians(-4.4), abs=math.radians(0.003))
+    assert fit_head(*run, boots=10).focal_px == pytest.approx(256.0 * (1 + (u / 256.0) ** 2), rel=0.01)
 
 
 def test_the_sigmas_cover_a_bias_that_each_step_keeps():
     errs_f, sig_f = [], []
-    for seed in range(6):
+    for seed in range(5):
         fit = fit_head(*_run(540.0, -0.06, seed=seed, bias_px=0.03))
         errs_f.append(abs(fit.focal_px - 540.0))
         sig_f.append(fit.focal_sigma_px)
     assert np.median(sig_f) > 0.1  # the bootstrap is over the steps: a step's shared error shows
-    assert sum(e <= 3 * s for e, s in zip(errs_f, sig_f)) >= 5
+    assert sum(e <= 3 * s for e, s in zip(errs_f, sig_f)) >= 4
 
 
 def test_a_camera_that_turns_against_the_motor_is_named_with_the_setting_to_flip():
