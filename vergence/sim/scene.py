@@ -8,7 +8,11 @@ seed."""
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -46,7 +50,51 @@ def generate(seed: int = 0, size: tuple[int, int] = (960, 720)) -> Scene:
     """A background plane (d = 8 px) and boxes and discs at 12..40 px, one of them on the image centre.
 
     size is (W, H) of the pair; the rig renders smaller views out of it, so that a rotated camera still
-    sees texture instead of the black outside of the images."""
+    sees texture instead of the black outside of the images. Drawing it takes half a second of a core; every
+    process of a sim rig draws the same one (`vergence up`'s check of its --source, the capture, its standby, each
+    restart), so a drawn scene is kept: in this process (its arrays read-only) and on disk (cache_dir(), under a
+    name with this file's digest and numpy's and OpenCV's versions: a change draws anew; the KEEP newest). The
+    same arrays either way."""
+    return _cached(int(seed), (int(size[0]), int(size[1])))
+
+
+def cache_dir() -> Path:
+    """Where drawn scenes are kept: $XDG_CACHE_HOME/vergence/scenes (~/.cache/vergence/scenes)."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "vergence" / "scenes"
+
+
+KEEP = 16  # scenes kept on disk (4 MB each at the default size)
+
+
+@functools.lru_cache(maxsize=4)
+def _cached(seed: int, size: tuple[int, int]) -> Scene:
+    # the drawing is this file's code run by numpy's generator and OpenCV's filters: any of them changed, drawn anew
+    code = Path(__file__).read_bytes() + f"{np.__version__} {cv2.__version__}".encode()
+    digest = hashlib.sha1(code).hexdigest()[:12]
+    path = cache_dir() / f"scene-{seed}-{size[0]}x{size[1]}-{digest}.npz"
+    sc = None
+    try:
+        with np.load(path) as z:
+            sc = Scene(z["left"], z["right"], z["disparity"])
+    except (OSError, KeyError, ValueError):  # not kept yet (or unreadable: drawn again, and kept anew)
+        pass
+    if sc is None:
+        sc = _draw(seed, size)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
+            np.savez(tmp, left=sc.left, right=sc.right, disparity=sc.disparity)
+            os.replace(tmp, path)  # whole or not at all, for a process drawing it at the same time
+            for old in sorted(path.parent.glob("scene-*.npz"), key=lambda p: p.stat().st_mtime)[:-KEEP]:
+                old.unlink(missing_ok=True)
+        except OSError:  # a read-only home: drawn in every process, as before
+            pass
+    for a in (sc.left, sc.right, sc.disparity):
+        a.setflags(write=False)
+    return sc
+
+
+def _draw(seed: int, size: tuple[int, int]) -> Scene:
     rng = np.random.default_rng(seed)
     w, h = size
     dmax = 48
