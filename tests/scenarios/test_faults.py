@@ -23,7 +23,7 @@ FOCAL = 500.0
 def _up(P, tmp_path, spec: str, *more: str):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     P.endpoint = endpoint
-    P.start("up", "up", "--listen", endpoint, "--source", spec, "--workers", "2", "--rate", "60", *more,
+    P.start("up", "up", "--listen", endpoint, "--source", spec, "--workers", "2", "--rate", "60", "--no-standby", *more,
             connect=False)
     s = P.session()
     states = P.collect(s, P.key("motor_state"))

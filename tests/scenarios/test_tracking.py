@@ -449,7 +449,7 @@ def _up_tracking(tmp_path, spec: str) -> tuple[np.ndarray, str]:
     with Procs(tmp_path) as P:
         P.endpoint = endpoint
         P.start("up", "up", "--listen", endpoint, "--source", spec, "--workers", "2", "--rate", "60",
-                connect=False)
+                "--no-standby", connect=False)
         s = P.session()
         frames = P.collect(s, P.key("frame"))
         decisions = P.collect(s, P.key("decision"))
@@ -697,7 +697,7 @@ def test_up_renders_the_slave_at_the_motors_own_shaft_without_waiting_for_its_re
     with Procs(tmp_path) as P:
         P.endpoint = endpoint
         P.start("up", "up", "--listen", endpoint, "--source", DEMO, "--workers", "2", "--rate", "125",
-                "--config", str(cfg), connect=False)
+                "--config", str(cfg), "--no-standby", connect=False)
         s = P.session()
         frames = P.collect(s, P.key("frame"))
         states = P.collect(s, P.key("motor_state"))

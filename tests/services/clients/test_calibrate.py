@@ -61,7 +61,7 @@ def test_calibrate_measures_the_zero_focal_and_latency_and_the_head_restarted_wi
     with Procs(tmp_path) as P:
         P.endpoint = f"tcp/127.0.0.1:{free_port()}"
         up = P.start("up", "up", "--listen", P.endpoint, "--workers", "1", "--rate", "60", "--source", _source(Z),
-                     "--config", str(cfg), connect=False)
+                     "--config", str(cfg), "--no-standby", connect=False)
         got = P.collect(P.session(timeout=30), P.key("decision"))
         wait_for(lambda: sum(Decision.from_bytes(b).confident for _, b, _ in got.snapshot()) >= 10, 60,
                  "10 confident decisions", logs=P.logs)
@@ -93,7 +93,7 @@ def test_calibrate_measures_the_zero_focal_and_latency_and_the_head_restarted_wi
         up.stop()
         # without the settings the depth would be off by about +54 % (the zero's 1.5 deg at 0.8 m: docs/DEPTH.md)
         P.start("up2", "up", "--listen", P.endpoint, "--workers", "1", "--rate", "60", "--source", _source(Z),
-                "--config", str(cfg), connect=False)
+                "--config", str(cfg), "--no-standby", connect=False)
         s = P.session(timeout=30)
         offset = written["actuator"]["motor"]["offset_deg"]
         after, err = _depth(P, s, (320, 240), offset)
@@ -123,7 +123,7 @@ def test_calibrate_refuses_a_head_it_cannot_measure_within_10_s_with_the_reason(
         for name, (src, conf, _) in heads.items():
             ends[name] = f"tcp/127.0.0.1:{free_port()}"
             P.start(name, "up", "--listen", ends[name], "--workers", "1", "--rate", "30", "--source", src,
-                    *(["--config", str(conf)] if conf else []), connect=False)
+                    *(["--config", str(conf)] if conf else []), "--no-standby", connect=False)
         for name in heads:
             P.endpoint = ends[name]
             s = P.session(timeout=30)

@@ -102,7 +102,7 @@ def test_fixate_through_vergence_up(tmp_path):
     with Procs(tmp_path) as P:
         P.endpoint = endpoint
         P.start("up", "up", "--listen", endpoint, "--source", "sim", "--workers", "2", "--rate", "30",
-                "--config", str(cfg), connect=False)
+                "--config", str(cfg), "--no-standby", connect=False)
         s = P.session()
         decisions = P.collect(s, P.key("decision"))
         states = P.collect(s, P.key("motor_state"))

@@ -26,7 +26,7 @@ def test_vergence_latency_measures_the_sim_camera_within_5_ms(tmp_path, latency,
     with Procs(tmp_path) as P:
         P.endpoint = endpoint
         P.start("up", "up", "--listen", endpoint, "--source", f"sim:latency={latency}:stamps={stamps}",
-                "--workers", "1", "--rate", "60", connect=False)
+                "--workers", "1", "--rate", "60", "--no-standby", connect=False)
         s = P.session()
         decisions = P.collect(s, P.key("decision"))
         status = P.collect(s, P.key("status/capture/*"))

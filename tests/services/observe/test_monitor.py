@@ -24,7 +24,7 @@ def rig(tmp_path_factory):
     with Procs(tmp) as P:
         P.endpoint = f"tcp/127.0.0.1:{free_port()}"
         P.start("up", "up", "--listen", P.endpoint, "--source", textured_pair(tmp), "--workers", "2", "--rate", "20",
-                "--config", str(cfg), connect=False)
+                "--config", str(cfg), "--no-standby", connect=False)
         P.wait_port(20)
         yield P
 

@@ -86,7 +86,7 @@ def test_view_save_records_3s_of_up(tmp_path):
     with Procs(tmp_path) as P:
         P.endpoint = endpoint
         P.start("up", "up", "--listen", endpoint, "--source", "sim", "--workers", "2", "--rate", "60",
-                "--config", str(cfg), connect=False)
+                "--config", str(cfg), "--no-standby", connect=False)
         s = P.session()
         decisions = P.collect(s, P.key("decision"))
         wait_for(lambda: len(decisions) >= 10, 180, "the loop's first decisions", logs=P.logs)  # slow warm-up
