@@ -20,6 +20,7 @@ class Health:
         self.counters: dict[str, int] = {}
         self.bad: dict[str, int] = {}
         self._logged: set[str] = set()
+        self.news = False  # a bad message counted since the last status() (services/runtime/node.py: sent sooner)
         self._lock = threading.Lock()  # zenoh callbacks of several threads count too
 
     def count(self, name: str, n: int = 1) -> None:
@@ -30,6 +31,7 @@ class Health:
         """A message of `kind` that failed to decode or validate: counted, logged the first time."""
         with self._lock:
             self.bad[kind] = self.bad.get(kind, 0) + 1
+            self.news = True
             first = kind not in self._logged
             self._logged.add(kind)
         if first and self.log is not None:
@@ -39,5 +41,6 @@ class Health:
         with self._lock:
             d = {"role": self.role, "id": self.ident, "pid": os.getpid(), "t_ns": time.time_ns(),
                  "counters": dict(self.counters), "bad": dict(self.bad)}
+            self.news = False
         d.update(extra)
         return d

@@ -13,7 +13,9 @@ past `timeout` seconds without one, session.NoRouter, which `vergence` prints as
 client passes its wait) and declares the status publisher. The id is
 session.alive_key's (<name or host>-<pid>); the token is vergence/<rig>/alive/<role>/<id>; the status, JSON of
 health.Health.status() plus fields(), goes out on vergence/<rig>/status/<role>/<id> every STATUS_S (run_status,
-or tick() from the service's own loop).
+or tick() from the service's own loop), and PROMPT_S after a bad message was counted (Health.news): a forged or
+broken message shows in the status at once, not up to a second later (at most 1/PROMPT_S statuses a second, whatever
+arrives).
 
 Leaving, however the block ends: the token goes first (nobody plans on us any more), then the stop is set
 and each ring woken by a local empty sample, the threads are joined, the subscribers undeclared (no callback
@@ -37,6 +39,7 @@ from services.runtime import heartbeat, session
 from services.runtime.health import Health
 
 STATUS_S = 1.0
+PROMPT_S = 0.1  # a status with a new bad count goes out this soon after the last one (not STATUS_S)
 JOIN_S = 5.0  # the longest wait for each thread at exit
 
 
@@ -58,7 +61,7 @@ class Node:
         self._wake: list[str] = []
         self._threads: list[threading.Thread] = []
         self._token = None
-        self._next_status = 0.0
+        self._next_status = self._last_status = 0.0
 
     # -- the block --------------------------------------------------------------------------------------------
 
@@ -69,7 +72,8 @@ class Node:
         except BaseException:
             self.session.close()
             raise
-        self._next_status = time.monotonic() + STATUS_S
+        self._last_status = time.monotonic()
+        self._next_status = self._last_status + STATUS_S
         return self
 
     def __exit__(self, *exc) -> None:
@@ -137,19 +141,21 @@ class Node:
 
     # -- status -----------------------------------------------------------------------------------------------
 
-    def status(self) -> None:
+    def status(self, now: float | None = None) -> None:
         """Publish the status now: health.status() with fields(); the loop that calls it turned (heartbeat)."""
         heartbeat.progress()
+        self._last_status = time.monotonic() if now is None else now
+        self._next_status = self._last_status + STATUS_S
         self._status.put(json.dumps(self.health.status(**self.fields())))
 
     def tick(self, now: float | None = None) -> None:
-        """Publish the status if one is due (for a service that runs its own loop)."""
+        """Publish the status if one is due: STATUS_S after the last, or PROMPT_S after it with a bad message counted
+        since (for a service that runs its own loop)."""
         now = time.monotonic() if now is None else now
-        if now >= self._next_status:
-            self._next_status = now + STATUS_S
-            self.status()
+        if now >= self._next_status or (self.health.news and now >= self._last_status + PROMPT_S):
+            self.status(now)
 
     def run_status(self) -> None:
-        """Publish the status every STATUS_S until the stop is set or a thread of node.thread() ends."""
-        while not self.stop.wait(STATUS_S) and all(th.is_alive() for th in self._threads):
-            self.status()
+        """Publish the status as tick() says until the stop is set or a thread of node.thread() ends."""
+        while not self.stop.wait(PROMPT_S) and all(th.is_alive() for th in self._threads):
+            self.tick()
