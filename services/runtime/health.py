@@ -37,6 +37,10 @@ class Health:
         if first and self.log is not None:
             self.log.warning("bad %s message skipped (further ones are only counted): %s", kind, err)
 
+    def flag(self) -> None:
+        """Something bad was counted elsewhere (a source's own counters): the status goes out as for reject()."""
+        self.news = True
+
     def status(self, **extra) -> dict:
         with self._lock:
             d = {"role": self.role, "id": self.ident, "pid": os.getpid(), "t_ns": time.time_ns(),

@@ -93,6 +93,7 @@ class Ros2Source(Source):
         self._raw_ids: list[str | None] = [None, None]  # the latest header.frame_id of each topic, as it came
         self.counters: dict[str, int] = {}
         self._logged: set[str] = set()
+        self.on_reject = None  # called at each bad image (the capture's status then goes out at once)
         self.cond = threading.Condition()
         self.pairer = conv.Pairer(int(self.opts["slop"] * conv.NS_PER_S))
         self.latest = None  # (t_left, left, t_right, right)
@@ -206,6 +207,8 @@ class Ros2Source(Source):
 
     def _reject(self, kind: str, why: str) -> None:
         self._count(f"bad_{kind}")
+        if self.on_reject is not None:
+            self.on_reject()
         if kind not in self._logged:
             self._logged.add(kind)
             log.warning("ros2 source: image refused (%s; further ones are only counted): %s", kind, why)
