@@ -52,8 +52,9 @@ class PanLookup:
     source that renders (the simulator) asks it at its exposure times, and the frame then carries the same
     pan. With the sim motor behind a rendering source, the pan comes from the capture's replica of that
     motor (vergence.motors.simulated.Replica) while it is trusted: exact at any instant up to now, once the
-    motor has counted the commands seen (ready). Before any motor state, the source's start pan; a source whose
-    images do not follow the motor always has its start pan."""
+    motor has counted the commands seen (ready). Before any motor state the pan is not known: the source renders
+    at its start pan and the frame is stale (it commands nothing: the motor may be anywhere, as one started at
+    [actuator.motor] start_deg is); a source whose images do not follow the motor always has its start pan."""
 
     def __init__(self, history: PanHistory, lock: threading.Condition, source, replica: Replica | None = None):
         self.history, self.lock, self.source = history, lock, source
@@ -93,8 +94,8 @@ class PanLookup:
         if t_ns not in self.seen:
             with self.lock:
                 pan = self.replica.at(t_ns) if self.replica is not None else None
-                if pan is None:
-                    pan = self.history.at(t_ns / 1e9) if len(self.history) else self.source.start_pan_rad
+                if pan is None and len(self.history):  # (before any motor state the pan is not known)
+                    pan = self.history.at(t_ns / 1e9)
                 self.seen[t_ns] = pan
         return self.seen[t_ns]
 

@@ -44,7 +44,8 @@ def test_a_frame_gets_the_slave_pan_at_its_exposure_or_none_where_the_history_ca
     h = PanHistory(max_gap_s=0.1)
     lock = threading.Lock()
     look = PanLookup(h, lock, Source())
-    assert look.frame(10**9) == (0.25, False)  # no motor state yet: the source's start pan
+    # no motor state yet: rendered at the source's start pan, and stale (the motor may be anywhere: it commands nothing)
+    assert look.frame(10**9) == (0.25, True)
     for t, p in ((1.00, 0.10), (1.02, 0.12), (1.04, 0.14)):
         h.add(t, p)
     look = PanLookup(h, lock, Source())
