@@ -13,10 +13,19 @@ to a log file, or to the parent's. CPU time and memory come from psutil. Every w
 Every Proc a process starts is in `live()` until it is stopped or found exited: a parent that is killed can end
 them all (tests/reaper.py does, for a killed test run), since a signal to the parent's process group does not
 reach their groups.
+
+`Proc(..., fork=True)` (what `vergence up` uses for its children) forks the parent instead of starting a fresh
+interpreter: a child of up then has what up loaded before it (numpy, numba and the kernels, OpenCV, zenoh's
+module, the services' code) and starts in a tenth of the CPU. The argv must be a `vergence(...)` command: the child
+runs services.ops.cli.main on it as the interpreter would, with the environment, the process group, the descriptors
+(`pass_fds` and 0-2 only), the signals and the exit of a fresh start, and shows the argv as its command line (ps,
+/proc/PID/cmdline: setproctitle). The parent must have no thread of its own (up has none; the idle pools of
+numpy's BLAS and OpenCV are rebuilt in a forked child) and no Zenoh session open.
 """
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
 import logging
@@ -25,7 +34,9 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+import traceback
 from pathlib import Path
 
 import psutil
@@ -125,21 +136,135 @@ def _die_with_parent() -> None:
         _PRCTL(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
 
 
+class _Forked:
+    """What subprocess.Popen gives of a child, for one made by os.fork: pid, poll, wait, returncode."""
+
+    def __init__(self, pid: int):
+        self.pid = pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            try:
+                pid, status = os.waitpid(self.pid, os.WNOHANG)
+            except ChildProcessError:  # reaped by someone else: its status is lost (as Popen, which says 0)
+                self.returncode = 0
+            else:
+                if pid:
+                    self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        end = None if timeout is None else time.monotonic() + timeout
+        pause = 0.001
+        while self.poll() is None:
+            if end is not None and time.monotonic() >= end:
+                raise subprocess.TimeoutExpired(f"pid {self.pid}", timeout)
+            time.sleep(pause)
+            pause = min(2 * pause, 0.02)
+        return self.returncode
+
+
+def _fork(argv: list[str], out: int | None, env: dict | None, die_with_parent: bool,
+          pass_fds: tuple[int, ...]) -> _Forked:
+    """Fork this process into `argv` (a vergence(...) command) run by services.ops.cli.main: see the module's
+    docstring."""
+    if argv[1:3] != ["-m", "services.ops.cli"]:
+        raise ValueError(f"only a vergence(...) command can be forked, not {argv[:3]}")
+    from setproctitle import setproctitle
+
+    from services.ops import cli
+    from services.runtime import session
+
+    for f in (sys.stdout, sys.stderr):  # what is buffered is the parent's to write, not the child's too
+        with contextlib.suppress(Exception):
+            f.flush()
+    parent = os.getpid()
+    pid = os.fork()
+    if pid:
+        return _Forked(pid)
+    code = 1
+    try:  # the child: it never returns from here, whatever happens (os._exit below)
+        # ps and /proc/PID/cmdline show the child's command, not the parent's (before the environment changes:
+        # setproctitle takes the room of the parent's argv and environment strings). A title shorter than the
+        # parent's argv is padded with spaces: else the kernel gives the rest of that room as empty arguments ...
+        with open("/proc/self/cmdline", "rb") as fh:
+            room = len(fh.read())
+        setproctitle(" ".join(argv).ljust(room - 1))
+        if _PRCTL:  # ... and its name (comm) what a fresh start's would be: the interpreter's file name
+            _PRCTL(15, Path(argv[0]).name.encode()[:15])  # PR_SET_NAME
+        os.setsid()
+        if die_with_parent and _PRCTL:
+            _PRCTL(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+            if os.getppid() != parent:  # the parent died before that
+                raise SystemExit(1)
+        null = os.open(os.devnull, os.O_RDWR)
+        os.dup2(null, 0)
+        if out is not None:
+            os.dup2(out, 1)
+            os.dup2(out, 2)
+        keep = {0, 1, 2, *pass_fds}
+        for fd in [int(f) for f in os.listdir("/proc/self/fd")]:  # the parent's other descriptors
+            if fd not in keep:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        # a fresh interpreter's state where the parent's differs: exit handlers, signals, environment, logging,
+        # the parent's children and stops, the argv
+        atexit._clear()
+        signal.set_wakeup_fd(-1)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2, signal.SIGCHLD):
+            signal.signal(sig, signal.SIG_DFL)
+        if env is not None:
+            os.environ.clear()
+            os.environ.update(env)
+        root = logging.getLogger()
+        for h in list(root.handlers):
+            root.removeHandler(h)
+        root.setLevel(logging.WARNING)
+        _LIVE.clear()
+        session._stops.clear()
+        sys.argv = [cli.__file__, *argv[3:]]
+        code = cli.main(argv[3:])
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else 0 if e.code is None else 1
+        if isinstance(e.code, str):
+            print(e.code, file=sys.stderr)
+    except KeyboardInterrupt:
+        code = 130
+    except BaseException:
+        traceback.print_exc()
+        code = 1
+    finally:
+        with contextlib.suppress(BaseException):
+            getattr(threading, "_shutdown", lambda: None)()  # as at an interpreter's exit: its threads end first
+            atexit._run_exitfuncs()
+            sys.stdout.flush()
+            sys.stderr.flush()
+        os._exit(code & 0xFF)
+
+
 class Proc:
     """One child process in a process group of its own; stdout and stderr into `log` (a file, truncated
     unless `append`) or, without one, the parent's. die_with_parent: SIGTERM when the parent (its thread that
-    started it) dies. pass_fds, env: as subprocess.Popen."""
+    started it) dies. pass_fds, env: as subprocess.Popen. fork: forked from this process (see the module's
+    docstring), not a fresh interpreter."""
 
     def __init__(self, name: str, argv: list[str], log: Path | None = None, env: dict | None = None, *,
-                 append: bool = False, die_with_parent: bool = False, pass_fds: tuple[int, ...] = ()):
+                 append: bool = False, die_with_parent: bool = False, pass_fds: tuple[int, ...] = (),
+                 fork: bool = False):
         self.name, self.argv, self.log = name, argv, log
         if die_with_parent:
             _prctl()
         fh = open(log, "ab" if append else "wb") if log is not None else None
         try:
-            self.p = subprocess.Popen(argv, stdout=fh, stderr=subprocess.STDOUT if fh else None,
-                                      stdin=subprocess.DEVNULL, start_new_session=True, env=env,
-                                      pass_fds=pass_fds, preexec_fn=_die_with_parent if die_with_parent else None)
+            if fork:
+                self.p = _fork(argv, fh.fileno() if fh else None, env, die_with_parent, pass_fds)
+            else:
+                self.p = subprocess.Popen(argv, stdout=fh, stderr=subprocess.STDOUT if fh else None,
+                                          stdin=subprocess.DEVNULL, start_new_session=True, env=env,
+                                          pass_fds=pass_fds,
+                                          preexec_fn=_die_with_parent if die_with_parent else None)
         finally:
             if fh is not None:
                 fh.close()  # the child has its own copy

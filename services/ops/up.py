@@ -6,6 +6,9 @@ from it and links to them directly on 127.0.0.1, so a frame crosses one link per
 no data between them (it serves the clients: `vergence monitor`, workers on other nodes). With no arguments it
 runs the simulated rig.
 
+Each child and standby is forked from up, which has loaded once what they load at their start (numpy, numba and the
+kernels, OpenCV, zenoh): services/ops/launch.py, Proc(fork=True); services/runtime/warm.py, preload.
+
 Supervised: a child that exits (the router too) is started again after a back-off ([supervise] restart_s, 0.2 s,
 doubled at each quick death up to restart_max_s, 5 s; back to restart_s once it has run 10 s), with one log line
 per restart and the counts;
@@ -153,7 +156,7 @@ def spawn(name: str, argv: list[str], sup: SuperviseSettings, env: dict | None =
     hb = Heartbeat(sup)
     try:
         p = Proc(name, argv, env=dict(os.environ if env is None else env, **hb.env), die_with_parent=True,
-                 pass_fds=pass_fds + hb.fds)
+                 pass_fds=pass_fds + hb.fds, fork=argv[:3] == vergence())  # (tests give other commands)
     except BaseException:
         hb.close()
         raise
@@ -417,6 +420,7 @@ def run(args: argparse.Namespace) -> int:
     stop = session.Stop()
     if not compile_first(stop):
         return 130 if stop.is_set() else 1
+    warm.preload(settings)  # what every child loads, once: they are forked from up with it
     children: list[Child] = []
     code = 0
     try:
