@@ -52,7 +52,7 @@ POLL_S = 0.05  # how often dead children are looked for
 STABLE_S = 10.0  # a child that ran this long gets the first back-off again ([supervise] restart_s)
 STATUS_S = 60.0  # a line with the restart counts this often
 ROUTER_START_S = 10.0  # the router has this long to listen before anything else starts
-STANDBY_DELAY_S = 5.0  # a standby is started this long after its child (not to slow the child's own start)
+STANDBY_DELAY_S = 1.0  # a standby is started this long after its child (not to slow the child's own start)
 MAX_WORKERS = 64  # --workers: more than this many on one machine is a typing error
 
 
