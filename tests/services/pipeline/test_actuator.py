@@ -6,6 +6,7 @@ through a symlink, which the test re-points to a new pty to simulate unplugging 
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import re
@@ -288,11 +289,13 @@ def test_reducer_and_actuator_bound_the_pan_by_one_motor_table(tmp_path):
 
 
 def test_a_silent_dynamixel_is_a_visible_fault_and_control_resumes_by_itself(tmp_path):
-    """Issue #29: the emulated motor answers nothing for 10 s, then comes back, under a stream of fresh commands
+    """Issue #29: the emulated motor answers nothing for 5 s, then comes back, under a stream of fresh commands
     (20 Hz). The real actuator (default settings: silent_s 0.5, absent_s 2, watchdog_s 2) reports
     "disconnected" within silent_s and "absent" absent_s later, in its state, its log and a real `vergence
     monitor`; while lost it writes nothing but pings; once the motor answers it holds where it is and the
-    commands move it again within 2 s; no goal it writes comes from a command older than the watchdog's 2 s."""
+    commands move it again within 2 s; no goal it writes comes from a command older than the watchdog's 2 s (a goal is
+    a fresh command's, or a step of max_step_deg, 10 deg, from the goal before it towards a fresh command: the sine
+    has moved on while the motor was silent)."""
     import threading
 
     emu = DynamixelEmulator(present=2048)
@@ -317,7 +320,7 @@ def test_a_silent_dynamixel_is_a_visible_fault_and_control_resumes_by_itself(tmp
             th.start()
             wait_for(lambda: len(emu.goal_writes) > 10, 10, "goals written")
             t_quiet = time.monotonic()
-            emu.silence(10.0)
+            emu.silence(5.0)
             n = len(col)
             lost = wait_state(col, lambda m: m.status == "disconnected", 5, "disconnected", P.logs, after=n)
             t_lost = time.monotonic()
@@ -336,7 +339,7 @@ def test_a_silent_dynamixel_is_a_visible_fault_and_control_resumes_by_itself(tmp
             th.join(5)
             after = [(t, v) for t, v in emu.goal_log if t > t_back]
             t_moved = after[1][0]
-            print(f"silent for 10 s: disconnected after {t_lost - t_quiet:.2f} s, absent after "
+            print(f"silent for 5 s: disconnected after {t_lost - t_quiet:.2f} s, absent after "
                   f"{t_absent - t_quiet:.2f} s, on the monitor after {t_monitor - t_quiet:.2f} s; back: ok after "
                   f"{t_ok - t_back:.2f} s, a command executed after {t_moved - t_back:.2f} s")
             assert "no answer for" in lost.note and absent.ignored > 0
@@ -347,11 +350,13 @@ def test_a_silent_dynamixel_is_a_visible_fault_and_control_resumes_by_itself(tmp
             # back: the first goal is the hold at its present position, then only fresh commands
             hold = after[0][1]
             assert hold == emu.goal_log[len(emu.goal_log) - len(after) - 1][1]  # where it was when it went silent
-            for t, v in after[1:]:
+            step = 4096 * 10.0 / 360  # [actuator.motor] max_step_deg in ticks
+            for (_, before), (t, v) in itertools.pairwise(after):
+                fresh = [tv for ts, tv in sent if t - 2.0 < ts <= t]
                 src = [ts for ts, tv in sent if tv == v and ts <= t]
-                assert src and t - src[-1] < 2.0, (t, v)
-            assert re.search(r"motor reconnected \(1\) after 9\.\d s absent", act.text()) or \
-                re.search(r"motor reconnected \(1\) after 1\d\.\d s absent", act.text()), act.text()
+                clamped = abs(abs(v - before) - step) <= 1 and any((tv - v) * (v - before) > 0 for tv in fresh)
+                assert (src and t - src[-1] < 2.0) or clamped, (t, v, before)
+            assert re.search(r"motor reconnected \(1\) after [45]\.\d s absent", act.text()), act.text()
             act.signal(signal.SIGINT)
             assert act.wait(10) == 0
             mon.signal(signal.SIGINT)
