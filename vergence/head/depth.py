@@ -147,7 +147,8 @@ def decision_fields(frame, decision, scores: np.ndarray, baseline_m: float, gimb
                     master: str = "left") -> dict:
     """The fields the reducer adds to a decision's Decision and Profile: the fovea centre x, y it was decided
     for, converged, depth_m and depth_sigma_m. frame: a messages.Frame; decision: its vergence.network.decide.Decision;
-    scores: its layer-4 scores (rows x K, row v + R the winning one)."""
+    scores: its layer-4 scores (rows x K, row v + R the winning one). A frame whose slave pan is not known
+    (pan_stale: before the motor's first state, or older than its history) has no depth."""
     y2 = np.atleast_2d(scores)
     row = y2[decision.v + (y2.shape[0] - 1) // 2]
     dep = fixated_depth(x=frame.x, y=frame.y, width=frame.width, height=frame.height, focal_px=frame.focal_px,
@@ -156,6 +157,8 @@ def decision_fields(frame, decision, scores: np.ndarray, baseline_m: float, gimb
                         baseline_m=baseline_m, master_pan_rad=frame.master_pan_rad, tilt_rad=frame.tilt_rad,
                         gimbal=gimbal, master=master, principal=frame.principal,
                         slave_principal=frame.slave_principal)
+    if getattr(frame, "pan_stale", False):  # the slave's pan at the exposure is not known: neither is the depth
+        return dict(x=frame.x, y=frame.y, converged=dep.converged, depth_m=math.nan, depth_sigma_m=math.nan)
     return dict(x=frame.x, y=frame.y, converged=dep.converged, depth_m=dep.depth_m,
                 depth_sigma_m=dep.depth_sigma_m)
 

@@ -100,6 +100,25 @@ def test_no_depth_unless_confident_and_converged():
     assert r.converged and math.isnan(r.depth_m)
 
 
+def test_a_frame_whose_pan_is_not_known_gives_no_depth():
+    """The reducer's fields of a decision: the depth of a converged frame from its slave pan; none (nan) for a frame
+    whose pan at the exposure is not known (pan_stale: read before the motor's first state), converged or not."""
+    from types import SimpleNamespace
+
+    scores = np.zeros((1, 21))
+    scores[0, 10] = 1.0
+    frame = SimpleNamespace(x=320, y=240, width=640, height=480, focal_px=500.0, pan_rad=-0.05, window=15,
+                            master_pan_rad=0.0, tilt_rad=0.0, principal=(320, 240), slave_principal=(320, 240),
+                            pan_stale=False)
+    d = SimpleNamespace(v=0, k=10, offset_px=0.3, confident=True)
+    ok = depth.decision_fields(frame, d, scores, 0.06)
+    assert ok["converged"] and ok["depth_m"] == pytest.approx(-0.06 / math.tan(-0.05 + math.atan(0.3 / 500)),
+                                                               rel=1e-9)
+    frame.pan_stale = True
+    stale = depth.decision_fields(frame, d, scores, 0.06)
+    assert stale["converged"] and math.isnan(stale["depth_m"]) and math.isnan(stale["depth_sigma_m"])
+
+
 def test_disparity_sigma_follows_the_peak():
     w = 15
     k = 20
