@@ -176,6 +176,7 @@ def _fork(argv: list[str], out: int | None, env: dict | None, die_with_parent: b
     from services.ops import cli
     from services.runtime import session
 
+    _prctl()  # resolved here, not between fork and the child's first call
     for f in (sys.stdout, sys.stderr):  # what is buffered is the parent's to write, not the child's too
         with contextlib.suppress(Exception):
             f.flush()

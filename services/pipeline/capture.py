@@ -418,8 +418,7 @@ def main(settings, conf: zenoh.Config, stop: session.Stop, *, frames: int = 0,
         source.close()
         return 2
     capture = Capture(settings, source, focal, (x, y), conf, stop, principal, lenses)
-    if hasattr(source, "on_reject"):  # a source that counts bad images of its own (ros2): shown as promptly as ours
-        source.on_reject = capture.node.health.flag
+    source.on_reject = capture.node.health.flag  # a source's own bad images (ros2) shown as promptly as ours
     with contextlib.closing(source), capture.node:
         capture.open()
         return capture.run(frames)

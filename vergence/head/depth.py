@@ -157,7 +157,7 @@ def decision_fields(frame, decision, scores: np.ndarray, baseline_m: float, gimb
                         baseline_m=baseline_m, master_pan_rad=frame.master_pan_rad, tilt_rad=frame.tilt_rad,
                         gimbal=gimbal, master=master, principal=frame.principal,
                         slave_principal=frame.slave_principal)
-    if getattr(frame, "pan_stale", False):  # the slave's pan at the exposure is not known: neither is the depth
+    if frame.pan_stale:  # the slave's pan at the exposure is not known: neither is the depth
         return dict(x=frame.x, y=frame.y, converged=dep.converged, depth_m=math.nan, depth_sigma_m=math.nan)
     return dict(x=frame.x, y=frame.y, converged=dep.converged, depth_m=dep.depth_m,
                 depth_sigma_m=dep.depth_sigma_m)

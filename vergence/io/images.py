@@ -40,6 +40,7 @@ class Source(abc.ABC):
     truth_pan_rad: float | None = None
     follows_pan: bool = True
     renders: bool = False  # the slave image is rendered at the pan it is asked for (the simulator)
+    on_reject = None  # a source that refuses images of its own (ros2) calls it at each: the capture's status goes out
     rows: tuple[int, int] | None = None  # the rows the capture reads of the next pair (None: all); a source that
     # renders may leave the others black (the simulator: a band is a tenth of the cost of a view)
     exposure_ns: tuple[int, int] | None = None

@@ -93,7 +93,6 @@ class Ros2Source(Source):
         self._raw_ids: list[str | None] = [None, None]  # the latest header.frame_id of each topic, as it came
         self.counters: dict[str, int] = {}
         self._logged: set[str] = set()
-        self.on_reject = None  # called at each bad image (the capture's status then goes out at once)
         self.cond = threading.Condition()
         self.pairer = conv.Pairer(int(self.opts["slop"] * conv.NS_PER_S))
         self.latest = None  # (t_left, left, t_right, right)
