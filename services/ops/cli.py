@@ -58,24 +58,24 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    # first: a child of `vergence up` beats while it imports and compiles (services/runtime/heartbeat.py)
-    heartbeat.start()
-    argv = sys.argv[1:] if argv is None else argv
-    name = next((a for a in argv if not a.startswith("-")), None)
-    if "--version" in argv[:argv.index(name) if name is not None else len(argv)]:
-        print(f"vergence {version()}")
-        return 0
-    if name not in COMMANDS:
-        build_parser().print_help()
-        return 0 if name is None and any(a in ("-h", "--help") for a in argv) else 2
-    try:
+    try:  # Ctrl-C, or `vergence up` stopping a child still starting (from its first beat on): 130, no traceback
+        # first: a child of `vergence up` beats while it imports and compiles (services/runtime/heartbeat.py)
+        heartbeat.start()
+        argv = sys.argv[1:] if argv is None else argv
+        name = next((a for a in argv if not a.startswith("-")), None)
+        if "--version" in argv[:argv.index(name) if name is not None else len(argv)]:
+            print(f"vergence {version()}")
+            return 0
+        if name not in COMMANDS:
+            build_parser().print_help()
+            return 0 if name is None and any(a in ("-h", "--help") for a in argv) else 2
         args = build_parser(name).parse_args(argv)
         mod = importlib.import_module(COMMANDS[name][0])
-    except KeyboardInterrupt:  # Ctrl-C, or `vergence up` stopping a child still importing: no traceback
+    except KeyboardInterrupt:
         return 130
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
     try:
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
         code = int(mod.run(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's own flush at exit
         return code
