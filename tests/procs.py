@@ -26,6 +26,7 @@ import time
 import uuid
 from pathlib import Path
 
+import zygote
 from vergence.wire import keys
 from services.ops.launch import Proc, free_port, wait_for, wait_listening
 
@@ -74,6 +75,17 @@ def tmux(*args: str, check: bool = True) -> str:
     return r.stdout
 
 
+class _Forked(Proc):
+    """A Proc forked by the tests' zygote (tests/zygote.py): a `vergence ...` command that starts in a fraction of a
+    fresh interpreter's time; it dies with the zygote, which dies with pytest."""
+
+    def __init__(self, name: str, argv: list[str], log: Path, env: dict, z: "zygote.Zygote"):
+        self.name, self.argv, self.log = name, argv, log
+        log.write_bytes(b"")
+        self.p = z.spawn(argv, log, env, append=True)
+        self._started()
+
+
 class Procs:
     """A set of processes for one test around one router; a context manager that tears everything down."""
 
@@ -93,8 +105,13 @@ class Procs:
         signal would come when that thread ends)."""
         e = dict(os.environ if env is None else env)
         e.setdefault("PYTHONUNBUFFERED", "1")
-        p = Proc(name, argv, self.dir / f"{name}.log", e,
-                 die_with_parent=threading.current_thread() is threading.main_thread())
+        cli = [sys.executable, "-m", "services.ops.cli", *argv[1:]] if argv[:1] == [VERGENCE] else argv
+        z = zygote.get() if env is None else None  # (see tests/zygote.py for what it does not fork)
+        if z is not None and z.fits(cli, e):
+            p = _Forked(name, cli, self.dir / f"{name}.log", e, z)
+        else:
+            p = Proc(name, argv, self.dir / f"{name}.log", e,
+                     die_with_parent=threading.current_thread() is threading.main_thread())
         self.procs.append(p)
         return p
 

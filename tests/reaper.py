@@ -49,6 +49,9 @@ def _targets() -> tuple[list[launch.Proc], list[psutil.Process]]:
         tree = psutil.Process().children(recursive=True)
     except psutil.Error:
         tree = []
+    zygote = sys.modules.get("zygote")  # the tests' zygote (tests/zygote.py) is the run's, not a test's: its
+    if zygote is not None:  # children are reaped, it stays to tell their exit codes; it dies with pytest
+        tree = [ps for ps in tree if ps.pid not in zygote.pids()]
     return procs, tree
 
 
@@ -155,6 +158,9 @@ def pytest_runtest_setup(item) -> None:
 
 
 def pytest_unconfigure(config) -> None:
+    zygote = sys.modules.get("zygote")  # the tests' zygote (tests/zygote.py) is no test's leftover
+    if zygote is not None:
+        zygote.close()
     found = reap("the session's end: left running by a test")
     for sig, h in _previous.items():
         with contextlib.suppress(Exception):

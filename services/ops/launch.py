@@ -269,6 +269,10 @@ class Proc:
         finally:
             if fh is not None:
                 fh.close()  # the child has its own copy
+        self._started()
+
+    def _started(self) -> None:
+        """Known to live() from now on (self.p is its Popen-like)."""
         self.pid = self.p.pid
         self._ps: psutil.Process | None = None
         for old in [q for q in list(_LIVE) if q.returncode is not None]:  # exited and reaped: nothing to end
