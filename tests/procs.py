@@ -35,10 +35,28 @@ VERGENCE = str(Path(sys.executable).with_name("vergence"))  # the installed comm
 __all__ = ["free_port", "Proc", "Procs", "wait_for", "VERGENCE", "run", "gives_up_without_a_router"]
 
 
-def run(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
-    """`vergence ARGS...` run to its end (at most timeout s), its stdout and stderr captured as text."""
-    return subprocess.run([sys.executable, "-m", "services.ops.cli", *args], capture_output=True, text=True,
-                          timeout=timeout)
+def run(*args: str, timeout: float = 60, fresh: bool = False) -> subprocess.CompletedProcess:
+    """`vergence ARGS...` run to its end (at most timeout s: subprocess.TimeoutExpired, the command killed), its
+    stdout and stderr captured as text. Forked by the tests' zygote (tests/zygote.py) unless `fresh` (a new
+    interpreter: what the user's shell starts) or the zygote would not fork it."""
+    argv = [sys.executable, "-m", "services.ops.cli", *args]
+    z = None if fresh else zygote.get()
+    if z is None or not z.fits(argv, dict(os.environ, PYTHONUNBUFFERED="1")):
+        return subprocess.run(argv, capture_output=True, text=True, timeout=timeout)
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="vergence-run-") as d:
+        out, err = Path(d) / "out", Path(d) / "err"
+        child = z.spawn(argv, out, dict(os.environ, PYTHONUNBUFFERED="1"), err=err)
+        try:
+            code = child.wait(timeout)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(child.pid, 9)
+            child.wait(10)
+            raise subprocess.TimeoutExpired(argv, timeout, out.read_bytes(), err.read_bytes()) from None
+        return subprocess.CompletedProcess(argv, code, out.read_text(errors="replace"),
+                                           err.read_text(errors="replace"))
 
 
 def gives_up_without_a_router(*args: str, within: float, margin: float = 8.0) -> subprocess.CompletedProcess:

@@ -15,7 +15,8 @@ interpreter reads it only at its start (PYTHON*, LD_*, NUMBA_*), one started off
 not `vergence ...`. Tests of what a user types (tests/services/ops/test_cli.py) run the command fresh.
 
 The protocol, on the zygote's stdin and stdout, one JSON object a line each way:
-    {"op": "spawn", "argv": [...], "log": PATH, "append": bool, "env": {...}, "cwd": DIR} -> {"pid": N}
+    {"op": "spawn", "argv": [...], "log": PATH, "append": bool, "env": {...}, "cwd": DIR, "err": PATH or null}
+        -> {"pid": N} or {"error": TEXT}
     {"op": "poll", "pid": N} -> {"rc": CODE or null}
     EOF -> the zygote exits (its children get SIGTERM).
 """
@@ -88,9 +89,10 @@ class Zygote:
         """Whether argv with env can be forked: a vergence(...) command with the zygote's start-only environment."""
         return argv[1:3] == ["-m", "services.ops.cli"] and _fresh_only(env) == self.env
 
-    def spawn(self, argv: list[str], log: Path, env: dict, append: bool = False) -> _Child:
+    def spawn(self, argv: list[str], log: Path, env: dict, append: bool = False, err: Path | None = None) -> _Child:
+        """argv forked, its stdout and stderr into log (stderr into err if given)."""
         r = self.call({"op": "spawn", "argv": argv, "log": str(log), "append": append, "env": env,
-                       "cwd": os.getcwd()})
+                       "cwd": os.getcwd(), "err": None if err is None else str(err)})
         if "error" in r:
             raise RuntimeError(f"the tests' zygote could not start {argv}: {r['error']}")
         return _Child(self, r["pid"])
@@ -143,12 +145,13 @@ def serve() -> int:
         if msg["op"] == "spawn":
             try:
                 os.chdir(msg["cwd"])
-                fd = os.open(msg["log"], os.O_WRONLY | os.O_CREAT | (os.O_APPEND if msg["append"] else os.O_TRUNC),
-                             0o644)
+                mode = os.O_WRONLY | os.O_CREAT | (os.O_APPEND if msg["append"] else os.O_TRUNC)
+                fds = [os.open(path, mode, 0o644) for path in (msg["log"], msg.get("err")) if path]
                 try:
-                    child = launch._fork(msg["argv"], fd, msg["env"], True, ())
+                    child = launch._fork(msg["argv"], fds[0], msg["env"], True, (), *fds[1:])
                 finally:
-                    os.close(fd)
+                    for fd in fds:
+                        os.close(fd)
             except Exception as e:  # noqa: BLE001  (said to the test, which raises it)
                 answer = {"error": repr(e)}
             else:

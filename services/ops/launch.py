@@ -166,9 +166,9 @@ class _Forked:
 
 
 def _fork(argv: list[str], out: int | None, env: dict | None, die_with_parent: bool,
-          pass_fds: tuple[int, ...]) -> _Forked:
+          pass_fds: tuple[int, ...], err: int | None = None) -> _Forked:
     """Fork this process into `argv` (a vergence(...) command) run by services.ops.cli.main: see the module's
-    docstring."""
+    docstring. Its stdout and stderr go to `out` (stderr to `err` if given), else to this process's."""
     if argv[1:3] != ["-m", "services.ops.cli"]:
         raise ValueError(f"only a vergence(...) command can be forked, not {argv[:3]}")
     from setproctitle import setproctitle
@@ -203,7 +203,7 @@ def _fork(argv: list[str], out: int | None, env: dict | None, die_with_parent: b
         os.dup2(null, 0)
         if out is not None:
             os.dup2(out, 1)
-            os.dup2(out, 2)
+            os.dup2(out if err is None else err, 2)
         keep = {0, 1, 2, *pass_fds}
         for fd in [int(f) for f in os.listdir("/proc/self/fd")]:  # the parent's other descriptors
             if fd not in keep:

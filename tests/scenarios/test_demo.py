@@ -7,12 +7,11 @@ from __future__ import annotations
 import math
 import re
 import shutil
-import subprocess
 import time
 
 import pytest
 
-from procs import VERGENCE, Procs, free_port, tmux, wait_for
+from procs import VERGENCE, Procs, free_port, run, tmux, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -53,8 +52,7 @@ def test_up_with_no_options_follows_a_target_moving_in_depth(tmp_path):
             assert -7.5 < truth_before < -2.5, first  # the target, between 0.5 and 1.1 m: -6.8..-3.1 deg
 
             # the fovea to the background left of the target (3 m away): the truth goes with it, and the slave
-            r = subprocess.run([VERGENCE, "fixate", "40,240", "--connect", endpoint, "--wait", "10"],
-                               capture_output=True, text=True, timeout=30)
+            r = run("fixate", "40,240", "--connect", endpoint, "--wait", "10", timeout=30)
             assert r.returncode == 0, r.stderr
             u = (40 - 320) / 512
             there = math.degrees(math.atan2(3 * u - 0.06, 3) - math.atan(u))  # -0.875 deg

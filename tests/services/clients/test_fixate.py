@@ -6,14 +6,13 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
 import time
 
 import msgpack
 import numpy as np
 import pytest
 
-from procs import VERGENCE, Procs, free_port, gives_up_without_a_router, wait_for
+from procs import Procs, free_port, gives_up_without_a_router, run, wait_for
 from services.pipeline.fovea import Fovea
 from services.clients.fixate import refusal
 from services.runtime.health import Health
@@ -74,7 +73,7 @@ def test_the_command_reads_only_its_own_refusal():
 @pytest.mark.slow
 def test_fixate_command_checks_its_point():
     for arg, says in (("12", "want X,Y"), ("nan,3", "finite"), ("a,b", "want X,Y")):
-        r = subprocess.run([VERGENCE, "fixate", arg], capture_output=True, text=True, timeout=60)
+        r = run("fixate", arg, timeout=60)
         assert r.returncode == 2 and says in r.stderr
 
 
@@ -164,8 +163,7 @@ def test_fixate_through_vergence_up(tmp_path):
         assert "fixate request rejected, the fovea stays at (440, 240)" in (tmp_path / "up.log").read_text()
 
         # `vergence fixate` as a user runs it: it waits for the first decision at its point and says so
-        r = subprocess.run([VERGENCE, "fixate", "320,400", "--connect", endpoint, "--rig", P.rig, "--wait", "10"],
-                           capture_output=True, text=True, timeout=60)
+        r = run("fixate", "320,400", "--connect", endpoint, "--rig", P.rig, "--wait", "10", timeout=60)
         assert r.returncode == 0, r.stderr
         assert " at (320, 400): offset " in r.stdout and "ms after the request" in r.stdout
         truth, d = truth_at(rig, 320, 400)
@@ -181,8 +179,7 @@ def test_fixate_through_vergence_up(tmp_path):
 
         # a point where the fovea does not fit: the command says the capture refused it, and why, at once
         t = time.monotonic()
-        r = subprocess.run([VERGENCE, "fixate", "9999,150", "--connect", endpoint, "--rig", P.rig, "--wait", "20"],
-                           capture_output=True, text=True, timeout=60)
+        r = run("fixate", "9999,150", "--connect", endpoint, "--rig", P.rig, "--wait", "20", timeout=60)
         assert r.returncode == 2, (r.stdout, r.stderr)
         assert "the capture refused (9999, 150): " in r.stderr and "the fovea stays" in r.stderr
         assert time.monotonic() - t < 15  # the next status (1 s), not the 20 s wait
@@ -192,11 +189,9 @@ def test_fixate_through_vergence_up(tmp_path):
 def test_fixate_without_a_capture_says_so(tmp_path):
     with Procs(tmp_path) as P:
         P.router()
-        r = subprocess.run([VERGENCE, "fixate", "100,100", "--connect", P.endpoint, "--rig", P.rig, "--wait", "1"],
-                           capture_output=True, text=True, timeout=60)
+        r = run("fixate", "100,100", "--connect", P.endpoint, "--rig", P.rig, "--wait", "1", timeout=60)
         assert r.returncode == 1 and "no decision at (100, 100) within 1 s" in r.stderr
-        r = subprocess.run([VERGENCE, "fixate", "100,100", "--connect", P.endpoint, "--rig", P.rig, "--wait", "0"],
-                           capture_output=True, text=True, timeout=60)
+        r = run("fixate", "100,100", "--connect", P.endpoint, "--rig", P.rig, "--wait", "0", timeout=60)
         assert r.returncode == 0 and f"sent on vergence/{P.rig}/fixate" in r.stdout
 
 

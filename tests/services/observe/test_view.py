@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from procs import VERGENCE, Procs, free_port, gives_up_without_a_router, wait_for
+from procs import VERGENCE, Procs, free_port, gives_up_without_a_router, run, wait_for
 from vergence.wire import messages as M
 from vergence.io.recording import Writer
 
@@ -153,8 +153,7 @@ def test_sim_save_logs_the_views_the_network_saw(tmp_path):
     from vergence import Params, match
 
     rrd = tmp_path / "sim.rrd"
-    out = subprocess.run([VERGENCE, "sim", "--frames", "4", "--save", str(rrd), "--json"], capture_output=True,
-                         text=True, timeout=300)
+    out = run("sim", "--frames", "4", "--save", str(rrd), "--json", timeout=300)
     assert out.returncode == 0, out.stderr
     import json
 
@@ -214,8 +213,7 @@ def test_replay_view_turns_a_recording_into_the_cockpit(tmp_path):
     rec = tmp_path / "run.vrec"
     verdicts = _recording(rec)
     rrd = tmp_path / "replay.rrd"
-    out = subprocess.run([VERGENCE, "replay", str(rec), "--view", str(rrd)], capture_output=True, text=True,
-                         timeout=120)
+    out = run("replay", str(rec), "--view", str(rrd), timeout=120)
     assert out.returncode == 0, out.stderr
     assert "'decision': 3" in out.stderr and "bad {'decision': 1}" in out.stderr
     e = read_rrd(rrd)
@@ -234,8 +232,7 @@ def test_replay_view_turns_a_recording_into_the_cockpit(tmp_path):
 def test_replay_view_rejects_a_bad_target(tmp_path):
     rec = tmp_path / "run.vrec"
     _recording(rec)
-    out = subprocess.run([VERGENCE, "replay", str(rec), "--view", "out.png"], capture_output=True, text=True,
-                         timeout=60)
+    out = run("replay", str(rec), "--view", "out.png", timeout=60)
     assert out.returncode == 2 and "--view wants FILE.rrd, web[:PORT] or spawn" in out.stderr
 
 
@@ -573,9 +570,8 @@ def test_web_viewer_shows_the_cockpit_in_headless_chromium(tmp_path):
 def test_view_without_a_router_gives_up_at_its_timeout(tmp_path):
     """A client keeps trying to reach its router; the view still stops (its --timeout here, Ctrl-C the same
     way), saying why, with nothing left behind."""
-    out = subprocess.run([VERGENCE, "view", "--save", str(tmp_path / "x.rrd"), "--connect",
-                          f"tcp/127.0.0.1:{free_port()}", "--timeout", "2"], capture_output=True, text=True,
-                         timeout=60)
+    out = run("view", "--save", str(tmp_path / "x.rrd"), "--connect", f"tcp/127.0.0.1:{free_port()}", "--timeout", "2",
+              timeout=60)
     assert out.returncode == 1
     assert "vergence view: no Zenoh router or peer answered at tcp/127.0.0.1:" in out.stderr
     assert "Traceback" not in out.stderr

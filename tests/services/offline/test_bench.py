@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from procs import run
 import background
 import sweeps
 from services.offline.bench_pipeline import executed_lags, summary
@@ -19,7 +20,7 @@ CLI = [sys.executable, "-m", "services.ops.cli", "bench"]
 
 
 def _rows(*args: str, timeout: float) -> list[dict]:
-    r = subprocess.run(CLI + list(args), capture_output=True, text=True, timeout=timeout)
+    r = run("bench", *args, timeout=timeout)
     assert r.returncode == 0, r.stderr[-2000:]
     return [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
 
@@ -146,5 +147,5 @@ def test_bench_faults_runs_from_the_cli_and_refuses_bad_lists():
     rows = [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
     assert [(r["lie"], r["scene"]) for r in rows][:3] == [("-", "moving"), ("freeze", "moving"), ("slip", "moving")]
     assert len(rows) == 13 and all(r["false_fault_frames"] == 0 for r in rows)
-    r = subprocess.run(CLI + ["faults", "--rates", "fast"], capture_output=True, text=True, timeout=60)
+    r = run("bench", "faults", "--rates", "fast", timeout=60)
     assert r.returncode == 2 and "comma-separated numbers" in r.stderr

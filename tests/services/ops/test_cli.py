@@ -10,19 +10,18 @@ from importlib import metadata
 import pytest
 
 from procs import run
-
 pytestmark = pytest.mark.slow  # every test here runs the real command
 
 
 def test_version_prints_the_installed_version_and_exits_0():
-    r = run("--version", timeout=60)
+    r = run("--version", timeout=60, fresh=True)
     assert (r.returncode, r.stdout, r.stderr) == (0, f"vergence {metadata.version('vergence')}\n", "")
 
 
 def test_no_command_prints_the_help_and_exits_2_and_help_exits_0():
-    r = run(timeout=60)
+    r = run(timeout=60, fresh=True)
     assert r.returncode == 2 and r.stdout.startswith("usage: vergence") and "--version" in r.stdout
-    r = run("-h", timeout=60)
+    r = run("-h", timeout=60, fresh=True)
     assert r.returncode == 0 and r.stdout.startswith("usage: vergence") and "COMMAND" in r.stdout
 
 

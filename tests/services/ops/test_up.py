@@ -14,7 +14,7 @@ import time
 
 import pytest
 
-from procs import Procs, wait_for
+from procs import Procs, run, wait_for
 
 pytestmark = pytest.mark.slow  # every test here runs real processes
 
@@ -22,12 +22,10 @@ pytestmark = pytest.mark.slow  # every test here runs real processes
 def test_busy_port_is_refused_with_a_hint(tmp_path):
     with Procs(tmp_path) as P:
         P.router()
-        up = subprocess.run([sys.executable, "-m", "services.ops.cli", "up", "--listen", P.endpoint],
-                            capture_output=True, text=True, timeout=30)
+        up = run("up", "--listen", P.endpoint, timeout=30)
         assert up.returncode == 2 and f"{P.endpoint} is already in use" in up.stderr
         assert "started" not in up.stderr  # no child was started
-        router = subprocess.run([sys.executable, "-m", "services.ops.cli", "router", "--listen", P.endpoint],
-                                capture_output=True, text=True, timeout=30)
+        router = run("router", "--listen", P.endpoint, timeout=30)
         assert router.returncode == 2
         assert router.stderr.startswith("vergence router: cannot start on")
         assert "Address already in use" in router.stderr

@@ -11,7 +11,6 @@ import json
 import math
 import re
 import signal
-import subprocess
 import time
 
 import pytest
@@ -19,7 +18,7 @@ import zenoh
 from emulators.dynamixel import DynamixelEmulator
 from emulators.line import LineEmulator
 from emulators.pty import PtyDevice
-from procs import VERGENCE, Procs, wait_for
+from procs import Procs, run, wait_for
 
 from vergence.wire.messages import Command, MotorState
 from vergence.motors.dynamixel import Inst, instruction_packet
@@ -83,8 +82,8 @@ def test_sim_actuator(tmp_path):
 
 
 def test_missing_port_exits_with_hint():
-    r = subprocess.run([VERGENCE, "actuator", "--driver", "dynamixel", "--port", "/dev/ttyUSB_NOPE9",
-                        "--connect", "tcp/127.0.0.1:9"], capture_output=True, text=True, timeout=20)
+    r = run("actuator", "--driver", "dynamixel", "--port", "/dev/ttyUSB_NOPE9", "--connect", "tcp/127.0.0.1:9",
+            timeout=20)
     assert r.returncode == 2
     assert "/dev/ttyUSB_NOPE9" in r.stderr and "python -m serial.tools.list_ports" in r.stderr
 
@@ -366,8 +365,7 @@ def test_a_silent_dynamixel_is_a_visible_fault_and_control_resumes_by_itself(tmp
 
 
 def test_a_port_given_to_the_sim_driver_is_refused_not_ignored():
-    r = subprocess.run([VERGENCE, "actuator", "--port", "/dev/ttyUSB9", "--connect", "tcp/127.0.0.1:9"],
-                       capture_output=True, text=True, timeout=20)
+    r = run("actuator", "--port", "/dev/ttyUSB9", "--connect", "tcp/127.0.0.1:9", timeout=20)
     assert r.returncode == 2
     assert r.stderr.strip() == ("vergence actuator: --port applies to a real driver (dynamixel, line, ros2); the sim "
                                 "driver has no port")

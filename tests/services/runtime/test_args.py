@@ -5,12 +5,11 @@ Every numeric option of every command has such a type."""
 from __future__ import annotations
 
 import argparse
-import subprocess
-import sys
 import time
 
 import pytest
 
+from procs import run
 from services.ops import cli
 from services.runtime.args import PORT, master_point, number, pixel, positive, whole
 
@@ -108,8 +107,7 @@ def test_a_number_out_of_range_exits_2_naming_the_option_and_the_range(argv, say
 @pytest.mark.slow
 def test_capture_with_a_negative_rate_is_refused_at_once_by_the_real_command():
     t0 = time.monotonic()
-    r = subprocess.run([sys.executable, "-m", "services.ops.cli", "capture", "--rate", "-5", "--connect",
-                        "tcp/127.0.0.1:9"], capture_output=True, text=True, timeout=30)
+    r = run("capture", "--rate", "-5", "--connect", "tcp/127.0.0.1:9", timeout=30)
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().splitlines()[-1] == ("vergence capture: error: argument --rate: must be from 0 to 1000 "
                                                  "(0: as fast as possible), got '-5'")

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from procs import VERGENCE, free_port, wait_for
+from procs import VERGENCE, free_port, run, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -40,8 +40,7 @@ def test_waiting_for_a_router_stops_on_a_signal(tmp_path, argv, sig):
 
 def test_monitor_once_gives_up_at_its_timeout(tmp_path):
     t0 = time.monotonic()
-    r = subprocess.run([VERGENCE, "monitor", "--once", "--timeout", "2", "--connect",
-                        f"tcp/127.0.0.1:{free_port()}"], capture_output=True, text=True, timeout=60)
+    r = run("monitor", "--once", "--timeout", "2", "--connect", f"tcp/127.0.0.1:{free_port()}", timeout=60)
     assert r.returncode == 1 and time.monotonic() - t0 < 20
     assert r.stderr.strip().splitlines()[-1].startswith("vergence monitor: no Zenoh router or peer answered at "
                                                         "tcp/127.0.0.1:")
