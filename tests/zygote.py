@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import os
+import select
 import subprocess
 import sys
 import threading
@@ -77,12 +78,17 @@ class Zygote:
         self.call({"op": "poll", "pid": 0}, timeout=120)  # it answers once it has loaded everything
 
     def call(self, msg: dict, timeout: float = 30) -> dict:
+        """One request, its answer (RuntimeError if none comes within timeout s: the zygote is then killed)."""
         with self.lock:
             self.p.stdin.write(json.dumps(msg) + "\n")
             self.p.stdin.flush()
-            line = self.p.stdout.readline()  # (the zygote answers each line at once; it dies with pytest)
+            # one line answers each request, so nothing is ever left in the reader's buffer to wait on
+            line = self.p.stdout.readline() if select.select([self.p.stdout], [], [], timeout)[0] else None
         if not line:
-            raise RuntimeError(f"the tests' zygote (pid {self.p.pid}) is gone: exit {self.p.poll()}")
+            if line is None:
+                self.p.kill()
+            raise RuntimeError(f"the tests' zygote (pid {self.p.pid}) is gone or hung: "
+                               f"{'no answer within %g s' % timeout if line is None else 'exit %s' % self.p.poll()}")
         return json.loads(line)
 
     def fits(self, argv: list[str], env: dict) -> bool:
@@ -111,8 +117,8 @@ _ZYGOTE: list[Zygote] = []
 
 
 def get() -> Zygote | None:
-    """The run's zygote (started on first use), or None off pytest's main thread (it would die with that
-    thread: PR_SET_PDEATHSIG) or if it cannot start."""
+    """The run's zygote (started on first use, again if it died), or None off pytest's main thread (it would die
+    with that thread: PR_SET_PDEATHSIG)."""
     if threading.current_thread() is not threading.main_thread():
         return None
     if not _ZYGOTE or _ZYGOTE[0].p.poll() is not None:
