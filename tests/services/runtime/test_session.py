@@ -5,12 +5,11 @@ worker, record and the other services ignored SIGTERM until killed)."""
 from __future__ import annotations
 
 import signal
-import subprocess
 import time
 
 import pytest
 
-from procs import VERGENCE, free_port, run, wait_for
+from procs import VERGENCE, Procs, free_port, run, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -21,21 +20,14 @@ pytestmark = pytest.mark.slow
                                   ["monitor", "--wait", "60"]],
                          ids=["worker", "reducer", "record", "monitor"])
 def test_waiting_for_a_router_stops_on_a_signal(tmp_path, argv, sig):
-    log = tmp_path / "err.log"
     argv = [a.format(tmp=tmp_path) for a in argv]
-    with open(log, "wb") as fh:
-        p = subprocess.Popen([VERGENCE, *argv, "--connect", f"tcp/127.0.0.1:{free_port()}"], stdout=fh, stderr=fh)
-        try:
-            wait_for(lambda: b"still trying (Ctrl-C stops)" in log.read_bytes(), 60, "the waiting line",
-                     logs=log.read_text)
-            t0 = time.monotonic()
-            p.send_signal(sig)
-            assert p.wait(10) == 0
-            assert time.monotonic() - t0 < 2
-        finally:
-            if p.poll() is None:
-                p.kill()
-                p.wait(10)
+    with Procs(tmp_path) as P:
+        p = P.spawn("client", [VERGENCE, *argv, "--connect", f"tcp/127.0.0.1:{free_port()}"])
+        wait_for(lambda: "still trying (Ctrl-C stops)" in p.text(), 60, "the waiting line", logs=p.tail)
+        t0 = time.monotonic()
+        p.signal(sig)
+        assert p.wait(10) == 0
+        assert time.monotonic() - t0 < 2
 
 
 def test_monitor_once_gives_up_at_its_timeout(tmp_path):
