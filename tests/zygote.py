@@ -29,8 +29,12 @@ import select
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
+
+if __name__ == "__main__":  # the zygote itself: the path `python -m services.ops.cli` has, not tests/ (whose
+    sys.path[0] = os.getcwd()  # folder services/ would be a namespace package of that name)
+
+from services.ops.launch import _Forked  # noqa: E402
 
 FRESH_ONLY = ("PYTHON", "LD_", "NUMBA_")  # read by an interpreter at its start only
 
@@ -39,26 +43,17 @@ def _fresh_only(env: dict) -> dict:
     return {k: v for k, v in env.items() if k.startswith(FRESH_ONLY)}
 
 
-class _Child:
-    """What subprocess.Popen gives of a child, for one the zygote forked: pid, poll, wait, returncode."""
+class _Child(_Forked):
+    """What subprocess.Popen gives of a child, for one the zygote forked: pid, poll (asked of the zygote, which reaped
+    it), wait, returncode."""
 
     def __init__(self, zygote: "Zygote", pid: int):
-        self.zygote, self.pid = zygote, pid
-        self.returncode: int | None = None
+        super().__init__(pid)
+        self.zygote = zygote
 
     def poll(self) -> int | None:
         if self.returncode is None:
             self.returncode = self.zygote.call({"op": "poll", "pid": self.pid})["rc"]
-        return self.returncode
-
-    def wait(self, timeout: float | None = None) -> int:
-        end = None if timeout is None else time.monotonic() + timeout
-        pause = 0.001
-        while self.poll() is None:
-            if end is not None and time.monotonic() >= end:
-                raise subprocess.TimeoutExpired(f"pid {self.pid}", timeout)
-            time.sleep(pause)
-            pause = min(2 * pause, 0.02)
         return self.returncode
 
 
@@ -139,7 +134,6 @@ def close() -> None:
 
 def serve() -> int:
     """The zygote's loop: load what every child needs, then answer spawn and poll requests until EOF."""
-    sys.path[0] = os.getcwd()  # as `python -m services.ops.cli` has it, not tests/
     from services.ops import launch
     from services.runtime import warm
     from vergence import config
