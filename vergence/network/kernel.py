@@ -13,6 +13,7 @@ import numba
 import numpy as np
 
 from . import simd
+from .arrays import readonly
 
 __all__ = ["sad", "portable_sad", "half_sads", "correlate", "scores_from_sad", "support_weights", "warm_up"]
 
@@ -139,9 +140,9 @@ def half_sads(fovea: np.ndarray, rows: np.ndarray, k0: int, k1: int, *, circular
     if rows.shape[1] != fovea.shape[1]:
         raise ValueError(f"rows must be as tall as the fovea ({fovea.shape[1]}), got {rows.shape[1]}")
     w = fovea.shape[1]
-    weights = _ones(w) if weights is None else np.ascontiguousarray(weights, dtype=np.uint8)
+    weights = _ones(w) if weights is None else readonly(weights, np.uint8)
     out = np.zeros((4, k1 - k0), np.int64)
-    _half_sads(np.ascontiguousarray(fovea), np.ascontiguousarray(rows), weights, k0, k1, circular, out)
+    _half_sads(readonly(fovea), readonly(rows), weights, k0, k1, circular, out)
     return out
 
 
@@ -194,10 +195,8 @@ def portable_sad(fovea: np.ndarray, band: np.ndarray, k0: int = 0, k1: int | Non
     k0, k1 = _check(fovea, band, k0, k1)
     w = fovea.shape[1]
     out = np.zeros((band.shape[1] - w + 1, k1 - k0), np.int64)
-    fovea = np.ascontiguousarray(fovea)
-    band = np.ascontiguousarray(band)
-    weights = _ones(w) if weights is None else np.ascontiguousarray(weights, dtype=np.uint8)
-    _sad(fovea, band, weights, k0, k1, circular, out)
+    weights = _ones(w) if weights is None else readonly(weights, np.uint8)
+    _sad(readonly(fovea), readonly(band), weights, k0, k1, circular, out)
     return out
 
 

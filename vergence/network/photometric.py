@@ -11,6 +11,7 @@ import cv2
 import numba
 import numpy as np
 
+from .arrays import readonly
 from .params import PHOTOMETRIC
 
 __all__ = ["photometric", "photometric_map", "AFFINE_QUANTILES", "CLAMP_MIN_SHARE"]
@@ -163,8 +164,8 @@ def photometric_map(slave_strip: np.ndarray, master_strip: np.ndarray, mode: str
     clip=False: no such levels, the table alone (as photometric() maps a strip)."""
     if mode not in PHOTOMETRIC:
         raise ValueError(f"photometric must be one of {', '.join(PHOTOMETRIC)}, got {mode!r}")
-    s = np.ascontiguousarray(slave_strip)
-    m = np.ascontiguousarray(master_strip)
+    s = readonly(slave_strip)
+    m = readonly(master_strip)
     if s.dtype != np.uint8 or m.dtype != np.uint8 or s.ndim != 2 or m.ndim != 2:
         raise ValueError(f"photometric maps 2-D uint8 strips, got {s.dtype} {s.shape} and {m.dtype} {m.shape}")
     if s.size == 0 or m.size == 0:

@@ -15,6 +15,7 @@ import cv2
 import numba
 import numpy as np
 
+from .arrays import readonly
 from .params import PHOTOMETRIC  # the modes of photometric, beside the parameter that names one
 from .photometric import photometric, photometric_map  # the slave's gray levels onto the master's
 
@@ -161,7 +162,7 @@ def planes(s: np.ndarray) -> np.ndarray:
     One fused pass, D looked up in direction_table()."""
     _check_strip(s)
     out = np.empty((3, s.shape[0] - 2, s.shape[1] - 2), np.uint8)
-    _features(np.ascontiguousarray(s), out, direction_table())
+    _features(readonly(s), out, direction_table())
     return out
 
 
