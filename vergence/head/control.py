@@ -155,6 +155,7 @@ class Controller:
         if not doubt:
             return self._aim(pan_at_capture, offset_px, focal_px, confident, centre_px, t_s, t_now)
         if t_s is not None and math.isfinite(t_s) and math.isfinite(pan_at_capture):
+            t_s, pan_at_capture = d.shift(t_s, pan_at_capture)  # (a camera named late: as its image shows it)
             ok = confident and math.isfinite(offset_px) and math.isfinite(focal_px) and focal_px > 0
             a = pixels_to_angle(offset_px, focal_px, centre_px) if ok else None
             before = d.fault

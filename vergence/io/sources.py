@@ -237,6 +237,9 @@ class SimSource(Source):
             if faults.stall or faults.encoder_noise:
                 raise ValueError("sim source: stall and encoder_noise are the motor's lies: `vergence sim --faults` "
                                  "has them (the sim actuator tells the truth)")
+            if faults.late:
+                raise ValueError("sim source: late is `vergence sim`'s; here latency=S:stamps=no with [camera] "
+                                 "latency_s unset gives images S older than the capture is told")
             self.rig = Rig.from_items(items)
             told = float(self.rig.focal_px)  # the focal length the settings say; focal_true renders at another
             if faults.focal_true is not None:

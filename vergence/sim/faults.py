@@ -8,7 +8,10 @@ lags the shaft within a dead zone of DEG), focal_true=F (images rendered at foca
 say the spec's focal), zero=DEG (the slave camera sits DEG further than its encoder says: a pan zero that is off,
 which `vergence calibrate --distance` measures and [actuator.motor] offset_deg corrects). Motor side (`vergence sim`
 only; the service's sim actuator tells the truth): stall=T0-T1 (nothing moves; the encoder says so),
-encoder_noise=DEG (Gaussian noise on each encoder reading). Times are seconds from the first exposure."""
+encoder_noise=DEG (Gaussian noise on each encoder reading); and late=S (`vergence sim` only: the loop is told each
+image is S younger than it is, as an unstamped camera's latency that [camera] latency_s does not say; S at most
+--camera-latency. The sim source has it as latency=S:stamps=no with latency_s unset). Times are seconds from the
+first exposure."""
 
 from __future__ import annotations
 
@@ -25,7 +28,7 @@ FAULT_KEYS = [Key("freeze", "range", lo=0, unit="s"), Key("freeze_master", "rang
               Key("black", "range", lo=0, unit="s"), Key("reverse", "flag"), Key("slip", "range", lo=0, unit="s"),
               Key("stall", "range", lo=0, unit="s"), Key("backlash", lo=0, hi=10, unit="deg"),
               Key("focal_true", above=0, hi=1e5, unit="px"), Key("encoder_noise", lo=0, hi=5, unit="deg"),
-              Key("zero", lo=-30, hi=30, unit="deg")]
+              Key("zero", lo=-30, hi=30, unit="deg"), Key("late", lo=0, hi=1, unit="s")]
 
 
 @dataclass(frozen=True)
@@ -42,6 +45,7 @@ class Faults:
     focal_true: float | None = None
     encoder_noise: float | None = None
     zero: float | None = None
+    late: float | None = None
 
     @classmethod
     def take(cls, items: dict) -> Faults:

@@ -178,10 +178,11 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
     master, slave = lies.images(t_master, at, *_band(rig, shown, at, params))
     m = match(master, slave, at, params)
     d = m.decision
-    pan = history.at(t_slave)  # the slave's pan at its exposure, as the encoder reports it
+    t_told = min(t_slave + (lies.f.late or 0.0), times[2])  # the exposure the loop is told (`late`: a later one)
+    pan = history.at(t_told)  # the slave's pan at its exposure, as the encoder reports it
     target = None
     if pan is not None:
-        target = controller.target(pan, d.offset_px, focal, d.confident, t_s=t_slave, t_now=t_now,
+        target = controller.target(pan, d.offset_px, focal, d.confident, t_s=t_told, t_now=t_now,
                                    centre_px=(master.shape[1] // 2 if at is None else at[0]) - _cx(rig),
                                    slave=digest(slave) or None, master=digest(master) or None, fovea=at,
                                    textured=has_texture(d, params), width_px=master.shape[1])
