@@ -40,6 +40,7 @@ The library only: the reducer and `vergence sim` both run it through the Control
 from __future__ import annotations
 
 import logging
+import bisect
 import math
 import zlib
 from collections import deque
@@ -116,6 +117,7 @@ class _Seen:
     t: float  # the slave's exposure, s
     pan: float  # the slave's pan then, rad
     a: float  # the angle of the measured offset, rad
+    u: float = 0.0  # how far off pan may be (a late camera's pan, read between two frames' pans), rad
 
     @property
     def z(self) -> float:
@@ -158,6 +160,7 @@ class Doubt:
         self.seen: deque[tuple[float, float]] = deque()  # (t as the frame says, a) of the confident decisions
         self.lags: list[float | None] = []  # the lags fitted where a probe cleared a fault (None: none fits)
         self.late_s: float | None = None  # named where LATE_PAIRS fits agree
+        self.u = 0.0  # the last shift()'s pan's uncertainty (the next observe()'s decision's)
         self.lag_ref: tuple[_Seen, float] | None = None  # (a probe's reference, when it cleared) for the lag's fit
 
     @property
@@ -186,7 +189,11 @@ class Doubt:
                 self.pans.popleft()
         if self.late_s is None:
             return t, pan
-        return t - self.late_s, float(self._pan_at(np.array([t - self.late_s]))[0])
+        ts = t - self.late_s
+        i = bisect.bisect_left(self.pans, (ts, -math.inf))
+        # read between the two frames' pans about ts: the motor may have made that move anywhere between them
+        self.u = 0.5 * abs(self.pans[i][1] - self.pans[i - 1][1]) if 0 < i < len(self.pans) else 0.0
+        return ts, float(self._pan_at(np.array([ts]))[0])
 
     def _pan_at(self, t: np.ndarray) -> np.ndarray:
         ts = np.fromiter((q[0] for q in self.pans), float, len(self.pans))
@@ -219,7 +226,7 @@ class Doubt:
             return self._fail(t, "frozen", f"a byte-identical slave image though the motor moved {IDENTICAL_MOVE_DEG}")
         if a is None or not math.isfinite(a):
             return self.fault
-        now = _Seen(t, pan, a)
+        now = _Seen(t, pan, a, self.u)
         self.last_seen = now
         self._saw(t, a)
         if self.probe_ref is not None and not self.trusted:
@@ -247,7 +254,7 @@ class Doubt:
         pred = self.rate * dt  # the target's predicted motion
         moved = -(j.a - i.a) + pred  # the image's motion, the target's predicted motion taken out
         e = moved - p  # what the motor's motion does not explain
-        slack = math.radians(SLACK_DEG + 0.5 * TARGET_ACCEL_DEG_S2 * dt * dt)
+        slack = math.radians(SLACK_DEG + 0.5 * TARGET_ACCEL_DEG_S2 * dt * dt) + i.u + j.u
         own = abs(p - pred)  # the motor's motion beyond the target's predicted one
         big = abs(p) >= math.radians(MIN_MOVE_DEG) and slack <= DECISIVE * abs(p)
         # (a pair that did not follow arms the judge: the next one that moved far enough is judged, fast or not)
@@ -425,7 +432,7 @@ class Doubt:
         (None: none, or under two steps)."""
         t_ref = ref.t + (self.late_s or 0.0)
         seen = [(tk, ak) for tk, ak in self.seen if tk > t_ref]
-        if len(seen) < 2 or len(self.pans) < 2:
+        if len(seen) < 4 or len(self.pans) < 2:
             return None
         lags = np.arange(0.0, MAX_LAG_S + 1e-9, LAG_STEP_S)
         lags = lags[t_ref - lags >= self.pans[0][0]]
@@ -435,7 +442,11 @@ class Doubt:
         da = np.array([q[1] for q in seen]) - ref.a
         moved = self._pan_at(tk[None, :] - lags[:, None]) - self._pan_at(t_ref - lags)[:, None]
         res = da[None, :] + moved  # the target's own motion, at each lag: fitted as a rate and an acceleration
-        seen_moved = np.ptp(moved, axis=1) >= math.radians(PROBE_MIN_DEG)  # a lag that shows the motor moving
+        span = np.ptp(moved, axis=1)
+        # a lag counts where it shows the motor moving, and at rest again over the window's last decisions (a lag
+        # that puts a move at the window's end leaves the target's fitted motion free to explain its part of it)
+        seen_moved = (span >= math.radians(PROBE_MIN_DEG)) & (
+            np.abs(moved[:, -1] - moved[:, -3]) <= np.maximum(0.1 * span, math.radians(0.05)))
         tau = tk - t_ref
         x = np.stack([tau, tau * tau], 1)
         hat = x @ np.linalg.pinv(x)
