@@ -149,7 +149,8 @@ def main(rig: str, conf, distances: list[float] | None, write: str | None, ampli
             u = fovea[0] - frame.slave_principal[0] if frame is not None and fovea is not None else 0.0
             fit = fit_head([(d.t_capture_ns + d.skew_ns, d.t_read_ns or d.t_capture_ns, d.offset_px) for d in used],
                            [(m.t_ns, m.pan_rad) for m in states if m.t_ns >= t_start - 10**9],
-                           [t for t in rec.sent if t >= t_start], u_px=u)
+                           [t for t in rec.sent if t >= t_start], u_px=u,
+                           focal_px=frame.focal_px if frame is not None else settings.geometry.focal_px)
             points.append((fit, fovea, z))
         values, lines = report(points, runs[-1][3], frame, settings)
     except CalibrationError as e:

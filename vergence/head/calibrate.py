@@ -7,8 +7,11 @@ fovea u px right of the slave's principal point is f tan(atan(u / f) + p0 - p) -
 zero). Both come from one least-squares fit (Gauss-Newton
 from the straight line's) over the decisions of images exposed while the motor stood still (during a move a
 millisecond of timing is a fraction of a pixel: with them the fit left 0.3-0.5 px of residual and f 0.7-1 % high;
-without, 0.01-0.02 px and within 0.2 %), their sigmas from bootstrap resamples of the steps. The fit's sign is the
-direction: offsets that grow with the pan mean a camera that turns the other way than the motor's settings say.
+without, 0.01-0.02 px and within 0.2 %), their sigmas from bootstrap resamples of the steps. Whether the image
+follows the motor at all is judged as the loop's own check judges it (vergence.head.doubt.verdict, on r, the image's
+motion over the motor's at the frames' focal length: the timing fit's slope over -focal_px): a camera that turns the
+other way than the motor's settings say (offsets that grow with the pan), or an image that does not follow the
+steps (a frozen slave camera, a slipping coupling, or a scene that moves), is refused with the check's advice.
 
 With the distance Z of the fixated point (along the master's optical axis through the fovea, measured by the
 user), the pan at which the slave should see it follows from the rig's geometry (vergence.head.depth, the master
@@ -29,7 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..choices import Fault
 from .depth import depth_from_pans
+from .doubt import ADVICE, verdict
 from .latency import LatencyError, LatencyFit, fit_latency
 
 __all__ = ["CalibrationError", "HeadFit", "fit_head", "pan_for_depth", "solve_zero", "calibration_plan",
@@ -97,14 +102,16 @@ def _tan_fit(pan: np.ndarray, off: np.ndarray, f0: float, p00: float,
 
 
 def fit_head(decisions: list[tuple[int, int, float]], states: list[tuple[int, float]],
-             moves_ns: list[int] | None = None, u_px: float = 0.0, boots: int = 100, seed: int = 0) -> HeadFit:
+             moves_ns: list[int] | None = None, u_px: float = 0.0, boots: int = 100, seed: int = 0,
+             focal_px: float | None = None) -> HeadFit:
     """decisions: [(stamp ns, read ns, offset px)] of the confident decisions during the steps; states: [(t ns, pan
     rad)] of the motor; moves_ns: when each step was commanded (no decision of an image exposed from SETTLE_S
     after one to a state interval before one is used: the states' interpolation blurs a step's start); u_px: the
     fovea's column less the slave's principal point's (off the axis an image moves f sec^2 faster per radian: 7.5 %
-    at 70 px and f 256, which a fit of f tan(p0 - pan) took for the focal length). Raises
+    at 70 px and f 256, which a fit of f tan(p0 - pan) took for the focal length); focal_px: the frames' (the
+    settings'), against which the image's motion is judged (verdict; None: its sign alone). Raises
     CalibrationError naming the cause and the fix: too few decisions (no texture), a motor that does not move, a
-    camera that turns against it, a poor fit (a moving scene)."""
+    camera that turns against it, an image that does not follow it, a poor fit (a moving scene)."""
     d = np.array(sorted(decisions), float) if decisions else np.zeros((0, 3))
     s = np.array(sorted(states), float) if states else np.zeros((0, 2))
     if len(s) >= 10 and np.ptp(s[:, 1]) < math.radians(0.1):
@@ -113,11 +120,17 @@ def fit_head(decisions: list[tuple[int, int, float]], states: list[tuple[int, fl
     try:
         lat = fit_latency(decisions, states, either_sign=True, boots=20)
     except LatencyError as e:
-        raise CalibrationError(str(e)) from None
-    if lat.slope > 0:
-        raise CalibrationError(f"the image moves against the motor ({lat.slope:+.0f} px/rad, r2 {lat.r2:.3f}): the "
-                               "camera turns the other way than the settings say; flip [actuator.motor] direction "
-                               "(1 -> -1, or back) and restart the head, then calibrate again")
+        if e.slope is None:
+            raise CalibrationError(str(e)) from None
+        # the motor moved and the offsets did not follow it: the check's verdict, whatever the ratio says
+        raise CalibrationError(f"the image does not follow the motor's steps (r2 {e.r2:.2f}, r "
+                               f"{_ratio(e.slope, focal_px):+.2f}): {_why(Fault.SLAVE_FROZEN)}; or the scene "
+                               "moved: keep it and the master still, the fovea on a textured surface, and try "
+                               "again") from None
+    r = _ratio(lat.slope, focal_px)
+    if verdict(r) is Fault.REVERSED or lat.slope > 0:
+        raise CalibrationError(f"the image moves against the motor ({lat.slope:+.0f} px/rad, r {r:+.2f}, r2 "
+                               f"{lat.r2:.3f}): {_why(Fault.REVERSED)}; then calibrate again")
     t0 = d[0, 0]
     t = (d[:, 0] - t0) / 1e9 - lat.delta_s
     st = (s[:, 0] - t0) / 1e9
@@ -159,6 +172,19 @@ def fit_head(decisions: list[tuple[int, int, float]], states: list[tuple[int, fl
         ps.append(bp)
     return HeadFit(focal_px=f, focal_sigma_px=float(np.std(fs)), pan0_rad=p0, pan0_sigma_rad=float(np.std(ps)),
                    rms_px=rms, r2=r2, latency=lat, n=int(inside.sum()))
+
+
+def _why(fault: Fault) -> str:
+    """The loop's advice on the fault (vergence.head.doubt.ADVICE), without its first clause (what was seen)."""
+    return ADVICE[fault].split(": ", 1)[1]
+
+
+def _ratio(slope: float, focal_px: float | None) -> float:
+    """r of vergence.head.doubt.verdict from the offsets' slope against the pan (px/rad; -focal where the image
+    follows): the image's motion over the motor's at focal_px (without it, the slope's sign)."""
+    if focal_px is not None and focal_px > 0 and math.isfinite(focal_px):
+        return -slope / focal_px
+    return -math.copysign(1.0, slope)
 
 
 def pan_for_depth(z_m: float, baseline_m: float, focal_px: float, *, master_px: tuple[float, float] = (0.0, 0.0),

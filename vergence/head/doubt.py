@@ -50,7 +50,7 @@ import numpy as np
 
 from ..choices import Fault
 
-__all__ = ["Doubt", "Fault", "ADVICE", "digest"]
+__all__ = ["Doubt", "Fault", "ADVICE", "digest", "verdict", "focal_off"]
 
 log = logging.getLogger("vergence.doubt")
 
@@ -101,6 +101,26 @@ ADVICE = {
     Fault.MASTER_FROZEN: "the master camera repeats the same image: a frozen master camera; check its cable and "
                          "driver",
 }
+
+
+def verdict(r: float) -> Fault | None:
+    """What r, the slave image's motion over the motor's (as the frames' focal length predicts it), says of the
+    camera: Fault.REVERSED at or below REVERSED_MAX (it turns the other way than the encoder says),
+    Fault.SLAVE_FROZEN below FOLLOWS_MIN (it does not follow: a frozen camera, a slipping coupling), None where it
+    follows (r far from 1: the focal length is off, focal_off). The one judgement of the check here, pair by pair,
+    and of `vergence calibrate` on its fit of the steps (vergence.head.calibrate)."""
+    if r <= REVERSED_MAX:
+        return Fault.REVERSED
+    return Fault.SLAVE_FROZEN if r < FOLLOWS_MIN else None
+
+
+def focal_off(r: float) -> bool:
+    """r (as verdict's) far enough from 1 to name the focal length off."""
+    return abs(r - 1) > FOCAL_OFF
+
+
+def _kind(r: float) -> str:
+    return "reversed" if verdict(r) is Fault.REVERSED else "frozen"
 
 
 def digest(img: np.ndarray) -> int:
@@ -260,9 +280,8 @@ class Doubt:
         # (a pair that did not follow arms the judge: the next one that moved far enough is judged, fast or not)
         if big and own >= math.radians(MIN_MOVE_DEG) and (self.fails or own >= math.radians(JUDGE_RATE_DEG_S) * dt):
             r = moved / p
-            if r < FOLLOWS_MIN:
-                kind = "reversed" if r <= REVERSED_MAX else "frozen"
-                self._fail(j.t, kind, f"r = {r:.2f} over {math.degrees(p):.2f} deg")
+            if verdict(r) is not None:
+                self._fail(j.t, _kind(r), f"r = {r:.2f} over {math.degrees(p):.2f} deg")
                 return
             if r <= FOLLOWS_MAX:
                 self._followed(j, r, slack <= PRECISE * abs(p))
@@ -302,7 +321,7 @@ class Doubt:
     def _focal(self) -> None:
         if len(self.ratios) >= FOCAL_PAIRS:
             med = sorted(self.ratios)[len(self.ratios) // 2]
-            named = abs(med - 1) > FOCAL_OFF
+            named = focal_off(med)
             if named and self.focal_ratio is None:
                 log.warning("the focal length is off: the image moves %.2f x what focal_px predicts", med)
             self.focal_ratio = med if named else None
@@ -530,11 +549,11 @@ class Doubt:
             return
         r = -(now.a - ref.a) / p
         self._unprobe()
-        if FOLLOWS_MIN <= r <= FOLLOWS_MAX:
+        if verdict(r) is None and r <= FOLLOWS_MAX:
             self._followed(now, r, False)
             self.ref = self.centre = now
         else:
-            self._fail(t, "reversed" if r <= REVERSED_MAX else "frozen", f"a probe moved the image r = {r:.2f}")
+            self._fail(t, _kind(r), f"a probe moved the image r = {r:.2f}")
 
     def _during_fault(self, pan: float, t_now: float) -> float | None:
         if self.fault is Fault.MASTER_FROZEN or self.anchor is None:

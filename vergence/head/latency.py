@@ -22,7 +22,12 @@ __all__ = ["LatencyFit", "LatencyError", "fit_latency", "motion_plan"]
 
 
 class LatencyError(ValueError):
-    """The measurement cannot be made; the message says why and what to do."""
+    """The measurement cannot be made; the message says why and what to do. slope and r2: where the motor moved
+    but the offsets did not follow it, the best fit's (px/rad, and its share of the offsets' variance)."""
+
+    def __init__(self, message: str, slope: float | None = None, r2: float | None = None):
+        super().__init__(message)
+        self.slope, self.r2 = slope, r2
 
 
 @dataclass(frozen=True)
@@ -107,7 +112,7 @@ def fit_latency(decisions: list[tuple[int, int, float]], states: list[tuple[int,
     delta, slope, r2 = _best(t, off, st, sp, grid)
     if r2 < 0.5 or (slope >= 0 and not either_sign):
         raise LatencyError(f"the offsets do not follow the motor (r2 {r2:.2f}, slope {slope:.0f} px/rad): the "
-                           "scene must be still and textured, the master fixed")
+                           "scene must be still and textured, the master fixed", slope, r2)
     rng = np.random.default_rng(seed)
     near = np.arange(delta - 0.03, delta + 0.03 + step_s / 4, step_s / 2)
     spread = []

@@ -75,6 +75,22 @@ def test_the_sigmas_cover_a_bias_that_each_step_keeps():
 def test_a_camera_that_turns_against_the_motor_is_named_with_the_setting_to_flip():
     with pytest.raises(CalibrationError, match=r"other way.*flip \[actuator.motor\] direction"):
         fit_head(*_run(500.0, -0.06, sign=-1.0))
+    with pytest.raises(CalibrationError, match=r"against the motor \(\+\d+ px/rad, r -1.0\d"):
+        fit_head(*_run(500.0, -0.06, sign=-1.0), focal_px=490.0)  # r: as the loop's check has it
+
+
+def test_an_image_that_does_not_follow_the_steps_is_refused_as_the_loops_check_names_it():
+    """A frozen slave camera or a slipping coupling (the offsets stay while the motor steps): refused with the words
+    of the loop's own check (vergence.head.doubt.verdict and ADVICE), not taken for a poor scene alone; an image that
+    follows at a focal length far off the frames' is measured, not refused."""
+    decisions, states, moves = _run(500.0, -0.06)
+    rng = np.random.default_rng(6)
+    frozen = [(a, b, 12.0 + rng.normal(0, 0.05)) for a, b, _ in decisions]
+    with pytest.raises(CalibrationError, match=r"does not follow the motor's steps .*frozen slave camera.*slipping "
+                                               r"coupling.*or the scene moved"):
+        fit_head(frozen, states, moves, focal_px=500.0)
+    fit = fit_head(decisions, states, moves, focal_px=800.0)  # the frames say 800: the image moves 0.62 x that
+    assert fit.focal_px == pytest.approx(500.0, rel=0.01)
 
 
 def test_a_motor_that_does_not_move_is_named():
