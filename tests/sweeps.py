@@ -132,6 +132,20 @@ def teddy_lie(lie: str, latency: float) -> list:
                              timing=CameraTiming(latency), faults=faults, seed=0))
 
 
+def late_camera(motion: str, rate: float, latency: float, seed: int) -> list:
+    """The moving target at `rate`, the images `latency` old and the loop told they are not (`late=`), noise 1, f 500,
+    the slave starting on the truth: the loop's Steps over 12 s."""
+    from vergence.sim.faults import FAULT_KEYS, Faults
+    from vergence.sim.moving import MovingRig
+    from vergence.spec import parse
+
+    rig = MovingRig.from_options(motion=motion, focal="500", seed=str(seed), noise="1")
+    rig.start_pan_rad = rig.truth_pan(0.0)
+    faults = Faults.take(parse(f"late={latency:g}", FAULT_KEYS, "test"))
+    return _lean(closed_loop(rig, int(12 * rate), None, ControlSettings(), None, rate, timing=CameraTiming(latency),
+                             faults=faults, seed=seed))
+
+
 # -- tests/vergence/head/test_search.py --------------------------------------------------------------------------------
 
 def lost(seed: int, kind: int, z: float, latency: float, rate: float = 60.0):

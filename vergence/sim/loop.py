@@ -67,6 +67,7 @@ class Step:
     target_deg: float | None
     scores: np.ndarray
     fault: str | None = None  # the loop's doubt (vergence.head.doubt): the fault it holds on, None when none
+    late_ms: float | None = None  # ... and how late it named the camera (None: not named)
 
     def to_dict(self) -> dict:
         """JSON-ready (NaN, an unknown truth, becomes None)."""
@@ -78,7 +79,7 @@ class Step:
                 "truth_pan_deg": known(self.truth_pan_deg),
                 "error_px": known(self.error_px), "offset_px": self.offset_px, "confident": self.confident,
                 "k": self.k, "v": self.v, "window": self.window, "confidence": self.confidence,
-                "target_deg": self.target_deg, "fault": self.fault}
+                "target_deg": self.target_deg, "fault": self.fault, "late_ms": self.late_ms}
 
 
 def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: ControlSettings | None = None,
@@ -190,7 +191,8 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
                 truth_pan_deg=math.degrees(rig.truth_pan(t_master)), error_px=rig.error_px(seen["at_master"], t_master),
                 offset_px=d.offset_px, confident=d.confident, k=d.k, v=d.v, window=m.window,
                 confidence=d.confidence, target_deg=None, scores=np.atleast_2d(m.scores)[d.v + params.vsearch],
-                fault=None if controller.doubt.fault is None else str(controller.doubt.fault))
+                fault=None if controller.doubt.fault is None else str(controller.doubt.fault),
+                late_ms=None if controller.doubt.late_s is None else round(controller.doubt.late_s * 1e3, 2))
     return step, target
 
 
