@@ -21,6 +21,8 @@ import time
 
 from vergence.wire import keys
 from vergence.config import load
+from vergence.choices import Fault
+from vergence.head.doubt import ADVICE
 from vergence.head.latency import LatencyError, fit_latency, motion_plan
 from vergence.wire.messages import Command, Hold, MessageError, MotorState, Decision
 
@@ -172,6 +174,8 @@ def main(rig: str, conf, amplitude_deg: float, hold_s: float, wait: float) -> in
         fit = fit_latency(used, [(m.t_ns, m.pan_rad) for m in states if m.t_ns >= t_start - 10**9])
     except LatencyError as e:
         print(f"vergence latency: {e}", file=sys.stderr)
+        if e.slope is not None:  # the motor moved, the image did not follow: the loop's check has a name for that
+            print(f"vergence latency: or {ADVICE[Fault.SLAVE_FROZEN]}", file=sys.stderr)
         return 2
     print(report(fit))
     return 0

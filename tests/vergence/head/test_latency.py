@@ -59,7 +59,9 @@ def test_a_motor_that_did_not_move_or_offsets_that_do_not_follow_it_are_refused(
     decisions, states = _run(0.05, 0.0)
     rng = np.random.default_rng(1)
     scrambled = [(s, r, float(o)) for (s, r, _), o in zip(decisions, rng.permutation([d[2] for d in decisions]))]
-    with pytest.raises(LatencyError, match="do not follow the motor"):
+    with pytest.raises(LatencyError, match="do not follow the motor") as e:
         fit_latency(scrambled, states)
-    with pytest.raises(LatencyError, match="only 3 confident decisions"):
+    assert e.value.slope is not None and e.value.r2 < 0.5  # (for calibrate and latency to name a frozen camera)
+    with pytest.raises(LatencyError, match="only 3 confident decisions") as e:
         fit_latency(decisions[:3], states)
+    assert e.value.slope is None
