@@ -261,6 +261,9 @@ TESTED_ELSEWHERE = {
     "vergence.ros2.source": "tests/services/bridges/test_ros2.py (the ros2: source end to end)",
     "vergence.observe.screen": "tests/vergence/observe/test_monitor.py (the screen drawn from the model's snapshots)",
     "vergence.network.simd": "tests/vergence/network/test_kernel.py (the kernel's variants agree)",
+    "vergence.head.lag": "tests/vergence/head/test_doubt.py (the lag fitted through the check's faults and probes)",
+    "vergence.head.follows": "tests/vergence/head/test_doubt.py, test_calibrate.py (the verdict, through the check and "
+                             "calibrate's refusals)",
 }
 
 

@@ -22,7 +22,7 @@ import time
 from vergence.wire import keys
 from vergence.config import load
 from vergence.choices import Fault
-from vergence.head.doubt import ADVICE
+from vergence.head.follows import ADVICE
 from vergence.head.latency import LatencyError, fit_latency, motion_plan
 from vergence.wire.messages import Command, Hold, MessageError, MotorState, Decision
 

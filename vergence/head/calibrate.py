@@ -8,7 +8,7 @@ zero). Both come from one least-squares fit (Gauss-Newton
 from the straight line's) over the decisions of images exposed while the motor stood still (during a move a
 millisecond of timing is a fraction of a pixel: with them the fit left 0.3-0.5 px of residual and f 0.7-1 % high;
 without, 0.01-0.02 px and within 0.2 %), their sigmas from bootstrap resamples of the steps. Whether the image
-follows the motor at all is judged as the loop's own check judges it (vergence.head.doubt.verdict, on r, the image's
+follows the motor at all is judged as the loop's own check judges it (vergence.head.follows.verdict, on r, the image's
 motion over the motor's at the frames' focal length: the timing fit's slope over -focal_px): a camera that turns the
 other way than the motor's settings say (offsets that grow with the pan), or an image that does not follow the
 steps (a frozen slave camera, a slipping coupling, or a scene that moves), is refused with the check's advice.
@@ -34,7 +34,7 @@ import numpy as np
 
 from ..choices import Fault
 from .depth import depth_from_pans
-from .doubt import ADVICE, verdict
+from .follows import ADVICE, verdict
 from .latency import LatencyError, LatencyFit, fit_latency
 
 __all__ = ["CalibrationError", "HeadFit", "fit_head", "pan_for_depth", "solve_zero", "calibration_plan",
@@ -175,12 +175,12 @@ def fit_head(decisions: list[tuple[int, int, float]], states: list[tuple[int, fl
 
 
 def _why(fault: Fault) -> str:
-    """The loop's advice on the fault (vergence.head.doubt.ADVICE), without its first clause (what was seen)."""
+    """The loop's advice on the fault (vergence.head.follows.ADVICE), without its first clause (what was seen)."""
     return ADVICE[fault].split(": ", 1)[1]
 
 
 def _ratio(slope: float, focal_px: float | None) -> float:
-    """r of vergence.head.doubt.verdict from the offsets' slope against the pan (px/rad; -focal where the image
+    """r of vergence.head.follows.verdict from the offsets' slope against the pan (px/rad; -focal where the image
     follows): the image's motion over the motor's at focal_px (without it, the slope's sign)."""
     if focal_px is not None and focal_px > 0 and math.isfinite(focal_px):
         return -slope / focal_px

@@ -25,32 +25,25 @@ every PROBE_S), and when the image follows one again (or, for a stalled motor, t
 by itself. A frozen master camera (byte-identical master images for FROZEN_MASTER_S where they used to change every
 frame, MASTER_LIVE in a row at least) holds until it changes.
 
-A late camera. An image older than its frame says (a camera latency that [camera] latency_s does not tell, an image
-not stamped at its exposure) shows the motor's motion late: over a fast move it has not moved yet, which the check
-takes for a frozen (or reversed) camera, and names. The probes tell: a late image follows a probe after its lag, and
-when one clears the fault, the lag that best explains the decisions since the probe's reference by the motor's
-motion that much earlier (the pans of every frame are kept, MAX_LAG_S back) is fitted. Where LATE_PAIRS such fits
-agree (a frozen, slipping or reversed camera never follows a probe: none is fitted), the camera is named late: a
-note, a log line and `late_ms` in the status (set [camera] latency_s; `vergence latency` measures it), and from then
-on each frame is taken at its exposure less the lag, with the pan then (shift(): the check and the controller
-both), so that the head runs without more faults. A motor that does not move for STALL_S while
+A camera later than its frames say is told by the moves of its faults and named (vergence.head.lag); then each
+frame goes through shift() first. A motor that does not move for STALL_S while
 commanded MIN_MOVE or more away is stalled.
 The library only: the reducer and `vergence sim` both run it through the Controller."""
 
 from __future__ import annotations
 
 import logging
-import bisect
 import math
 import zlib
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..choices import Fault
+from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, focal_off, verdict
+from .lag import LAG_AFTER_S, RETURN_FIT_S, Lag
 
-__all__ = ["Doubt", "Fault", "ADVICE", "digest", "verdict", "focal_off"]
+__all__ = ["ADVICE", "Doubt", "Fault", "digest"]
 
 log = logging.getLogger("vergence.doubt")
 
@@ -61,8 +54,6 @@ DECISIVE = 0.35  # a pair is decisive where its slack is at most this fraction o
 JUDGE_RATE_DEG_S = 36.0  # a pair is judged where the motor moved faster than this beyond the target's learnt rate
 TRACKING_DEG = 0.3  # an offset below this: tracking, not correcting (the target's rate is learnt) ...
 LEARN_RATE_DEG_S = 12.0  # ... as it is where the motor moved slower than this
-FOLLOWS_MIN, FOLLOWS_MAX = 0.5, 2.2  # r in this range: the image follows (r: image motion / motor motion)
-REVERSED_MAX = -0.35  # r at most this: the camera turns the other way
 FAILS = 2  # decisive pairs that did not follow, in a row, to name a fault
 TARGET_RATE_DEG_S = 30.0  # a target's rate: what seems faster is a jump (vergence of a sine of 2 Hz, 0.5-1.1 m: 23)
 LEAD_S = 0.1  # the leash widens by the target's motion over this (a set-point aims ahead of the last measurement)
@@ -79,45 +70,6 @@ STALL_S = 0.5  # commanded MIN_MOVE or more away, and no move of STALL_MOVE_DEG 
 STALL_MOVE_DEG = 0.2
 PRECISE = 0.1  # a decisive pair whose slack is at most this fraction of the motion counts for the focal length
 FOCAL_PAIRS = 8  # such pairs before the focal length's ratio is named
-FOCAL_OFF = 0.2  # |median r - 1| above this: the focal length is off
-MAX_LAG_S, LAG_STEP_S = 0.25, 0.0025  # the lags a probe's decisions are fitted with
-LATE_FIT = 0.25  # a lag is fitted where it leaves at most this share of no lag's squared residual ...
-LATE_RMS_DEG = 0.1  # ... and at most this residual (the offset's and the encoder's noise; a target moving meanwhile),
-LATE_SHARE = 0.1  # or this share of the motion it explains (a frame's timing over a fast move)
-LATE_AGREE_S = 0.02  # LATE_PAIRS fits, of the last LATE_PAIRS + 1, that agree within this name the camera late
-LATE_PAIRS = 2
-RETURN_FIT_S = 0.4  # a fault's lag (the move that raised it, the move back) is fitted this long after it
-LAG_AFTER_S = 0.1  # a probe's lag is fitted this long after it cleared the fault (the image's whole step then seen)
-LATE_NOISE_DEG = 0.02  # lags whose residual is within this (rms) of the best are alike: their middle is the lag
-
-ADVICE = {
-    Fault.SLAVE_FROZEN: "the slave's image does not follow the motor: a frozen slave camera (the driver repeating "
-                        "its last image) or a slipping coupling between the motor and the camera; check the "
-                        "camera's cable and driver, and the coupling",
-    Fault.REVERSED: "the slave's image moves against the motor: the motor turns the other way than the encoder "
-                    "says; flip [actuator.motor] direction (or the camera's mounting) and restart",
-    Fault.STALLED: "the motor does not follow its commands: stalled, jammed, or its torque off (an overload); "
-                   "check the motor's power, its torque and what blocks it",
-    Fault.MASTER_FROZEN: "the master camera repeats the same image: a frozen master camera; check its cable and "
-                         "driver",
-}
-
-
-def verdict(r: float) -> Fault | None:
-    """What r, the slave image's motion over the motor's (as the frames' focal length predicts it), says of the
-    camera: Fault.REVERSED at or below REVERSED_MAX (it turns the other way than the encoder says),
-    Fault.SLAVE_FROZEN below FOLLOWS_MIN (it does not follow: a frozen camera, a slipping coupling), None where it
-    follows (r far from 1: the focal length is off, focal_off). The one judgement of the check here, pair by pair,
-    and of `vergence calibrate` on its fit of the steps (vergence.head.calibrate)."""
-    if r <= REVERSED_MAX:
-        return Fault.REVERSED
-    return Fault.SLAVE_FROZEN if r < FOLLOWS_MIN else None
-
-
-def focal_off(r: float) -> bool:
-    """r (as verdict's) far enough from 1 to name the focal length off."""
-    return abs(r - 1) > FOCAL_OFF
-
 
 def _kind(r: float) -> str:
     return "reversed" if verdict(r) is Fault.REVERSED else "frozen"
@@ -176,12 +128,8 @@ class Doubt:
         self.resumed = 0
         self.t_last: float | None = None
         self.fovea: tuple[int, int] | None = None
-        self.pans: deque[tuple[float, float]] = deque()  # (t, pan) of every frame as its frame says, MAX_LAG_S back
-        self.seen: deque[tuple[float, float]] = deque()  # (t as the frame says, a) of the confident decisions
-        self.lags: list[float | None] = []  # the lags fitted where a probe cleared a fault (None: none fits)
-        self.late_s: float | None = None  # named where LATE_PAIRS fits agree
+        self.lag = Lag()  # a camera later than its frames say
         self.u = 0.0  # the last shift()'s pan's uncertainty (the next observe()'s decision's)
-        self.lag_ref: tuple[_Seen, float] | None = None  # (a probe's reference, when it cleared) for the lag's fit
 
     @property
     def note(self) -> str:
@@ -196,29 +144,17 @@ class Doubt:
                          "their exposure")
         return "; ".join(notes)
 
+    @property
+    def late_s(self) -> float | None:
+        """How much later than its frames say the slave's image shows the motor (vergence.head.lag), once named."""
+        return self.lag.late_s
+
     def shift(self, t: float, pan: float) -> tuple[float, float]:
         """A frame as its stamp says it (t its slave's exposure, pan the slave's pan then) into (t, pan) as its image
-        shows it: the same, or for a camera named late, late_s earlier and the pan then (from the pans kept; the
-        oldest where they do not reach so far). Every frame goes through here before observe() (the Controller does
-        it): the pans kept are what a lag is fitted on."""
-        if not (math.isfinite(t) and math.isfinite(pan)):
-            return t, pan
-        if not self.pans or t > self.pans[-1][0]:
-            self.pans.append((t, pan))
-            while t - self.pans[0][0] > 2 * MAX_LAG_S:
-                self.pans.popleft()
-        if self.late_s is None:
-            return t, pan
-        ts = t - self.late_s
-        i = bisect.bisect_left(self.pans, (ts, -math.inf))
-        # read between the two frames' pans about ts: the motor may have made that move anywhere between them
-        self.u = 0.5 * abs(self.pans[i][1] - self.pans[i - 1][1]) if 0 < i < len(self.pans) else 0.0
-        return ts, float(self._pan_at(np.array([ts]))[0])
-
-    def _pan_at(self, t: np.ndarray) -> np.ndarray:
-        ts = np.fromiter((q[0] for q in self.pans), float, len(self.pans))
-        ps = np.fromiter((q[1] for q in self.pans), float, len(self.pans))
-        return np.interp(t, ts, ps)
+        shows it: the same, or for a camera named late, late_s earlier and the pan then. Every frame goes through
+        here before observe() (the Controller does it): the pans kept are what a lag is fitted on."""
+        t, pan, self.u = self.lag.shift(t, pan)
+        return t, pan
 
     # -- decisions ---------------------------------------------------------------------------------------------------
     def observe(self, t: float, pan: float, a: float | None, slave: int | None = None,
@@ -239,7 +175,7 @@ class Doubt:
         self._stalled(t, pan)
         if self.fault is not None:
             if a is not None and math.isfinite(a):
-                self._saw(t, a)
+                self.lag.saw(t, a)
             self._probe_result(t, pan, a, frozen)
             return self.fault
         if frozen:
@@ -248,7 +184,7 @@ class Doubt:
             return self.fault
         now = _Seen(t, pan, a, self.u)
         self.last_seen = now
-        self._saw(t, a)
+        self.lag.saw(t, a)
         if self.probe_ref is not None and not self.trusted:
             self._untrusted_probe(t, now)
             return self.fault
@@ -339,11 +275,9 @@ class Doubt:
         return self.fault
 
     def _raise(self, t: float, fault: Fault, why: str) -> None:
-        if self.lag_ref is not None:
-            self._due_lag()  # (a probe's fit not yet due: now)
         if fault in (Fault.SLAVE_FROZEN, Fault.REVERSED) and self.last_seen is not None:
             # the image of the move that raised it, and of the move back to the anchor: a late one shows both
-            self.lag_ref = (self.last_seen, t + RETURN_FIT_S)
+            self.lag.expect(self.last_seen.t, self.last_seen.a, t + RETURN_FIT_S)
         self.fault, self.t_probe, self.returned = fault, t, False
         self.trusted = False
         self.fails.clear()
@@ -425,76 +359,8 @@ class Doubt:
             return
         r = -(a - self.ref.a) / (pan - self.ref.pan)
         if FOLLOWS_MIN <= r <= FOLLOWS_MAX:
-            self.lag_ref = (self.ref, t + LAG_AFTER_S)  # the lag is fitted then (the image's whole step seen)
+            self.lag.expect(self.ref.t, self.ref.a, t + LAG_AFTER_S)  # (then the image's whole step is seen)
             self._clear(t, pan, f"a probe of {math.degrees(pan - self.ref.pan):+.2f} deg moved the image r = {r:.2f}")
-
-    def _saw(self, t: float, a: float) -> None:
-        """A confident decision's offset, kept with its time as its frame says it (for the lag's fit); a probe's fit
-        when due."""
-        self.seen.append((t + (self.late_s or 0.0), a))
-        while self.seen[-1][0] - self.seen[0][0] > 2 * MAX_LAG_S + LAG_AFTER_S:
-            self.seen.popleft()
-        if self.lag_ref is not None and t >= self.lag_ref[1]:
-            self._due_lag()
-
-    def _due_lag(self) -> None:
-        ref, self.lag_ref = self.lag_ref[0], None
-        lag = self._fit_lag(ref)
-        if lag is not None:
-            log.info("the slave's image followed the motor %.0f ms after the frames' pans say it moved", lag * 1e3)
-
-    def _fit_lag(self, ref: _Seen) -> float | None:
-        """A probe cleared a fault: the lag L (0..MAX_LAG_S) that best explains the offsets of the decisions since
-        its reference by the motor's motion L earlier (a_k - a_ref = -(pan(t_k - L) - pan(t_ref - L)), the times as
-        the frames say them). Where it leaves far less residual than no lag, and little, it joins the latest fits,
-        and where LATE_PAIRS of them agree the camera is named late (see the module's text). Returns the lag fitted
-        (None: none, or under two steps)."""
-        t_ref = ref.t + (self.late_s or 0.0)
-        seen = [(tk, ak) for tk, ak in self.seen if tk > t_ref]
-        if len(seen) < 4 or len(self.pans) < 2:
-            return None
-        lags = np.arange(0.0, MAX_LAG_S + 1e-9, LAG_STEP_S)
-        lags = lags[t_ref - lags >= self.pans[0][0]]
-        if not lags.size:
-            return None
-        tk = np.array([q[0] for q in seen])
-        da = np.array([q[1] for q in seen]) - ref.a
-        moved = self._pan_at(tk[None, :] - lags[:, None]) - self._pan_at(t_ref - lags)[:, None]
-        res = da[None, :] + moved  # the target's own motion, at each lag: fitted as a rate and an acceleration
-        span = np.ptp(moved, axis=1)
-        # a lag counts where it shows the motor moving, and at rest again over the window's last decisions (a lag
-        # that puts a move at the window's end leaves the target's fitted motion free to explain its part of it)
-        seen_moved = (span >= math.radians(PROBE_MIN_DEG)) & (
-            np.abs(moved[:, -1] - moved[:, -3]) <= np.maximum(0.1 * span, math.radians(0.05)))
-        tau = tk - t_ref
-        x = np.stack([tau, tau * tau], 1)
-        hat = x @ np.linalg.pinv(x)
-        sse = ((res - res @ hat.T) ** 2).sum(axis=1)
-        if not seen_moved.any():
-            self.lags = (self.lags + [None])[-(LATE_PAIRS + 1):]
-            return None
-        sse[~seen_moved] = np.inf  # (a lag that moves every motion out of the window explains any image)
-        k = int(np.argmin(sse))
-        # the frames sample the motor's step and the image's: lags within a frame explain them alike; their middle
-        near = np.flatnonzero(sse <= sse[k] + len(seen) * math.radians(LATE_NOISE_DEG) ** 2)
-        near = near[(near >= near[near <= k].max() if (near <= k).any() else 0)]
-        run = near[: int(np.argmax(np.diff(np.append(near, near[-1] + 2)) > 1)) + 1]
-        best = float(lags[run].mean())
-        fit = best >= 2 * LAG_STEP_S and (not math.isfinite(sse[0]) or sse[k] <= LATE_FIT * sse[0]) and \
-            math.sqrt(sse[k] / len(seen)) <= max(math.radians(LATE_RMS_DEG), LATE_SHARE * float(np.ptp(moved[k])))
-        lag = best if fit else None
-        self.lags = (self.lags + [lag])[-(LATE_PAIRS + 1):]
-        if lag is None:
-            return None
-        agree = [x for x in self.lags if x is not None and abs(x - lag) <= LATE_AGREE_S]
-        if len(agree) >= LATE_PAIRS:
-            late = float(np.median(agree))
-            if self.late_s is None or abs(late - self.late_s) > LATE_AGREE_S:
-                log.warning("the slave's image follows the motor %.0f ms later than its frames say: taken as late "
-                            "from now; set [camera] latency_s (`vergence latency` measures it) or stamp the images at "
-                            "their exposure", late * 1e3)
-            self.late_s = late
-        return lag
 
     # -- commands ----------------------------------------------------------------------------------------------------
     def gate(self, pan: float, goal: float | None, t_now: float) -> float | None:

@@ -1,0 +1,147 @@
+"""A camera later than its frames say (issue #35): the lag between the motor's motion, as the frames' pans tell it,
+and the slave's image of it, fitted where the loop's check (vergence.head.doubt) has a controlled move to watch.
+
+An image older than its frame says (a camera latency that [camera] latency_s does not tell, an image not stamped at
+its exposure) shows the motor's motion late: over a fast move it has not moved yet, which the check takes for a
+frozen (or reversed) camera, and names. The moves of a fault tell: the move back to the anchor and each probe, a
+late image follows them after its lag, a frozen, slipping or reversed one never does. RETURN_FIT_S after a fault is
+named, and LAG_AFTER_S after a probe clears one, the lag L (0..MAX_LAG_S) that best explains the offsets of the
+decisions since the move's reference by the motor's motion L earlier (a_k - a_ref = -(pan(t_k - L) - pan(t_ref -
+L)), the target's own motion fitted as a rate and an acceleration; the pans of every frame kept, read between
+frames linearly) is fitted. A lag counts only where the motor moved PROBE_MIN_DEG under it and is at rest again by
+the window's end, and where it leaves at most LATE_FIT of no lag's residual, and little. Where LATE_PAIRS such fits
+agree the camera is named late: a log line, `late_ms` in the status, and from then on each frame is taken at its
+exposure less the lag, with the pan then (shift(): the check and the controller both), so that the head runs
+without more faults. Measured: docs/FAULTS.md, "A camera later than its frames say"."""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import math
+from collections import deque
+
+import numpy as np
+
+__all__ = ["Lag"]
+
+log = logging.getLogger("vergence.doubt")
+
+MAX_LAG_S, LAG_STEP_S = 0.25, 0.0025  # the lags a move's decisions are fitted with
+LATE_FIT = 0.25  # a lag is fitted where it leaves at most this share of no lag's squared residual ...
+LATE_RMS_DEG = 0.1  # ... and at most this residual (the offset's and the encoder's noise; a target moving meanwhile),
+LATE_SHARE = 0.1  # or this share of the motion it explains (a frame's timing over a fast move)
+LATE_AGREE_S = 0.02  # LATE_PAIRS fits, of the last LATE_PAIRS + 1, that agree within this name the camera late
+LATE_PAIRS = 2
+RETURN_FIT_S = 0.4  # a fault's lag (the move that raised it, the move back) is fitted this long after it
+LAG_AFTER_S = 0.1  # a probe's lag is fitted this long after it cleared the fault (the image's whole step then seen)
+LATE_NOISE_DEG = 0.02  # lags whose residual is within this (rms) of the best are alike: their middle is the lag
+MOVED_DEG = 0.3  # a lag counts where the motor moved at least this much under it (a probe's smallest that counts)
+
+
+class Lag:
+    """The frames' pans and the decisions' offsets of the last second, the fits of the lag between them, and the
+    lag named (late_s, None until LATE_PAIRS fits agree). Times are the frames' own (their exposure as stamped)."""
+
+    def __init__(self):
+        self.pans: deque[tuple[float, float]] = deque()  # (t, pan) of every frame, 2 MAX_LAG_S back
+        self.seen: deque[tuple[float, float]] = deque()  # (t, a) of the confident decisions
+        self.lags: list[float | None] = []  # the latest fits (None: none fitted)
+        self.late_s: float | None = None
+        self.pending: tuple[float, float, float] | None = None  # (t_ref, a_ref, due) of the next fit
+
+    def shift(self, t: float, pan: float) -> tuple[float, float, float]:
+        """A frame as its stamp says it (t its slave's exposure, pan the slave's pan then) into (t, pan) as its
+        image shows it, and how far off that pan may be: the same and 0, or for a camera named late, late_s earlier,
+        the pan then, and half of what the motor moved between the two frames' pans it was read between."""
+        if not (math.isfinite(t) and math.isfinite(pan)):
+            return t, pan, 0.0
+        if not self.pans or t > self.pans[-1][0]:
+            self.pans.append((t, pan))
+            while t - self.pans[0][0] > 2 * MAX_LAG_S:
+                self.pans.popleft()
+        if self.late_s is None:
+            return t, pan, 0.0
+        ts = t - self.late_s
+        i = bisect.bisect_left(self.pans, (ts, -math.inf))
+        u = 0.5 * abs(self.pans[i][1] - self.pans[i - 1][1]) if 0 < i < len(self.pans) else 0.0
+        return ts, float(self._pan_at(np.array([ts]))[0]), u
+
+    def _pan_at(self, t: np.ndarray) -> np.ndarray:
+        ts = np.fromiter((q[0] for q in self.pans), float, len(self.pans))
+        ps = np.fromiter((q[1] for q in self.pans), float, len(self.pans))
+        return np.interp(t, ts, ps)
+
+    def saw(self, t: float, a: float) -> None:
+        """A confident decision's offset (t as shift() returned it); a fit when due."""
+        self.seen.append((t + (self.late_s or 0.0), a))
+        while self.seen[-1][0] - self.seen[0][0] > 2 * MAX_LAG_S + LAG_AFTER_S:
+            self.seen.popleft()
+        if self.pending is not None and t + (self.late_s or 0.0) >= self.pending[2]:
+            self.flush()
+
+    def expect(self, t_ref: float, a_ref: float, due: float) -> None:
+        """A controlled move is under way from the decision (t_ref, a_ref): fit its lag at `due` (times as shift()
+        returned them); a fit still pending is made now."""
+        self.flush()
+        shift = self.late_s or 0.0
+        self.pending = (t_ref + shift, a_ref, due + shift)
+
+    def flush(self) -> None:
+        """The pending fit, now."""
+        if self.pending is None:
+            return
+        t_ref, a_ref, _ = self.pending
+        self.pending = None
+        lag = self.fit(t_ref, a_ref)
+        if lag is not None:
+            log.info("the slave's image followed the motor %.0f ms after the frames' pans say it moved", lag * 1e3)
+
+    def fit(self, t_ref: float, a_ref: float) -> float | None:
+        """The lag that best explains the decisions since (t_ref, a_ref) (see the module's text): it joins the
+        latest fits, and where LATE_PAIRS of them agree the camera is named late. Returns the lag fitted (None:
+        none, or under two steps)."""
+        seen = [(tk, ak) for tk, ak in self.seen if tk > t_ref]
+        if len(seen) < 4 or len(self.pans) < 2:
+            return None
+        lags = np.arange(0.0, MAX_LAG_S + 1e-9, LAG_STEP_S)
+        lags = lags[t_ref - lags >= self.pans[0][0]]
+        if not lags.size:
+            return None
+        tk = np.array([q[0] for q in seen])
+        da = np.array([q[1] for q in seen]) - a_ref
+        moved = self._pan_at(tk[None, :] - lags[:, None]) - self._pan_at(t_ref - lags)[:, None]
+        res = da[None, :] + moved  # the target's own motion, at each lag: fitted as a rate and an acceleration
+        span = np.ptp(moved, axis=1)
+        # a lag counts where it shows the motor moving, and at rest again over the window's last decisions (a lag
+        # that puts a move at the window's end leaves the target's fitted motion free to explain its part of it)
+        counts = (span >= math.radians(MOVED_DEG)) & (
+            np.abs(moved[:, -1] - moved[:, -3]) <= np.maximum(0.1 * span, math.radians(0.05)))
+        if not counts.any():
+            self.lags = (self.lags + [None])[-(LATE_PAIRS + 1):]
+            return None
+        tau = tk - t_ref
+        x = np.stack([tau, tau * tau], 1)
+        sse = ((res - res @ (x @ np.linalg.pinv(x)).T) ** 2).sum(axis=1)
+        sse[~counts] = np.inf  # (a lag that moves every motion out of the window explains any image)
+        k = int(np.argmin(sse))
+        # the frames sample the motor's step and the image's: lags within a frame explain them alike; their middle
+        near = np.flatnonzero(sse <= sse[k] + len(seen) * math.radians(LATE_NOISE_DEG) ** 2)
+        near = near[(near >= near[near <= k].max() if (near <= k).any() else 0)]
+        run = near[: int(np.argmax(np.diff(np.append(near, near[-1] + 2)) > 1)) + 1]
+        best = float(lags[run].mean())
+        fit = best >= 2 * LAG_STEP_S and (not math.isfinite(sse[0]) or sse[k] <= LATE_FIT * sse[0]) and \
+            math.sqrt(sse[k] / len(seen)) <= max(math.radians(LATE_RMS_DEG), LATE_SHARE * float(np.ptp(moved[k])))
+        lag = best if fit else None
+        self.lags = (self.lags + [lag])[-(LATE_PAIRS + 1):]
+        if lag is None:
+            return None
+        agree = [x for x in self.lags if x is not None and abs(x - lag) <= LATE_AGREE_S]
+        if len(agree) >= LATE_PAIRS:
+            late = float(np.median(agree))
+            if self.late_s is None or abs(late - self.late_s) > LATE_AGREE_S:
+                log.warning("the slave's image follows the motor %.0f ms later than its frames say: taken as late "
+                            "from now; set [camera] latency_s (`vergence latency` measures it) or stamp the images at "
+                            "their exposure", late * 1e3)
+            self.late_s = late
+        return lag
