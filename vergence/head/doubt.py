@@ -23,11 +23,11 @@ than the slave already is, until the next pair says.
 A fault: the slave goes back to the anchor and holds; the only moves are probes (PROBE_DEG from the anchor, one
 every PROBE_S), and when the image follows one again (or, for a stalled motor, the encoder moves) the loop resumes
 by itself. A frozen master camera (byte-identical master images for FROZEN_MASTER_S where they used to change every
-frame, MASTER_LIVE in a row at least) holds until it changes.
-
-A camera later than its frames say is told by the moves of its faults and named (vergence.head.lag); then each
-frame goes through shift() first. A motor that does not move for STALL_S while
+frame, MASTER_LIVE in a row at least) holds until it changes. A motor that does not move for STALL_S while
 commanded MIN_MOVE or more away is stalled.
+
+A camera later than its frames say is told by the moves of its faults and named (vergence.head.lag); from then on
+each frame goes through shift() first, and a pair's slack grows by the uncertainty of the pans it reads.
 The library only: the reducer and `vergence sim` both run it through the Controller."""
 
 from __future__ import annotations
