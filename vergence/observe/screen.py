@@ -257,6 +257,9 @@ def _status_lines(name: str, d: Status, c) -> list[str]:
     g = d.gatherer() if name.startswith("reducer/") else {}
     if (fault := d.fault()) is not None:  # the loop holds: say it first, in red, with what to check
         out.append(c(RED, f"FAULT {fault[0]}: {fault[1]}"))
+    elif (late := d.number("late_ms", 0.0, 1000.0)) is not None:  # a camera the loop named late (vergence.head.lag)
+        out.append(c(YELLOW, f"camera late: the slave's image follows the motor {late:.0f} ms later than its frames "
+                             "say; set [camera] latency_s (`vergence latency` measures it)"))
     if g:
         pending = d.number("pending", 0, 2 ** 53)
         out.append(f"{name}: " + "  ".join(f"{k} {g[k]}" for k in ("frames", "complete", "dropped",

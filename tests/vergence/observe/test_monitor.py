@@ -295,6 +295,23 @@ def test_a_named_fault_is_a_red_line_with_what_to_check():
     assert "FAULT" not in render_text(mon.snapshot(T0 + 2_000 * MS), color=False)
 
 
+def test_a_camera_named_late_is_a_yellow_line_with_what_to_set():
+    """The reducer's `late_ms` (vergence.head.lag), no fault held: a yellow line with the lag and the setting; a lag
+    that is no number of ms (a forged status) shows nothing."""
+    mon = Monitor("head")
+    run_stream(mon, 1.0, 100.0)
+    st = {"role": "reducer", "id": "r-1", "pid": 1, "t_ns": T0, "counters": {}, "bad": {}, "gatherer": {"frames": 3},
+          "fault": None, "late_ms": 66.2}
+    mon.feed("vergence/head/status/reducer/r-1", json.dumps(st).encode())
+    s = mon.snapshot(T0 + 2_000 * MS)
+    assert ("camera late: the slave's image follows the motor 66 ms later than its frames say; set [camera] "
+            "latency_s") in render_text(s, color=False).replace("\n  ", " ")
+    assert "\x1b[33mcamera late" in render_text(s, color=True)
+    for forged in ("66", -5, 1e9, None):
+        mon.feed("vergence/head/status/reducer/r-1", json.dumps(dict(st, late_ms=forged)).encode())
+        assert "camera late" not in render_text(mon.snapshot(T0 + 2_000 * MS), color=False)
+
+
 def test_screen_lines_fit_the_terminal():
     """Each screen line fits the terminal's width (ANSI codes do not count): a line too wide is broken between
     its fields, the rest on the next line indented by 2, nothing lost."""
