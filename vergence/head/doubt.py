@@ -22,9 +22,8 @@ than the slave already is, until the next pair says.
 
 A fault: the slave goes back to the anchor and holds; the only moves are probes (PROBE_DEG from the anchor, one
 every PROBE_S), and when the image follows one again (or, for a stalled motor, the encoder moves) the loop resumes
-by itself. A frozen master camera (byte-identical master images for FROZEN_MASTER_S where they used to change every
-frame, MASTER_LIVE in a row at least) holds until it changes. A motor that does not move for STALL_S while
-commanded MIN_MOVE or more away is stalled.
+by itself. A frozen master camera (vergence.head.frozen) holds until it changes. A motor that does not move for
+STALL_S while commanded MIN_MOVE or more away is stalled.
 
 A camera later than its frames say is told by the moves of its faults and named (vergence.head.lag); from then on
 each frame goes through shift() first, and a pair's slack grows by the uncertainty of the pans it reads.
@@ -34,16 +33,15 @@ from __future__ import annotations
 
 import logging
 import math
-import zlib
 from dataclasses import dataclass
 
-import numpy as np
 
 from ..choices import Fault
 from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, focal_off, verdict
+from .frozen import Master
 from .lag import LAG_AFTER_S, RETURN_FIT_S, Lag
 
-__all__ = ["ADVICE", "Doubt", "Fault", "digest"]
+__all__ = ["ADVICE", "Doubt", "Fault"]
 
 log = logging.getLogger("vergence.doubt")
 
@@ -64,8 +62,6 @@ PROBE_DEG, PROBE_S = 0.5, 1.0  # during a fault: a probing move this far from th
 PROBE_MIN_DEG = 0.3  # a probe's pair counts when the motor moved at least this much
 SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within this
 IDENTICAL_MOVE_DEG = 0.5  # a byte-identical slave image after the motor moved this much is frozen
-FROZEN_MASTER_S = 0.3  # byte-identical master images for this long, where they used to change ...
-MASTER_LIVE = 5  # ... every frame, this many in a row at least (a live camera's noise)
 STALL_S = 0.5  # commanded MIN_MOVE or more away, and no move of STALL_MOVE_DEG for this long: stalled
 STALL_MOVE_DEG = 0.2
 PRECISE = 0.1  # a decisive pair whose slack is at most this fraction of the motion counts for the focal length
@@ -73,15 +69,6 @@ FOCAL_PAIRS = 8  # such pairs before the focal length's ratio is named
 
 def _kind(r: float) -> str:
     return "reversed" if verdict(r) is Fault.REVERSED else "frozen"
-
-
-def digest(img: np.ndarray) -> int:
-    """The CRC-32 of an image's bytes (a frozen camera repeats them); never 0, which says "not known" in a Frame,
-    as it is for a flat image (a black frame repeats itself and is no frozen camera)."""
-    img = np.ascontiguousarray(img)
-    if img.size == 0 or img.min() == img.max():
-        return 0
-    return zlib.crc32(img) or 1
 
 
 @dataclass
@@ -115,10 +102,7 @@ class Doubt:
         self.probe_sign = 1.0
         self.returned = False  # the fault's move back to the anchor was sent
         self.last_slave: tuple[int, float] | None = None  # (digest, pan) of the last frame
-        self.last_master: int | None = None
-        self.master_same_since: float | None = None
-        self.master_changes = 0  # the longest run of master images that changed frame to frame
-        self.master_run = 0  # the present run
+        self.master = Master()  # the master camera's images, frame to frame
         self.stall: tuple[float, float] | None = None  # (t, pan) since which a command far away has not moved it
         self.t_bound: float | None = None  # since when a head not yet seen to follow is held at its leash's end
         self.probe_ref: _Seen | None = None  # ... and the decision before its probe
@@ -317,20 +301,11 @@ class Doubt:
         return abs(pan - self.last_slave[1]) >= math.radians(IDENTICAL_MOVE_DEG)
 
     def _master(self, t: float, master: int | None) -> None:
-        if master is None:
-            return
-        if master != self.last_master:
-            # a live camera's images change every frame (its noise, the scene): a run of MASTER_LIVE changes in a
-            # row says so, where a few changes apart (the rows a simulator renders as the window grows) do not
-            self.master_run = self.master_run + 1 if self.last_master is not None else 0
-            self.master_changes = max(self.master_changes, self.master_run)
-            self.last_master, self.master_same_since = master, t
-            if self.fault is Fault.MASTER_FROZEN:
-                self._clear(t, self.anchor, "the master's images change again")
-            return
-        self.master_run = 0
-        if self.fault is None and self.master_changes >= MASTER_LIVE and t - self.master_same_since >= FROZEN_MASTER_S:
-            self._raise(t, Fault.MASTER_FROZEN, f"the same master image for {t - self.master_same_since:.2f} s")
+        seen = self.master.see(t, master)
+        if seen == "changed" and self.fault is Fault.MASTER_FROZEN:
+            self._clear(t, self.anchor, "the master's images change again")
+        elif seen == "frozen" and self.fault is None:
+            self._raise(t, Fault.MASTER_FROZEN, f"the same master image for {t - self.master.same_since:.2f} s")
 
     def _stalled(self, t: float, pan: float) -> None:
         if self.stall is None or self.fault is not None:

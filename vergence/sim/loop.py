@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..head.control import ControlSettings, Controller
-from ..head.doubt import digest
+from ..head.frozen import digest
 from ..network.decide import has_texture
 from ..network.match import match
 from ..network.params import Params

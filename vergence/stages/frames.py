@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from ..head.doubt import digest
+from ..head.frozen import digest
 from ..network import retina
 from ..config import LimitSettings
 from ..wire.messages import Frame, MessageError

@@ -1,0 +1,35 @@
+"""vergence.head.frozen: the images' digests, and the master camera's watch."""
+
+from __future__ import annotations
+
+import zlib
+
+import numpy as np
+
+from vergence.head.frozen import FROZEN_MASTER_S, MASTER_LIVE, Master, digest
+
+
+def test_the_digest_is_the_images_crc32_and_0_only_for_a_flat_image():
+    img = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    assert digest(img) == zlib.crc32(img.tobytes())
+    assert digest(img[:, ::2]) == zlib.crc32(np.ascontiguousarray(img[:, ::2]).tobytes())  # a view: its own bytes
+    assert digest(np.zeros((3, 4), np.uint8)) == 0 and digest(np.full((3, 4), 9, np.uint8)) == 0
+    assert digest(np.zeros((0, 4), np.uint8)) == 0
+
+
+def test_a_master_that_changed_every_frame_and_now_repeats_is_frozen_after_frozen_master_s():
+    m, dt = Master(), 1 / 60
+    seen = [m.see(k * dt, 100 + k) for k in range(MASTER_LIVE + 1)]  # a live camera: new bytes every frame
+    assert seen == ["changed"] * (MASTER_LIVE + 1) and m.changes == MASTER_LIVE
+    t0 = MASTER_LIVE * dt
+    same = [m.see(t0 + k * dt, 100 + MASTER_LIVE) for k in range(1, 30)]
+    frozen_at = t0 + (same.index("frozen") + 1) * dt
+    assert frozen_at - t0 >= FROZEN_MASTER_S - 1e-9 and frozen_at - t0 < FROZEN_MASTER_S + dt
+    assert m.see(1.0, 7) == "changed"  # and it changes again
+    assert m.see(1.01, None) is None  # unknown: nothing said
+
+
+def test_a_master_that_never_changed_every_frame_is_never_frozen():
+    m = Master()  # a still scene rendered clean: a few changes apart (the window growing), then the same bytes
+    seen = [m.see(k / 60, 1 if k < 3 else (2 if k < 10 else 3)) for k in range(120)]
+    assert "frozen" not in seen and m.changes < MASTER_LIVE

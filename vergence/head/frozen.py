@@ -1,0 +1,51 @@
+"""Byte-identical images (issue #35): a frozen camera's driver repeats its last image with fresh stamps. digest() is the
+CRC-32 each Frame carries for its two images; Master watches the master camera's: images that used to change every
+frame (MASTER_LIVE in a row at least: a live camera's noise) and have been the same for FROZEN_MASTER_S are a frozen
+master. (The slave's are judged against the motor's motion: vergence.head.doubt.)"""
+
+from __future__ import annotations
+
+import zlib
+
+import numpy as np
+
+__all__ = ["FROZEN_MASTER_S", "MASTER_LIVE", "Master", "digest"]
+
+FROZEN_MASTER_S = 0.3  # byte-identical master images for this long, where they used to change ...
+MASTER_LIVE = 5  # ... every frame, this many in a row at least (a live camera's noise)
+
+
+def digest(img: np.ndarray) -> int:
+    """The CRC-32 of an image's bytes (a frozen camera repeats them); never 0, which says "not known" in a Frame,
+    as it is for a flat image (a black frame repeats itself and is no frozen camera)."""
+    img = np.ascontiguousarray(img)
+    if img.size == 0 or img.min() == img.max():
+        return 0
+    return zlib.crc32(img) or 1
+
+
+class Master:
+    """The master camera's digests, frame to frame."""
+
+    def __init__(self):
+        self.last: int | None = None
+        self.same_since: float | None = None  # the exposure of the first image of the present run of the same bytes
+        self.changes = 0  # the longest run of images that changed frame to frame
+        self.run = 0  # the present run
+
+    def see(self, t: float, digest: int | None) -> str | None:
+        """One master image (t its exposure, its digest; None: unknown): "changed" (unlike the last one), "frozen"
+        (the same for FROZEN_MASTER_S where they used to change every frame) or None."""
+        if digest is None:
+            return None
+        if digest != self.last:
+            # a run of MASTER_LIVE changes in a row says a live camera, where a few changes apart (the rows a
+            # simulator renders as the window grows) do not
+            self.run = self.run + 1 if self.last is not None else 0
+            self.changes = max(self.changes, self.run)
+            self.last, self.same_since = digest, t
+            return "changed"
+        self.run = 0
+        if self.changes >= MASTER_LIVE and t - self.same_since >= FROZEN_MASTER_S:
+            return "frozen"
+        return None
