@@ -11,14 +11,17 @@ with the pair's slack (the target's acceleration, the offset's and the encoder's
 image show most of that motion, whatever the target did: such a pair is judged. r below FOLLOWS_MIN says the image
 did not follow (near 0: a frozen slave camera or a slipping coupling; near -1: a camera turning the other way than
 the encoder says), r in FOLLOWS_MIN..FOLLOWS_MAX that it did (r away from 1: the focal length is off by r); two that
-did not, in a row and agreeing, name the fault. Pursuit, slow moves and jumps of the target are never judged. A
-byte-identical slave image after the motor moved IDENTICAL_MOVE_DEG is a frozen camera outright.
+did not, in a row and agreeing, name the fault ("reversed" only where r is at most 2 x REVERSED_MAX). A pair short
+of the motor at the learnt rate but not at the target's latest (the rate its last consistent pair showed: the learnt
+rate lags a target that turns, e.g. a 2 Hz sine at 30 Hz) is a doubt: it holds and probes as a fail does, and names
+nothing. Pursuit, slow moves and jumps of the target are never judged. A byte-identical slave image after the motor
+moved IDENTICAL_MOVE_DEG is a frozen camera outright.
 
 The leash. Until the image has been seen to follow (at the start, after a fault), no command goes further than
 UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there for PROBE_S probes back to learn
 whether it follows. Once it has, no command goes further than LEASH_DEG past the pan the last consistent decision
 asked for (its z, moved on at the learnt rate); after a pair that did not follow, none further from the anchor
-than the slave already is, until the next pair says.
+than the slave already is, and after SUSPECT_S a probe back toward the anchor, whose image confirms or clears it.
 
 A fault: the slave goes back to the anchor and holds; the only moves are probes (PROBE_DEG from the anchor, one
 every PROBE_S), and when the image follows one again (or, for a stalled motor, the encoder moves) the loop resumes
@@ -35,9 +38,8 @@ import logging
 import math
 from dataclasses import dataclass
 
-
 from ..choices import Fault
-from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, focal_off, verdict
+from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, REVERSED_MAX, focal_off, verdict
 from .frozen import Master
 from .lag import LAG_AFTER_S, RETURN_FIT_S, Lag
 
@@ -60,6 +62,7 @@ UNTRUSTED_DEG = 2.9  # the leash about the anchor until the image has been seen 
 LEASH_DEG = 1.5  # the leash past the pan the last consistent measurement asked for
 PROBE_DEG, PROBE_S = 0.5, 1.0  # during a fault: a probing move this far from the anchor, at most one a period
 PROBE_MIN_DEG = 0.3  # a probe's pair counts when the motor moved at least this much
+SUSPECT_S = 0.1  # a pair that did not follow holds the motor this long, then probes
 SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within this
 IDENTICAL_MOVE_DEG = 0.5  # a byte-identical slave image after the motor moved this much is frozen
 STALL_S = 0.5  # commanded MIN_MOVE or more away, and no move of STALL_MOVE_DEG for this long: stalled
@@ -68,7 +71,9 @@ PRECISE = 0.1  # a decisive pair whose slack is at most this fraction of the mot
 FOCAL_PAIRS = 8  # such pairs before the focal length's ratio is named
 
 def _kind(r: float) -> str:
-    return "reversed" if verdict(r) is Fault.REVERSED else "frozen"
+    """The kind of a fail: reversed where r <= -0.7 (a reversed camera's r is near -1; a slipping one's, the target
+    mispredicted, as low as -0.6: advising to flip a good camera is worse than the frozen advice), else frozen."""
+    return "reversed" if r <= 2 * REVERSED_MAX else "frozen"
 
 
 @dataclass
@@ -106,6 +111,7 @@ class Doubt:
         self.stall: tuple[float, float] | None = None  # (t, pan) since which a command far away has not moved it
         self.t_bound: float | None = None  # since when a head not yet seen to follow is held at its leash's end
         self.probe_ref: _Seen | None = None  # ... and the decision before its probe
+        self.t_held: float | None = None  # since when a pair that did not follow holds the motor
         self.probe_goal = 0.0
         self.last_seen: _Seen | None = None  # the latest confident decision
         self.faults = 0  # faults named so far
@@ -113,6 +119,7 @@ class Doubt:
         self.t_last: float | None = None
         self.fovea: tuple[int, int] | None = None
         self.lag = Lag()  # a camera later than its frames say
+        self.trend = 0.0  # the target's rate as the last consistent pair showed it (rad/s), learnt or not
         self.u = 0.0  # the last shift()'s pan's uncertainty (the next observe()'s decision's)
 
     @property
@@ -151,7 +158,7 @@ class Doubt:
             return self.fault  # out of order or not a time: nothing to learn
         self.t_last = t
         if fovea != self.fovea:
-            self.fovea, self.ref, self.centre, self.rate = fovea, None, None, 0.0  # a new target: afresh
+            self.fovea, self.ref, self.centre, self.rate, self.trend = fovea, None, None, 0.0, 0.0  # afresh
         if self.anchor is None:
             self.anchor = pan
         self._master(t, master)
@@ -169,17 +176,17 @@ class Doubt:
         now = _Seen(t, pan, a, self.u)
         self.last_seen = now
         self.lag.saw(t, a)
-        if self.probe_ref is not None and not self.trusted:
-            self._untrusted_probe(t, now)
+        if self.probe_ref is not None:
+            self._probed(t, now)
             return self.fault
         if self.fails and t - self.t_fail > REF_MAX_S:
-            self.fails.clear()  # a suspicion nothing confirmed
+            self.fails.clear()  # a suspicion nothing confirmed (a probe under way returned above)
         if self.ref is None or t - self.ref.t > REF_MAX_S:
             self.ref = now  # (the leash's centre stays where the last consistent measurement put it)
             if self.centre is None:
                 self.centre = now
-            return self.fault
-        self._pair(self.ref, now)
+        else:
+            self._pair(self.ref, now)
         return self.fault
 
     def _pair(self, i: _Seen, j: _Seen) -> None:
@@ -200,8 +207,11 @@ class Doubt:
         # (a pair that did not follow arms the judge: the next one that moved far enough is judged, fast or not)
         if big and own >= math.radians(MIN_MOVE_DEG) and (self.fails or own >= math.radians(JUDGE_RATE_DEG_S) * dt):
             r = moved / p
+            # short of the motor's motion also where the target went on at the rate its last decisions showed (a
+            # learnt rate lags a target that turns; that one is learnt only where the motor could not teach it)
             if verdict(r) is not None:
-                self._fail(j.t, _kind(r), f"r = {r:.2f} over {math.degrees(p):.2f} deg")
+                vetoed = verdict((moved - pred + self.trend * dt) / p) is None
+                self._fail(j.t, "doubt" if vetoed else _kind(r), f"r = {r:.2f} over {math.degrees(p):.2f} deg")
                 return
             if r <= FOLLOWS_MAX:
                 self._followed(j, r, slack <= PRECISE * abs(p))
@@ -209,7 +219,7 @@ class Doubt:
         elif abs(e) <= slack + 0.5 * abs(p):
             if big:
                 self._followed(j, moved / p, False)
-            elif self.trusted and abs(p) < math.radians(SAME_PAN_DEG):
+            elif self.trusted and not self.fails and abs(p) < math.radians(SAME_PAN_DEG):
                 self.anchor = j.pan  # at rest where the image agrees: the pan to go back to
             self._consistent(i, j)
         elif abs(p) < 0.5 * abs(e) or abs(p) < math.radians(JUDGE_RATE_DEG_S) * dt:
@@ -232,10 +242,12 @@ class Doubt:
         own motion (a slipping coupling's does)."""
         dt = j.t - i.t
         slow = abs(j.pan - i.pan) < math.radians(LEARN_RATE_DEG_S) * dt
-        if learn and dt > 0 and (slow or abs(i.a) < math.radians(TRACKING_DEG)):
-            v = (j.z - i.z) / (j.t - i.t)
-            vmax = math.radians(TARGET_RATE_DEG_S)
-            self.rate = 0.0 if abs(v) > vmax else 0.5 * self.rate + 0.5 * v
+        if dt > 0:
+            v = (j.z - i.z) / dt
+            jump = abs(v) > math.radians(TARGET_RATE_DEG_S)
+            self.trend = 0.0 if jump else v
+            if learn and (slow or abs(i.a) < math.radians(TRACKING_DEG)):
+                self.rate = 0.0 if jump else 0.5 * self.rate + 0.5 * v
         self.ref = self.centre = j
 
     def _focal(self) -> None:
@@ -247,13 +259,17 @@ class Doubt:
             self.focal_ratio = med if named else None
 
     def _fail(self, t: float, kind: str, why: str) -> Fault | None:
+        """A pair (or a probe) that did not follow, of `kind` ("frozen", "reversed", or "doubt": short of the motor's
+        motion at the learnt rate, not at the target's latest; it holds and probes, and names nothing)."""
+        if kind == "doubt" and self.fails and self.fails[-1] != kind:
+            return self.fault  # (a pair that did not follow is not undone by one that may have)
         if self.fails and self.fails[-1] != kind:
             self.fails.clear()  # a fault is named by pairs that agree on it
         self.fails.append(kind)
         self.t_fail = t
         if why.startswith("a byte-identical"):
             self.fails.append(kind)  # the bytes say it outright
-        if len(self.fails) >= FAILS:
+        if len(self.fails) >= FAILS and kind != "doubt":
             fault = Fault.REVERSED if kind == "reversed" else Fault.SLAVE_FROZEN
             self._raise(t, fault, why)
         return self.fault
@@ -263,10 +279,10 @@ class Doubt:
             # the image of the move that raised it, and of the move back to the anchor: a late one shows both
             self.lag.expect(self.last_seen.t, self.last_seen.a, t + RETURN_FIT_S)
         self.fault, self.t_probe, self.returned = fault, t, False
-        self.trusted = False
+        self.trusted, self.ref, self.t_held = False, None, None
         self.fails.clear()
         self.faults += 1
-        self.ref = None
+        self._unprobe()  # (a probe of the leash or of a suspicion: over)
         log.error("fault %s (%s): holding at %.2f deg; %s", fault, why,
                   math.degrees(self.anchor if self.anchor is not None else math.nan), ADVICE[fault])
 
@@ -274,20 +290,15 @@ class Doubt:
         log.warning("fault %s cleared (%s): resuming from %.2f deg", self.fault, how, math.degrees(pan))
         self.fault = None
         self.resumed += 1
-        self.anchor = pan
-        self.trusted = True
-        self.ref = self.centre = None
-        self.rate = 0.0
-        self.stall = None
+        self.anchor, self.trusted, self.ref, self.centre, self.stall = pan, True, None, None, None
+        self.rate = self.trend = 0.0
 
     def relocate(self, pan: float) -> None:
         """A search found a candidate at `pan` (vergence.head.search): the loop goes on from there as at the start,
         its image not yet seen to follow (the leash about it until a move shows it does)."""
-        self.anchor, self.trusted = pan, False
-        self.ref = self.centre = None
-        self.rate = 0.0
+        self.anchor, self.trusted, self.ref, self.centre, self.stall = pan, False, None, None, None
+        self.rate = self.trend = 0.0
         self.fails.clear()
-        self.stall = None
         self._unprobe()
 
     def _identical(self, pan: float, slave: int | None) -> bool:
@@ -356,7 +367,9 @@ class Doubt:
             return goal
         goal = min(max(goal, centre - lim), centre + lim)
         if self.fails and self.anchor is not None and abs(goal - self.anchor) > abs(pan - self.anchor):
-            goal = pan  # a pair did not follow: no further from the last pan that did, until the next says
+            goal = self._suspect(pan, t_now)  # a pair did not follow: no further from the last pan that did
+        else:
+            self.t_held = None
         if abs(goal - pan) >= math.radians(MIN_MOVE_DEG):
             if self.stall is None:
                 self.stall = (t_now, pan)
@@ -380,15 +393,32 @@ class Doubt:
             return self.probe_goal
         return None
 
+    def _suspect(self, pan: float, t_now: float) -> float:
+        """A pair did not follow: held where it is (the frames exposed meanwhile may confirm it), then after SUSPECT_S a
+        probe PROBE_DEG back toward the anchor, whose image confirms the fault or clears the doubt. The goal."""
+        if self.probe_ref is not None:
+            if t_now - self.t_bound < 2 * PROBE_S:
+                return self.probe_goal
+            self._unprobe()
+        if self.t_held is None:
+            self.t_held = t_now
+        elif (t_now - self.t_held >= SUSPECT_S and self.last_seen is not None
+              and abs(pan - self.anchor) >= math.radians(PROBE_MIN_DEG)):
+            self.probe_ref, self.t_bound, self.t_held = self.last_seen, t_now, None
+            self.probe_goal = pan - math.copysign(math.radians(PROBE_DEG), pan - self.anchor)
+            return self.probe_goal
+        return pan
+
     def _unprobe(self) -> None:
         self.probe_ref = self.t_bound = None
 
-    def _untrusted_probe(self, t: float, now: _Seen) -> None:
-        """The image of an untrusted head's probe: it followed (the head is trusted) or not (a fail)."""
+    def _probed(self, t: float, now: _Seen) -> None:
+        """The image of a probe (a head not yet trusted, or held by a pair that did not follow): it followed (the
+        head is trusted) or not (a fail). The target's motion meanwhile is taken out at its learnt rate."""
         ref, p = self.probe_ref, now.pan - self.probe_ref.pan
         if abs(p) < math.radians(PROBE_MIN_DEG):
             return
-        r = -(now.a - ref.a) / p
+        r = (-(now.a - ref.a) + self.rate * (now.t - ref.t)) / p
         self._unprobe()
         if verdict(r) is None and r <= FOLLOWS_MAX:
             self._followed(now, r, False)
