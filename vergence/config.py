@@ -57,17 +57,20 @@ class RigSettings:
     cameras' optical centres in metres; focal_px, the focal length in pixels of the views the capture reads
     (0: [capture] focal_px, else the source's own, else 0.8 x width); master, which camera is the fixed one,
     left or right ("": [capture] master, left); gimbal, helmholtz (both cameras pan on one tilting
-    platform) or fick (each camera tilts on its own pan joint). The rig's name is the top-level `rig = "head"`
-    (or `name` in this table)."""
+    platform) or fick (each camera tilts on its own pan joint); pan_axis_m, how far behind the slave's optical
+    centre its pan axis is (metres; `vergence calibrate` measures it from points at several pans). The rig's
+    name is the top-level `rig = "head"` (or `name` in this table)."""
 
     baseline_m: float = 0.06
     focal_px: float = 0.0
     master: str = ""
     gimbal: str = "helmholtz"
+    pan_axis_m: float = 0.0
 
     RANGES: typing.ClassVar[dict[str, Range]] = {
         "baseline_m": Range(0, 10, lo_open=True, note="metres"),
         "focal_px": Range(0, 100_000, note="pixels; 0: the capture's"),
+        "pan_axis_m": Range(-0.5, 0.5, note="metres behind the slave's optical centre"),
     }
 
     def __post_init__(self):

@@ -28,8 +28,8 @@ import time
 import numpy as np
 
 from vergence.config import ConfigError, load
-from vergence.head.calibrate import (CalibrationError, calibration_plan, fit_head, merge_settings, pan_for_depth,
-                                     settings_text, solve_zero)
+from vergence.head.calibrate import (AXIS_SIGMA_M, CalibrationError, calibration_plan, fit_head, merge_settings,
+                                     pan_for_depth, settings_text, solve_axis, solve_zero)
 from vergence.wire import keys
 from vergence.wire.messages import Fixate, Frame, MessageError
 
@@ -218,13 +218,19 @@ def report(points, states, frame, settings):
         x, y = fovea if fovea is not None else (frame.width // 2, frame.height // 2)
         obs.append((z, p_fit.pan0_rad, p_fit.pan0_sigma_rad, dict(master_px=(x - cx, y - cy), slave_px=(x - sx, y - sy),
                                                                   **geo)))
-    b0 = settings.geometry.baseline_m
-    distinct = len({round(z, 3) for z, *_ in obs}) >= 2
-    zero, b, b_sigma = solve_zero(obs, f, b0 if not distinct else None)
+    b0, d = settings.geometry.baseline_m, settings.geometry.pan_axis_m
+    distances = len({round(z, 3) for z, *_ in obs})
+    distinct = distances >= 2
+    axis = solve_axis(obs, f, b0, True) if distances >= 3 else None
+    if axis is not None and axis[4] <= AXIS_SIGMA_M:  # the points tell the pan axis too
+        zero, b, b_sigma, d, d_sigma = axis
+    else:
+        zero, b, b_sigma = solve_zero([(z, p0, sig, dict(kw, axis_m=d)) for z, p0, sig, kw in obs], f,
+                                      b0 if not distinct else None)
     now = next((m.offset_deg for m in reversed(states)), 0.0)
     offset = now + math.degrees(zero)
     for z, p0, sig, kw in obs:
-        want = pan_for_depth(z, b, f, **kw)
+        want = pan_for_depth(z, b, f, axis_m=d, **kw)
         lines.append(f"at {z:g} m: the slave sees the point at {math.degrees(p0):+.4f} deg as the motor reports it, "
                      f"where it should at {math.degrees(want):+.4f} deg (+- {math.degrees(sig):.4f})")
     sig0 = math.sqrt(sum(o[2] ** 2 for o in obs)) / len(obs)
@@ -236,6 +242,14 @@ def report(points, states, frame, settings):
         values["rig"]["baseline_m"] = round(float(b), 5)
     elif len(obs) == 1:
         lines.append(f"baseline: the settings' {b0:g} m (points at two distances or more measure it)")
+    if axis is not None and axis[4] <= AXIS_SIGMA_M:
+        lines.append(f"pan axis: {d * 1e3:+.1f} +- {d_sigma * 1e3:.1f} mm behind the slave's optical centre (the "
+                     f"settings say {settings.geometry.pan_axis_m * 1e3:g} mm)")
+        values["rig"]["pan_axis_m"] = round(float(d), 4)
+    else:
+        told = "" if axis is None else f" (these give {axis[3] * 1e3:+.0f} +- {axis[4] * 1e3:.0f} mm)"
+        lines.append(f"pan axis: the settings' {d * 1e3:g} mm behind the optical centre{told}; points at three "
+                     "distances or more, one near (0.3-0.5 m), measure it")
     return values, lines
 
 

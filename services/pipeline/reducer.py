@@ -264,7 +264,7 @@ class Reducer:
                 self.pub_command.put(r.command.to_bytes())
                 health.count("commands")
             where = depth.decision_fields(r.frame, r.decision, r.scores, geo.baseline_m, geo.gimbal,
-                                          geo.master or self.settings.capture.master)
+                                          geo.master or self.settings.capture.master, geo.pan_axis_m)
             self.pub_decision.put(replace_message(r.message, **where).to_bytes())
             if self.pub_profile.matching_status.matching:  # up to 65 KB at 640 px: only encoded when wanted
                 self.pub_profile.put(replace_message(r.profile, **where).to_bytes())

@@ -77,6 +77,24 @@ def test_head_geometry():
     assert HEAD.disparity_px(0.6) == pytest.approx(50.0)
     assert HEAD.converged_pan(0.8) == pytest.approx(-math.atan(0.075))
     assert HEAD.depth(HEAD.converged_pan(0.7)) == pytest.approx(0.7)
+    turned = Head(B, F, axis_m=0.03)  # the slave turning about an axis 3 cm behind its optical centre
+    p = turned.converged_pan(0.5)
+    x, z = turned.slave_centre(p)
+    assert x == pytest.approx(B + 0.03 * math.sin(p)) and z == pytest.approx(0.03 * (math.cos(p) - 1))
+    assert math.atan2(-x, 0.5 - z) == pytest.approx(p) and turned.depth(p) == pytest.approx(0.5)
+    assert math.degrees(p - HEAD.converged_pan(0.5)) == pytest.approx(0.384, abs=0.002)  # its centre moved 3.6 mm
+
+
+@pytest.mark.parametrize("axis,z", [(0.03, 0.5), (-0.05, 1.5), (0.05, 0.6)])
+def test_a_slave_turning_about_an_axis_behind_its_centre_is_rendered_where_the_truth_says(axis, z):
+    """The sim renders the slave from its centre on the circle about the pan axis (axis=M): the loop converges
+    where the truth (the pan at which that centre sees the target) says, within a pixel."""
+    rig = MovingRig.from_options(motion=f"still:z={z}", focal="500", axis=str(axis), seed="3")
+    rig.start_pan_rad = rig.truth_pan(0.0) + 0.03
+    steps = list(closed_loop(rig, 40, None, ControlSettings(), None, 60.0, seed=3))
+    assert abs(steps[-1].error_px) < 1.0 and abs(rig.truth_pan(0.0) - rig.head.converged_pan(z)) < 1e-12
+    with pytest.raises(ValueError, match="axis=0.6"):
+        MovingRig.from_options(axis="0.6")
 
 
 @pytest.mark.parametrize("z", [0.5, 0.8, 1.1])

@@ -37,8 +37,8 @@ from .depth import depth_from_pans
 from .follows import ADVICE, verdict
 from .latency import LatencyError, LatencyFit, fit_latency
 
-__all__ = ["CalibrationError", "HeadFit", "fit_head", "pan_for_depth", "solve_zero", "calibration_plan",
-           "merge_settings", "settings_text", "MIN_R2", "MAX_RMS_PX"]
+__all__ = ["AXIS_SIGMA_M", "CalibrationError", "HeadFit", "fit_head", "pan_for_depth", "solve_axis", "solve_zero",
+           "calibration_plan", "merge_settings", "settings_text", "MIN_R2", "MAX_RMS_PX"]
 
 MIN_R2 = 0.98  # of the offsets' variance the motor's motion must explain; a still textured scene gives > 0.999
 MAX_RMS_PX = 0.3  # the fit's residual (px); on a still scene and a settled motor the sim leaves 0.01-0.02
@@ -189,7 +189,7 @@ def _ratio(slope: float, focal_px: float | None) -> float:
 
 def pan_for_depth(z_m: float, baseline_m: float, focal_px: float, *, master_px: tuple[float, float] = (0.0, 0.0),
                   slave_px: tuple[float, float] | None = None, master_pan_rad: float = 0.0, tilt_rad: float = 0.0,
-                  gimbal: str = "helmholtz", master: str = "left") -> float:
+                  gimbal: str = "helmholtz", master: str = "left", axis_m: float = 0.0) -> float:
     """The slave's pan at which its pixel slave_px (off its principal point; default master_px: the same pixel,
     for cameras with one principal point) sees the point at depth z_m that the master sees at master_px:
     vergence.head.depth.depth_from_pans solved for the slave's pan (bisection)."""
@@ -199,7 +199,8 @@ def pan_for_depth(z_m: float, baseline_m: float, focal_px: float, *, master_px: 
 
     def z(p: float) -> float:
         v = depth_from_pans(master_pan_rad, p, baseline_m, focal_px, tilt_rad=tilt_rad, master_px=master_px,
-                            slave_px=master_px if slave_px is None else slave_px, gimbal=gimbal, master=master)
+                            slave_px=master_px if slave_px is None else slave_px, gimbal=gimbal, master=master,
+                            axis_m=axis_m)
         return v if math.isfinite(v) else math.inf
 
     # for a left master the slave (on the right) turns toward negative pans to converge: nearer as it turns
@@ -215,6 +216,42 @@ def pan_for_depth(z_m: float, baseline_m: float, focal_px: float, *, master_px: 
         else:
             near = mid
     return 0.5 * (near + far)
+
+
+AXIS_SIGMA_M = 0.005  # the pan axis's offset is told where the points give it to this (else it is not measured)
+
+
+def solve_axis(obs, f: float, baseline_m: float, fit_baseline: bool) -> tuple[float, float, float, float, float]:
+    """(the pan zero's error, the baseline, its sigma, the pan axis's offset behind the optical centre, its sigma)
+    from [(distance, p0, sigma, geometry)] at several pans (issue #36): p0 = want(b, d) - zero, least squares
+    weighted by the p0s' sigmas (Gauss-Newton, the slopes by finite differences); the baseline fitted too where
+    fit_baseline (points at two distances or more), else baseline_m. A pan axis d behind the optical centre moves
+    it d sin(p) sideways as the slave turns: points at pans far apart tell it (at one distance: across the view)."""
+    n = len(obs)
+    k = 3 if fit_baseline else 2
+    if n < k:
+        raise CalibrationError(f"the pan axis needs {k} points or more at different pans (given {n})")
+    p0 = np.array([o[1] for o in obs])
+    w = 1.0 / np.maximum(np.array([o[2] for o in obs]), 1e-6)
+    b, d, zero = baseline_m, 0.0, 0.0
+
+    def want(b, d):
+        return np.array([pan_for_depth(z, b, f, axis_m=d, **kw) for z, _, _, kw in obs])
+
+    for _ in range(4):
+        w0 = want(b, d)
+        cols = [np.full(n, -1.0), (want(b, d + 1e-4) - w0) / 1e-4]
+        if fit_baseline:
+            cols.append((want(b + 1e-4, d) - w0) / 1e-4)
+        jac = np.stack(cols, axis=1)
+        res = p0 - (w0 - zero)
+        step, *_ = np.linalg.lstsq(jac * w[:, None], res * w, rcond=None)
+        zero, d = zero + step[0], d + step[1]
+        if fit_baseline:
+            b += step[2]
+    cov = np.linalg.pinv((jac * w[:, None]).T @ (jac * w[:, None]))
+    sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    return float(zero), float(b), float(sig[2]) if fit_baseline else 0.0, float(d), float(sig[1])
 
 
 def solve_zero(obs, f: float, baseline_m: float | None) -> tuple[float, float, float]:

@@ -62,17 +62,21 @@ def azimuth_tan(pan_rad: float, tilt_rad: float, u: float, v: float, f: float, g
 def depth_from_pans(master_pan_rad: float, slave_pan_rad: float, baseline_m: float, focal_px: float, *,
                     tilt_rad: float = 0.0, master_px: tuple[float, float] = (0.0, 0.0),
                     slave_px: tuple[float, float] = (0.0, 0.0), gimbal: str = "helmholtz",
-                    master: str = "left") -> float:
+                    master: str = "left", axis_m: float = 0.0) -> float:
     """Z (m) of the point seen at master_px = (u, v) off the master's principal point and slave_px off the
     slave's (both default: the view centres), the cameras at the given pans and common tilt. NaN when the
-    rays do not converge in front of the head (parallel or diverging)."""
+    rays do not converge in front of the head (parallel or diverging). axis_m: the slave's pan axis that far
+    behind its optical centre, which then turns on a circle about it: at pan p it sits axis_m sin p sideways and
+    axis_m (1 - cos p) back of where it sits at pan 0."""
     tm, em = azimuth_tan(master_pan_rad, tilt_rad, master_px[0], master_px[1], focal_px, gimbal)
     ts, _ = azimuth_tan(slave_pan_rad, tilt_rad, slave_px[0], slave_px[1], focal_px, gimbal)
     s = 1.0 if master == "left" else -1.0
     den = s * (tm - ts)
     if not den > 0:
         return math.nan
-    pz = baseline_m / den
+    # the slave's centre (s b + d sin p, d (cos p - 1)); its ray x = x0 + ts (z - z0) meets the master's x = tm z
+    x0, z0 = axis_m * math.sin(slave_pan_rad), axis_m * (math.cos(slave_pan_rad) - 1.0)
+    pz = (baseline_m + s * (x0 - ts * z0)) / den
     if gimbal == "helmholtz":
         return pz * math.cos(tilt_rad) + pz * em * math.sin(tilt_rad)
     return pz
@@ -122,12 +126,12 @@ def fixated_depth(*, x: float, y: float, width: int, height: int, focal_px: floa
                   master_pan_rad: float = 0.0, tilt_rad: float = 0.0, gimbal: str = "helmholtz",
                   master: str = "left", converged_px: float = CONVERGED_PX,
                   principal: tuple[float, float] | None = None,
-                  slave_principal: tuple[float, float] | None = None) -> Depth:
+                  slave_principal: tuple[float, float] | None = None, axis_m: float = 0.0) -> Depth:
     """The depth of a decision: the fovea at master pixel (x, y) of a width x height view, found offset_px to
     the right (v_shift rows down) in the slave at slave_pan_rad. NaN (and converged False) unless the decision
     is confident and within converged_px of the fovea; NaN with converged True when the geometry gives no
     point in front of the head (or baseline_m is not positive: no rig geometry). principal, slave_principal: each
-    camera's principal point (default: the view centre, (width // 2, height // 2))."""
+    camera's principal point (default: the view centre, (width // 2, height // 2)); axis_m: depth_from_pans'."""
     values = (x, y, focal_px, slave_pan_rad, offset_px, master_pan_rad, tilt_rad)
     if not confident or not all(math.isfinite(v) for v in values) or not abs(offset_px) <= converged_px:
         return NO_DEPTH
@@ -137,14 +141,14 @@ def fixated_depth(*, x: float, y: float, width: int, height: int, focal_px: floa
     sx, sy = slave_principal if slave_principal is not None else (width // 2, height // 2)
     z = depth_from_pans(master_pan_rad, slave_pan_rad, baseline_m, focal_px, tilt_rad=tilt_rad,
                         master_px=(x - cx, y - cy), slave_px=(x + offset_px - sx, y + v_shift - sy),
-                        gimbal=gimbal, master=master)
+                        gimbal=gimbal, master=master, axis_m=axis_m)
     if not math.isfinite(z):
         return Depth(math.nan, math.nan, True, sigma_d_px)
     return Depth(z, depth_sigma(z, baseline_m, focal_px, sigma_d_px), True, sigma_d_px)
 
 
 def decision_fields(frame, decision, scores: np.ndarray, baseline_m: float, gimbal: str = "helmholtz",
-                    master: str = "left") -> dict:
+                    master: str = "left", axis_m: float = 0.0) -> dict:
     """The fields the reducer adds to a decision's Decision and Profile: the fovea centre x, y it was decided
     for, converged, depth_m and depth_sigma_m. frame: a messages.Frame; decision: its vergence.network.decide.Decision;
     scores: its layer-4 scores (rows x K, row v + R the winning one). A frame whose slave pan is not known
@@ -156,7 +160,7 @@ def decision_fields(frame, decision, scores: np.ndarray, baseline_m: float, gimb
                         confident=decision.confident, sigma_d_px=disparity_sigma(row, decision.k, frame.window),
                         baseline_m=baseline_m, master_pan_rad=frame.master_pan_rad, tilt_rad=frame.tilt_rad,
                         gimbal=gimbal, master=master, principal=frame.principal,
-                        slave_principal=frame.slave_principal)
+                        slave_principal=frame.slave_principal, axis_m=axis_m)
     if frame.pan_stale:  # the slave's pan at the exposure is not known: neither is the depth
         return dict(x=frame.x, y=frame.y, converged=dep.converged, depth_m=math.nan, depth_sigma_m=math.nan)
     return dict(x=frame.x, y=frame.y, converged=dep.converged, depth_m=dep.depth_m,

@@ -43,6 +43,7 @@ class Head:
     cy: float | None = None
     k1: float = 0.0
     k2: float = 0.0
+    axis_m: float = 0.0  # the slave's pan axis this far behind its optical centre (the centre turns about it)
 
     def __post_init__(self):
         if not (self.baseline_m > 0 and math.isfinite(self.baseline_m)):
@@ -56,6 +57,8 @@ class Head:
                 raise ValueError(f"{key}={v}: the principal point must lie in the view (0..{most})")
         if not (abs(self.k1) <= 1 and abs(self.k2) <= 1):
             raise ValueError(f"k1={self.k1:g}, k2={self.k2:g}: radial distortion coefficients within +-1")
+        if not (abs(self.axis_m) <= 0.5):
+            raise ValueError(f"axis={self.axis_m:g}: the pan axis within 0.5 m of the optical centre")
         self.lens  # noqa: B018 (its own checks)
 
     @property
@@ -76,13 +79,26 @@ class Head:
         """d = b f / Z of a point at depth Z on the master's axis."""
         return self.baseline_m * self.focal_px / z_m
 
+    def slave_centre(self, pan: float) -> tuple[float, float]:
+        """The slave's optical centre (x, z) at this pan: (b, 0), turned on a circle about the pan axis axis_m
+        behind it."""
+        return self.baseline_m + self.axis_m * math.sin(pan), self.axis_m * (math.cos(pan) - 1.0)
+
     def converged_pan(self, z_m: float) -> float:
-        """The slave pan (radians) that fixates the point at depth Z on the master's axis: -atan(b / Z)."""
-        return -math.atan(self.baseline_m / z_m)
+        """The slave pan (radians) that fixates the point at depth Z on the master's axis: -atan(b / Z) (with a pan
+        axis off the optical centre, the pan at which the centre then sees it there)."""
+        p = -math.atan(self.baseline_m / z_m)
+        for _ in range(6 if self.axis_m else 0):
+            x, z = self.slave_centre(p)
+            p = -math.atan2(x, z_m - z)
+        return p
 
     def depth(self, slave_pan_rad: float) -> float:
         """The inverse: the depth on the master's axis the slave fixates at this pan (inf when parallel)."""
-        return self.baseline_m / math.tan(-slave_pan_rad) if slave_pan_rad < 0 else math.inf
+        if not slave_pan_rad < 0:
+            return math.inf
+        x, z = self.slave_centre(slave_pan_rad)
+        return z + x / math.tan(-slave_pan_rad)
 
     @property
     def K(self) -> np.ndarray:
@@ -190,7 +206,11 @@ class MovingRig:
         th, tw = self.target_tex.shape
         if not (abs(u * z) <= self.target_s * tw / 2 and abs(v * z) <= self.target_s * th / 2):
             z = self.bg_m  # off the target: the background behind it
-        return math.atan2(u * z - self.head.baseline_m, z) - math.atan(u)
+        p = math.atan2(u * z - self.head.baseline_m, z) - math.atan(u)
+        for _ in range(6 if self.head.axis_m else 0):  # the slave's centre moves with its pan
+            cx_, cz_ = self.head.slave_centre(p)
+            p = math.atan2(u * z - cx_, z - cz_) - math.atan(u)
+        return p
 
     @property
     def one_px_rad(self) -> float:
@@ -200,19 +220,19 @@ class MovingRig:
         """f tan(pan - truth(t)): positive when the slave has turned too far right."""
         return self.focal_px * math.tan(slave_pan_rad - self.truth_pan(t))
 
-    def _homography(self, tex_shape, s: float, z: float, centre_x: float, pan: float) -> np.ndarray:
+    def _homography(self, tex_shape, s: float, z: float, centre: tuple[float, float], pan: float) -> np.ndarray:
         th, tw = tex_shape
         u0, v0 = (tw - 1) / 2.0, (th - 1) / 2.0
-        plane = np.array([[s, 0.0, -s * u0 - centre_x], [0.0, s, -s * v0], [0.0, 0.0, z]])
+        plane = np.array([[s, 0.0, -s * u0 - centre[0]], [0.0, s, -s * v0], [0.0, 0.0, z - centre[1]]])
         return self.head.K @ rotation(pan, 0.0).T @ plane
 
-    def _view(self, z: float, centre_x: float, pan: float, region: Region | None = None) -> np.ndarray:
+    def _view(self, z: float, centre: tuple[float, float], pan: float, region: Region | None = None) -> np.ndarray:
         lens = self.head.lens
         if lens is not None and (region is None or not region.scale):  # (a preview stays a pinhole's)
-            return self._distorted(lens, z, centre_x, pan, region)
-        return self._pinhole(z, centre_x, pan, region)
+            return self._distorted(lens, z, centre, pan, region)
+        return self._pinhole(z, centre, pan, region)
 
-    def _distorted(self, lens, z: float, centre_x: float, pan: float, region: Region | None) -> np.ndarray:
+    def _distorted(self, lens, z: float, centre: tuple[float, float], pan: float, region: Region | None) -> np.ndarray:
         """A distorted camera's rows (the region's band, or the whole view): the pinhole render of the part of the
         view's plane those pixels see (vergence.io.lens.distort_grid), remapped."""
         from ..io.lens import distort_grid
@@ -222,14 +242,14 @@ class MovingRig:
         mx, my = distort_grid(lens, self.size, y0, y1)
         x0, x1 = int(np.floor(mx.min())) - 1, int(np.ceil(mx.max())) + 2
         r0, r1 = int(np.floor(my.min())) - 1, int(np.ceil(my.max())) + 2
-        pin = self._pinhole(z, centre_x, pan, Region.window(x0, r0, x1, r1))
+        pin = self._pinhole(z, centre, pan, Region.window(x0, r0, x1, r1))
         return cv2.remap(pin, mx - np.float32(x0), my - np.float32(r0), cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_REPLICATE)
 
-    def _pinhole(self, z: float, centre_x: float, pan: float, region: Region | None = None) -> np.ndarray:
+    def _pinhole(self, z: float, centre: tuple[float, float], pan: float, region: Region | None = None) -> np.ndarray:
         size = self.size if region is None else region.size
-        hb = self._homography(self.bg_tex.shape, self.bg_s, self.bg_m, centre_x, pan)
-        ht = self._homography(self.target_tex.shape, self.target_s, z, centre_x, pan)
+        hb = self._homography(self.bg_tex.shape, self.bg_s, self.bg_m, centre, pan)
+        ht = self._homography(self.target_tex.shape, self.target_s, z, centre, pan)
         if region is not None:
             hb, ht = region.matrix @ hb, region.matrix @ ht
         bg = cv2.warpPerspective(self.bg_tex, hb, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
@@ -243,13 +263,13 @@ class MovingRig:
         """The master's view of the scene at time t, without sensor noise; region: that part of it."""
         if not math.isfinite(t):
             raise ValueError(f"time {t} is not finite")
-        return self._view(self.motion.z(t), 0.0, 0.0, region)
+        return self._view(self.motion.z(t), (0.0, 0.0), 0.0, region)
 
     def slave_view(self, slave_pan_rad: float, t: float = 0.0, region: Region | None = None) -> np.ndarray:
         """The slave's view at time t, panned to slave_pan_rad, without sensor noise; region: that part of it."""
         if not (math.isfinite(slave_pan_rad) and math.isfinite(t)):
             raise ValueError(f"slave pan {slave_pan_rad} or time {t} is not finite")
-        return self._view(self.motion.z(t), self.head.baseline_m, slave_pan_rad, region)
+        return self._view(self.motion.z(t), self.head.slave_centre(slave_pan_rad), slave_pan_rad, region)
 
     def noisy(self, img: np.ndarray, camera: int, y0: int = 0) -> np.ndarray:
         """img with this camera's sensor noise; img is the view's rows from y0 on (a band)."""
@@ -263,7 +283,7 @@ class MovingRig:
     # -- construction from text ---------------------------------------------------------------------------
 
     KEYS = ("motion", "baseline", "focal", "size", "noise", "seed", "pan", "texture", "target", "bg", "cx", "cy", "k1",
-            "k2")
+            "k2", "axis")
 
     @classmethod
     def from_options(cls, **items: str | None) -> "MovingRig":
@@ -271,7 +291,8 @@ class MovingRig:
         (0.8 x width), size=WxH (640x480), noise=SIGMA, seed=N, pan=DEG (the slave's start pan),
         texture=FILE|flat (the target's; default procedural), target=M (its width), bg=M (the background's
         distance), cx=PX, cy=PX (both cameras' principal point; default the view centre), k1=, k2= (both
-        cameras' radial distortion, OpenCV's; default 0). A bad key or value raises ValueError naming it."""
+        cameras' radial distortion, OpenCV's; default 0), axis=M (the slave's pan axis behind its optical centre;
+        default 0). A bad key or value raises ValueError naming it."""
 
         items = {k: v for k, v in items.items() if v is not None}
         unknown = sorted(set(items) - set(cls.KEYS))
@@ -291,7 +312,7 @@ class MovingRig:
                     raise ValueError(f"size={items['size']!r} must be WxH") from None
             focal = num("focal", default=0.8 * size[0])
             head = Head(num("baseline", default=0.06), focal, size, num("cx"), num("cy"), num("k1", default=0.0),
-                        num("k2", default=0.0))
+                        num("k2", default=0.0), num("axis", default=0.0))
             tex = items.get("texture")
             if tex is not None and tex != "flat":
                 tex = read_image(tex)

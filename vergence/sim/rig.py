@@ -156,6 +156,10 @@ class Rig:
         items = {k: v for k, v in items.items() if v is not None}
         if "motion" in items:
             return MovingRig.from_options(**items)
+        physical = sorted(k for k in items if k not in cls.KEYS)
+        if physical:
+            raise ValueError(f"sim source: {physical[0]}= is the physical rig's: give motion= with it (e.g. "
+                             f"sim:motion=still:z=0.8:{physical[0]}={items[physical[0]]})")
         return cls.from_options(**items)
 
     @classmethod

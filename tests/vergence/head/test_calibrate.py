@@ -203,3 +203,28 @@ def test_points_at_two_distances_give_the_zero_and_the_baseline():
     assert 0 < gs < 0.003
     one, b_told, _ = solve_zero(obs[:1], f, 0.06)
     assert b_told == 0.06 and abs(math.degrees(one) - 0.3) > 0.2  # a baseline 5 mm off moves it 0.27 deg at 0.6 m
+
+
+@pytest.mark.parametrize("axis,zero_deg,seed", [(0.03, 0.3, 1), (-0.02, -1.5, 2), (0.0, 0.3, 3)])
+def test_points_at_three_distances_give_the_pan_axis_too(axis, zero_deg, seed):
+    """A sim head whose slave turns about an axis `axis` m behind its optical centre (the simulator's own geometry:
+    MovingRig.truth_at), its camera zero_deg off its encoder, four points at 0.4, 0.6 (off the centre), 0.8 and 3 m,
+    each pan known to 0.004 deg: solve_axis finds the zero, the baseline and the axis; solve_zero, which knows no
+    axis, is off by as much as the axis moves the slave's centre (0.13 deg and 8 % of the baseline for 3 cm)."""
+    from vergence.head.calibrate import solve_axis, solve_zero
+    from vergence.sim.moving import MovingRig
+
+    rng, sig = np.random.default_rng(seed), math.radians(0.004)
+    obs = []
+    for z, x in ((0.4, 320), (0.6, 250), (0.8, 320), (3.0, 320)):
+        rig = MovingRig.from_options(motion=f"still:z={z}", focal="500", axis=str(axis), bg="6")
+        p0 = rig.truth_at(x, 240) - math.radians(zero_deg) + rng.normal(0, sig)
+        obs.append((z, p0, sig, dict(master_px=(x - 320, 0))))
+    zero, b, sb, d, sd = solve_axis(obs, 500.0, 0.06, True)
+    assert math.degrees(zero) == pytest.approx(zero_deg, abs=0.015) and b == pytest.approx(0.06, abs=0.0006)
+    assert d == pytest.approx(axis, abs=max(0.0025, 2.5 * sd)) and 0 < sd < 0.002 and 0 < sb < 0.0005
+    z_no, b_no, _ = solve_zero(obs, 500.0, None)
+    if axis:
+        assert abs(math.degrees(z_no) - zero_deg) > 0.09 and abs(b_no - 0.06) > 0.003
+    with pytest.raises(CalibrationError, match="3 points or more"):
+        solve_axis(obs[:2], 500.0, 0.06, True)

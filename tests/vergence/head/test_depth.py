@@ -344,3 +344,19 @@ def test_the_capture_takes_the_settings_principal_point_then_the_sources_then_th
         ((330.5, 228.0), (301.0, 241.0))
     with pytest.raises(ValueError, match=r"\[camera\] slave_cx = 641: outside the 640 x 480 image"):
         principal_points(CameraSettings(slave_cx=641), src, (640, 480))
+
+
+@pytest.mark.parametrize("axis", [0.03, -0.04])
+def test_a_pan_axis_behind_the_optical_centre_is_in_the_depth_model(axis):
+    """The simulator's slave turns about an axis `axis` m behind its optical centre (its own geometry: the pan at
+    which it sees the master's pixel, MovingRig.truth_at): depth_from_pans with axis_m gives the depth back; without
+    it, the centre's sideways move (axis sin p) is taken for the baseline's."""
+    from vergence.sim.moving import MovingRig
+
+    for z, x in ((0.5, 320), (0.5, 200), (1.2, 420)):
+        rig = MovingRig.from_options(motion=f"still:z={z}", focal="500", axis=str(axis), bg="6")
+        p = rig.truth_at(x, 240)
+        got = depth.depth_from_pans(0.0, p, 0.06, 500.0, master_px=(x - 320, 0), slave_px=(x - 320, 0), axis_m=axis)
+        assert got == pytest.approx(z, rel=1e-6)
+        naive = depth.depth_from_pans(0.0, p, 0.06, 500.0, master_px=(x - 320, 0), slave_px=(x - 320, 0))
+        assert abs(naive / z - 1) > 0.01 * abs(axis) / 0.03 * (0.5 / z)  # 2-5 % at 0.5 m

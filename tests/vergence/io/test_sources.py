@@ -86,7 +86,11 @@ def test_the_sim_sources_truth_is_for_the_fovea_the_capture_sets():
 @pytest.mark.parametrize("spec,says", [("sim:latency=x", "latency='x' is not a number"),
                                        ("sim:latency=2", r"sim source: latency: must be from 0 to 1 .*got 2\.0"),
                                        ("sim:stamps=maybe", "stamps='maybe'"),
-                                       ("sim:skew=-0.9", r"skew: must be from -0.5 to 0.5 .*got -0\.9")])
+                                       ("sim:skew=-0.9", r"skew: must be from -0.5 to 0.5 .*got -0\.9"),
+                                       ("sim:axis=0.03", r"axis= is the physical rig's: give motion= with it \(e\.g\. "
+                                                         r"sim:motion=still:z=0\.8:axis=0\.03\)"),
+                                       ("sim:cx=330", "cx= is the physical rig's"),
+                                       ("sim:motion=still:z=0.8:axis=0.7", "axis=0.7: the pan axis within 0.5 m")])
 def test_a_bad_timing_key_is_refused_naming_it(spec, says):
     with pytest.raises(SourceError, match=says):
         open_source(spec)
