@@ -225,8 +225,7 @@ def report(points, states, frame, settings):
     if axis is not None and axis[4] <= AXIS_SIGMA_M:  # the points tell the pan axis too
         zero, b, b_sigma, d, d_sigma = axis
     else:
-        zero, b, b_sigma = solve_zero([(z, p0, sig, dict(kw, axis_m=d)) for z, p0, sig, kw in obs], f,
-                                      b0 if not distinct else None)
+        zero, b, b_sigma = solve_zero(obs, f, b0 if not distinct else None, axis_m=d, start_m=b0)
     now = next((m.offset_deg for m in reversed(states)), 0.0)
     offset = now + math.degrees(zero)
     for z, p0, sig, kw in obs:

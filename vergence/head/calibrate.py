@@ -221,74 +221,51 @@ def pan_for_depth(z_m: float, baseline_m: float, focal_px: float, *, master_px: 
 AXIS_SIGMA_M = 0.005  # the pan axis's offset is told where the points give it to this (else it is not measured)
 
 
-def solve_axis(obs, f: float, baseline_m: float, fit_baseline: bool) -> tuple[float, float, float, float, float]:
+def solve_axis(obs, f: float, baseline_m: float, fit_baseline: bool, fit_axis: bool = True,
+               axis_m: float = 0.0) -> tuple[float, float, float, float, float]:
     """(the pan zero's error, the baseline, its sigma, the pan axis's offset behind the optical centre, its sigma)
-    from [(distance, p0, sigma, geometry)] at several pans (issue #36): p0 = want(b, d) - zero, least squares
-    weighted by the p0s' sigmas (Gauss-Newton, the slopes by finite differences); the baseline fitted too where
-    fit_baseline (points at two distances or more), else baseline_m. A pan axis d behind the optical centre moves
-    it d sin(p) sideways as the slave turns: points at pans far apart tell it (at one distance: across the view)."""
-    n = len(obs)
-    k = 3 if fit_baseline else 2
+    from [(distance, p0, sigma, geometry)] (issue #36): p0 = want(b, d) - zero, least squares weighted by the p0s'
+    sigmas (Gauss-Newton from baseline_m and axis_m, the slopes by finite differences); the baseline fitted where
+    fit_baseline (points at two distances or more), the axis where fit_axis (a sigma of 0 where not fitted). A pan
+    axis d behind the optical centre moves it d sin(p) sideways as the slave turns: near points (large pans) tell
+    it, with points at two more distances for the zero and the baseline."""
+    n, k = len(obs), 1 + fit_baseline + fit_axis
     if n < k:
-        raise CalibrationError(f"the pan axis needs {k} points or more at different pans (given {n})")
+        raise CalibrationError(f"the zero{', the baseline' * fit_baseline}{' and the pan axis' * fit_axis} need {k} "
+                               f"points or more at different distances (given {n})")
     p0 = np.array([o[1] for o in obs])
     w = 1.0 / np.maximum(np.array([o[2] for o in obs]), 1e-6)
-    b, d, zero = baseline_m, 0.0, 0.0
+    b, d, zero = baseline_m, axis_m, 0.0
 
     def want(b, d):
         return np.array([pan_for_depth(z, b, f, axis_m=d, **kw) for z, _, _, kw in obs])
 
-    for _ in range(4):
+    for _ in range(6):
         w0 = want(b, d)
-        cols = [np.full(n, -1.0), (want(b, d + 1e-4) - w0) / 1e-4]
+        cols = [np.full(n, -1.0)]
         if fit_baseline:
             cols.append((want(b + 1e-4, d) - w0) / 1e-4)
-        jac = np.stack(cols, axis=1)
-        res = p0 - (w0 - zero)
-        step, *_ = np.linalg.lstsq(jac * w[:, None], res * w, rcond=None)
-        zero, d = zero + step[0], d + step[1]
-        if fit_baseline:
-            b += step[2]
-    cov = np.linalg.pinv((jac * w[:, None]).T @ (jac * w[:, None]))
-    sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    return float(zero), float(b), float(sig[2]) if fit_baseline else 0.0, float(d), float(sig[1])
+        if fit_axis:
+            cols.append((want(b, d + 1e-4) - w0) / 1e-4)
+        jac = np.stack(cols, axis=1) * w[:, None]
+        step, *_ = np.linalg.lstsq(jac, (p0 - (w0 - zero)) * w, rcond=None)
+        zero += step[0]
+        b = max(1e-3, b + step[1]) if fit_baseline else b
+        d = d + step[-1] if fit_axis else d
+    sig = np.sqrt(np.maximum(np.diag(np.linalg.pinv(jac.T @ jac)), 0.0))
+    return float(zero), float(b), float(sig[1]) if fit_baseline else 0.0, float(d), float(sig[-1]) if fit_axis else 0.0
 
 
-def solve_zero(obs, f: float, baseline_m: float | None) -> tuple[float, float, float]:
-    """(the pan zero's error, the baseline, its sigma) from [(distance, p0, sigma, geometry)]: with baseline_m given,
-    the mean of want - p0; else the baseline that makes want - p0 the same at every distance (least squares over
-    the zero and the baseline), its sigma from the p0s' sigmas."""
-    def zero_at(b, p0s):
-        gaps = [pan_for_depth(z, b, f, **kw) - p0 for (z, _, _, kw), p0 in zip(obs, p0s)]
-        return float(np.mean(gaps)), float(np.sum((np.array(gaps) - np.mean(gaps)) ** 2))
-
-    p0s = [o[1] for o in obs]
+def solve_zero(obs, f: float, baseline_m: float | None, axis_m: float = 0.0,
+               start_m: float = 0.06) -> tuple[float, float, float]:
+    """(the pan zero's error, the baseline, its sigma) from [(distance, p0, sigma, geometry)], the pan axis axis_m:
+    with baseline_m given, the mean of want - p0; else the baseline that makes want - p0 the same at every distance
+    (solve_axis over the zero and the baseline, from start_m), its sigma from the p0s' sigmas."""
     if baseline_m is not None:
-        return zero_at(baseline_m, p0s)[0], baseline_m, 0.0
-
-    def best(p0s):
-        lo, hi = 0.001, 2.0  # metres: golden section on the spread of want - p0 over the points
-        g = (math.sqrt(5) - 1) / 2
-        a, c = hi - g * (hi - lo), lo + g * (hi - lo)
-        fa, fc = zero_at(a, p0s)[1], zero_at(c, p0s)[1]
-        for _ in range(80):
-            if fa < fc:
-                hi, c, fc = c, a, fa
-                a = hi - g * (hi - lo)
-                fa = zero_at(a, p0s)[1]
-            else:
-                lo, a, fa = a, c, fc
-                c = lo + g * (hi - lo)
-                fc = zero_at(c, p0s)[1]
-        return 0.5 * (lo + hi)
-
-    b = best(p0s)
-    var = 0.0
-    for i, (_, p0, sig, _) in enumerate(obs):
-        moved = list(p0s)
-        moved[i] = p0 + sig
-        var += (best(moved) - b) ** 2
-    return zero_at(b, p0s)[0], b, math.sqrt(var)
+        gaps = [pan_for_depth(z, baseline_m, f, axis_m=axis_m, **kw) - p0 for z, p0, _, kw in obs]
+        return float(np.mean(gaps)), baseline_m, 0.0
+    zero, b, sb, _, _ = solve_axis(obs, f, start_m, True, False, axis_m)
+    return zero, b, sb
 
 
 def settings_text(values: dict[str, dict[str, float]]) -> str:

@@ -169,3 +169,34 @@ def test_the_reducer_takes_the_pan_axis_the_settings_say(tmp_path):
         z = statistics.median(conv()[-30:])
         print(f"\ndepth with pan_axis_m = 0.03: {z:.4f} m (target at 0.5)")
         assert z == pytest.approx(0.5, rel=0.01)
+
+
+def test_the_report_measures_the_pan_axis_from_three_distances_and_keeps_the_settings_from_two():
+    """calibrate's report of its runs' fits (in-process): points at 0.4, 0.8 and 3 m of a head whose slave turns
+    about an axis 2.5 cm behind its optical centre, its camera 0.4 deg off its encoder: the axis, the baseline and
+    the zero, with the TOML values; the first two points alone: the baseline and zero, the axis the settings'."""
+    from types import SimpleNamespace as NS
+
+    from services.clients.calibrate import report
+    from vergence.config import load
+    from vergence.sim.moving import MovingRig
+
+    settings = load(None)
+    frame = NS(principal=(320, 240), slave_principal=(320, 240), width=640, height=480, master_pan_rad=0.0,
+               tilt_rad=0.0, focal_px=500.0)
+    lat = NS(latency_s=0.0, sigma_s=0.001, delta_s=0.0)
+    points = []
+    for z in (0.4, 0.8, 3.0):
+        truth = MovingRig.from_options(motion=f"still:z={z}", focal="500", axis="0.025", bg="6").truth_pan(0.0)
+        fit = NS(n=17, r2=0.9999, rms_px=0.02, focal_px=500.0, focal_sigma_px=0.5, latency=lat,
+                 pan0_rad=truth - math.radians(0.4), pan0_sigma_rad=math.radians(0.003))
+        points.append((fit, None, z))
+    states = [NS(offset_deg=0.0)]
+    values, lines = report(points, states, frame, settings)
+    text = "\n".join(lines)
+    assert values["rig"]["pan_axis_m"] == pytest.approx(0.025, abs=0.001), text
+    assert values["rig"]["baseline_m"] == pytest.approx(0.06, abs=0.0003)
+    assert values["actuator.motor"]["offset_deg"] == pytest.approx(0.4, abs=0.005)
+    assert re.search(r"pan axis: \+2[45]\.\d \+- \d\.\d mm behind", text)
+    values, lines = report(points[:2], states, frame, settings)
+    assert "pan_axis_m" not in values["rig"] and "points at three distances or more" in "\n".join(lines)

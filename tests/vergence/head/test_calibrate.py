@@ -203,6 +203,11 @@ def test_points_at_two_distances_give_the_zero_and_the_baseline():
     assert 0 < gs < 0.003
     one, b_told, _ = solve_zero(obs[:1], f, 0.06)
     assert b_told == 0.06 and abs(math.degrees(one) - 0.3) > 0.2  # a baseline 5 mm off moves it 0.27 deg at 0.6 m
+    # two near points: a golden section over 1 mm - 2 m of baselines found 2 m and a zero of -66.6 deg here (its
+    # spread is not unimodal that far out); Gauss-Newton from the settings' baseline finds them
+    near = [(z, pan_for_depth(z, b, f) - zero, math.radians(0.003), {}) for z in (0.4, 0.8)]
+    got, gb, gs = solve_zero(near, f, None)
+    assert math.degrees(got) == pytest.approx(0.3, abs=1e-4) and gb == pytest.approx(0.065, rel=1e-3) and gs > 0
 
 
 @pytest.mark.parametrize("axis,zero_deg,seed", [(0.03, 0.3, 1), (-0.02, -1.5, 2), (0.0, 0.3, 3)])
