@@ -64,8 +64,10 @@ class Lag:
             return t, pan, 0.0
         ts = t - self.late_s
         i = bisect.bisect_left(self.pans, (ts, -math.inf))
-        u = 0.5 * abs(self.pans[i][1] - self.pans[i - 1][1]) if 0 < i < len(self.pans) else 0.0
-        return ts, float(self._pan_at(np.array([ts]))[0]), u
+        if not 0 < i < len(self.pans):  # before the first pan kept or after the last: that one (as np.interp)
+            return ts, float(self.pans[min(i, len(self.pans) - 1)][1]), 0.0
+        (t0, p0), (t1, p1) = self.pans[i - 1], self.pans[i]
+        return ts, float(p0 + (p1 - p0) * (ts - t0) / (t1 - t0)), float(0.5 * abs(p1 - p0))
 
     def _pan_at(self, t: np.ndarray) -> np.ndarray:
         ts = np.fromiter((q[0] for q in self.pans), float, len(self.pans))
