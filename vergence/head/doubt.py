@@ -98,28 +98,22 @@ class Doubt:
         self.trusted = False  # the image has been seen to follow since the start or the last fault
         self.ref: _Seen | None = None  # the reference decision of the next pair
         self.centre: _Seen | None = None  # the last consistent measurement (the leash's centre)
-        self.rate = 0.0  # the target's rate (rad/s), from consistent measurements only
-        self.fails: list[str] = []
-        self.t_fail = 0.0  # when the last pair did not follow
+        self.rate = self.trend = 0.0  # the target's rate (rad/s): learnt, and as the last consistent pair showed it
+        self.fails, self.t_fail = [], 0.0  # the kinds of the pairs that did not follow, and when the last one was
         self.ratios: list[float] = []  # decisive pairs' r that followed (the focal length's ratio)
         self.focal_ratio: float | None = None  # named when the ratios say the focal length is off
-        self.t_probe: float | None = None
-        self.probe_sign = 1.0
+        self.t_probe, self.probe_sign = None, 1.0  # a fault's last probe, and its side
         self.returned = False  # the fault's move back to the anchor was sent
         self.last_slave: tuple[int, float] | None = None  # (digest, pan) of the last frame
         self.master = Master()  # the master camera's images, frame to frame
         self.stall: tuple[float, float] | None = None  # (t, pan) since which a command far away has not moved it
-        self.t_bound: float | None = None  # since when a head not yet seen to follow is held at its leash's end
-        self.probe_ref: _Seen | None = None  # ... and the decision before its probe
+        self.t_bound: float | None = None  # since when an untrusted head is held at its leash's end; a probe's start
+        self.probe_ref, self.probe_goal = None, 0.0  # a probe's decision before it (None: none under way), its goal
         self.t_held: float | None = None  # since when a pair that did not follow holds the motor
-        self.probe_goal = 0.0
         self.last_seen: _Seen | None = None  # the latest confident decision
-        self.faults = 0  # faults named so far
-        self.resumed = 0
-        self.t_last: float | None = None
-        self.fovea: tuple[int, int] | None = None
+        self.faults = self.resumed = 0  # faults named so far, and cleared
+        self.t_last, self.fovea = None, None  # the last decision's exposure and fovea
         self.lag = Lag()  # a camera later than its frames say
-        self.trend = 0.0  # the target's rate as the last consistent pair showed it (rad/s), learnt or not
         self.u = 0.0  # the last shift()'s pan's uncertainty (the next observe()'s decision's)
 
     @property
@@ -379,35 +373,42 @@ class Doubt:
 
     def _stuck(self, pan: float, goal: float, t_now: float, lim: float) -> float | None:
         """A head not yet seen to follow, held at its leash's end for PROBE_S (its image was not confident while it
-        moved, say): a probe PROBE_DEG back toward the anchor, whose image shows whether it follows (observe). The
-        probe's goal, or None."""
+        moved, say): a probe back toward the anchor. The probe's goal, or None."""
         if self.probe_ref is not None:
-            return self.probe_goal if t_now - self.t_bound < 2 * PROBE_S else self._unprobe()
+            return self._probing(t_now)
         if abs(goal - self.anchor) <= lim or abs(abs(pan - self.anchor) - lim) > math.radians(SAME_PAN_DEG):
             self.t_bound = None
         elif self.t_bound is None:
             self.t_bound = t_now
         elif t_now - self.t_bound >= PROBE_S and self.last_seen is not None:
-            self.probe_ref, self.t_bound = self.last_seen, t_now
-            self.probe_goal = pan - math.copysign(math.radians(PROBE_DEG), goal - self.anchor)
-            return self.probe_goal
+            return self._probe(pan, goal - self.anchor, t_now)
         return None
 
     def _suspect(self, pan: float, t_now: float) -> float:
         """A pair did not follow: held where it is (the frames exposed meanwhile may confirm it), then after SUSPECT_S a
-        probe PROBE_DEG back toward the anchor, whose image confirms the fault or clears the doubt. The goal."""
-        if self.probe_ref is not None:
-            if t_now - self.t_bound < 2 * PROBE_S:
-                return self.probe_goal
-            self._unprobe()
+        probe back toward the anchor. The goal."""
+        if (probe := self._probing(t_now)) is not None:
+            return probe
         if self.t_held is None:
             self.t_held = t_now
         elif (t_now - self.t_held >= SUSPECT_S and self.last_seen is not None
               and abs(pan - self.anchor) >= math.radians(PROBE_MIN_DEG)):
-            self.probe_ref, self.t_bound, self.t_held = self.last_seen, t_now, None
-            self.probe_goal = pan - math.copysign(math.radians(PROBE_DEG), pan - self.anchor)
-            return self.probe_goal
+            self.t_held = None
+            return self._probe(pan, pan - self.anchor, t_now)
         return pan
+
+    def _probe(self, pan: float, away: float, t_now: float) -> float:
+        """A probe PROBE_DEG from `pan` against `away` (toward the anchor), whose image shows whether it follows
+        (observe: _probed). Its goal."""
+        self.probe_ref, self.t_bound = self.last_seen, t_now
+        self.probe_goal = pan - math.copysign(math.radians(PROBE_DEG), away)
+        return self.probe_goal
+
+    def _probing(self, t_now: float) -> float | None:
+        """The goal of the probe under way; None where there is none or its time (2 PROBE_S) is over (ended)."""
+        if self.probe_ref is not None and t_now - self.t_bound >= 2 * PROBE_S:
+            self._unprobe()
+        return None if self.probe_ref is None else self.probe_goal
 
     def _unprobe(self) -> None:
         self.probe_ref = self.t_bound = None
