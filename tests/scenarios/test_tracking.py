@@ -97,6 +97,26 @@ def test_a_slave_turning_about_an_axis_behind_its_centre_is_rendered_where_the_t
         MovingRig.from_options(axis="0.6")
 
 
+@pytest.mark.parametrize("side,axis,x,seed", [(0.8, 0.03, 512, 5), (0.35, -0.02, 470, 6), (1.7, 0.0, 560, 7)])
+def test_a_square_beside_the_target_is_rendered_where_the_truth_says(side, axis, x, seed):
+    """side=M: a second square at M m right of the target (vergence calibrate's third distance): at the pan truth_at
+    gives for a fovea on it, the slave shows the master's patch there on the same column (to the pixel, by SAD over
+    +-6 px), and not at a pan 2 px off; the wall beside it and the target keep their truths; a side square at or
+    beyond the wall is refused by name."""
+    rig = MovingRig.from_options(motion="still:z=0.5", focal="500", axis=str(axis), side=str(side), seed=str(seed))
+    for col, z in ((x, side), (320, 0.5), (120, rig.bg_m)):
+        p = rig.truth_at(col, 240)
+        m, s = rig.render(p)
+        patch = m[230:251, col - 10:col + 11].astype(float)
+        cost = [np.abs(s[230:251, col - 10 + d:col + 11 + d] - patch).sum() for d in range(-6, 7)]
+        assert int(np.argmin(cost)) - 6 == 0, (col, cost)
+        _, s2 = rig.render(p + math.atan(2 / 500))
+        cost2 = [np.abs(s2[230:251, col - 10 + d:col + 11 + d] - patch).sum() for d in range(-6, 7)]
+        assert abs(int(np.argmin(cost2)) - 6) == 2
+    with pytest.raises(ValueError, match="side square's 3 m"):
+        MovingRig.from_options(motion="still:z=0.5", side="3", bg="3")
+
+
 @pytest.mark.parametrize("z", [0.5, 0.8, 1.1])
 def test_rendered_disparity_is_b_f_over_z(z):
     """At pan 0 the network measures the target's disparity b f / Z; at the truth pan, nothing left."""

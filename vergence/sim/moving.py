@@ -8,7 +8,9 @@ turns the slave toward +x, as everywhere here).
 
 The scene (MovingRig): a textured fronto-parallel target, a square target_m wide centred on the master's
 optical axis at the distance Z(t) of a trajectory (vergence.sim.motion), in front of a textured background
-plane at bg_m. Each view is rendered from the geometry: the plane-to-view homography
+plane at bg_m; with side_m, a second textured square standing still at that distance to the right of the target
+(its centre seen 0.3 W right of the master's principal point, 0.2 W wide there): a third distance in one view,
+for `vergence calibrate`'s pan axis. Each view is rendered from the geometry: the plane-to-view homography
 K R^T [s e1, s e2, (0, 0, Z) - C - s (u0, v0, 0)] of each textured plane (s metres per texel, (u0, v0) its
 centre texel, C the camera's centre, R its rotation), the target blended over the background through its
 warped mask. Time is whatever the caller says (render(pan, t)): virtual in `vergence sim`, the wall clock
@@ -135,7 +137,8 @@ class MovingRig:
     motion: a Motion or its spec text. target_tex: the target's texture (uint8 gray; None: procedural,
     "flat": uniform gray, no texture at all). target_m: the target's width (default: 240 px wide at its
     farthest). bg_m: the background's distance (default max(3, 2 x the farthest target)). noise: sensor
-    noise sigma, each camera its own. start_pan_deg: the slave's pan before the loop starts."""
+    noise sigma, each camera its own. start_pan_deg: the slave's pan before the loop starts. side_m: the distance
+    of a second square standing right of the target (None: none)."""
 
     # the master looks straight ahead, untilted (both gimbals agree there): for the depth of the fixated point
     master_pan_rad = 0.0
@@ -144,7 +147,7 @@ class MovingRig:
 
     def __init__(self, motion: Motion | str, head: Head | None = None, *, target_tex: np.ndarray | str | None = None,
                  target_m: float | None = None, bg_m: float | None = None, noise: float = 0.0,
-                 start_pan_deg: float = 0.0, seed: int = 0):
+                 start_pan_deg: float = 0.0, seed: int = 0, side_m: float | None = None):
         self.motion = parse_motion(motion) if isinstance(motion, str) else motion
         self.head = head or Head()
         self.size = self.head.size
@@ -152,11 +155,16 @@ class MovingRig:
         zmin, zmax = self.motion.z_range
         f = self.focal_px
         self.target_m = float(target_m) if target_m is not None else 240.0 * zmax / f
-        self.bg_m = float(bg_m) if bg_m is not None else max(3.0, 2.0 * zmax)
+        self.side_m = None if side_m is None else float(side_m)
+        if self.side_m is not None and not (self.side_m > 0 and math.isfinite(self.side_m)):
+            raise ValueError(f"side={side_m}: must be a positive distance in metres")
+        far = max(zmax, self.side_m or 0.0)
+        self.bg_m = float(bg_m) if bg_m is not None else max(3.0, 2.0 * far)
         if not (self.target_m > 0 and math.isfinite(self.target_m)):
             raise ValueError(f"target={target_m}: must be a positive width in metres")
-        if not (math.isfinite(self.bg_m) and self.bg_m > zmax):
-            raise ValueError(f"bg={bg_m}: the background must be farther than the target's farthest {zmax:g} m")
+        if not (math.isfinite(self.bg_m) and self.bg_m > far):
+            raise ValueError(f"bg={bg_m}: the background must be farther than the target's farthest {zmax:g} m"
+                             + (f" and the side square's {self.side_m:g} m" if self.side_m else ""))
         if not (noise >= 0 and math.isfinite(noise)):
             raise ValueError(f"noise={noise}: must be a finite number >= 0")
         if not math.isfinite(start_pan_deg):
@@ -184,6 +192,12 @@ class MovingRig:
         self.bg_s = self.bg_m / f
         self.noise = _Noise(noise, seed)
         self._tex_mask = np.ascontiguousarray(np.dstack([tex, np.full(tex.shape, 255, np.uint8)]))
+        self._side = None  # (its texture and mask, metres per texel, its centre's x)
+        if self.side_m is not None:
+            n = max(16, round(0.2 * w))
+            stex = texture(rng, n, n, float(rng.uniform(90, 160)), 48.0)
+            self._side = (np.ascontiguousarray(np.dstack([stex, np.full(stex.shape, 255, np.uint8)])),
+                          self.side_m / f, 0.3 * w * self.side_m / f)
 
     # -- geometry ---------------------------------------------------------------------------------------
 
@@ -204,13 +218,23 @@ class MovingRig:
         z = self.motion.z(t)
         u, v = (x - cx) / f, (y - cy) / f
         th, tw = self.target_tex.shape
-        if not (abs(u * z) <= self.target_s * tw / 2 and abs(v * z) <= self.target_s * th / 2):
-            z = self.bg_m  # off the target: the background behind it
+        if not (abs(u * z) <= self.target_s * tw / 2 and abs(v * z) <= self.target_s * th / 2) or (
+                self._on_side(u, v) and self.side_m < z):
+            # off the target (or the side square is nearer): the side square, else the background behind
+            z = self.side_m if self._on_side(u, v) else self.bg_m
         p = math.atan2(u * z - self.head.baseline_m, z) - math.atan(u)
         for _ in range(6 if self.head.axis_m else 0):  # the slave's centre moves with its pan
             cx_, cz_ = self.head.slave_centre(p)
             p = math.atan2(u * z - cx_, z - cz_) - math.atan(u)
         return p
+
+    def _on_side(self, u: float, v: float) -> bool:
+        """Whether the master's ray (u, v) (x/z, y/z) meets the side square."""
+        if self._side is None:
+            return False
+        tm, s, x = self._side
+        half = s * tm.shape[1] / 2
+        return abs(u * self.side_m - x) <= half and abs(v * self.side_m) <= half
 
     @property
     def one_px_rad(self) -> float:
@@ -220,10 +244,11 @@ class MovingRig:
         """f tan(pan - truth(t)): positive when the slave has turned too far right."""
         return self.focal_px * math.tan(slave_pan_rad - self.truth_pan(t))
 
-    def _homography(self, tex_shape, s: float, z: float, centre: tuple[float, float], pan: float) -> np.ndarray:
-        th, tw = tex_shape
+    def _homography(self, tex_shape, s: float, z: float, centre: tuple[float, float], pan: float,
+                    x: float = 0.0) -> np.ndarray:
+        th, tw = tex_shape[:2]
         u0, v0 = (tw - 1) / 2.0, (th - 1) / 2.0
-        plane = np.array([[s, 0.0, -s * u0 - centre[0]], [0.0, s, -s * v0], [0.0, 0.0, z - centre[1]]])
+        plane = np.array([[s, 0.0, x - s * u0 - centre[0]], [0.0, s, -s * v0], [0.0, 0.0, z - centre[1]]])
         return self.head.K @ rotation(pan, 0.0).T @ plane
 
     def _view(self, z: float, centre: tuple[float, float], pan: float, region: Region | None = None) -> np.ndarray:
@@ -249,15 +274,22 @@ class MovingRig:
     def _pinhole(self, z: float, centre: tuple[float, float], pan: float, region: Region | None = None) -> np.ndarray:
         size = self.size if region is None else region.size
         hb = self._homography(self.bg_tex.shape, self.bg_s, self.bg_m, centre, pan)
-        ht = self._homography(self.target_tex.shape, self.target_s, z, centre, pan)
         if region is not None:
-            hb, ht = region.matrix @ hb, region.matrix @ ht
-        bg = cv2.warpPerspective(self.bg_tex, hb, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        # texture and mask in one warp, outside = 0: the texture channel comes out premultiplied by the mask
-        tm = cv2.warpPerspective(self._tex_mask, ht, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                 borderValue=(0, 0, 0, 0))
-        a = tm[..., 1].astype(np.float32) * np.float32(1 / 255)
-        return np.rint(bg * (1 - a) + tm[..., 0]).astype(np.uint8)
+            hb = region.matrix @ hb
+        out = cv2.warpPerspective(self.bg_tex, hb, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        planes = [(z, self._tex_mask, self.target_s, 0.0)]
+        if self._side is not None:
+            planes.append((self.side_m, *self._side))
+        for pz, tex_mask, s, x in sorted(planes, key=lambda p: -p[0]):  # far to near
+            h = self._homography(tex_mask.shape, s, pz, centre, pan, x)
+            if region is not None:
+                h = region.matrix @ h
+            # texture and mask in one warp, outside = 0: the texture channel comes out premultiplied by the mask
+            tm = cv2.warpPerspective(tex_mask, h, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                     borderValue=(0, 0, 0, 0))
+            a = tm[..., 1].astype(np.float32) * np.float32(1 / 255)
+            out = np.rint(out * (1 - a) + tm[..., 0]).astype(np.uint8)
+        return out
 
     def master_view(self, t: float = 0.0, region: Region | None = None) -> np.ndarray:
         """The master's view of the scene at time t, without sensor noise; region: that part of it."""
@@ -283,7 +315,7 @@ class MovingRig:
     # -- construction from text ---------------------------------------------------------------------------
 
     KEYS = ("motion", "baseline", "focal", "size", "noise", "seed", "pan", "texture", "target", "bg", "cx", "cy", "k1",
-            "k2", "axis")
+            "k2", "axis", "side")
 
     @classmethod
     def from_options(cls, **items: str | None) -> "MovingRig":
@@ -292,7 +324,8 @@ class MovingRig:
         texture=FILE|flat (the target's; default procedural), target=M (its width), bg=M (the background's
         distance), cx=PX, cy=PX (both cameras' principal point; default the view centre), k1=, k2= (both
         cameras' radial distortion, OpenCV's; default 0), axis=M (the slave's pan axis behind its optical centre;
-        default 0). A bad key or value raises ValueError naming it."""
+        default 0), side=M (a second square standing at M right of the target; default none). A bad key or value
+        raises ValueError naming it."""
 
         items = {k: v for k, v in items.items() if v is not None}
         unknown = sorted(set(items) - set(cls.KEYS))
@@ -318,7 +351,7 @@ class MovingRig:
                 tex = read_image(tex)
             return cls(items.get("motion", "still:z=0.8"), head, target_tex=tex, target_m=num("target"),
                        bg_m=num("bg"), noise=num("noise", default=0.0), start_pan_deg=num("pan", default=0.0),
-                       seed=num("seed", int, 0))
+                       seed=num("seed", int, 0), side_m=num("side"))
         except ValueError as e:
             msg = str(e)
             raise ValueError(msg if msg.startswith("sim source") else f"sim source: {msg}") from None
