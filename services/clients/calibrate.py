@@ -28,8 +28,9 @@ import time
 import numpy as np
 
 from vergence.config import ConfigError, load
-from vergence.head.calibrate import (AXIS_SIGMA_M, CalibrationError, calibration_plan, fit_head, merge_settings,
-                                     pan_for_depth, settings_text, solve_axis, solve_zero)
+from vergence.head.calibrate import (AXIS_SIGMA_M, BIAS_PX, CalibrationError, calibration_plan, fit_head,
+                                     merge_settings, pan_for_depth, settings_text, solve_head)
+from vergence.head.depth import depth_from_pans
 from vergence.wire import keys
 from vergence.wire.messages import Fixate, Frame, MessageError
 
@@ -187,45 +188,67 @@ def _fixate(node: Node, rec: Recorder, rig: str, at: tuple[int, int], wait: floa
     return False
 
 
+def _focal_line(f: float, fit, told: float | None) -> str:
+    return (f"focal length: {f:.1f} +- {fit.focal_sigma_px:.1f} px"
+            + (f" (the frames say {told:g}: {100 * (f / told - 1):+.1f} %)" if told else ""))
+
+
+def _geometry(frame, settings) -> dict:
+    return dict(master_pan_rad=frame.master_pan_rad, tilt_rad=frame.tilt_rad, gimbal=settings.geometry.gimbal,
+                master=settings.geometry.master or settings.capture.master)
+
+
+def _points(points, frame, f: float, b: float, d: float, geo: dict):
+    """([(distance, p0, sigma, geometry)] of the points with a distance, [slope_focal's (focal, sigma, distance,
+    master_u, slave_u)] of every point: one without a distance at the one its pan tells with these settings)."""
+    (cx, cy), (sx, sy) = frame.principal, frame.slave_principal
+    obs, slopes = [], []
+    for p_fit, fovea, z in points:
+        x, y = fovea if fovea is not None else (frame.width // 2, frame.height // 2)
+        kw = dict(master_px=(x - cx, y - cy), slave_px=(x - sx, y - sy), **geo)
+        if z is not None:
+            obs.append((z, p_fit.pan0_rad, max(p_fit.pan0_sigma_rad, math.atan(BIAS_PX / f)), kw))
+        else:
+            z = depth_from_pans(kw.pop("master_pan_rad"), p_fit.pan0_rad, b, f, axis_m=d, **kw)
+        if math.isfinite(z) and z > 0:
+            slopes.append((p_fit.focal_px, p_fit.focal_sigma_px, z, x - cx, x - sx))
+    return obs, slopes
+
+
 def report(points, states, frame, settings):
     """({table: {key: value}} to write, lines to print) of the runs' fits (points: [(HeadFit, fovea, distance or
     None)]); CalibrationError where the distances cannot be used. frame: the rig's latest messages.Frame."""
     fit = points[0][0]
     told = frame.focal_px if frame is not None else settings.geometry.focal_px
     f = float(np.mean([p[0].focal_px for p in points]))
+    b0, d0 = settings.geometry.baseline_m, settings.geometry.pan_axis_m
+    geo = _geometry(frame, settings) if frame is not None else {}
+    obs, slopes = _points(points, frame, f, b0, d0, geo) if frame is not None else ([], [])
+    master = geo.get("master", "left")
+    if not obs and slopes:  # a pan axis the settings tell: its parallax out of the slopes
+        f = solve_head([], slopes, f, b0, d0, master=master).focal_px
     lines = [f"direction: the image follows the motor ({fit.n} decisions, r2 {fit.r2:.5f}, residual "
-             f"{fit.rms_px:.3f} px)",
-             f"focal length: {f:.1f} +- {fit.focal_sigma_px:.1f} px"
-             + (f" (the frames say {told:g}: {100 * (f / told - 1):+.1f} %)" if told else ""),
+             f"{fit.rms_px:.3f} px)", _focal_line(f, fit, told),
              f"camera latency: {fit.latency.latency_s * 1e3:.1f} +- {fit.latency.sigma_s * 1e3:.1f} ms "
              f"(the frames' stamps {fit.latency.delta_s * 1e3:+.1f} ms off)"]
     values: dict[str, dict[str, float]] = {"rig": {"focal_px": round(f, 2)}}
     if abs(fit.latency.delta_s) * 1e3 >= max(2.0, 2 * fit.latency.sigma_s * 1e3):
         values["camera"] = {"latency_s": round(max(0.0, float(fit.latency.latency_s)), 4)}
-    known = [p for p in points if p[2] is not None]
-    if not known:
+    if not any(p[2] is not None for p in points):
         lines.append("pan zero: not measured (give --distance Z, metres to the fixated point along the master's "
                      "optical axis)")
         return values, lines
     if frame is None:
         raise CalibrationError("no frame seen on the rig: the image size and the master's pan are unknown "
                                "(is the capture running?)")
-    (cx, cy), (sx, sy) = frame.principal, frame.slave_principal
-    geo = dict(master_pan_rad=frame.master_pan_rad, tilt_rad=frame.tilt_rad, gimbal=settings.geometry.gimbal,
-               master=settings.geometry.master or settings.capture.master)
-    obs = []
-    for p_fit, fovea, z in known:
-        x, y = fovea if fovea is not None else (frame.width // 2, frame.height // 2)
-        obs.append((z, p_fit.pan0_rad, p_fit.pan0_sigma_rad, dict(master_px=(x - cx, y - cy), slave_px=(x - sx, y - sy),
-                                                                  **geo)))
-    b0, d = settings.geometry.baseline_m, settings.geometry.pan_axis_m
     distances = len({round(z, 3) for z, *_ in obs})
     distinct = distances >= 2
-    axis = solve_axis(obs, f, b0, True) if distances >= 3 else None
-    if axis is not None and axis[4] <= AXIS_SIGMA_M:  # the points tell the pan axis too
-        zero, b, b_sigma, d, d_sigma = axis
-    else:
-        zero, b, b_sigma = solve_zero(obs, f, b0 if not distinct else None, axis_m=d, start_m=b0)
+    axis = solve_head(obs, slopes, f, b0, d0, fit_baseline=True, fit_axis=True, master=master) \
+        if distances >= 3 else None
+    told_axis = axis is not None and axis.axis_sigma_m <= AXIS_SIGMA_M  # the points tell the pan axis too
+    got = axis if told_axis else solve_head(obs, slopes, f, b0, d0, fit_baseline=distinct, master=master)
+    zero, b, d, f = got.zero_rad, got.baseline_m, got.axis_m, got.focal_px
+    lines[1], values["rig"]["focal_px"] = _focal_line(f, fit, told), round(f, 2)
     now = next((m.offset_deg for m in reversed(states)), 0.0)
     offset = now + math.degrees(zero)
     for z, p0, sig, kw in obs:
@@ -237,17 +260,17 @@ def report(points, states, frame, settings):
                  f"now -> {offset:+.4f})")
     values["actuator.motor"] = {"offset_deg": round(float(offset), 5)}
     if distinct:
-        lines.append(f"baseline: {b:.4f} +- {b_sigma:.4f} m (the settings say {b0:g})")
+        lines.append(f"baseline: {b:.4f} +- {got.baseline_sigma_m:.4f} m (the settings say {b0:g})")
         values["rig"]["baseline_m"] = round(float(b), 5)
     elif len(obs) == 1:
         lines.append(f"baseline: the settings' {b0:g} m (points at two distances or more measure it)")
-    if axis is not None and axis[4] <= AXIS_SIGMA_M:
-        lines.append(f"pan axis: {d * 1e3:+.1f} +- {d_sigma * 1e3:.1f} mm behind the slave's optical centre (the "
-                     f"settings say {settings.geometry.pan_axis_m * 1e3:g} mm)")
+    if told_axis:
+        lines.append(f"pan axis: {d * 1e3:+.1f} +- {got.axis_sigma_m * 1e3:.1f} mm behind the slave's optical centre "
+                     f"(the settings say {d0 * 1e3:g} mm)")
         values["rig"]["pan_axis_m"] = round(float(d), 4)
     else:
-        told = "" if axis is None else f" (these give {axis[3] * 1e3:+.0f} +- {axis[4] * 1e3:.0f} mm)"
-        lines.append(f"pan axis: the settings' {d * 1e3:g} mm behind the optical centre{told}; points at three "
+        these = "" if axis is None else f" (these give {axis.axis_m * 1e3:+.0f} +- {axis.axis_sigma_m * 1e3:.0f} mm)"
+        lines.append(f"pan axis: the settings' {d * 1e3:g} mm behind the optical centre{these}; points at three "
                      "distances or more, one near (0.3-0.5 m), measure it")
     return values, lines
 

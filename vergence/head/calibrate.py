@@ -37,8 +37,8 @@ from .depth import depth_from_pans
 from .follows import ADVICE, verdict
 from .latency import LatencyError, LatencyFit, fit_latency
 
-__all__ = ["AXIS_SIGMA_M", "CalibrationError", "HeadFit", "fit_head", "pan_for_depth", "solve_axis", "solve_zero",
-           "calibration_plan", "merge_settings", "settings_text", "MIN_R2", "MAX_RMS_PX"]
+__all__ = ["AXIS_SIGMA_M", "BIAS_PX", "CalibrationError", "HeadFit", "Solved", "fit_head", "pan_for_depth",
+           "slope_focal", "solve_head", "calibration_plan", "merge_settings", "settings_text", "MIN_R2", "MAX_RMS_PX"]
 
 MIN_R2 = 0.98  # of the offsets' variance the motor's motion must explain; a still textured scene gives > 0.999
 MAX_RMS_PX = 0.3  # the fit's residual (px); on a still scene and a settled motor the sim leaves 0.01-0.02
@@ -219,53 +219,79 @@ def pan_for_depth(z_m: float, baseline_m: float, focal_px: float, *, master_px: 
 
 
 AXIS_SIGMA_M = 0.005  # the pan axis's offset is told where the points give it to this (else it is not measured)
+# a floor under each point's pan sigma: the network's sub-pixel bias on a texture, which no resampling of one point's
+# steps shows (three points through `vergence up`, 2026-12-04: 0.012-0.085 px off the simulator's truth)
+BIAS_PX = 0.05
 
 
-def solve_axis(obs, f: float, baseline_m: float, fit_baseline: bool, fit_axis: bool = True,
-               axis_m: float = 0.0) -> tuple[float, float, float, float, float]:
-    """(the pan zero's error, the baseline, its sigma, the pan axis's offset behind the optical centre, its sigma)
-    from [(distance, p0, sigma, geometry)] (issue #36): p0 = want(b, d) - zero, least squares weighted by the p0s'
-    sigmas (Gauss-Newton from baseline_m and axis_m, the slopes by finite differences); the baseline fitted where
-    fit_baseline (points at two distances or more), the axis where fit_axis (a sigma of 0 where not fitted). A pan
-    axis d behind the optical centre moves it d sin(p) sideways as the slave turns: near points (large pans) tell
-    it, with points at two more distances for the zero and the baseline."""
-    n, k = len(obs), 1 + fit_baseline + fit_axis
-    if n < k:
+def slope_focal(f: float, axis_m: float, baseline_m: float, z_m: float, master_u: float, slave_u: float,
+                master: str = "left") -> float:
+    """The focal length a pure rotation's fit (fit_head: f tan(atan(u / f) + p0 - pan) - u, whose slope at p0 is
+    f + u^2 / f) reads where the slave's pan axis is axis_m behind its optical centre: a pan step dp turns the camera
+    by dp and moves its centre by axis_m dp sideways, so the image of the point (z_m deep, seen master_u px off the
+    master's principal point and slave_u off the slave's) moves (f + u^2 / f) k dp, k = 1 + axis_m cos(alpha) / rho
+    (rho: the point's distance from the slave's centre, alpha: its angle off the slave's axis). A 3 cm axis reads
+    6 % more at 0.5 m, 1 % at 3 m."""
+    if not axis_m:
+        return f
+    s, alpha = (1.0 if master == "left" else -1.0), math.atan(slave_u / f)
+    x = z_m * master_u / f - s * baseline_m  # the point from the slave's centre at pan 0, then at its pan
+    p = math.atan2(x, z_m) - alpha
+    rho = math.hypot(x - axis_m * math.sin(p), z_m - axis_m * (math.cos(p) - 1.0))
+    k = 1.0 + axis_m * math.cos(alpha) / rho
+    slope = k * (f + slave_u * slave_u / f)
+    return 0.5 * (slope + math.sqrt(max(slope * slope - 4 * slave_u * slave_u, 0.0)))
+
+
+@dataclass(frozen=True)
+class Solved:
+    """solve_head's answer: the pan zero's error (rad), the baseline, the pan axis's offset behind the slave's optical
+    centre, the focal length, each with its sigma (0 where not fitted)."""
+
+    zero_rad: float
+    baseline_m: float
+    baseline_sigma_m: float
+    axis_m: float
+    axis_sigma_m: float
+    focal_px: float
+    focal_sigma_px: float
+
+
+def solve_head(obs, slopes, f: float, baseline_m: float, axis_m: float = 0.0, *, fit_baseline: bool = False,
+               fit_axis: bool = False, master: str = "left") -> Solved:
+    """The head's geometry from its points (issue #36), least squares weighted by the sigmas (Gauss-Newton from the
+    settings, the slopes by finite differences). obs: [(distance, p0, its sigma, pan_for_depth's geometry)], each
+    p0 = pan_for_depth(distance, b, f, d) - zero: they give the zero, the baseline where fit_baseline (points at
+    two distances or more) and the axis where fit_axis (three or more: a pan axis d behind the optical centre moves
+    it d sin(p) sideways as the slave turns, which near points show). slopes: [(a fit's focal length, its sigma,
+    its point's distance, master_u, slave_u)] (slope_focal): with any, the focal length is fitted too. The two tell
+    each other: an off-centre point's pan turns with the focal length (atan(u / f)), and the slopes' focal length
+    with the axis."""
+    k = 1 + fit_baseline + fit_axis
+    if obs and len(obs) < k:
         raise CalibrationError(f"the zero{', the baseline' * fit_baseline}{' and the pan axis' * fit_axis} need {k} "
-                               f"points or more at different distances (given {n})")
-    p0 = np.array([o[1] for o in obs])
-    w = 1.0 / np.maximum(np.array([o[2] for o in obs]), 1e-6)
-    b, d, zero = baseline_m, axis_m, 0.0
+                               f"points or more at different distances (given {len(obs)})")
+    names = ["zero"] * bool(obs) + ["b"] * fit_baseline + ["d"] * fit_axis + ["f"] * bool(slopes)
+    x = {"zero": 0.0, "b": baseline_m, "d": axis_m, "f": f}
+    steps = {"zero": 1e-6, "b": 1e-4, "d": 1e-4, "f": 0.01}
 
-    def want(b, d):
-        return np.array([pan_for_depth(z, b, f, axis_m=d, **kw) for z, _, _, kw in obs])
+    def residuals(x):
+        r = [(pan_for_depth(z, x["b"], x["f"], axis_m=x["d"], **kw) - x["zero"] - p0) / sig for z, p0, sig, kw in obs]
+        r += [(slope_focal(x["f"], x["d"], x["b"], z, um, us, master) - fi) / sig for fi, sig, z, um, us in slopes]
+        return np.array(r)
 
-    for _ in range(6):
-        w0 = want(b, d)
-        cols = [np.full(n, -1.0)]
-        if fit_baseline:
-            cols.append((want(b + 1e-4, d) - w0) / 1e-4)
-        if fit_axis:
-            cols.append((want(b, d + 1e-4) - w0) / 1e-4)
-        jac = np.stack(cols, axis=1) * w[:, None]
-        step, *_ = np.linalg.lstsq(jac, (p0 - (w0 - zero)) * w, rcond=None)
-        zero += step[0]
-        b = max(1e-3, b + step[1]) if fit_baseline else b
-        d = d + step[-1] if fit_axis else d
-    sig = np.sqrt(np.maximum(np.diag(np.linalg.pinv(jac.T @ jac)), 0.0))
-    return float(zero), float(b), float(sig[1]) if fit_baseline else 0.0, float(d), float(sig[-1]) if fit_axis else 0.0
-
-
-def solve_zero(obs, f: float, baseline_m: float | None, axis_m: float = 0.0,
-               start_m: float = 0.06) -> tuple[float, float, float]:
-    """(the pan zero's error, the baseline, its sigma) from [(distance, p0, sigma, geometry)], the pan axis axis_m:
-    with baseline_m given, the mean of want - p0; else the baseline that makes want - p0 the same at every distance
-    (solve_axis over the zero and the baseline, from start_m), its sigma from the p0s' sigmas."""
-    if baseline_m is not None:
-        gaps = [pan_for_depth(z, baseline_m, f, axis_m=axis_m, **kw) - p0 for z, p0, _, kw in obs]
-        return float(np.mean(gaps)), baseline_m, 0.0
-    zero, b, sb, _, _ = solve_axis(obs, f, start_m, True, False, axis_m)
-    return zero, b, sb
+    jac = np.zeros((len(obs) + len(slopes), 0))
+    for _ in range(8 if names else 0):
+        r0 = residuals(x)
+        jac = np.stack([(residuals({**x, n: x[n] + steps[n]}) - r0) / steps[n] for n in names], axis=1)
+        step, *_ = np.linalg.lstsq(jac, -r0, rcond=None)
+        for n, v in zip(names, step):
+            x[n] += v
+        x["b"] = max(1e-3, x["b"])
+    cov = np.linalg.pinv(jac.T @ jac) if names else np.zeros((0, 0))
+    sig = dict(zip(names, np.sqrt(np.maximum(np.diag(cov), 0.0))))
+    return Solved(float(x["zero"]), float(x["b"]), float(sig.get("b", 0.0)), float(x["d"]), float(sig.get("d", 0.0)),
+                  float(x["f"]), float(sig.get("f", 0.0)))
 
 
 def settings_text(values: dict[str, dict[str, float]]) -> str:

@@ -190,46 +190,84 @@ def test_the_sims_zero_lie_is_undone_by_offset_deg_for_the_in_process_loop(zero,
 
 def test_points_at_two_distances_give_the_zero_and_the_baseline():
     """The pan of zero offset at two distances (and a third, off the centre), the camera 0.3 deg off its encoder,
-    a baseline of 0.065 m: solve_zero finds both; with the baseline given (one distance) only the zero, which is
+    a baseline of 0.065 m: solve_head finds both; with the baseline given (one distance) only the zero, which is
     then off where the baseline is."""
-    from vergence.head.calibrate import solve_zero
+    from vergence.head.calibrate import solve_head
 
     zero, b, f = math.radians(0.3), 0.065, 500.0
     pts = [(0.6, (0.0, 0.0)), (2.0, (-180.0, -100.0)), (1.1, (90.0, 40.0))]
     obs = [(z, pan_for_depth(z, b, f, master_px=px) - zero, math.radians(0.003), dict(master_px=px))
            for z, px in pts]
-    got, gb, gs = solve_zero(obs, f, None)
-    assert math.degrees(got) == pytest.approx(0.3, abs=1e-4) and gb == pytest.approx(0.065, rel=1e-3)
-    assert 0 < gs < 0.003
-    one, b_told, _ = solve_zero(obs[:1], f, 0.06)
-    assert b_told == 0.06 and abs(math.degrees(one) - 0.3) > 0.2  # a baseline 5 mm off moves it 0.27 deg at 0.6 m
+    got = solve_head(obs, [], f, 0.06, fit_baseline=True)
+    assert math.degrees(got.zero_rad) == pytest.approx(0.3, abs=1e-4) and got.baseline_m == pytest.approx(0.065, rel=1e-3)
+    assert 0 < got.baseline_sigma_m < 0.003 and got.focal_px == f and got.axis_sigma_m == 0
+    one = solve_head(obs[:1], [], f, 0.06)
+    assert one.baseline_m == 0.06 and abs(math.degrees(one.zero_rad) - 0.3) > 0.2  # 5 mm: 0.27 deg at 0.6 m
     # two near points: a golden section over 1 mm - 2 m of baselines found 2 m and a zero of -66.6 deg here (its
     # spread is not unimodal that far out); Gauss-Newton from the settings' baseline finds them
     near = [(z, pan_for_depth(z, b, f) - zero, math.radians(0.003), {}) for z in (0.4, 0.8)]
-    got, gb, gs = solve_zero(near, f, None)
-    assert math.degrees(got) == pytest.approx(0.3, abs=1e-4) and gb == pytest.approx(0.065, rel=1e-3) and gs > 0
+    got = solve_head(near, [], f, 0.06, fit_baseline=True)
+    assert math.degrees(got.zero_rad) == pytest.approx(0.3, abs=1e-4) and got.baseline_m == pytest.approx(0.065, rel=1e-3)
+    assert got.baseline_sigma_m > 0
+
+
+def _column(head, x: float, z: float, pan: float) -> float:
+    """The slave column at which the simulator's head shows the point z deep that the master sees at column x, the
+    slave at this pan (its centre on the pan axis's circle: Head.slave_centre)."""
+    f, (cx, _) = head.focal_px, head.principal
+    (sx, sz), px = head.slave_centre(pan), z * (x - cx) / f
+    return cx + f * math.tan(math.atan2(px - sx, z - sz) - pan)
+
+
+@pytest.mark.parametrize("axis,x,z,spec", [(0.03, 320, 0.5, {}), (0.045, 512, 0.35, dict(side="0.35")),
+                                          (-0.02, 100, 3.0, dict(bg="3")), (0.0, 512, 0.8, dict(side="0.8"))])
+def test_the_slopes_focal_length_is_the_simulators_parallax(axis, x, z, spec):
+    """slope_focal against the simulator's own geometry (Head.slave_centre; the slope of the column the slave shows a
+    point at, by a difference over +-0.05 deg about the pan MovingRig.truth_at converges on, read as a pure rotation's
+    f + u^2 / f reads it): within 0.05 %; a 3 cm axis at 0.5 m reads 6 % over the focal length."""
+    from vergence.head.calibrate import slope_focal
+    from vergence.sim.moving import MovingRig
+
+    rig = MovingRig.from_options(motion=f"still:z={z if x == 320 else 0.6}", focal="500", axis=str(axis), **spec)
+    p0, h = rig.truth_at(x, 240), math.radians(0.05)
+    assert _column(rig.head, x, z, p0) == pytest.approx(x, abs=1e-3)  # truth_at's pan shows the point at column x
+    slope = (_column(rig.head, x, z, p0 - h) - _column(rig.head, x, z, p0 + h)) / (2 * h)
+    u = x - 320
+    read = 0.5 * (slope + math.sqrt(slope * slope - 4 * u * u))
+    assert slope_focal(500.0, axis, 0.06, z, u, u) == pytest.approx(read, rel=5e-4)
+    if (axis, z) == (0.03, 0.5):
+        assert read == pytest.approx(530, abs=1)
 
 
 @pytest.mark.parametrize("axis,zero_deg,seed", [(0.03, 0.3, 1), (-0.02, -1.5, 2), (0.0, 0.3, 3)])
 def test_points_at_three_distances_give_the_pan_axis_too(axis, zero_deg, seed):
     """A sim head whose slave turns about an axis `axis` m behind its optical centre (the simulator's own geometry:
     MovingRig.truth_at), its camera zero_deg off its encoder, four points at 0.4, 0.6 (off the centre), 0.8 and 3 m,
-    each pan known to 0.004 deg: solve_axis finds the zero, the baseline and the axis; solve_zero, which knows no
-    axis, is off by as much as the axis moves the slave's centre (0.13 deg and 8 % of the baseline for 3 cm)."""
-    from vergence.head.calibrate import solve_axis, solve_zero
+    each pan known to 0.004 deg, each step fit's focal length 0.3 % off what the axis's parallax makes it: solve_head
+    finds the zero, the baseline, the axis and the focal length; without the axis it is off by as much as the axis
+    moves the slave's centre (0.13 deg and 8 % of the baseline for 3 cm), and without the slopes the focal length
+    its parallax makes of the fits (+3 %, taken as the camera's) puts the off-centre point's pan 0.1 deg off."""
+    from vergence.head.calibrate import slope_focal, solve_head
     from vergence.sim.moving import MovingRig
 
     rng, sig = np.random.default_rng(seed), math.radians(0.004)
-    obs = []
+    obs, slopes = [], []
     for z, x in ((0.4, 320), (0.6, 250), (0.8, 320), (3.0, 320)):
         rig = MovingRig.from_options(motion=f"still:z={z}", focal="500", axis=str(axis), bg="6")
         p0 = rig.truth_at(x, 240) - math.radians(zero_deg) + rng.normal(0, sig)
         obs.append((z, p0, sig, dict(master_px=(x - 320, 0))))
-    zero, b, sb, d, sd = solve_axis(obs, 500.0, 0.06, True)
-    assert math.degrees(zero) == pytest.approx(zero_deg, abs=0.015) and b == pytest.approx(0.06, abs=0.0006)
-    assert d == pytest.approx(axis, abs=max(0.0025, 2.5 * sd)) and 0 < sd < 0.002 and 0 < sb < 0.0005
-    z_no, b_no, _ = solve_zero(obs, 500.0, None)
+        slopes.append((slope_focal(500.0, axis, 0.06, z, x - 320, x - 320) * rng.normal(1, 0.003), 1.5, z, x - 320,
+                       x - 320))
+    f_seen = float(np.mean([s[0] for s in slopes]))
+    got = solve_head(obs, slopes, f_seen, 0.06, fit_baseline=True, fit_axis=True)
+    assert math.degrees(got.zero_rad) == pytest.approx(zero_deg, abs=0.015)
+    assert got.baseline_m == pytest.approx(0.06, abs=0.0006) and 0 < got.baseline_sigma_m < 0.0005
+    assert got.axis_m == pytest.approx(axis, abs=max(0.0025, 2.5 * got.axis_sigma_m)) and 0 < got.axis_sigma_m < 0.002
+    assert got.focal_px == pytest.approx(500, rel=0.003) and 0 < got.focal_sigma_px < 1.5
+    no_axis = solve_head(obs, slopes, f_seen, 0.06, fit_baseline=True)
     if axis:
-        assert abs(math.degrees(z_no) - zero_deg) > 0.09 and abs(b_no - 0.06) > 0.003
+        assert abs(math.degrees(no_axis.zero_rad) - zero_deg) > 0.09 and abs(no_axis.baseline_m - 0.06) > 0.003
+    if axis == 0.03:
+        assert f_seen > 512  # the fits' mean: what calibrate wrote before it knew the parallax
     with pytest.raises(CalibrationError, match="3 points or more"):
-        solve_axis(obs[:2], 500.0, 0.06, True)
+        solve_head(obs[:2], slopes, 500.0, 0.06, fit_baseline=True, fit_axis=True)
