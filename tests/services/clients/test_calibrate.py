@@ -209,9 +209,10 @@ def test_the_report_measures_the_pan_axis_from_three_distances_and_keeps_the_set
     points = []
     for z, x in ((0.4, 320), (0.8, 420), (3.0, 230)):  # each on the target, 240 px wide
         truth = MovingRig.from_options(motion=f"still:z={z}", focal="500", axis="0.025", bg="6").truth_at(x, 240)
-        # each fit's focal length as the axis's parallax makes it (5 % at 0.4 m, tests/vergence/head/test_calibrate.py)
+        # each fit's focal length as the axis's parallax makes it (5 % at 0.4 m: tests/vergence/head/)
         fit = NS(n=17, r2=0.9999, rms_px=0.02, focal_px=slope_focal(500.0, 0.025, 0.06, z, x - 320, x - 320),
-                 focal_sigma_px=0.5, latency=lat, pan0_rad=truth - math.radians(0.4), pan0_sigma_rad=math.radians(0.003))
+                 focal_sigma_px=0.5, latency=lat, pan0_rad=truth - math.radians(0.4),
+                 pan0_sigma_rad=math.radians(0.003))
         points.append((fit, (x, 240), z))
     states = [NS(offset_deg=0.0)]
     values, lines = report(points, states, frame, settings)

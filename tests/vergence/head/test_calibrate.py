@@ -199,7 +199,8 @@ def test_points_at_two_distances_give_the_zero_and_the_baseline():
     obs = [(z, pan_for_depth(z, b, f, master_px=px) - zero, math.radians(0.003), dict(master_px=px))
            for z, px in pts]
     got = solve_head(obs, [], f, 0.06, fit_baseline=True)
-    assert math.degrees(got.zero_rad) == pytest.approx(0.3, abs=1e-4) and got.baseline_m == pytest.approx(0.065, rel=1e-3)
+    assert math.degrees(got.zero_rad) == pytest.approx(0.3, abs=1e-4)
+    assert got.baseline_m == pytest.approx(0.065, rel=1e-3)
     assert 0 < got.baseline_sigma_m < 0.003 and got.focal_px == f and got.axis_sigma_m == 0
     one = solve_head(obs[:1], [], f, 0.06)
     assert one.baseline_m == 0.06 and abs(math.degrees(one.zero_rad) - 0.3) > 0.2  # 5 mm: 0.27 deg at 0.6 m
@@ -207,8 +208,8 @@ def test_points_at_two_distances_give_the_zero_and_the_baseline():
     # spread is not unimodal that far out); Gauss-Newton from the settings' baseline finds them
     near = [(z, pan_for_depth(z, b, f) - zero, math.radians(0.003), {}) for z in (0.4, 0.8)]
     got = solve_head(near, [], f, 0.06, fit_baseline=True)
-    assert math.degrees(got.zero_rad) == pytest.approx(0.3, abs=1e-4) and got.baseline_m == pytest.approx(0.065, rel=1e-3)
-    assert got.baseline_sigma_m > 0
+    assert math.degrees(got.zero_rad) == pytest.approx(0.3, abs=1e-4)
+    assert got.baseline_m == pytest.approx(0.065, rel=1e-3) and got.baseline_sigma_m > 0
 
 
 def _column(head, x: float, z: float, pan: float) -> float:
