@@ -15,9 +15,12 @@ FROZEN_MASTER_S = 0.3  # byte-identical master images for this long, where they 
 MASTER_LIVE = 5  # ... every frame, this many in a row at least (a live camera's noise)
 
 
-def digest(img: np.ndarray) -> int:
-    """The CRC-32 of an image's bytes (a frozen camera repeats them); never 0, which says "not known" in a Frame,
-    as it is for a flat image (a black frame repeats itself and is no frozen camera)."""
+def digest(img: np.ndarray, y: int | None = None, reach: int = 0) -> int:
+    """The CRC-32 of an image's bytes (a frozen camera repeats them), or of its rows y - reach .. y + reach only
+    (the band the network reads: a twentieth of a VGA image's, 4 us against 70); never 0, which says "not known"
+    in a Frame, as it is for flat rows (a black frame repeats itself and is no frozen camera)."""
+    if y is not None:
+        img = img[max(0, y - reach):y + reach + 1]
     img = np.ascontiguousarray(img)
     if img.size == 0 or img.min() == img.max():
         return 0

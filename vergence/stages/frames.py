@@ -55,12 +55,13 @@ def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, p
                                                  params.lr_check, params.clip_master and clip)
     if clipped is not None:
         clipped.append(lims is not None)
+    reach = w // 2 + params.vsearch + 1  # the band's rows, with their Sobel margin
     return Frame(rig=rig, frame=frame, t_capture_ns=t_capture_ns, pan_rad=float(pan_rad), width=wd, height=h,
                  x=x, y=y, window=w, vsearch=params.vsearch, focal_px=float(focal_px), fovea=fovea.tobytes(),
                  band=band.tobytes(), plan=plan, circular=params.circular, support=params.support,
                  master_band=b"" if mband is None else mband.tobytes(), support_gamma=params.support_gamma,
-                 support_radius=params.support_radius_at(w), master_digest=digest(master),
-                 slave_digest=digest(slave))
+                 support_radius=params.support_radius_at(w), master_digest=digest(master, y, reach),
+                 slave_digest=digest(slave, y, reach))
 
 
 def frame_cost(frame: Frame) -> int:

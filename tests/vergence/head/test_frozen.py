@@ -15,6 +15,9 @@ def test_the_digest_is_the_images_crc32_and_0_only_for_a_flat_image():
     assert digest(img[:, ::2]) == zlib.crc32(np.ascontiguousarray(img[:, ::2]).tobytes())  # a view: its own bytes
     assert digest(np.zeros((3, 4), np.uint8)) == 0 and digest(np.full((3, 4), 9, np.uint8)) == 0
     assert digest(np.zeros((0, 4), np.uint8)) == 0
+    # the band's rows only: y - reach .. y + reach (cut at the image's edge)
+    assert digest(img, 2, 1) == zlib.crc32(img[1:4].tobytes())
+    assert digest(img, 0, 3) == zlib.crc32(img[:4].tobytes())
 
 
 def test_a_master_that_changed_every_frame_and_now_repeats_is_frozen_after_frozen_master_s():
