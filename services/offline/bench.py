@@ -174,11 +174,18 @@ def _faults(args) -> int:
         if args.json:
             print(json.dumps(r), flush=True)
             return
-        print(f"{r['lie']:14s} {r['scene']:7s} {r['rate_hz']:4.0f} Hz {r['latency_ms']:3d} ms seed {r['seed']}  "
-              f"fault {_fmt(r.get('fault'), '14s')} after {_fmt(r.get('diagnosed_s'), '5.3f')} s  excursion "
-              f"{_fmt(r.get('excursion_deg'), '5.2f')} deg {_fmt(r.get('excursion_px'), '6.1f')} px  commands "
-              f"{_fmt(r.get('commands_in_fault'), '3d')}  back {_fmt(r.get('recovered_s'), '5.2f')} s  false "
-              f"{r['false_fault_frames']}", flush=True)
+        head = f"{r['lie']:14s} {r['scene']:7s} {r['rate_hz']:4.0f} Hz {r['latency_ms']:3d} ms seed {r['seed']}  "
+        if r["lie"] == "focal_true":
+            body = (f"focal named after {_fmt(r.get('focal_named_s'), '5.2f')} s  ratio "
+                    f"{_fmt(r.get('focal_ratio'), '5.3f')}  later steps' overshoot "
+                    f"{_fmt(r.get('overshoot_px'), '5.1f')} px")
+        elif r["lie"] == "backlash":
+            body = f"RMS / the clean run's {_fmt(r.get('rms_vs_clean'), '5.2f')}"
+        else:
+            body = (f"fault {_fmt(r.get('fault'), '14s')} after {_fmt(r.get('diagnosed_s'), '5.3f')} s  excursion "
+                    f"{_fmt(r.get('excursion_deg'), '5.2f')} deg {_fmt(r.get('excursion_px'), '6.1f')} px  commands "
+                    f"{_fmt(r.get('commands_in_fault'), '3d')}  back {_fmt(r.get('recovered_s'), '5.2f')} s")
+        print(f"{head}{body}  RMS {r['rms_px']:5.2f} px  false {r['false_fault_frames']}", flush=True)
 
     bench_faults(rates, latencies, seeds, progress=show)
     return 0

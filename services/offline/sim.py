@@ -82,7 +82,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    "re-convergence after each is reported")
     p.add_argument("--motion", metavar="SPEC",
                    help="a target moving in depth: still:z=Z | step:z0=Z0,z1=Z1,at=S | ramp:z0=Z0,z1=Z1,speed=M_S | "
-                        "sine:z=Z,amp=A,hz=F (metres, seconds)")
+                        "sine:z=Z,amp=A,hz=F | square:z0=Z0,z1=Z1,hz=F (metres, seconds)")
     p.add_argument("--baseline", type=number(0, 10, lo_open=True), default=None, metavar="M",
                    help="the rig's baseline in metres: the moving rig's (--motion), and depth_m's (default: "
                    "settings [rig] baseline_m, 0.06)")

@@ -58,14 +58,17 @@ def ahead_run(test, spec, mode="predictive", rate=60.0, frames=300, seed=0, nois
 @pytest.mark.parametrize("spec,t,z", [("still:z=0.8", 3.0, 0.8), ("step:z0=1.2,z1=0.6,at=1", 0.99, 1.2),
                                       ("step:z0=1.2,z1=0.6,at=1", 1.0, 0.6), ("ramp:z0=1,z1=0.5,speed=0.1", 2.0, 0.8),
                                       ("ramp:z0=1,z1=0.5,speed=0.1", 9.0, 0.5), ("sine:z=0.8,amp=0.3,hz=0.5", 0.5, 1.1),
-                                      ("sine:z=0.8,amp=0.3,hz=0.5", 1.5, 0.5)])
+                                      ("sine:z=0.8,amp=0.3,hz=0.5", 1.5, 0.5),
+                                      ("square:z0=0.6,z1=1,hz=0.5", 0.99, 0.6), ("square:z0=0.6,z1=1,hz=0.5", 1.0, 1.0),
+                                      ("square:z0=0.6,z1=1,hz=0.5", 2.5, 0.6), ("square:z0=0.6,z1=1,hz=2", 0.3, 1.0)])
 def test_motion_z(spec, t, z):
     assert parse_motion(spec).z(t) == pytest.approx(z)
 
 
 @pytest.mark.parametrize("spec,says", [("walk:z=1", "unknown kind"), ("still:z=0", "> 0"), ("sine:z=0.3,amp=0.3,hz=1",
                                        "> 0"), ("step:z0=1,z1=2", "missing at"), ("still:z=x", "not a number"),
-                                       ("ramp:z0=1,z1=2,speed=0", "speed"), ("still:q=1", "unknown key 'q'")])
+                                       ("ramp:z0=1,z1=2,speed=0", "speed"), ("still:q=1", "unknown key 'q'"),
+                                       ("square:z0=1,z1=2,hz=0", "hz")])
 def test_motion_errors_say_what(spec, says):
     with pytest.raises(ValueError, match=says):
         parse_motion(spec)

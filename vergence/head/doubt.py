@@ -67,7 +67,7 @@ SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within th
 IDENTICAL_MOVE_DEG = 0.5  # a byte-identical slave image after the motor moved this much is frozen
 STALL_S = 0.5  # commanded MIN_MOVE or more away, and no move of STALL_MOVE_DEG for this long: stalled
 STALL_MOVE_DEG = 0.2
-PRECISE = 0.1  # a decisive pair whose slack is at most this fraction of the motion counts for the focal length
+PRECISE = 0.2  # a decisive pair with at most this slack per motion counts for the focal length (docs/FAULTS.md)
 FOCAL_PAIRS = 8  # such pairs before the focal length's ratio is named
 
 def _kind(r: float) -> str:

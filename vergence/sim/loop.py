@@ -68,6 +68,10 @@ class Step:
     scores: np.ndarray
     fault: str | None = None  # the loop's doubt (vergence.head.doubt): the fault it holds on, None when none
     late_ms: float | None = None  # ... and how late it named the camera (None: not named)
+    focal_ratio: float | None = None  # ... and the focal length's ratio to the settings' it measured (None: not named)
+    # the slave camera's own error (its pan over its exposure, as it lies: backlash, slip, reverse), where error_px is
+    # the shaft's (the encoder's pan): the same without a lie
+    camera_error_px: float = math.nan
 
     def to_dict(self) -> dict:
         """JSON-ready (NaN, an unknown truth, becomes None)."""
@@ -79,7 +83,8 @@ class Step:
                 "truth_pan_deg": known(self.truth_pan_deg),
                 "error_px": known(self.error_px), "offset_px": self.offset_px, "confident": self.confident,
                 "k": self.k, "v": self.v, "window": self.window, "confidence": self.confidence,
-                "target_deg": self.target_deg, "fault": self.fault, "late_ms": self.late_ms}
+                "target_deg": self.target_deg, "fault": self.fault, "late_ms": self.late_ms,
+                "focal_ratio": self.focal_ratio, "camera_error_px": known(self.camera_error_px)}
 
 
 def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: ControlSettings | None = None,
@@ -190,10 +195,12 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
                                    textured=has_texture(d, params), width_px=master.shape[1])
     step = Step(frame=frame, t_s=t_master, pan_deg=math.degrees(seen["at_slave"]),
                 truth_pan_deg=math.degrees(rig.truth_pan(t_master)), error_px=rig.error_px(seen["at_master"], t_master),
+                camera_error_px=rig.error_px(float(np.mean([c for c, _ in seen["slave"]])), t_slave),
                 offset_px=d.offset_px, confident=d.confident, k=d.k, v=d.v, window=m.window,
                 confidence=d.confidence, target_deg=None, scores=np.atleast_2d(m.scores)[d.v + params.vsearch],
                 fault=None if controller.doubt.fault is None else str(controller.doubt.fault),
-                late_ms=None if controller.doubt.late_s is None else round(controller.doubt.late_s * 1e3, 2))
+                late_ms=None if controller.doubt.late_s is None else round(controller.doubt.late_s * 1e3, 2),
+                focal_ratio=controller.doubt.focal_ratio)
     return step, target
 
 

@@ -4,6 +4,7 @@
     step:z0=Z0,z1=Z1,at=SECONDS    Z0 before `at`, Z1 from `at` on
     ramp:z0=Z0,z1=Z1,speed=M_PER_S from Z0 to Z1 at constant speed (from t = 0), then Z1
     sine:z=Z,amp=A,hz=F            Z(t) = Z + A sin(2 pi F t)
+    square:z0=Z0,z1=Z1,hz=F        Z0 and Z1 in turn, a step every 1 / (2 F) s (Z0 first)
 
 Every distance must stay positive (Z - A > 0 for a sine). A bad spec raises ValueError naming the item.
 """
@@ -17,7 +18,8 @@ from ..spec import Key, SpecError, parse
 
 __all__ = ["Motion", "parse_motion", "KINDS"]
 
-KINDS = {"still": ("z",), "step": ("z0", "z1", "at"), "ramp": ("z0", "z1", "speed"), "sine": ("z", "amp", "hz")}
+KINDS = {"still": ("z",), "step": ("z0", "z1", "at"), "ramp": ("z0", "z1", "speed"), "sine": ("z", "amp", "hz"),
+         "square": ("z0", "z1", "hz")}
 
 
 @dataclass(frozen=True)
@@ -45,6 +47,8 @@ class Motion:
             z0, z1 = q["z0"], q["z1"]
             travel = q["speed"] * max(0.0, t)
             return z1 if travel >= abs(z1 - z0) else z0 + math.copysign(travel, z1 - z0)
+        if self.kind == "square":
+            return q["z1"] if math.floor(2 * q["hz"] * max(0.0, t)) % 2 else q["z0"]
         return q["z"] + q["amp"] * math.sin(2 * math.pi * q["hz"] * t)
 
     @property
@@ -61,6 +65,8 @@ class Motion:
 def _keys(kind: str) -> list[Key]:
     """The keys of a kind (vergence.spec), all required: metres, seconds, hertz."""
     limits = {"speed": dict(above=0.0, unit="m/s"), "hz": dict(lo=0.0, unit="Hz"), "at": dict(lo=0.0, unit="s")}
+    if kind == "square":
+        limits["hz"] = dict(above=0.0, unit="Hz")
     return [Key(k, required=True, **limits.get(k, {})) for k in KINDS[kind]]
 
 

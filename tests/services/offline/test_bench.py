@@ -146,6 +146,6 @@ def test_bench_faults_runs_from_the_cli_and_refuses_bad_lists():
     assert r.returncode == 0, r.stderr[-2000:]
     rows = [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
     assert [(r["lie"], r["scene"]) for r in rows][:3] == [("-", "moving"), ("freeze", "moving"), ("slip", "moving")]
-    assert len(rows) == 13 and all(r["false_fault_frames"] == 0 for r in rows)
+    assert len(rows) == 19 and all(r["false_fault_frames"] == 0 for r in rows)  # 13 lies x scenes, 6 that are no faults
     r = run("bench", "faults", "--rates", "fast", timeout=60)
     assert r.returncode == 2 and "comma-separated numbers" in r.stderr

@@ -274,6 +274,29 @@ def test_the_moving_target_raises_no_fault_with_backlash_and_encoder_noise(motio
     assert not [s for s in steps if s.fault]
 
 
+@pytest.mark.parametrize("rate,latency,seed", [(60.0, 0.0, 11), (30.0, 0.066, 12)])
+def test_images_at_1_6_x_the_focal_length_told_are_named_and_the_steps_after_do_not_overshoot(rate, latency, seed):
+    """focal_true 1.6 x the settings (the images rendered at f 800, the loop told 500), a target stepping between 0.6
+    and 1.0 m every second: the first step overshoots (16-26 px: the move is 1.6 x what the offset asked), its fast
+    moves' ratios name the focal length within 5 % by the third step (at 60 Hz a pair spans 1.5 deg of the move: a
+    pair whose slack is a fifth of its motion counts; at a tenth, as before, 60 Hz never named it on one of four
+    draws), and every step after overshoots at most 3 px (0.0-0.3 measured), no fault, no limit cycle."""
+    rig = MovingRig.from_options(motion="square:z0=0.6,z1=1.0,hz=0.5", focal="800", seed=str(seed), noise="1")
+    steps = list(closed_loop(rig, int(6 * rate), None, ControlSettings(), None, rate, timing=CameraTiming(latency),
+                             seed=seed, focal_px=500.0))
+    named = next(s for s in steps if s.focal_ratio is not None)
+    assert named.t_s < 2.5 and steps[-1].focal_ratio == pytest.approx(1.6, rel=0.05)
+    assert not [s for s in steps if s.fault]
+    for k in range(int(named.t_s) + 1, 6):  # each step after the naming: its error never flips past 3 px
+        seg = [s for s in steps if k <= s.t_s < k + 1]
+        sign = math.copysign(1.0, seg[0].error_px)
+        assert max(-sign * s.error_px for s in seg) <= 3.0, k
+        assert max(abs(s.error_px) for s in seg[-10:]) < 0.5  # settled: no limit cycle
+    clean = MovingRig.from_options(motion="square:z0=0.6,z1=1.0,hz=0.5", focal="500", seed=str(seed), noise="1")
+    assert all(s.focal_ratio is None for s in closed_loop(clean, int(6 * rate), None, ControlSettings(), None, rate,
+                                                           timing=CameraTiming(latency), seed=seed))
+
+
 LATE = [("sine:z=0.8,amp=0.25,hz=0.4", 60.0, 0.066, 14), ("sine:z=0.9,amp=0.2,hz=0.3", 30.0, 0.1, 15)]
 for _late in LATE:
     background.ahead(sweeps.late_camera, *_late,
