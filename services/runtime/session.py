@@ -214,7 +214,14 @@ class Stop:
                 signal.signal(sig, self._handler)
 
     def _handler(self, signum, frame):
-        self.event.set()
+        # Not self.event.set() here: a handler runs between two bytecodes of the main thread, which may be holding the
+        # event's lock (inside Event.wait, or a first handler's Event.set when a second signal comes: Ctrl-C twice, a
+        # `timeout` forwarding its signal), and that Lock is not reentrant: the process hung for good. A thread sets
+        # it, once the main thread lets go.
+        try:
+            threading.Thread(target=self.event.set, name="stop", daemon=True).start()
+        except RuntimeError:  # no new thread at the interpreter's shutdown: nothing holds the lock any more
+            self.event.set()
 
     def is_set(self) -> bool:
         return self.event.is_set()

@@ -36,3 +36,33 @@ def test_monitor_once_gives_up_at_its_timeout(tmp_path):
     assert r.returncode == 1 and time.monotonic() - t0 < 20
     assert r.stderr.strip().splitlines()[-1].startswith("vergence monitor: no Zenoh router or peer answered at "
                                                         "tcp/127.0.0.1:")
+
+
+STOP_SCRIPT = r"""
+import os, signal, sys, threading
+from services.runtime.session import Stop
+stop = Stop()
+# the main thread inside the event's lock (as Event.wait or a first handler's Event.set hold it between two bytecodes)
+# when the signal's handler runs: the lock is not reentrant, so a handler that set the event itself hung for good
+with stop.event._cond:
+    os.kill(os.getpid(), signal.SIGTERM)
+    for _ in range(1000):  # bytecodes: the handler runs between two of them
+        pass
+sys.exit(0 if stop.wait(5) else 3)
+"""
+
+
+@pytest.mark.parametrize("times", [1, 3])
+def test_a_signal_that_comes_while_the_main_thread_holds_the_stops_lock_still_stops_it(times):
+    """`vergence up` hung for good after SIGINT and then SIGTERM (a `timeout` forwarding its own signal): the second
+    signal's handler ran inside the first one's Event.set, holding the event's lock, and waited for it forever (its
+    children exited, never reaped). The handler no longer takes the lock itself. Here the main thread holds it when
+    1 or 3 signals arrive: the process stops within its 5 s wait (before: hung until the timeout killed it)."""
+    import subprocess
+    import sys
+
+    script = STOP_SCRIPT.replace("os.kill(os.getpid(), signal.SIGTERM)",
+                                 "; ".join(["os.kill(os.getpid(), signal.SIGTERM)"] * times))
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=30,
+                       cwd=str(__import__("pathlib").Path(__file__).resolve().parents[3]))
+    assert r.returncode == 0, r.stderr
