@@ -65,8 +65,7 @@ PROBE_MIN_DEG = 0.3  # a probe's pair counts when the motor moved at least this 
 SUSPECT_S = 0.1  # a pair that did not follow holds the motor this long, then probes
 SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within this
 IDENTICAL_MOVE_DEG = 0.5  # a byte-identical slave image after the motor moved this much is frozen
-STALL_S = 0.5  # commanded MIN_MOVE or more away, and no move of STALL_MOVE_DEG for this long: stalled
-STALL_MOVE_DEG = 0.2
+STALL_S, STALL_MOVE_DEG = 0.5, 0.2  # commanded MIN_MOVE or more away, no move of STALL_MOVE_DEG for STALL_S: stalled
 PRECISE = 0.2  # a decisive pair with at most this slack per motion counts for the focal length (docs/FAULTS.md)
 FOCAL_PAIRS = 8  # such pairs before the focal length's ratio is named
 
@@ -415,17 +414,18 @@ class Doubt:
 
     def _probed(self, t: float, now: _Seen) -> None:
         """The image of a probe (a head not yet trusted, or held by a pair that did not follow): it followed (the
-        head is trusted) or not (a fail). The target's motion meanwhile is taken out at its learnt rate."""
+        head is trusted) or not (a fail; a doubt where the target's latest rate, not the learnt one, explains it)."""
         ref, p = self.probe_ref, now.pan - self.probe_ref.pan
         if abs(p) < math.radians(PROBE_MIN_DEG):
             return
-        r = (-(now.a - ref.a) + self.rate * (now.t - ref.t)) / p
+        r, rt = ((-(now.a - ref.a) + v * (now.t - ref.t)) / p for v in (self.rate, self.trend))
         self._unprobe()
         if verdict(r) is None and r <= FOLLOWS_MAX:
             self._followed(now, r, False)
             self.ref = self.centre = now
         else:
-            self._fail(t, _kind(r), f"a probe moved the image r = {r:.2f}")
+            doubt = verdict(rt) is None and rt <= FOLLOWS_MAX
+            self._fail(t, "doubt" if doubt else _kind(r), f"a probe moved the image r = {r:.2f}")
 
     def _during_fault(self, pan: float, t_now: float) -> float | None:
         if self.fault is Fault.MASTER_FROZEN or self.anchor is None:
