@@ -225,3 +225,33 @@ def test_the_report_measures_the_pan_axis_from_three_distances_and_keeps_the_set
     assert re.search(r"focal length: 50[01]\.\d", text)
     values, lines = report(points[:2], states, frame, settings)
     assert "pan_axis_m" not in values["rig"] and "points at three distances or more" in "\n".join(lines)
+
+
+def test_the_report_takes_the_settings_pan_axis_out_of_the_focal_length_at_one_point(tmp_path):
+    """One point at 0.5 m on a head whose settings say its pan axis is 3 cm behind the optical centre: the steps' fit
+    reads 6 % over the focal length (the parallax, slope_focal); the report writes the focal length itself (500 px),
+    and the zero as the axis moves the pan (0.4 deg, where ignoring the axis would be 0.13 deg off at 3 cm)."""
+    from types import SimpleNamespace as NS
+
+    from services.clients.calibrate import report
+    from vergence.config import load
+    from vergence.head.calibrate import slope_focal
+    from vergence.sim.moving import MovingRig
+
+    cfg = tmp_path / "axis.toml"
+    cfg.write_text("[rig]\npan_axis_m = 0.03\n")
+    settings = load(str(cfg))
+    frame = NS(principal=(320, 240), slave_principal=(320, 240), width=640, height=480, master_pan_rad=0.0,
+               tilt_rad=0.0, focal_px=500.0)
+    lat = NS(latency_s=0.0, sigma_s=0.001, delta_s=0.0)
+    truth = MovingRig.from_options(motion="still:z=0.5", focal="500", axis="0.03").truth_at(320, 240)
+    seen = slope_focal(500.0, 0.03, 0.06, 0.5, 0.0, 0.0)
+    fit = NS(n=17, r2=0.9999, rms_px=0.02, focal_px=seen, focal_sigma_px=0.5, latency=lat,
+             pan0_rad=truth - math.radians(0.4), pan0_sigma_rad=math.radians(0.003))
+    values, lines = report([(fit, None, 0.5)], [NS(offset_deg=0.0)], frame, settings)
+    assert seen == pytest.approx(530, abs=1.5)
+    assert values["rig"]["focal_px"] == pytest.approx(500, abs=0.2), lines
+    assert values["actuator.motor"]["offset_deg"] == pytest.approx(0.4, abs=0.002)
+    # and with no distance at all: the point's distance from its pan with the settings, the focal length the same
+    values, _ = report([(fit, None, None)], [NS(offset_deg=0.0)], frame, settings)
+    assert values["rig"]["focal_px"] == pytest.approx(500, abs=2.0)
