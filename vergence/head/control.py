@@ -158,10 +158,12 @@ class Controller:
             t_s, pan_at_capture = d.shift(t_s, pan_at_capture)  # (a camera named late: as its image shows it)
             ok = confident and math.isfinite(offset_px) and math.isfinite(focal_px) and focal_px > 0
             a = pixels_to_angle(offset_px, focal_px, centre_px) if ok else None
-            before = d.fault
+            before = d.fault, d.focal_ratio is None
             d.observe(t_s, pan_at_capture, a, slave, master, fovea)
-            if d.fault != before:
-                self.reset()  # what the filter learnt while the image lied (or before the fault) says nothing now
+            if (d.fault, d.focal_ratio is None) != before:
+                # what the filter learnt while the image lied (or before the fault, or at the focal length told
+                # before it was named) says nothing now
+                self.reset()
             if d.focal_ratio is not None and math.isfinite(focal_px):
                 focal_px = focal_px * d.focal_ratio  # the measured focal length
         now = t_now if t_now is not None and math.isfinite(t_now) else t_s
@@ -185,9 +187,9 @@ class Controller:
         return None if gated is None else self.limits.limit_step(pan_at_capture, gated)
 
     def reset(self) -> None:
-        """Forget the target's estimate (a fault began or ended): the next decision starts afresh."""
-        if self.predictor is not None:
-            self.predictor.reset()
+        """Forget the target's estimate (a fault began or ended, the focal length was named): the next decision
+        starts afresh."""
+        self.predictor = None  # (made again at the next decision's focal length: its noise and gate are pixels)
         if self.periodic is not None:
             self.periodic.reset()
             self.referee.reset()

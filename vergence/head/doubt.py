@@ -39,7 +39,8 @@ import math
 from dataclasses import dataclass
 
 from ..choices import Fault
-from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, REVERSED_MAX, focal_off, verdict
+from .focal import Focal
+from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, REVERSED_MAX, verdict
 from .frozen import Master
 from .lag import LAG_AFTER_S, RETURN_FIT_S, Lag
 
@@ -67,7 +68,6 @@ SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within th
 IDENTICAL_MOVE_DEG = 0.5  # a byte-identical slave image after the motor moved this much is frozen
 STALL_S, STALL_MOVE_DEG = 0.5, 0.2  # commanded MIN_MOVE or more away, no move of STALL_MOVE_DEG for STALL_S: stalled
 PRECISE = 0.2  # a decisive pair with at most this slack per motion counts for the focal length (docs/FAULTS.md)
-FOCAL_PAIRS = 8  # such pairs before the focal length's ratio is named
 
 def _kind(r: float) -> str:
     """The kind of a fail: reversed where r <= -0.7 (a reversed camera's r is near -1; a slipping one's, the target
@@ -99,8 +99,7 @@ class Doubt:
         self.centre: _Seen | None = None  # the last consistent measurement (the leash's centre)
         self.rate = self.trend = 0.0  # the target's rate (rad/s): learnt, and as the last consistent pair showed it
         self.fails, self.t_fail = [], 0.0  # the kinds of the pairs that did not follow, and when the last one was
-        self.ratios: list[float] = []  # decisive pairs' r that followed (the focal length's ratio)
-        self.focal_ratio: float | None = None  # named when the ratios say the focal length is off
+        self.focal = Focal()  # the focal length's ratio, from precise pairs that followed and from pursuit
         self.t_probe, self.probe_sign = None, 1.0  # a fault's last probe, and its side
         self.returned = False  # the fault's move back to the anchor was sent
         self.last_slave: tuple[int, float] | None = None  # (digest, pan) of the last frame
@@ -129,6 +128,11 @@ class Doubt:
         return "; ".join(notes)
 
     @property
+    def focal_ratio(self) -> float | None:
+        """The image's motion over the motor's, named where the focal length is off (vergence.head.focal)."""
+        return self.focal.ratio
+
+    @property
     def late_s(self) -> float | None:
         """How much later than its frames say the slave's image shows the motor (vergence.head.lag), once named."""
         return self.lag.late_s
@@ -152,6 +156,7 @@ class Doubt:
         self.t_last = t
         if fovea != self.fovea:
             self.fovea, self.ref, self.centre, self.rate, self.trend = fovea, None, None, 0.0, 0.0  # afresh
+            self.focal.clear()
         if self.anchor is None:
             self.anchor = pan
         self._master(t, master)
@@ -169,6 +174,7 @@ class Doubt:
         now = _Seen(t, pan, a, self.u)
         self.last_seen = now
         self.lag.saw(t, a)
+        self.focal.add(t, pan, a)
         if self.probe_ref is not None:
             self._probed(t, now)
             return self.fault
@@ -223,8 +229,7 @@ class Doubt:
         towards the focal length's ratio)."""
         self.fails.clear()
         if precise:
-            self.ratios = (self.ratios + [r])[-4 * FOCAL_PAIRS:]
-            self._focal()
+            self.focal.pair(r)
         self.trusted = True
         self.anchor = j.pan
 
@@ -242,14 +247,6 @@ class Doubt:
             if learn and (slow or abs(i.a) < math.radians(TRACKING_DEG)):
                 self.rate = 0.0 if jump else 0.5 * self.rate + 0.5 * v
         self.ref = self.centre = j
-
-    def _focal(self) -> None:
-        if len(self.ratios) >= FOCAL_PAIRS:
-            med = sorted(self.ratios)[len(self.ratios) // 2]
-            named = focal_off(med)
-            if named and self.focal_ratio is None:
-                log.warning("the focal length is off: the image moves %.2f x what focal_px predicts", med)
-            self.focal_ratio = med if named else None
 
     def _fail(self, t: float, kind: str, why: str) -> Fault | None:
         """A pair (or a probe) that did not follow, of `kind` ("frozen", "reversed", or "doubt": short of the motor's
@@ -274,6 +271,7 @@ class Doubt:
         self.fault, self.t_probe, self.returned = fault, t, False
         self.trusted, self.ref, self.t_held = False, None, None
         self.fails.clear()
+        self.focal.clear()
         self.faults += 1
         self._unprobe()  # (a probe of the leash or of a suspicion: over)
         log.error("fault %s (%s): holding at %.2f deg; %s", fault, why,

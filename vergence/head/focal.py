@@ -1,0 +1,118 @@
+"""The focal length's ratio (issue #35): how far the image moves per radian of the motor, over what [rig] focal_px
+predicts. Named from the check's fast pairs (vergence.head.doubt: the median of FOCAL_PAIRS precise ones), or,
+before there are that many, from pursuit: the motor's own small moves while it follows a target, where no move is
+fast enough for a pair to be judged.
+
+Each confident decision says a = atan(offset / focal_px) = rho (T - pan) to first order: T the target's pan, pan the
+slave's at its exposure, rho the image's motion over the motor's (1 where focal_px is right; 1.6 where the images
+are taken at 1.6 x focal_px). Over the last WINDOW_S the target's pan is smooth (a cubic in time), the motor's is
+not: its corrections, and the oscillation a wrong gain makes, move it back and forth. So a least-squares fit of a on
+a cubic in t and -pan reads rho off the part of the motor's motion no cubic explains. A fit counts where that part
+is at least MOTION_DEG (RMS: against the encoder's noise, which biases rho towards 0 as the square of their ratio)
+and rho's standard error at most SE. The median of the last KEEP such fits (FITS at least) names the ratio where it
+is off (vergence.head.follows.focal_off) and above 1: a gain too high is what makes the loop oscillate, and a camera
+later than its frames say reads as a ratio below 1 (docs/FAULTS.md has the figures)."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from .follows import FOLLOWS_MAX, focal_off
+
+__all__ = ["Focal", "Pursuit"]
+
+log = logging.getLogger("vergence.doubt")
+
+FOCAL_PAIRS = 8  # precise fast pairs before their median names the ratio (it then stands over pursuit's)
+
+WINDOW_S = 0.6  # the fits' span: a target's pan is a cubic over it
+DEGREE = 3  # (a cubic)
+MIN_SAMPLES = 12  # decisions in a window before it is fitted
+EVERY = 3  # a fit every this many decisions
+MOTION_DEG = 0.25  # the motor's motion no cubic explains, RMS, for a fit to count
+SE = 0.05  # the largest standard error of rho of a fit that counts
+FITS = 4  # fits that count before the ratio is named ...
+KEEP = 9  # ... from the median of the last this many (one window of a transient can be 20 % off)
+
+
+class Pursuit:
+    """add() every confident decision (its exposure t in s, the slave's pan then and the offset's angle a, rad);
+    `ratio` is the image's motion over the motor's once named (None before). clear() after a fault or a new
+    target: what the window holds says nothing of the next one."""
+
+    def __init__(self):
+        self.seen: list[tuple[float, float, float]] = []
+        self.fits: list[float] = []
+        self.ratio: float | None = None
+        self.n = 0
+
+    def clear(self) -> None:
+        self.seen.clear()
+        self.fits.clear()
+
+    def add(self, t: float, pan: float, a: float) -> float | None:
+        self.seen = [s for s in self.seen if s[0] > t - WINDOW_S] + [(t, pan, a)]
+        self.n += 1
+        if len(self.seen) < MIN_SAMPLES or self.n % EVERY:
+            return self.ratio
+        rho = fit(self.seen)
+        if rho is None:
+            return self.ratio
+        self.fits = (self.fits + [rho])[-KEEP:]
+        if len(self.fits) >= FITS:
+            med = sorted(self.fits)[len(self.fits) // 2]
+            # above 1 only: a camera later than its frames say reads as a ratio below 1 (the motor's wobble seen a
+            # phase late), and a ratio below 1 only slows the loop; the fast pairs name those
+            self.ratio = med if focal_off(med) and 1 < med <= FOLLOWS_MAX else None
+        return self.ratio
+
+
+class Focal:
+    """The ratio as named (`ratio`, None while the focal length is right or not yet known): pair(r) every precise
+    fast pair's r, add() every confident decision (Pursuit.add), clear() after a fault or a new target."""
+
+    def __init__(self):
+        self.pairs: list[float] = []
+        self.pursuit = Pursuit()
+        self.ratio: float | None = None
+
+    def pair(self, r: float) -> None:
+        self.pairs = (self.pairs + [r])[-4 * FOCAL_PAIRS:]
+        self._name()
+
+    def add(self, t: float, pan: float, a: float) -> None:
+        self.pursuit.add(t, pan, a)
+        self._name()
+
+    def clear(self) -> None:
+        self.pursuit.clear()
+
+    def _name(self) -> None:
+        if len(self.pairs) >= FOCAL_PAIRS:
+            med = sorted(self.pairs)[len(self.pairs) // 2]
+            ratio = med if focal_off(med) else None
+        else:
+            ratio = self.pursuit.ratio
+        if ratio is not None and self.ratio is None:
+            log.warning("the focal length is off: the image moves %.2f x what focal_px predicts", ratio)
+        self.ratio = ratio
+
+
+def fit(seen: list[tuple[float, float, float]]) -> float | None:
+    """rho of one window, or None where it does not count (see the module's text)."""
+    t, pan, a = (np.array(c) for c in zip(*seen))
+    tc = (t - t.mean()) / WINDOW_S
+    cubic = np.column_stack([tc ** k for k in range(DEGREE + 1)])
+    rest = pan - cubic @ np.linalg.lstsq(cubic, pan, rcond=None)[0]  # the motor's motion no cubic explains
+    if math.degrees(float(np.sqrt(np.mean(rest ** 2)))) < MOTION_DEG:
+        return None
+    design = np.column_stack([cubic, -pan])
+    sol = np.linalg.lstsq(design, a, rcond=None)[0]
+    resid = a - design @ sol
+    dof = len(a) - design.shape[1]
+    # rho's standard error: its own column's, net of the cubic's (the residual's variance over rest's energy)
+    se = math.sqrt(float(resid @ resid) / dof / float(rest @ rest))
+    return float(sol[-1]) if se <= SE else None
