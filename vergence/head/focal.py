@@ -20,7 +20,7 @@ import math
 
 import numpy as np
 
-from .follows import FOLLOWS_MAX, focal_off
+from .follows import FOCAL_OFF, FOLLOWS_MAX, focal_off
 
 __all__ = ["Focal", "Pursuit"]
 
@@ -65,8 +65,10 @@ class Pursuit:
         if len(self.fits) >= FITS:
             med = sorted(self.fits)[len(self.fits) // 2]
             # above 1 only: a camera later than its frames say reads as a ratio below 1 (the motor's wobble seen a
-            # phase late), and a ratio below 1 only slows the loop; the fast pairs name those
-            self.ratio = med if focal_off(med) and 1 < med <= FOLLOWS_MAX else None
+            # phase late), and a ratio below 1 only slows the loop; the fast pairs name those. Once named, it stays
+            # until the median is within half of FOCAL_OFF of 1 (each naming starts the controller's filters afresh)
+            off = focal_off(med) if self.ratio is None else med - 1 > FOCAL_OFF / 2
+            self.ratio = med if off and 1 < med <= FOLLOWS_MAX else None
         return self.ratio
 
 

@@ -52,6 +52,19 @@ def test_pursuit_names_a_ratio_off_after_its_fits_and_never_a_right_one():
         assert all(q.add(*s) is None for s in pursuit(1.0, 0.4, noise_deg=0.05, seed=seed, seconds=3.0))
 
 
+def test_a_named_ratio_stays_until_the_fits_come_within_half_the_threshold():
+    p = Pursuit()
+    p.ratio = 1.3  # named before; the fits now read 1.15: still off by more than half of FOCAL_OFF
+    for s in pursuit(1.15, 0.8):
+        p.add(*s)
+    assert p.ratio == pytest.approx(1.15, abs=0.03)
+    q = Pursuit()
+    assert all(q.add(*s) is None for s in pursuit(1.15, 0.8))  # never named: 1.15 is within FOCAL_OFF of 1
+    for s in pursuit(1.05, 0.8, seconds=3.0):
+        p.add(*s)
+    assert p.ratio is None
+
+
 def test_precise_fast_pairs_stand_over_pursuit_and_a_clear_forgets_the_window():
     f = Focal()
     for s in pursuit(1.6, 0.8):
