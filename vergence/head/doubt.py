@@ -63,6 +63,7 @@ UNTRUSTED_DEG = 2.9  # the leash about the anchor until the image has been seen 
 LEASH_DEG = 1.5  # the leash past the pan the last consistent measurement asked for
 PROBE_DEG, PROBE_S = 0.5, 1.0  # during a fault: a probing move this far from the anchor, at most one a period
 PROBE_MIN_DEG = 0.3  # a probe's pair counts when the motor moved at least this much
+PROBE_FIT_S = 0.35  # a fault's probe whose image has not followed by this long after it is fitted (Lag.probe)
 SUSPECT_S = 0.1  # a pair that did not follow holds the motor this long, then probes
 SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within this
 IDENTICAL_MOVE_DEG = 0.5  # a byte-identical slave image after the motor moved this much is frozen
@@ -70,8 +71,7 @@ STALL_S, STALL_MOVE_DEG = 0.5, 0.2  # commanded MIN_MOVE or more away, no move o
 PRECISE = 0.2  # a decisive pair with at most this slack per motion counts for the focal length (docs/FAULTS.md)
 
 def _kind(r: float) -> str:
-    """The kind of a fail: reversed where r <= -0.7 (a reversed camera's r is near -1; a slipping one's, the target
-    mispredicted, as low as -0.6: advising to flip a good camera is worse than the frozen advice), else frozen."""
+    """A fail's kind: reversed where r <= -0.7 (a slipping camera mispredicted reaches -0.6), else frozen."""
     return "reversed" if r <= 2 * REVERSED_MAX else "frozen"
 
 
@@ -100,7 +100,7 @@ class Doubt:
         self.rate = self.trend = 0.0  # the target's rate (rad/s): learnt, and as the last consistent pair showed it
         self.fails, self.t_fail = [], 0.0  # the kinds of the pairs that did not follow, and when the last one was
         self.focal = Focal()  # the focal length's ratio, from precise pairs that followed and from pursuit
-        self.t_probe, self.probe_sign = None, 1.0  # a fault's last probe, and its side
+        self.t_probe, self.probe_sign, self.fit_ref = None, 1.0, None  # a fault's last probe, its side, its fit's ref
         self.returned = False  # the fault's move back to the anchor was sent
         self.last_slave: tuple[int, float] | None = None  # (digest, pan) of the last frame
         self.master = Master()  # the master camera's images, frame to frame
@@ -111,8 +111,7 @@ class Doubt:
         self.last_seen: _Seen | None = None  # the latest confident decision
         self.faults = self.resumed = 0  # faults named so far, and cleared
         self.t_last, self.fovea = None, None  # the last decision's exposure and fovea
-        self.lag = Lag()  # a camera later than its frames say
-        self.u = 0.0  # the last shift()'s pan's uncertainty (the next observe()'s decision's)
+        self.lag, self.u = Lag(), 0.0  # a camera later than its frames say; the last shift()'s pan's uncertainty
 
     @property
     def note(self) -> str:
@@ -128,8 +127,7 @@ class Doubt:
         return "; ".join(notes)
 
     @property
-    def focal_ratio(self) -> float | None:
-        """The image's motion over the motor's, named where the focal length is off (vergence.head.focal)."""
+    def focal_ratio(self) -> float | None:  # the image's motion over the motor's where named (vergence.head.focal)
         return self.focal.ratio
 
     @property
@@ -335,8 +333,14 @@ class Doubt:
         if self.ref is None or frozen or abs(pan - self.ref.pan) < math.radians(PROBE_MIN_DEG):
             return
         r = -(a - self.ref.a) / (pan - self.ref.pan)
+        if self.fit_ref is self.ref:
+            return  # fitted, and it did not follow: the level, which the target's motion moves too, says no more
+        if not FOLLOWS_MIN <= r <= FOLLOWS_MAX and t - self.ref.t >= PROBE_FIT_S:
+            self.fit_ref = self.ref  # once a probe: its step against a late image and the target's own motion
+            r = r if (fitted := self.lag.probe(self.ref.t, self.ref.a)) is None else fitted
         if FOLLOWS_MIN <= r <= FOLLOWS_MAX:
-            self.lag.expect(self.ref.t, self.ref.a, t + LAG_AFTER_S)  # (then the image's whole step is seen)
+            if self.fit_ref is not self.ref:  # (a fitted probe has noted its lag)
+                self.lag.expect(self.ref.t, self.ref.a, t + LAG_AFTER_S)  # (then the image's whole step is seen)
             self._clear(t, pan, f"a probe of {math.degrees(pan - self.ref.pan):+.2f} deg moved the image r = {r:.2f}")
 
     # -- commands ----------------------------------------------------------------------------------------------------
@@ -369,8 +373,7 @@ class Doubt:
         return goal
 
     def _stuck(self, pan: float, goal: float, t_now: float, lim: float) -> float | None:
-        """A head not yet seen to follow, held at its leash's end for PROBE_S (its image was not confident while it
-        moved, say): a probe back toward the anchor. The probe's goal, or None."""
+        """A head not yet trusted, held at its leash's end for PROBE_S: a probe back toward the anchor (or None)."""
         if self.probe_ref is not None:
             return self._probing(t_now)
         if abs(goal - self.anchor) <= lim or abs(abs(pan - self.anchor) - lim) > math.radians(SAME_PAN_DEG):
@@ -382,8 +385,7 @@ class Doubt:
         return None
 
     def _suspect(self, pan: float, t_now: float) -> float:
-        """A pair did not follow: held where it is (the frames exposed meanwhile may confirm it), then after SUSPECT_S a
-        probe back toward the anchor. The goal."""
+        """A pair did not follow: held (later frames may confirm it), after SUSPECT_S a probe toward the anchor."""
         if (probe := self._probing(t_now)) is not None:
             return probe
         if self.t_held is None:

@@ -12,7 +12,9 @@ frames linearly) is fitted. A lag counts only where the motor moved PROBE_MIN_DE
 the window's end, and where it leaves at most LATE_FIT of no lag's residual, and little. Where LATE_PAIRS such fits
 agree the camera is named late: a log line, `late_ms` in the status, and from then on each frame is taken at its
 exposure less the lag, with the pan then (shift(): the check and the controller both), so that the head runs
-without more faults. Measured: docs/FAULTS.md, "A camera later than its frames say"."""
+without more faults. A fault's probe whose image has not followed PROBE_FIT_S after it is judged by probe(): its
+step fitted with a lag and the target's own motion (a late image's probe, whose frames' level the target's motion
+hides). Measured: docs/FAULTS.md, "A camera later than its frames say"."""
 
 from __future__ import annotations
 
@@ -22,6 +24,8 @@ import math
 from collections import deque
 
 import numpy as np
+
+from .follows import FOLLOWS_MAX, FOLLOWS_MIN
 
 __all__ = ["Lag"]
 
@@ -37,6 +41,7 @@ RETURN_FIT_S = 0.4  # a fault's lag (the move that raised it, the move back) is 
 LAG_AFTER_S = 0.1  # a probe's lag is fitted this long after it cleared the fault (the image's whole step then seen)
 LATE_NOISE_DEG = 0.02  # lags whose residual is within this (rms) of the best are alike: their middle is the lag
 MOVED_DEG = 0.3  # a lag counts where the motor moved at least this much under it (a probe's smallest that counts)
+PROBE_REST = 3  # a probe's lag counts where the motor is at rest over this many decisions at either end of its fit
 
 
 class Lag:
@@ -58,7 +63,7 @@ class Lag:
             return t, pan, 0.0
         if not self.pans or t > self.pans[-1][0]:
             self.pans.append((t, pan))
-            while t - self.pans[0][0] > 2 * MAX_LAG_S:
+            while t - self.pans[0][0] > 4 * MAX_LAG_S:  # (a probe's fit reads 2 MAX_LAG_S before its reference)
                 self.pans.popleft()
         if self.late_s is None:
             return t, pan, 0.0
@@ -77,7 +82,7 @@ class Lag:
     def saw(self, t: float, a: float) -> None:
         """A confident decision's offset (t as shift() returned it); a fit when due."""
         self.seen.append((t + (self.late_s or 0.0), a))
-        while self.seen[-1][0] - self.seen[0][0] > 2 * MAX_LAG_S + LAG_AFTER_S:
+        while self.seen[-1][0] - self.seen[0][0] > 3 * MAX_LAG_S + LAG_AFTER_S:
             self.seen.popleft()
         if self.pending is not None and t + (self.late_s or 0.0) >= self.pending[2]:
             self.flush()
@@ -107,7 +112,8 @@ class Lag:
         if len(seen) < 4 or len(self.pans) < 2:
             return None
         lags = np.arange(0.0, MAX_LAG_S + 1e-9, LAG_STEP_S)
-        lags = lags[t_ref - lags >= self.pans[0][0]]
+        oldest = next(q[0] for q in self.pans if q[0] >= self.pans[-1][0] - 2 * MAX_LAG_S)
+        lags = lags[t_ref - lags >= oldest]
         if not lags.size:
             return None
         tk = np.array([q[0] for q in seen])
@@ -134,7 +140,12 @@ class Lag:
         best = float(lags[run].mean())
         fit = best >= 2 * LAG_STEP_S and (not math.isfinite(sse[0]) or sse[k] <= LATE_FIT * sse[0]) and \
             math.sqrt(sse[k] / len(seen)) <= max(math.radians(LATE_RMS_DEG), LATE_SHARE * float(np.ptp(moved[k])))
-        lag = best if fit else None
+        return self.note(best if fit else None)
+
+    def note(self, lag: float | None) -> float | None:
+        """A lag fitted (None: none): it joins the latest fits, and where LATE_PAIRS of them agree the camera is named
+        late. Returns it (None also under two steps: no lag)."""
+        lag = lag if lag is not None and lag >= 2 * LAG_STEP_S else None
         self.lags = (self.lags + [lag])[-(LATE_PAIRS + 1):]
         if lag is None:
             return None
@@ -147,3 +158,40 @@ class Lag:
                             "their exposure", late * 1e3)
             self.late_s = late
         return lag
+
+    def probe(self, t_ref: float, a_ref: float) -> float | None:
+        """A probe's r, the decision (t_ref, a_ref) the last before it, where the image may be late and the target
+        moving: the decisions from MAX_LAG_S before it on are fitted as the motor's motion L earlier times -r (L in
+        0..MAX_LAG_S, the one that fits best), plus the target's own motion as a constant, a rate and an acceleration
+        over the rest before the probe and the probe. A probe's step is no smooth motion, so it tells r even where the
+        target moved more than the probe meanwhile (the frames' level does not: a late camera's probes never cleared
+        its fault while the target moved at 6 deg/s). A lag counts where the motor is at rest over the first and the
+        last PROBE_REST decisions and moved MOVED_DEG between; None where none counts, or the fit leaves more than
+        LATE_RMS_DEG (or LATE_SHARE of the motion). Where r says the image followed, its lag is noted (note())."""
+        seen = [(tk, ak) for tk, ak in self.seen if tk > t_ref - MAX_LAG_S]
+        if len(seen) < 4 * PROBE_REST or len(self.pans) < 2:
+            return None
+        tk = np.array([q[0] for q in seen])
+        lags = np.arange(0.0, MAX_LAG_S + 1e-9, LAG_STEP_S)
+        lags = lags[tk[0] - lags >= self.pans[0][0]]
+        if not lags.size:
+            return None
+        da = np.array([q[1] for q in seen]) - a_ref
+        moved = self._pan_at(tk[None, :] - lags[:, None]) - self._pan_at(t_ref - lags)[:, None]
+        span = np.ptp(moved, axis=1)
+        still = np.maximum(0.1 * span, math.radians(0.05))
+        ends = (np.ptp(moved[:, :PROBE_REST], axis=1) <= still) & (np.ptp(moved[:, -PROBE_REST:], axis=1) <= still)
+        tau = tk - t_ref
+        best = None
+        for i in np.flatnonzero((span >= math.radians(MOVED_DEG)) & ends):
+            x = np.stack([-moved[i], np.ones_like(tau), tau, tau * tau], 1)
+            sol = np.linalg.lstsq(x, da, rcond=None)[0]
+            sse = float(((da - x @ sol) ** 2).sum())
+            if best is None or sse < best[0]:
+                best = (sse, float(sol[0]), float(span[i]), float(lags[i]))
+        if best is None or math.sqrt(best[0] / len(seen)) > max(math.radians(LATE_RMS_DEG), LATE_SHARE * best[2]):
+            return None
+        if FOLLOWS_MIN <= best[1] <= FOLLOWS_MAX:
+            log.info("a probe's image followed the motor %.0f ms after the frames' pans say it moved", best[3] * 1e3)
+            self.note(best[3])
+        return best[1]

@@ -15,6 +15,7 @@ import sweeps
 from middlebury import ROOT as MIDDLEBURY, needs_data
 from vergence.head.control import ControlSettings
 from vergence.head.doubt import ADVICE, LEASH_DEG, PROBE_DEG, SUSPECT_S, UNTRUSTED_DEG, Doubt, Fault
+from vergence.head.lag import Lag
 from vergence.head.timing import CameraTiming
 from vergence.sim.faults import Faults
 from vergence.sim.fixation import truth_at
@@ -336,6 +337,52 @@ def test_a_camera_later_than_its_frames_say_is_named_late_and_then_runs_without_
     after = [s for s in steps if s.t_s > max(named.t_s, cleared) + 1.0]  # (a fault's hold, and the way back, over)
     rms = math.sqrt(sum(s.error_px ** 2 for s in after) / len(after))
     assert len(after) >= 2 * rate and rms <= (1.5 if rate == 60 else 3.0) and not any(s.fault for s in after)
+
+
+@pytest.mark.parametrize("camera,r", [("follows", 1.0), ("reversed", -1.0), ("frozen", 0.0)])
+def test_a_probes_step_is_read_through_a_late_image_and_a_target_moving_more_than_the_probe(camera, r):
+    """A probe of 0.5 deg at 60 Hz, the image 90 ms late, the target turning (3.4 deg over the probe's frames, nearly
+    seven probes): the probe's own level says nothing (r = -(a - a_ref) / p far outside the range where the image
+    follows, for the camera that does), its step against the target's motion fitted as a constant, a rate and an
+    acceleration says r, and where it followed its lag is noted."""
+    lag, late = Lag(), 0.09
+
+    def target(t):
+        return 0.02 + math.radians(6.0) * t - math.radians(10.0) * t * t
+
+    def pan(t):  # at rest, then the probe at 0.6 s
+        return 0.0 if t < 0.6 else math.radians(0.5) * min(1.0, (t - 0.6) / 0.03)
+
+    cam = {"follows": pan, "reversed": lambda t: -pan(t), "frozen": lambda t: 0.0}[camera]
+    seen = []
+    for k in range(58):
+        t = k * DT
+        lag.shift(t, pan(t))
+        seen.append((t, target(t) - cam(t - late)))
+        lag.saw(*seen[-1])
+    t_ref, a_ref = seen[35]  # the last frame before the probe
+    assert lag.probe(t_ref, a_ref) == pytest.approx(r, abs=0.1)
+    assert lag.lags == ([pytest.approx(late, abs=0.01)] if camera == "follows" else [])
+    level = -(seen[-1][1] - a_ref) / pan(seen[-1][0])
+    assert camera != "follows" or not 0.5 <= level <= 2.2  # (the target's motion hides the probe)
+
+
+def test_a_late_camera_whose_target_moves_fast_during_its_fault_is_cleared_by_a_probe_and_named():
+    """A draw of its own: 0.85 +- 0.3 m at 0.5 Hz (up to 6 deg/s), 60 Hz, the images 90 ms older than the loop is
+    told, the slave starting 4 deg off: the first move names a frozen camera (as it must); a probe's image shows the
+    probe and the target's own motion meanwhile, and no probe's level ever said r near 1 (the fault held all 8 s,
+    40 px RMS). Fitted with the lag and the target's motion (Lag.probe): cleared after 1.4 s, the camera named 89 ms
+    late at 1.9 s, tracking within 0.7 px RMS over 5-8 s, never over 10 deg."""
+    rig = MovingRig.from_options(motion="sine:z=0.85,amp=0.3,hz=0.5", focal="500", seed="48", noise="1")
+    steps = list(closed_loop(rig, 480, None, ControlSettings(), None, 60.0, timing=CameraTiming(0.09),
+                             faults=Faults.take(parse("late=0.09", FAULT_KEYS, "test")), seed=48))
+    cleared = [b.t_s for a, b in zip(steps, steps[1:]) if a.fault and not b.fault]
+    named = next(s for s in steps if s.late_ms is not None)
+    assert cleared and cleared[0] < 2.0 and named.t_s < 3.0
+    assert steps[-1].late_ms == pytest.approx(90, rel=0.2)
+    late = [s.error_px for s in steps if s.t_s >= 5.0]
+    assert math.sqrt(sum(e * e for e in late) / len(late)) < 1.5
+    assert max(abs(s.pan_deg) for s in steps) < 10.0
 
 
 def test_a_probe_that_follows_late_is_fitted_and_two_that_agree_name_the_camera_late():
