@@ -41,12 +41,13 @@ def _rms(steps) -> float:
     return math.sqrt(sum(e * e for e in late) / len(late))
 
 
-def _focal_row(steps) -> dict:
-    """focal_true's figures: when the focal length was named and the ratio measured at the end, and the largest
-    overshoot of a step (its error past 0, against its first frame's sign) begun after the naming (None: no step)."""
+def _focal_row(steps, stepping: bool) -> dict:
+    """focal_true's figures: when the focal length was named and the ratio measured at the end, and on the stepping
+    target the largest overshoot of a step (its error past 0, against its first frame's sign) begun after the naming
+    (None: no step, or another scene)."""
     named = next((s for s in steps if s.focal_ratio is not None), None)
     over = None
-    if named is not None:
+    if named is not None and stepping:
         for k in range(int(named.t_s) + 1, int(SECONDS)):
             seg = [s for s in steps if k <= s.t_s < k + 1]
             if len(seg) > 1 and abs(seg[0].error_px) > 5:  # a step began here
@@ -56,11 +57,11 @@ def _focal_row(steps) -> dict:
                 overshoot_px=over)
 
 
-def _row(steps, lie: str | None, start: float, focal: float) -> dict:
+def _row(steps, lie: str | None, start: float, focal: float, scene: str = "moving") -> dict:
     """The figures of one run (see the module's text)."""
     faulted = [s for s in steps if s.fault]
     if lie in (None, "focal_true", "backlash"):
-        extra = _focal_row(steps) if lie == "focal_true" else {}
+        extra = _focal_row(steps, scene == "steps") if lie == "focal_true" else {}
         return dict(false_fault_frames=len(faulted), rms_px=_rms(steps), **extra)
     end = SECONDS if lie == "reverse" else WINDOW[1]
     before = max((s for s in steps if s.t_s < start and s.confident), key=lambda s: s.t_s, default=steps[0])
@@ -111,7 +112,7 @@ def bench_faults(rates=(30.0, 60.0), latencies=(0.0, 0.066), seeds=(0,), lies=LI
                                                  rate, timing=CameraTiming(latency), faults=faults, seed=seed,
                                                  focal_px=500.0))
                         row = dict(lie=lie or "-", scene=scene, rate_hz=rate, latency_ms=round(latency * 1e3),
-                                   seed=seed, **_row(steps, lie, start, 500.0))
+                                   seed=seed, **_row(steps, lie, start, 500.0, scene))
                         run = (scene, rate, latency, seed)
                         if lie is None:
                             clean[run] = row["rms_px"]

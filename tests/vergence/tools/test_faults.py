@@ -24,6 +24,7 @@ def test_bench_faults_rows_name_each_lie_and_bound_it():
     f = by[("focal_true", "steps")]
     assert f["focal_ratio"] == pytest.approx(1.6, rel=0.05) and f["overshoot_px"] <= 3.0
     assert f["false_fault_frames"] == 0
+    assert by[("focal_true", "moving")]["overshoot_px"] is None  # (a step's overshoot: the stepping target's only)
     # backlash 0.2 deg and encoder noise 0.05 deg: no fault; the camera's own error under a pixel RMS
     for scene in ("moving", "still"):
         b = by[("backlash", scene)]
