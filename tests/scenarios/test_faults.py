@@ -44,6 +44,22 @@ def _truth() -> float:
     return Rig.from_spec(f"focal={FOCAL:g}").truth_pan_rad
 
 
+def _named(P, spec: str, field: str, within_s: float, what: str):
+    """`vergence up --source spec`; wait for the first reducer status whose `field` is set: (the status's time in ns,
+    its value, the statuses, the decisions, the faults() of _up)."""
+    _, faults = _up(P, None, spec)
+    s = P.session()
+    statuses = P.collect(s, P.key("status/reducer/*"))
+    decisions = P.collect(s, P.key("decision"))
+
+    def named():
+        return next(((t, st.number(field)) for t, b, _ in statuses.snapshot()
+                     if (st := decode_status(b)).number(field) is not None), None)
+
+    t, value = wait_for(named, within_s, what, logs=P.logs)
+    return t, value, statuses, decisions, faults
+
+
 @pytest.mark.slow
 def test_up_with_a_reversed_camera_stays_within_3_degrees_and_names_it(tmp_path):
     start = 0.0  # the sim actuator's
@@ -126,16 +142,7 @@ def test_up_with_a_camera_later_than_its_frames_say_names_its_lag_and_then_holds
 
     spec = "sim:motion=sine:z=0.9,amp=0.2,hz=0.4:latency=0.08:stamps=no:focal=500:seed=5"
     with Procs(tmp_path) as P:
-        _up(P, tmp_path, spec)
-        s = P.session()
-        statuses = P.collect(s, P.key("status/reducer/*"))
-        decisions = P.collect(s, P.key("decision"))
-
-        def named():
-            return next(((t, st.number("late_ms")) for t, b, _ in statuses.snapshot()
-                         if (st := decode_status(b)).number("late_ms") is not None), None)
-
-        t_named, late_ms = wait_for(named, 30, "the reducer naming the camera late", logs=P.logs)
+        t_named, late_ms, statuses, decisions, _ = _named(P, spec, "late_ms", 30, "the reducer naming the camera late")
         print(f"named {late_ms} ms late, {(t_named - statuses.snapshot()[0][0]) / 1e9:.1f} s after the first status")
         assert 64 <= late_ms <= 96, late_ms
         t_ok = wait_for(lambda: next((t for t, b, _ in statuses.snapshot() if t >= t_named
@@ -157,16 +164,8 @@ def test_up_with_images_at_1_6_x_the_focal_length_told_names_it_and_tracks(tmp_p
 
     spec = "sim:motion=sine:z=0.85,amp=0.25,hz=0.45:latency=0.066:focal=500:focal_true=800:seed=7"
     with Procs(tmp_path) as P:
-        _, faults = _up(P, tmp_path, spec)
-        s = P.session()
-        statuses = P.collect(s, P.key("status/reducer/*"))
-        decisions = P.collect(s, P.key("decision"))
-
-        def named():
-            return next(((t, st.number("focal_ratio")) for t, b, _ in statuses.snapshot()
-                         if (st := decode_status(b)).number("focal_ratio") is not None), None)
-
-        t_named, ratio = wait_for(named, 20, "the reducer naming the focal length's ratio", logs=P.logs)
+        t_named, ratio, _, decisions, faults = _named(P, spec, "focal_ratio", 20,
+                                                      "the reducer naming the focal length's ratio")
         assert ratio == pytest.approx(1.6, rel=0.05)
         wait_for(lambda: decisions.snapshot() and decisions.snapshot()[-1][0] > t_named + 3e9, 10,
                  "3 s of decisions", logs=P.logs)
