@@ -29,7 +29,6 @@ log = logging.getLogger("vergence.doubt")
 FOCAL_PAIRS = 8  # precise fast pairs before their median names the ratio (it then stands over pursuit's)
 
 WINDOW_S = 0.6  # the fits' span: a target's pan is a cubic over it
-DEGREE = 3  # (a cubic)
 MIN_SAMPLES = 12  # decisions in a window before it is fitted
 EVERY = 3  # a fit every this many decisions
 MOTION_DEG = 0.25  # the motor's motion no cubic explains, RMS, for a fit to count
@@ -107,7 +106,7 @@ def fit(seen: list[tuple[float, float, float]]) -> float | None:
     """rho of one window, or None where it does not count (see the module's text)."""
     t, pan, a = (np.array(c) for c in zip(*seen))
     tc = (t - t.mean()) / WINDOW_S
-    cubic = np.column_stack([tc ** k for k in range(DEGREE + 1)])
+    cubic = np.column_stack([tc ** k for k in range(4)])
     rest = pan - cubic @ np.linalg.lstsq(cubic, pan, rcond=None)[0]  # the motor's motion no cubic explains
     if math.degrees(float(np.sqrt(np.mean(rest ** 2)))) < MOTION_DEG:
         return None

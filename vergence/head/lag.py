@@ -79,6 +79,15 @@ class Lag:
         ps = np.fromiter((q[1] for q in self.pans), float, len(self.pans))
         return np.interp(t, ts, ps)
 
+    def _lagged(self, tk: np.ndarray, t_ref: float, earliest: float, oldest: float):
+        """The lags (0..MAX_LAG_S) that reach back from `earliest` no further than the pan kept at `oldest`, and at
+        each (rows) the motor's motion since t_ref that much earlier, at the decisions' times tk; None: no lag."""
+        lags = np.arange(0.0, MAX_LAG_S + 1e-9, LAG_STEP_S)
+        lags = lags[earliest - lags >= oldest]
+        if not lags.size:
+            return None
+        return lags, self._pan_at(tk[None, :] - lags[:, None]) - self._pan_at(t_ref - lags)[:, None]
+
     def saw(self, t: float, a: float) -> None:
         """A confident decision's offset (t as shift() returned it); a fit when due."""
         self.seen.append((t + (self.late_s or 0.0), a))
@@ -111,14 +120,12 @@ class Lag:
         seen = [(tk, ak) for tk, ak in self.seen if tk > t_ref]
         if len(seen) < 4 or len(self.pans) < 2:
             return None
-        lags = np.arange(0.0, MAX_LAG_S + 1e-9, LAG_STEP_S)
-        oldest = next(q[0] for q in self.pans if q[0] >= self.pans[-1][0] - 2 * MAX_LAG_S)
-        lags = lags[t_ref - lags >= oldest]
-        if not lags.size:
-            return None
         tk = np.array([q[0] for q in seen])
+        oldest = next(q[0] for q in self.pans if q[0] >= self.pans[-1][0] - 2 * MAX_LAG_S)
+        if (lagged := self._lagged(tk, t_ref, t_ref, oldest)) is None:
+            return None
+        lags, moved = lagged
         da = np.array([q[1] for q in seen]) - a_ref
-        moved = self._pan_at(tk[None, :] - lags[:, None]) - self._pan_at(t_ref - lags)[:, None]
         res = da[None, :] + moved  # the target's own motion, at each lag: fitted as a rate and an acceleration
         span = np.ptp(moved, axis=1)
         # a lag counts where it shows the motor moving, and at rest again over the window's last decisions (a lag
@@ -172,12 +179,10 @@ class Lag:
         if len(seen) < 4 * PROBE_REST or len(self.pans) < 2:
             return None
         tk = np.array([q[0] for q in seen])
-        lags = np.arange(0.0, MAX_LAG_S + 1e-9, LAG_STEP_S)
-        lags = lags[tk[0] - lags >= self.pans[0][0]]
-        if not lags.size:
+        if (lagged := self._lagged(tk, t_ref, tk[0], self.pans[0][0])) is None:
             return None
+        lags, moved = lagged
         da = np.array([q[1] for q in seen]) - a_ref
-        moved = self._pan_at(tk[None, :] - lags[:, None]) - self._pan_at(t_ref - lags)[:, None]
         span = np.ptp(moved, axis=1)
         still = np.maximum(0.1 * span, math.radians(0.05))
         ends = (np.ptp(moved[:, :PROBE_REST], axis=1) <= still) & (np.ptp(moved[:, -PROBE_REST:], axis=1) <= still)
