@@ -20,7 +20,6 @@ seconds (5) with frames, one log line says what the loop is doing (summary()).
 from __future__ import annotations
 
 import argparse
-import collections
 import dataclasses
 import logging
 import math
@@ -46,12 +45,13 @@ from services.runtime.warm import warm_up
 
 log = logging.getLogger("vergence.reducer")
 EXPIRE_S = 0.05  # the longest sleep between deadline checks (frames also expire as messages arrive)
+POLL_S = 0.001  # the shortest alarm: a Frame awaited after its correlations, a deadline
 REPORT_S = 0.1  # the membership evidence (vergence/<rig>/workers) goes out this often
-# zenoh RingChannels: the newest messages kept while the forwarders wait for the interpreter (what they drop
-# is not counted, so they are larger than the inbox, whose sheds are)
+# zenoh RingChannels: the newest messages kept while the reducer's thread works (what they drop is not counted,
+# so they are larger than what the inbox keeps, whose sheds are)
 FRAME_RING, CORRELATION_RING = 32, 128
 KEEP_FRAMES = 2  # the newest valid frames of one batch that are decoded and gathered
-WAKE = "_wake"  # the key segment of the local sample that wakes the correlations' forwarder at exit
+WAKE = "_wake"  # the key segment of the local sample that wakes the reducer's thread (Alarm, exit)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -99,35 +99,67 @@ class Window:
 
 
 class Inbox:
-    """Bounded mailboxes between the forwarders and the reducer's thread: the oldest goes when a box is full
-    (counted in `shed`, per kind), so nothing queues when the reducer cannot keep up; the thread takes
-    everything at once (drain)."""
+    """The reducer thread's two rings (zenoh RingChannels: zenoh's receiving threads push into them in Rust, with no
+    GIL, and never wait for this process; a full ring loses its oldest). The thread blocks on the correlations'
+    ring, since a frame is completed by a correlation (its Frame went out before its workers began), and at each
+    wake takes both rings whole, keeping the newest `frames` and `correlations` of them: the rest is shed, counted
+    per kind, so nothing queues when the reducer cannot keep up. An empty sample on the wake key (the Alarm's, the
+    Node's at exit) wakes it with nothing."""
 
-    def __init__(self, frames: int = 8, correlations: int = 64):
-        self.cond = threading.Condition()
-        self.boxes = {"frame": collections.deque(maxlen=frames), "correlation": collections.deque(maxlen=correlations)}
-        self.shed = {"frame": 0, "correlation": 0}
+    NONE_SHED = {"frame": 0, "correlation": 0}
 
-    def put(self, kind: str, item) -> None:
-        with self.cond:
-            box = self.boxes[kind]
-            if len(box) == box.maxlen:
-                self.shed[kind] += 1
-            box.append(item)
-            self.cond.notify()
+    def __init__(self, frame_ring, correlation_ring, frames: int = 8, correlations: int = 64):
+        self.rings = {"frame": frame_ring, "correlation": correlation_ring}
+        self.keep = {"frame": frames, "correlation": correlations}
+        self.lock = threading.Lock()  # shed: this thread counts, the status reads
+        self.shed = dict(self.NONE_SHED)
 
     def count_shed(self, kind: str, n: int) -> None:
-        with self.cond:
+        with self.lock:
             self.shed[kind] += n
 
-    def drain(self, timeout: float) -> list[tuple[str, object]]:
+    def take(self) -> list[tuple[str, tuple[str, bytes]]]:
+        """What arrived, (kind, (key, payload)) oldest first per kind, after waiting for a correlation or a wake."""
+        first = self.rings["correlation"].recv()
+        out = []
+        for kind, ring in self.rings.items():
+            got = [first] if kind == "correlation" else []
+            while (smp := ring.try_recv()) is not None:
+                got.append(smp)
+            items = [(str(m.key_expr), m.payload.to_bytes()) for m in got]
+            items = [(k, b) for k, b in items if b or not k.endswith("/" + WAKE)]
+            if len(items) > self.keep[kind]:
+                self.count_shed(kind, len(items) - self.keep[kind])
+                items = items[-self.keep[kind]:]
+            out += [(kind, x) for x in items]
+        return out
+
+
+class Alarm:
+    """Wakes the reducer's thread (an empty local sample on the wake key) at the time set, and EXPIRE_S after each
+    wake: its deadlines, the membership evidence and the status are kept while no message comes."""
+
+    def __init__(self, wake, stop: threading.Event):
+        self.wake, self.stop = wake, stop
+        self.cond = threading.Condition()
+        self.at = time.monotonic() + EXPIRE_S
+
+    def set(self, at: float) -> None:
+        """Wake by `at` (monotonic) at the latest."""
         with self.cond:
-            if not any(self.boxes.values()):
-                self.cond.wait(timeout)
-            out = [(k, x) for k, box in self.boxes.items() for x in box]
-            for box in self.boxes.values():
-                box.clear()
-            return out
+            if at < self.at:
+                self.at = at
+                self.cond.notify()
+
+    def run(self) -> None:
+        with self.cond:
+            while not self.stop.is_set():
+                delay = self.at - time.monotonic()
+                if delay > 0:
+                    self.cond.wait(delay)
+                    continue
+                self.at = time.monotonic() + EXPIRE_S
+                self.wake()
 
 
 class MotorPresence:
@@ -203,19 +235,21 @@ def newest_first(msgs: list) -> list:
 
 
 class Reducer:
-    """One reducer process: the gatherer, the inbox its forwarders fill, and its loop (run) in the Node's block.
+    """One reducer process: the gatherer, its inbox and alarm, and its loop (run) in the Node's block.
 
     zenoh's receiving threads only push into rings (Rust, no Python, no GIL: they never wait for this process,
-    so no queue builds up in the network; the oldest go when a ring is full); one forwarder thread per ring
-    hands the payloads to the inbox; the loop's thread decodes, gathers, decides and publishes, expires
-    deadlines, and publishes the status and the membership evidence."""
+    so no queue builds up in the network; the oldest go when a ring is full); the loop's thread takes them
+    (Inbox.take), decodes, gathers, decides and publishes, expires deadlines, and publishes the status and the
+    membership evidence. Forwarder threads handed the rings' samples to it until 2026-12-04: one thread hop
+    and 0.2 ms of CPU a frame at 250 Hz more (docs/PERFORMANCE.md)."""
 
     def __init__(self, settings, deadline_s: float):
         self.settings, self.rig, self.limits, self.deadline = settings, settings.rig, settings.limits, deadline_s
         self.gatherer = Gatherer(settings.network, settings.control, deadline_s, self.limits,
                                  motor=settings.actuator.motor)
         self.lock = threading.Lock()  # the gatherer: the loop thread and the status
-        self.inbox = Inbox()
+        self.inbox: Inbox | None = None
+        self.alarm: Alarm | None = None
         self.presence: MotorPresence | None = None
         self.last: list[Reduced] = []
         self.window = Window()  # the pans and tracking errors for the summary
@@ -223,7 +257,8 @@ class Reducer:
     def fields(self) -> dict:
         with self.lock:
             return dict(gatherer=dict(self.gatherer.counters), pending=len(self.gatherer.pending),
-                        shed=dict(self.inbox.shed), **(self.presence.fields() if self.presence else {}),
+                        shed=dict(self.inbox.shed if self.inbox else Inbox.NONE_SHED),
+                        **(self.presence.fields() if self.presence else {}),
                         **self.gatherer.controller.doubt.status(), **self.gatherer.controller.search.status())
 
     def open(self, node: Node) -> None:
@@ -238,17 +273,15 @@ class Reducer:
         self.pub_workers = node.publisher(keys.workers(rig), express=True)
         self.hold = Lease(self.health)
         node.subscriber(keys.hold(rig), lambda sm: self.hold.on_hold(sm.payload.to_bytes()))
-        node.thread(self.forward, "frame", node.ring(keys.frame(rig), FRAME_RING), name="reducer-frame")
-        node.thread(self.forward, "correlation", node.ring(keys.correlations(rig), CORRELATION_RING,
-                                                       wake=keys.correlation(rig, WAKE)), name="reducer-correlation")
+        wake = keys.correlation(rig, WAKE)
+        self.inbox = Inbox(node.ring(keys.frame(rig), FRAME_RING),
+                           node.ring(keys.correlations(rig), CORRELATION_RING, wake=wake))
+        self.alarm = Alarm(lambda: node.session.put(wake, b"", allowed_destination=zenoh.Locality.SESSION_LOCAL),
+                           node.stop)
+        node.thread(self.alarm.run, name="reducer-alarm")
         node.ready()
         log.info("reducer %s on %s and %s, deadline %.0f ms", node.ident, keys.frame(rig), keys.correlations(rig),
                  self.deadline * 1e3)
-
-    def forward(self, kind: str, sub) -> None:
-        """A forwarder thread: one ring's payloads, with their keys, into the inbox."""
-        for smp in self.node.samples(sub):
-            self.inbox.put(kind, (str(smp.key_expr), smp.payload.to_bytes()))
 
     def publish(self, results) -> None:
         if results:
@@ -335,17 +368,21 @@ class Reducer:
         next_report = time.monotonic() + REPORT_S
         every = self.settings.reducer.summary_s
         next_summary, seen = time.monotonic() + every, (0, 0, 0)
-        sleep = EXPIRE_S
         while not stop.is_set():
-            batch = self.inbox.drain(sleep)
+            batch = self.inbox.take()
+            if stop.is_set():
+                break
             if batch:
                 self.handle(batch)
             with self.lock:
                 self.gatherer.expire()
                 due = self.gatherer.next_deadline()
+                frameless = any(e.frame is None for e in self.gatherer.pending.values())
             now = time.monotonic()
-            # wake at the next deadline (every 5 ms before: 200 wake-ups a second for nothing)
-            sleep = EXPIRE_S if due is None else min(EXPIRE_S, max(0.001, due - now))
+            if due is not None:  # woken at the next deadline (by the alarm, unless a message comes first)
+                # correlations whose Frame is not in yet (it came after them: a rare order): the frames' ring
+                # looked at again every POLL_S until it comes or the deadline drops them
+                self.alarm.set(now + POLL_S if frameless else max(now + POLL_S, due))
             if now >= next_report:
                 self.pub_workers.put(self.workers_report())
                 next_report = now + REPORT_S

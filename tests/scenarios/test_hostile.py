@@ -276,7 +276,7 @@ def test_capture_ignores_implausible_motor_states():
 
 
 def test_reducer_serves_the_newest_frame_first():
-    from services.pipeline.reducer import Inbox, newest_first
+    from services.pipeline.reducer import newest_first
 
     t = time.time_ns()
     f1, f2 = frame(1, t), frame(2, t + 1)
@@ -288,12 +288,6 @@ def test_reducer_serves_the_newest_frame_first():
     out = [r for m in order for r in (g.add_frame(m, now=0.0) if isinstance(m, Frame) else
                                       g.add_correlation(m, now=0.0))]
     assert [r.frame.frame for r in out] == [2] and g.counters["late"] == 3  # frame 1 is not decided at all
-    box = Inbox(frames=2, correlations=3)
-    for i in range(5):
-        box.put("frame", i)
-        box.put("correlation", i)
-    assert box.drain(0.0) == [("frame", 3), ("frame", 4), ("correlation", 2), ("correlation", 3), ("correlation", 4)]
-    assert box.shed == {"frame": 3, "correlation": 2} and box.drain(0.0) == []
 
 
 # -- the attacks, against real processes ---------------------------------------------------------------------

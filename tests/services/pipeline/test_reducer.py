@@ -1,5 +1,9 @@
-"""The reducer's own state in its process (no router): the hold a client puts on its commands, and what the
-actuator says of its motor."""
+"""The reducer's own state in its process (no router): the hold a client puts on its commands, what the actuator
+says of its motor, and how its thread takes what arrived (the inbox on its two rings, the alarm)."""
+
+import collections
+import threading
+import time
 
 from vergence.wire.messages import MAX_HOLD_S, Hold
 from services.pipeline.reducer import Lease
@@ -80,3 +84,74 @@ def test_the_summary_gives_the_windows_pans_and_its_tracking_error_against_the_t
     assert w.pans == [] and w.errors == []  # taken: the next window begins empty
     real = summary(5.0, 1, 0, 0, last, Window())  # a camera's frames: no truth, no tracking error
     assert "truth" not in real and real.endswith("(margin 0.90, w 15)")
+
+
+class _Sample:
+    def __init__(self, key: str, payload: bytes):
+        self.key_expr, self._payload = key, payload
+
+    @property
+    def payload(self):
+        return self
+
+    def to_bytes(self) -> bytes:
+        return self._payload
+
+
+class _Ring:
+    """A zenoh RingChannel subscriber as the inbox reads it: recv() blocks (here: must have something), try_recv()
+    gives None when empty."""
+
+    def __init__(self, samples=()):
+        self.q = collections.deque(samples)
+
+    def recv(self):
+        assert self.q, "recv() on an empty ring would block for good"
+        return self.q.popleft()
+
+    def try_recv(self):
+        return self.q.popleft() if self.q else None
+
+
+def test_the_inbox_takes_both_rings_whole_keeps_the_newest_and_counts_the_rest():
+    from services.pipeline.reducer import Inbox, WAKE
+
+    frames = _Ring([_Sample("vergence/r/frame", b"f%d" % i) for i in range(5)])
+    corr = _Ring([_Sample("vergence/r/correlation/w", b"c%d" % i) for i in range(5)]
+                 + [_Sample(f"vergence/r/correlation/{WAKE}", b"")])
+    box = Inbox(frames, corr, frames=2, correlations=3)
+    assert box.take() == [("frame", ("vergence/r/frame", b"f3")), ("frame", ("vergence/r/frame", b"f4")),
+                          ("correlation", ("vergence/r/correlation/w", b"c2")),
+                          ("correlation", ("vergence/r/correlation/w", b"c3")),
+                          ("correlation", ("vergence/r/correlation/w", b"c4"))]
+    assert box.shed == {"frame": 3, "correlation": 2}
+    # a wake alone (the alarm's, or the exit's) gives nothing and sheds nothing; a frame that came meanwhile is taken
+    corr.q.append(_Sample(f"vergence/r/correlation/{WAKE}", b""))
+    frames.q.append(_Sample("vergence/r/frame", b"f5"))
+    assert box.take() == [("frame", ("vergence/r/frame", b"f5"))] and box.shed == {"frame": 3, "correlation": 2}
+    # a forged correlation with a payload on the wake key is not a wake: it goes on to be decoded (and rejected)
+    corr.q.append(_Sample(f"vergence/r/correlation/{WAKE}", b"x"))
+    assert box.take() == [("correlation", (f"vergence/r/correlation/{WAKE}", b"x"))]
+
+
+def test_the_alarm_wakes_at_the_time_set_then_every_expire_s_and_stops():
+    from services.pipeline.reducer import EXPIRE_S, Alarm
+
+    stop = threading.Event()
+    woken: list[float] = []
+    alarm = Alarm(lambda: woken.append(time.monotonic()), stop)
+    th = threading.Thread(target=alarm.run, daemon=True)
+    t0 = time.monotonic()
+    th.start()
+    alarm.set(t0 + 0.01)  # sooner than the EXPIRE_S it was armed for
+    deadline = time.monotonic() + 5
+    while len(woken) < 3 and time.monotonic() < deadline:
+        time.sleep(0.005)
+    stop.set()
+    th.join(1)
+    assert not th.is_alive()
+    assert len(woken) >= 3
+    assert 0.01 <= woken[0] - t0 < EXPIRE_S  # the time set, not the one it was armed for
+    assert all(b - a >= EXPIRE_S * 0.99 for a, b in zip(woken, woken[1:]))  # then every EXPIRE_S
+    alarm.set(time.monotonic() + 10)  # later than armed: changes nothing
+    assert alarm.at < time.monotonic() + EXPIRE_S + 0.01
