@@ -262,7 +262,7 @@ class Reducer:
                         **self.gatherer.controller.doubt.status(), **self.gatherer.controller.search.status())
 
     def open(self, node: Node) -> None:
-        """The subscriptions, the publishers and the forwarder threads, then the liveliness token."""
+        """The subscriptions, the publishers, the inbox's rings and the alarm's thread, then the liveliness token."""
         rig = self.rig
         self.node, self.health = node, node.health
         self.presence = MotorPresence(self.health)
