@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 from ..choices import Fault
 from .focal import Focal
-from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, REVERSED_MAX, verdict
+from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, fail_kind, verdict
 from .frozen import Master
 from .lag import LAG_AFTER_S, RETURN_FIT_S, Lag
 
@@ -57,6 +57,7 @@ TRACKING_DEG = 0.3  # an offset below this: tracking, not correcting (the target
 LEARN_RATE_DEG_S = 12.0  # ... as it is where the motor moved slower than this
 FAILS = 2  # decisive pairs that did not follow, in a row, to name a fault
 TARGET_RATE_DEG_S = 30.0  # a target's rate: what seems faster is a jump (vergence of a sine of 2 Hz, 0.5-1.1 m: 27)
+LONG_S = 0.07  # ... unless the rate over the consistent decisions of this long is not (one pair's noise)
 LEAD_S = 0.1  # the leash widens by the target's motion over this (a set-point aims ahead of the last measurement)
 REF_MAX_S = 0.3  # a reference older than this is replaced by the newest decision (the leash's centre stays)
 UNTRUSTED_DEG = 2.9  # the leash about the anchor until the image has been seen to follow
@@ -69,10 +70,6 @@ SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within th
 IDENTICAL_MOVE_DEG = 0.5  # a byte-identical slave image after the motor moved this much is frozen
 STALL_S, STALL_MOVE_DEG = 0.5, 0.2  # commanded MIN_MOVE or more away, no move of STALL_MOVE_DEG for STALL_S: stalled
 PRECISE = 0.2  # a decisive pair with at most this slack per motion counts for the focal length (docs/FAULTS.md)
-
-def _kind(r: float) -> str:
-    """A fail's kind: reversed where r <= -0.7 (a slipping camera mispredicted reaches -0.6), else frozen."""
-    return "reversed" if r <= 2 * REVERSED_MAX else "frozen"
 
 
 @dataclass
@@ -97,7 +94,7 @@ class Doubt:
         self.trusted = False  # the image has been seen to follow since the start or the last fault
         self.ref: _Seen | None = None  # the reference decision of the next pair
         self.centre: _Seen | None = None  # the last consistent measurement (the leash's centre)
-        self.rate = self.trend = 0.0  # the target's rate (rad/s): learnt, and as the last consistent pair showed it
+        self.rate, self.trend, self.zs = 0.0, 0.0, []  # target rate, rad/s: learnt, the last pair's; (t, z) of LONG_S
         self.fails, self.t_fail = [], 0.0  # the kinds of the pairs that did not follow, and when the last one was
         self.focal = Focal()  # the focal length's ratio, from precise pairs that followed and from pursuit
         self.t_probe, self.probe_sign, self.fit_ref = None, 1.0, None  # a fault's last probe, its side, its fit's ref
@@ -131,8 +128,7 @@ class Doubt:
         return self.focal.ratio
 
     @property
-    def late_s(self) -> float | None:
-        """How much later than its frames say the slave's image shows the motor (vergence.head.lag), once named."""
+    def late_s(self) -> float | None:  # how much later than its frames say its image shows the motor (head.lag)
         return self.lag.late_s
 
     def shift(self, t: float, pan: float) -> tuple[float, float]:
@@ -153,7 +149,7 @@ class Doubt:
             return self.fault  # out of order or not a time: nothing to learn
         self.t_last = t
         if fovea != self.fovea:
-            self.fovea, self.ref, self.centre, self.rate, self.trend = fovea, None, None, 0.0, 0.0  # afresh
+            self.fovea, self.ref, self.centre, self.rate, self.trend, self.zs = fovea, None, None, 0.0, 0.0, []
             self.focal.clear()
         if self.anchor is None:
             self.anchor = pan
@@ -208,7 +204,7 @@ class Doubt:
             # learnt rate lags a target that turns; that one is learnt only where the motor could not teach it)
             if verdict(r) is not None:
                 vetoed = verdict((moved - pred + self.trend * dt) / p) is None
-                self._fail(j.t, "doubt" if vetoed else _kind(r), f"r = {r:.2f} over {math.degrees(p):.2f} deg")
+                self._fail(j.t, "doubt" if vetoed else fail_kind(r), f"r = {r:.2f} over {math.degrees(p):.2f} deg")
                 return
             if r <= FOLLOWS_MAX:
                 self._followed(j, r, slack <= PRECISE * abs(p))
@@ -234,17 +230,21 @@ class Doubt:
     def _consistent(self, i: _Seen, j: _Seen, learn: bool = True) -> None:
         """j agrees with i (or the target moved by itself between them): j is the next reference and the leash's
         centre, and, while tracking (i's offset small) or where the motor moved slowly, the target's rate is learnt
-        (a jump faster than any target: the rate is 0): the image of a correction under way could teach the motor's
-        own motion (a slipping coupling's does)."""
+        (a correction's image could teach the motor's own motion: a slipping coupling's does). A pair faster than any
+        target is a jump (rates 0) unless the rate since LONG_S ago is not (one pair's noise), which it then gives."""
         dt = j.t - i.t
         slow = abs(j.pan - i.pan) < math.radians(LEARN_RATE_DEG_S) * dt
+        self.zs = [(t, z) for t, z in self.zs if j.t - t <= LONG_S]
         if dt > 0:
             v = (j.z - i.z) / dt
+            if abs(v) > math.radians(TARGET_RATE_DEG_S) and self.zs and j.t - self.zs[0][0] >= 2 * dt:
+                v = (j.z - self.zs[0][1]) / (j.t - self.zs[0][0])
             jump = abs(v) > math.radians(TARGET_RATE_DEG_S)
             self.trend = 0.0 if jump else v
             if learn and (slow or abs(i.a) < math.radians(TRACKING_DEG)):
                 self.rate = 0.0 if jump else 0.5 * self.rate + 0.5 * v
         self.ref = self.centre = j
+        self.zs.append((j.t, j.z))
 
     def _fail(self, t: float, kind: str, why: str) -> Fault | None:
         """A pair (or a probe) that did not follow, of `kind` ("frozen", "reversed", or "doubt": short of the motor's
@@ -280,13 +280,13 @@ class Doubt:
         self.fault = None
         self.resumed += 1
         self.anchor, self.trusted, self.ref, self.centre, self.stall = pan, True, None, None, None
-        self.rate = self.trend = 0.0
+        self.rate, self.trend, self.zs = 0.0, 0.0, []
 
     def relocate(self, pan: float) -> None:
         """A search found a candidate at `pan` (vergence.head.search): the loop goes on from there as at the start,
         its image not yet seen to follow (the leash about it until a move shows it does)."""
         self.anchor, self.trusted, self.ref, self.centre, self.stall = pan, False, None, None, None
-        self.rate = self.trend = 0.0
+        self.rate, self.trend, self.zs = 0.0, 0.0, []
         self.fails.clear()
         self._unprobe()
 
@@ -425,7 +425,7 @@ class Doubt:
             self.ref = self.centre = now
         else:
             doubt = verdict(rt) is None and rt <= FOLLOWS_MAX
-            self._fail(t, "doubt" if doubt else _kind(r), f"a probe moved the image r = {r:.2f}")
+            self._fail(t, "doubt" if doubt else fail_kind(r), f"a probe moved the image r = {r:.2f}")
 
     def _during_fault(self, pan: float, t_now: float) -> float | None:
         if self.fault is Fault.MASTER_FROZEN or self.anchor is None:
@@ -444,7 +444,7 @@ class Doubt:
 
     def status(self) -> dict:
         """For the reducer's status: the fault (or None), what to check, and the counts."""
-        return {"fault": None if self.fault is None else str(self.fault), "fault_note": self.note,
-                "faults": self.faults, "faults_cleared": self.resumed,
+        return {"fault": self.fault and str(self.fault), "fault_note": self.note, "faults": self.faults,
+                "faults_cleared": self.resumed,
                 "focal_ratio": None if self.focal_ratio is None else round(self.focal_ratio, 3),
                 "late_ms": None if self.late_s is None else round(self.late_s * 1e3, 1)}

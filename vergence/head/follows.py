@@ -40,3 +40,9 @@ def verdict(r: float) -> Fault | None:
 def focal_off(r: float) -> bool:
     """r (as verdict's) far enough from 1 to name the focal length off."""
     return abs(r - 1) > FOCAL_OFF
+
+
+def fail_kind(r: float) -> str:
+    """The kind of a pair that did not follow (vergence.head.doubt): "reversed" where r <= 2 REVERSED_MAX (-0.7: a
+    slipping camera's pair, its target's motion mispredicted, reaches -0.6), else "frozen"."""
+    return "reversed" if r <= 2 * REVERSED_MAX else "frozen"
