@@ -12,7 +12,9 @@ Two modes ([control] mode):
   `lead_s` + half a decision interval (when the motor will be acting on it), however old the image. Three
   predictions, refereed by how well each has predicted (Referee): hold (the filter's pan), a constant-velocity
   Kalman filter (Predictor) of the target's pan and rate, and, with `periodic`, a periodic fit (Periodic) that
-  predicts a target moving to and fro far past where any polynomial holds. A measurement far off the filter's
+  predicts a target moving to and fro far past where any polynomial holds (its fit and the referee take no decision
+  made after the motor moved more than FAST_DEG since the last one: its pan at the exposure is the least sure, a
+  skewed or blurred exposure's most of all; the filter takes every one). A measurement far off the filter's
   prediction (gate_px) restarts them all (a jump, not a motion). An abstention coasts on the filter's
   estimate (its rate fading with the time constant coast_s / 2) for at most coast_s, then the slave holds.
   No command within dead_band_px of the present pan, nor of the last set-point while the motor is there
@@ -107,6 +109,7 @@ class ControlSettings:
 LATE_S = 0.02  # an image older than this when its command goes out: p's gain is at most 1
 PREDICTORS = ("hold", "rate", "periodic")  # what the predictive mode's Referee weighs, in this order
 PERIOD_ALPHA = 0.1  # the decisions' interval is smoothed with this weight per decision (about 10 decisions)
+FAST_DEG = 1.0  # a decision made after the motor moved this much since the last one: no periodic sample
 PERIOD_GAP_S = 1.0  # an interval this long or longer is a pause, not the decisions' rate
 log = logging.getLogger("vergence.control")
 
@@ -129,6 +132,7 @@ class Controller:
         self.coasting = 0  # abstentions answered from the estimate
         self.last_goal: float | None = None  # the predictive mode's last set-point
         self.t_prev: float | None = None  # the last decision's capture time
+        self.pan_prev = 0.0  # the last decision's pan at exposure
         self.period: float | None = None  # the decisions' interval, smoothed
         self.doubt = Doubt()  # whether the image follows the motor, and the leash it keeps (issue #35)
         self.search = Search()  # lost: where to look (issue #35)
@@ -237,10 +241,12 @@ class Controller:
         f = self.predictor
         if self.periodic is None and self.s.periodic:
             self.periodic, self.referee = Periodic(), Referee(len(PREDICTORS))
+        fast = False
         if self.t_prev is not None and 0 < t - self.t_prev < PERIOD_GAP_S:
             dt = t - self.t_prev
             self.period = dt if self.period is None else (1 - PERIOD_ALPHA) * self.period + PERIOD_ALPHA * dt
-        self.t_prev = t
+            fast = abs(pan - self.pan_prev) > math.radians(FAST_DEG)
+        self.t_prev, self.pan_prev = t, pan
         # a set-point holds until the next decision: aim at the middle of that interval, from when the motor
         # acts on this command (now + lead_s), however old the image it comes from
         at = now + self.s.lead_s + 0.5 * (self.period or 0.0)
@@ -253,8 +259,9 @@ class Controller:
                 if f.restarts != restarts:  # a jump: what the target did before it says nothing now
                     self.periodic.reset()
                     self.referee.reset()
-                self.referee.measured(t, z)
-                self.periodic.add(t, z)
+                if not fast:
+                    self.referee.measured(t, z)
+                    self.periodic.add(t, z)
             # the rate, less min_rate_deg_s (soft threshold): the noise of a still target's rate estimate
             # (whole-tick encoder readings during small moves, a hesitating matcher) is not extrapolated
             vmin = math.radians(self.s.min_rate_deg_s)
