@@ -50,6 +50,7 @@ REPORT_S = 0.1  # the membership evidence (vergence/<rig>/workers) goes out this
 # zenoh RingChannels: the newest messages kept while the reducer's thread works (what they drop is not counted,
 # so they are larger than what the inbox keeps, whose sheds are)
 FRAME_RING, CORRELATION_RING = 32, 128
+STATE_RING = 256  # the motor's states between two wakes (50 a second, and one a command): each is counted
 KEEP_FRAMES = 2  # the newest valid frames of one batch that are decoded and gathered
 WAKE = "_wake"  # the key segment of the local sample that wakes the reducer's thread (Alarm, exit)
 
@@ -266,7 +267,7 @@ class Reducer:
         rig = self.rig
         self.node, self.health = node, node.health
         self.presence = MotorPresence(self.health)
-        node.subscriber(keys.motor_state(rig), lambda sm: self.presence.on_state(sm.payload.to_bytes()))
+        self.states = node.ring(keys.motor_state(rig), STATE_RING)  # read at each wake (no callback, no GIL)
         self.pub_decision = node.publisher(keys.decision(rig), express=True)
         self.pub_profile = node.publisher(keys.profile(rig), express=True)
         self.pub_command = node.publisher(keys.command(rig), express=True)
@@ -372,6 +373,9 @@ class Reducer:
             batch = self.inbox.take()
             if stop.is_set():
                 break
+            while (smp := self.states.try_recv()) is not None:
+                if payload := smp.payload.to_bytes():  # (an empty one: the Node's wake at exit)
+                    self.presence.on_state(payload)
             if batch:
                 self.handle(batch)
             with self.lock:
