@@ -373,9 +373,8 @@ class Reducer:
             batch = self.inbox.take()
             if stop.is_set():
                 break
-            while (smp := self.states.try_recv()) is not None:
-                if payload := smp.payload.to_bytes():  # (an empty one: the Node's wake at exit)
-                    self.presence.on_state(payload)
+            while (smp := self.states.try_recv()) is not None:  # (the Node's empty wake comes after the stop)
+                self.presence.on_state(smp.payload.to_bytes())
             if batch:
                 self.handle(batch)
             with self.lock:
