@@ -26,6 +26,14 @@ STANDBY_ENV = "VERGENCE_STANDBY"  # see open_session and services/ops/up.py
 SAY_WAITING_S = 1.0  # open_session says why nothing happens after this long without a router ...
 SAY_QUIET_S = 10.0  # ... unless it gives up within this long: a short wait ends with its one line (NoRouter)
 CLIENT_WAIT_S = 5.0  # a client's default wait for a router (record, replay, monitor, view: --wait)
+# zenoh's own threads (its ZENOH_RUNTIME variable, read when the first session opens): one thread reads the links
+# and runs their tasks, and the links' set-up runs on it too, where zenoh's default has two readers behind a separate
+# I/O thread: a message then reaches a subscriber without a hand-over between zenoh's threads. A put to a Python
+# thread of another process and back: 330 -> 228 us (p50, 300 B, 4 ms apart); `vergence bench pipeline` 250 Hz p50
+# 2.08-2.27 -> 1.88-1.95 ms (docs/PERFORMANCE.md). Sending keeps its own thread (tx), so a Python callback waiting for
+# the interpreter never holds up a put. A ZENOH_RUNTIME of the user's own is left as it is; children inherit it.
+ZENOH_RUNTIME = "(rx: (worker_threads: 1), net: (handover: rx), acc: (handover: rx))"
+os.environ.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
 
 log = logging.getLogger("vergence.session")
 _stops: list[threading.Event] = []  # every Stop's event: open_session gives up when one is set

@@ -66,3 +66,46 @@ def test_a_signal_that_comes_while_the_main_thread_holds_the_stops_lock_still_st
     r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=30,
                        cwd=str(__import__("pathlib").Path(__file__).resolve().parents[3]))
     assert r.returncode == 0, r.stderr
+
+
+THREADS_SCRIPT = r"""
+import json, os, sys, time
+from services.runtime import session
+import zenoh
+a = zenoh.open(session.zenoh_config("peer", listen=[sys.argv[1]]))
+b = zenoh.open(session.zenoh_config("peer", connect=[sys.argv[1]]))
+deadline = time.monotonic() + 10
+while not b.info.peers_zid() and time.monotonic() < deadline:
+    time.sleep(0.02)
+names = sorted(open(f"/proc/self/task/{t}/comm").read().strip() for t in os.listdir("/proc/self/task"))
+print(json.dumps({"env": os.environ["ZENOH_RUNTIME"], "threads": names, "linked": bool(b.info.peers_zid())}))
+b.close(); a.close()
+"""
+
+
+@pytest.mark.parametrize("user", [None, "(rx: (worker_threads: 2))"], ids=["ours", "the user's"])
+def test_zenoh_reads_the_links_on_one_thread_of_its_own_unless_the_user_says_otherwise(user):
+    """session.ZENOH_RUNTIME: one rx thread reads every link and runs the link set-up (net, acc) too: no net or acc
+    thread; sending keeps its tx thread. zenoh's default has net-0 and acc-0. A ZENOH_RUNTIME the user set is kept."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
+    if user:
+        env["ZENOH_RUNTIME"] = user
+    r = subprocess.run([sys.executable, "-c", THREADS_SCRIPT, f"tcp/127.0.0.1:{free_port()}"], env=env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout.strip().splitlines()[-1])
+    assert got["linked"]
+    names = set(got["threads"])
+    if user is None:
+        from services.runtime import session
+
+        assert got["env"] == session.ZENOH_RUNTIME
+        # (tokio names its blocking threads like the workers: rx-1 and on may be those, so the names tell no count)
+        assert {"rx-0", "tx-0"} <= names and not {n for n in names if n.startswith(("net-", "acc-"))}, names
+    else:
+        assert got["env"] == user and {"rx-0", "rx-1", "net-0", "acc-0"} <= names, names
