@@ -2,14 +2,15 @@
 
 Measures what `vergence up` runs, as a user's client sees it: for each source, worker count and rate, it starts
 `vergence up --source SPEC --workers N --rate HZ` (the embedded router, the sim actuator, the workers, the reducer
-and the capture with their standbys, all as real processes on this machine), waits for its first decision and
-WARM_S more, then subscribes through the router for --seconds to the decisions, the commands and the motor
-states. Reported per run: decisions against the frames the rate asks for in that time (rate x seconds; drops:
-the difference), capture-to-decision latency p50/p99/max (a decision's arrival here minus its frame's
-t_capture_ns, the master's exposure: one hop more than the reducer's own), the commands and how many were
-wrong (files: an offset other than the pair's SHIFT px, or older than one sent before it), capture-to-executed
-(the first motor state naming a frame, at the actuator), beside the in-process vergence.match time on a pair of
-the same source (overhead = p50 / match).
+and the capture with their standbys, all as real processes on this machine), waits for its first decision and WARM_S
+more, then subscribes for --seconds to the decisions, the commands and the motor states, as a peer of the pipeline's
+processes (connected to up's router, it then hears each process directly, as any program of the user's on the same
+host can with `--mode peer`; through the router, a client, each decision comes 60-200 us later). Reported per run:
+decisions against the frames the rate asks for in that time (rate x seconds; drops: the difference), capture-to-
+decision latency p50/p99/max (a decision's arrival here minus its frame's t_capture_ns, the master's exposure: one
+hop more than the reducer's own), the commands and how many were wrong (files: an offset other than the pair's SHIFT
+px, or older than one sent before it), capture-to-executed (the first motor state naming a frame, at the actuator),
+beside the in-process vergence.match time on a pair of the same source (overhead = p50 / match).
 Sources (default all three): vga, a synthetic textured pair as a `files:` source (the slave sees the scene
 SHIFT px further left, whatever the motor does: every frame yields a command); sim, the simulated still scene;
 demo, `vergence up`'s default source (a target moving in depth). --source SPEC: that source only.
@@ -109,7 +110,7 @@ def _session(endpoint: str):
 
     from services.runtime import session
 
-    return zenoh.open(session.zenoh_config("client", [endpoint]))
+    return zenoh.open(session.zenoh_config("peer", [endpoint]))
 
 
 def in_process_ms(master, slave, params, n: int = 30) -> float:
