@@ -45,7 +45,7 @@ from services.runtime.warm import warm_up
 
 log = logging.getLogger("vergence.reducer")
 EXPIRE_S = 0.05  # the longest sleep between deadline checks (frames also expire as messages arrive)
-POLL_S = 0.001  # the shortest alarm: a Frame awaited after its correlations, a deadline
+POLL_S = 0.001  # the shortest alarm
 REPORT_S = 0.1  # the membership evidence (vergence/<rig>/workers) goes out this often
 # zenoh RingChannels: the newest messages kept while the reducer's thread works (what they drop is not counted,
 # so they are larger than what the inbox keeps, whose sheds are)
@@ -101,11 +101,12 @@ class Window:
 
 class Inbox:
     """The reducer thread's two rings (zenoh RingChannels: zenoh's receiving threads push into them in Rust, with no
-    GIL, and never wait for this process; a full ring loses its oldest). The thread blocks on the correlations'
-    ring, since a frame is completed by a correlation (its Frame went out before its workers began), and at each
-    wake takes both rings whole, keeping the newest `frames` and `correlations` of them: the rest is shed, counted
-    per kind, so nothing queues when the reducer cannot keep up. An empty sample on the wake key (the Alarm's, the
-    Node's at exit) wakes it with nothing."""
+    GIL, and never wait for this process; a full ring loses its oldest). take(wait) blocks on one ring: the
+    frames' while no Frame awaits its correlations (the next thing a frame sends the reducer is its Frame, which
+    is then prepared while the workers compute: vergence.stages.gather.prepare), else the correlations'. At each
+    wake it takes both rings whole, keeping the newest `frames` and `correlations` of them: the rest is shed,
+    counted per kind, so nothing queues when the reducer cannot keep up. An empty sample on a ring's wake key (the
+    Alarm's, the Node's at exit: <key>/_wake) wakes it with nothing."""
 
     NONE_SHED = {"frame": 0, "correlation": 0}
 
@@ -119,12 +120,13 @@ class Inbox:
         with self.lock:
             self.shed[kind] += n
 
-    def take(self) -> list[tuple[str, tuple[str, bytes]]]:
-        """What arrived, (kind, (key, payload)) oldest first per kind, after waiting for a correlation or a wake."""
-        first = self.rings["correlation"].recv()
+    def take(self, wait: str = "correlation") -> list[tuple[str, tuple[str, bytes]]]:
+        """What arrived, (kind, (key, payload)) oldest first per kind, after waiting for a sample of kind `wait`
+        ("frame" or "correlation") or a wake."""
+        first = self.rings[wait].recv()
         out = []
         for kind, ring in self.rings.items():
-            got = [first] if kind == "correlation" else []
+            got = [first] if kind == wait else []
             while (smp := ring.try_recv()) is not None:
                 got.append(smp)
             items = [(str(m.key_expr), m.payload.to_bytes()) for m in got]
@@ -246,6 +248,7 @@ class Reducer:
 
     def __init__(self, settings, deadline_s: float):
         self.settings, self.rig, self.limits, self.deadline = settings, settings.rig, settings.limits, deadline_s
+        self.frame_key = keys.frame(self.rig)
         self.gatherer = Gatherer(settings.network, settings.control, deadline_s, self.limits,
                                  motor=settings.actuator.motor)
         self.lock = threading.Lock()  # the gatherer: the loop thread and the status
@@ -274,11 +277,12 @@ class Reducer:
         self.pub_workers = node.publisher(keys.workers(rig), express=True)
         self.hold = Lease(self.health)
         node.subscriber(keys.hold(rig), lambda sm: self.hold.on_hold(sm.payload.to_bytes()))
-        wake = keys.correlation(rig, WAKE)
-        self.inbox = Inbox(node.ring(keys.frame(rig), FRAME_RING),
-                           node.ring(keys.correlations(rig), CORRELATION_RING, wake=wake))
-        self.alarm = Alarm(lambda: node.session.put(wake, b"", allowed_destination=zenoh.Locality.SESSION_LOCAL),
-                           node.stop)
+        # the frames' ring also hears <frame>/_wake (its wake); any other key under it is no Frame (decode)
+        wakes = [f"{keys.frame(rig)}/{WAKE}", keys.correlation(rig, WAKE)]
+        self.inbox = Inbox(node.ring(f"{keys.frame(rig)}/**", FRAME_RING, wake=wakes[0]),
+                           node.ring(keys.correlations(rig), CORRELATION_RING, wake=wakes[1]))
+        self.alarm = Alarm(lambda: [node.session.put(w, b"", allowed_destination=zenoh.Locality.SESSION_LOCAL)
+                                    for w in wakes], node.stop)
         node.thread(self.alarm.run, name="reducer-alarm")
         node.ready()
         log.info("reducer %s on %s and %s, deadline %.0f ms", node.ident, keys.frame(rig), keys.correlations(rig),
@@ -309,6 +313,8 @@ class Reducer:
         key, data = item
         if kind == "frame":
             try:
+                if key != self.frame_key:
+                    raise MessageError(f"frame on key {key}")
                 return check_frame(data, self.limits)
             except MessageError as e:
                 self.health.reject("frame", e)
@@ -370,7 +376,9 @@ class Reducer:
         every = self.settings.reducer.summary_s
         next_summary, seen = time.monotonic() + every, (0, 0, 0)
         while not stop.is_set():
-            batch = self.inbox.take()
+            with self.lock:
+                awaiting = self.gatherer.awaiting()
+            batch = self.inbox.take("correlation" if awaiting else "frame")
             if stop.is_set():
                 break
             while (smp := self.states.try_recv()) is not None:  # (the Node's empty wake comes after the stop)
@@ -380,12 +388,9 @@ class Reducer:
             with self.lock:
                 self.gatherer.expire()
                 due = self.gatherer.next_deadline()
-                frameless = any(e.frame is None for e in self.gatherer.pending.values())
             now = time.monotonic()
             if due is not None:  # woken at the next deadline (by the alarm, unless a message comes first)
-                # correlations whose Frame is not in yet (it came after them: a rare order): the frames' ring
-                # looked at again every POLL_S until it comes or the deadline drops them
-                self.alarm.set(now + POLL_S if frameless else max(now + POLL_S, due))
+                self.alarm.set(max(now + POLL_S, due))
             if now >= next_report:
                 self.pub_workers.put(self.workers_report())
                 next_report = now + REPORT_S

@@ -191,12 +191,15 @@ def pearson(fovea: np.ndarray, slave_band: np.ndarray, d: Decision) -> float:
 
 def lr_consistent(master_rows: np.ndarray, slave_band: np.ndarray, x: int, d: Decision, params: Params) -> bool:
     """Left-right consistency: the winning slave window (rows shifted by v), matched back along the fovea's
-    own rows of the master, lands within params.lr_tolerance px of where the forward match says it should."""
+    own rows of the master, lands within params.lr_tolerance px of where the forward match says it should.
+    master_rows: those rows as a gray strip with its margin, or its planes (retina.planes of it, 3-D) when the
+    caller has them (the reducer makes them before the correlations come: vergence.stages.gather.prepare)."""
     half = x - d.k_centre
     w = 2 * half + 1
     r = (slave_band.shape[1] - w) // 2  # R
     sf = np.ascontiguousarray(slave_band[:, r + d.v : r + d.v + w, d.k : d.k + w])
-    back = kernel.correlate(sf, retina.planes(master_rows), circular=params.circular)
+    master = master_rows if master_rows.ndim == 3 else retina.planes(master_rows)
+    back = kernel.correlate(sf, master, circular=params.circular)
     expected = x - (d.k_sub - d.k)
     return abs((_winner_sub(back, params.subpixel) + half) - expected) <= params.lr_tolerance
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, replace
 import msgspec
 import numpy as np
 
-from ..network import retina
+from ..network import kernel, retina
 from ..config import LimitSettings
 from ..head.control import ControlSettings, Controller
 from ..motors.base import MotorSettings, Safety
@@ -27,7 +27,8 @@ from ..wire import messages
 from ..wire.messages import Command, Frame, Correlation, Profile
 from ..network.params import Params
 
-__all__ = ["frame_params", "decide_frame", "reduce", "make_profile", "decision_message", "Gatherer", "Reduced"]
+__all__ = ["frame_params", "Prepared", "prepare", "decide_frame", "reduce", "make_profile", "decision_message",
+           "Gatherer", "Reduced"]
 
 
 def frame_params(frame: Frame, params: Params) -> Params:
@@ -37,18 +38,41 @@ def frame_params(frame: Frame, params: Params) -> Params:
                    support=frame.support, support_gamma=frame.support_gamma, support_radius=frame.support_radius)
 
 
-def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
-    """vergence.network.decide.decide_scores on a frame's complete scores: the decision of vergence.match() itself.
+@dataclass
+class Prepared:
+    """What a frame's decision needs of its Frame alone: the reducer makes it when the Frame arrives
+    (Gatherer.add_frame), while the workers compute its correlations, not after the last of them. params:
+    frame_params; fovea: its planes; weights: its support weights for the halves check (None without support
+    weights or that check); master: the planes of the master's rows of the fovea for the left-right check (None
+    without it)."""
 
-    The slave band's features (for the left-right check, with the master band's gray strip, and the halves
-    check) are computed only when the checks can change the result, i.e. when the decision without them is
-    confident; apply_checks then runs the checks on that decision."""
+    params: Params
+    fovea: np.ndarray
+    weights: np.ndarray | None
+    master: np.ndarray | None
+
+
+def prepare(frame: Frame, params: Params) -> Prepared:
     p = frame_params(frame, params)
     fovea = retina.planes(frame.fovea_strip())
+    weights = None
+    if p.support and p.halves_check:  # as halves_consistent would make them
+        weights = kernel.support_weights(fovea, p.support_gamma, p.support_radius_at(frame.window))
+    mstrip = frame.master_band_strip() if p.lr_check else None
+    return Prepared(p, fovea, weights, None if mstrip is None else retina.planes(mstrip))
+
+
+def decide_frame(frame: Frame, scores: np.ndarray, params: Params, prep: Prepared | None = None) -> Decision:
+    """vergence.network.decide.decide_scores on a frame's complete scores: the decision of vergence.match() itself.
+
+    The slave band's features (for the left-right check, with the master rows' planes, and the halves check) are
+    computed only when the checks can change the result, i.e. when the decision without them is confident;
+    apply_checks then runs the checks on that decision. prep: the frame's Prepared (made here when not given)."""
+    prep = prep or prepare(frame, params)
+    p, fovea = prep.params, prep.fovea
     y = scores[0] if scores.shape[0] == 1 else scores
     d = decide_scores(y, fovea, frame.x, p)
-    mstrip = frame.master_band_strip()
-    if ((p.lr_check and mstrip is not None) or p.halves_check or p.min_correlation > 0) and d.confident:
+    if ((p.lr_check and prep.master is not None) or p.halves_check or p.min_correlation > 0) and d.confident:
         # The checks read the slave band's features at the winning window's columns k..k+w-1 (correlation and
         # left-right checks) and k-R..k+R+w-1 (halves check, R = halves_range) only: compute those (all rows),
         # not the whole band. tests/vergence/stages/test_gather.py holds this equal to match().
@@ -58,7 +82,7 @@ def decide_frame(frame: Frame, scores: np.ndarray, params: Params) -> Decision:
         reach = p.halves_range if p.halves_check else 0
         c0, c1 = max(0, d.k - reach), min(sband.shape[2], d.k + reach + w)
         sband[:, :, c0:c1] = retina.planes(band[:, c0 : c1 + 2])
-        d = apply_checks(d, fovea, frame.x, p, mstrip, sband)
+        d = apply_checks(d, fovea, frame.x, p, prep.master, sband, prep.weights)
     return d
 
 
@@ -123,8 +147,8 @@ class Reduced:
 
     @classmethod
     def of(cls, frame: Frame, scores: np.ndarray, params: Params, controller: Controller,
-           t_reduced_ns: int | None = None) -> "Reduced":
-        d = decide_frame(frame, scores, params)
+           t_reduced_ns: int | None = None, prep: Prepared | None = None) -> "Reduced":
+        d = decide_frame(frame, scores, params, prep)
         now = time.time_ns() if t_reduced_ns is None else t_reduced_ns
         return cls(frame, d, _command(frame, d, controller, now, has_texture(d, params)), scores, now)
 
@@ -147,6 +171,7 @@ class _Pending:
     t_capture_ns: int = 0
     frame: Frame | None = None
     correlations: dict[str, Correlation] = field(default_factory=dict)
+    prep: Prepared | None = None
 
 
 class Gatherer:
@@ -251,8 +276,9 @@ class Gatherer:
         if e.frame is not None:
             self.counters["unexpected"] += 1
             return self._nothing(now)
+        prep = prepare(frame, self.params)  # before the frame counts: one that cannot be prepared is not taken
         self.counters["frames"] += 1
-        e.frame = frame
+        e.frame, e.prep = frame, prep
         self.newest = max(self.newest, frame.frame)
         # correlations that came first: those that do not fit this plan go, the others are evidence
         for wid, p in list(e.correlations.items()):
@@ -302,7 +328,7 @@ class Gatherer:
         scores = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
         self._finish(fid, now)
         self.counters["complete"] += 1
-        out.append(Reduced.of(f, scores, self.params, self.controller))
+        out.append(Reduced.of(f, scores, self.params, self.controller, prep=e.prep))
         return out
 
     def _expired(self, fid: int, e: _Pending) -> None:
@@ -342,6 +368,10 @@ class Gatherer:
         """What an input that completes no frame returns, after the deadlines."""
         self.expire(now)
         return []
+
+    def awaiting(self) -> bool:
+        """Whether a pending frame has its Frame in and awaits correlations (the reducer then waits for those)."""
+        return any(e.frame is not None and len(e.correlations) < len(e.frame.plan) for e in self.pending.values())
 
     def next_deadline(self) -> float | None:
         """Monotonic time of the earliest pending deadline, None when nothing is pending."""

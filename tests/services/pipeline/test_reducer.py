@@ -155,3 +155,35 @@ def test_the_alarm_wakes_at_the_time_set_then_every_expire_s_and_stops():
     assert all(b - a >= EXPIRE_S * 0.99 for a, b in zip(woken, woken[1:]))  # then every EXPIRE_S
     alarm.set(time.monotonic() + 10)  # later than armed: changes nothing
     assert alarm.at < time.monotonic() + EXPIRE_S + 0.01
+
+
+def test_the_inbox_waits_on_the_frames_ring_when_told_and_still_takes_both():
+    """Reducer.run waits on the frames' ring while no Frame awaits its correlations (Gatherer.awaiting): the Frame
+    wakes it, to be prepared while the workers compute; the frames' own wake (<frame>/_wake) gives nothing."""
+    from services.pipeline.reducer import Inbox, WAKE
+
+    frames = _Ring([_Sample("vergence/r/frame", b"f1")])
+    corr = _Ring([_Sample("vergence/r/correlation/w", b"c0")])
+    box = Inbox(frames, corr)
+    assert box.take("frame") == [("frame", ("vergence/r/frame", b"f1")),
+                                 ("correlation", ("vergence/r/correlation/w", b"c0"))]
+    frames.q.append(_Sample(f"vergence/r/frame/{WAKE}", b""))
+    assert box.take("frame") == [] and box.shed == {"frame": 0, "correlation": 0}
+
+
+def test_a_frame_on_any_other_key_under_the_frames_is_no_frame():
+    """The frames' ring hears vergence/<rig>/frame/** (for its wake): a Frame forged on a key under it is rejected
+    (counted under bad.frame), not gathered (no worker hears it: it would only wait for correlations that never come)."""
+    from samples import frame_of, textured
+
+    from services.pipeline.reducer import Reducer
+    from vergence.config import load
+    from vergence.network.params import Params
+
+    m, s = textured()
+    data = frame_of(m, s, Params()).to_bytes()
+    r = Reducer(load(None), 0.05)
+    r.health = Health()
+    assert r.decode("frame", ("vergence/head/frame/x", data)) is None
+    assert r.health.rejected == [("frame", "frame on key vergence/head/frame/x")]
+    assert r.decode("frame", ("vergence/head/frame", data)).frame == 1

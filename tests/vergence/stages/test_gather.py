@@ -142,3 +142,31 @@ def test_gatherer_restart_and_no_plan():
     f.frame = 2
     g.add_frame(f, now=0.0)
     assert g.counters["no_plan"] == 1
+
+
+def test_a_frame_prepared_when_it_arrives_decides_as_one_prepared_at_its_decision():
+    """gather.prepare: the Frame's own part of the decision (its params, the fovea's planes and support weights, the
+    master rows' planes), made by Gatherer.add_frame before the correlations come. Decisions equal with and without
+    it, confident or not (a clipping pair, a shifted one, a flat one), and the Gatherer awaits correlations only
+    while a Frame is in without all of them."""
+    from vergence.network import retina
+    from vergence.stages.gather import decide_frame, prepare
+
+    m, s = textured()
+    for mm, ss in [(m, s), clipping_pair(), (m, np.roll(s, 7, axis=1)), (np.full_like(m, 90), np.full_like(s, 90))]:
+        for params in (Params(max_window=0), Params.paper()):
+            f = Frame.from_bytes(frame_of(mm, ss, params).to_bytes())
+            scores = np.atleast_2d(compute_correlation(f, "a").array())
+            prep = prepare(f, params)
+            assert decide_frame(f, scores, params, prep) == decide_frame(f, scores, params)
+            if params.lr_check:
+                assert np.array_equal(prep.master, retina.planes(f.master_band_strip()))
+    f = frame_of(m, s, Params(), workers=["a", "b"])
+    g = gather()
+    assert not g.awaiting()
+    g.add_correlation(compute_correlation(f, "a"), now=0.0)
+    assert not g.awaiting()  # correlations without their Frame: the Frame is what comes next
+    g.add_frame(f, now=0.001)
+    assert g.awaiting() and g.pending[1].prep is not None
+    (r,) = g.add_correlation(compute_correlation(f, "b"), now=0.002)
+    assert not g.awaiting() and r.decision.confident
