@@ -173,7 +173,7 @@ def test_the_inbox_waits_on_the_frames_ring_when_told_and_still_takes_both():
 
 def test_a_frame_on_any_other_key_under_the_frames_is_no_frame():
     """The frames' ring hears vergence/<rig>/frame/** (for its wake): a Frame forged on a key under it is rejected
-    (counted under bad.frame), not gathered (no worker hears it: it would only wait for correlations that never come)."""
+    (counted under bad.frame), not gathered (no worker hears it: it would wait for correlations that never come)."""
     from samples import frame_of, textured
 
     from services.pipeline.reducer import Reducer
