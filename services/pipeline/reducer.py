@@ -294,16 +294,18 @@ class Reducer:
         geo, health = self.settings.geometry, self.health
         for r in results:
             self.window.add(r.frame)
-            if r.command is not None and self.hold.held():
-                health.count("held")  # a client moves the slave itself (`vergence latency`)
-            elif r.command is not None and self.presence.absent():
-                health.count("motor_absent")  # nothing would execute it: the actuator has lost its motor
-            elif r.command is not None:  # the command first: the actuator waits for it
-                self.pub_command.put(r.command.to_bytes())
-                health.count("commands")
+            # the decision first: it does not wait for the controller, which takes it only now (gather.Reduced)
             where = depth.decision_fields(r.frame, r.decision, r.scores, geo.baseline_m, geo.gimbal,
                                           geo.master or self.settings.capture.master, geo.pan_axis_m)
             self.pub_decision.put(replace_message(r.message, **where).to_bytes())
+            command = r.command
+            if command is not None and self.hold.held():
+                health.count("held")  # a client moves the slave itself (`vergence latency`)
+            elif command is not None and self.presence.absent():
+                health.count("motor_absent")  # nothing would execute it: the actuator has lost its motor
+            elif command is not None:
+                self.pub_command.put(command.to_bytes())
+                health.count("commands")
             if self.pub_profile.matching_status.matching:  # up to 65 KB at 640 px: only encoded when wanted
                 self.pub_profile.put(replace_message(r.profile, **where).to_bytes())
             health.count("profiles")

@@ -44,7 +44,8 @@ def warm_up(params: Params, control=None) -> None:
     if control is not None:
         g = Gatherer(p, control)
         g.add_frame(f)
-        g.add_correlation(part)
+        for r in g.add_correlation(part):
+            _ = r.command  # the controller's code too (it runs when the command is first asked for)
 
 
 def preload(settings) -> None:
