@@ -196,7 +196,7 @@ def bench_setting(setting: Setting, args, workdir: Path, rates: list[float], emi
                   p99_limit: float = float("inf")) -> list[dict]:
     """Runs at each rate in turn (the first always; a later one only while the previous one had no drop and
     p99 <= p99_limit ms), for each worker count: a fresh `vergence up` each."""
-    base_ms = in_process_ms(*setting.pair, params, n=30 if setting.pair[0].shape[1] < 2000 else 3)
+    base_ms = in_process_ms(*setting.pair, params, n=100 if setting.pair[0].shape[1] < 2000 else 3)
     rows = []
     for nw in args.workers:
         for rate in rates:
