@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -43,7 +45,7 @@ class Pursuit:
     target: what the window holds says nothing of the next one."""
 
     def __init__(self):
-        self.seen: list[tuple[float, float, float]] = []
+        self.seen: deque[tuple[float, float, float]] = deque()
         self.fits: list[float] = []
         self.ratio: float | None = None
         self.n = 0
@@ -53,7 +55,12 @@ class Pursuit:
         self.fits.clear()
 
     def add(self, t: float, pan: float, a: float) -> float | None:
-        self.seen = [s for s in self.seen if s[0] > t - WINDOW_S] + [(t, pan, a)]
+        seen = self.seen
+        if seen and t < seen[-1][0]:  # out of order (Doubt.observe never gives one): every older one looked at
+            self.seen = seen = deque(s for s in seen if s[0] > t - WINDOW_S)
+        while seen and seen[0][0] <= t - WINDOW_S:  # in order, the ones past the window are the oldest
+            seen.popleft()
+        seen.append((t, pan, a))
         self.n += 1
         if len(self.seen) < MIN_SAMPLES or self.n % EVERY:
             return self.ratio
@@ -102,7 +109,7 @@ class Focal:
         self.ratio = ratio
 
 
-def fit(seen: list[tuple[float, float, float]]) -> float | None:
+def fit(seen: Sequence[tuple[float, float, float]]) -> float | None:
     """rho of one window, or None where it does not count (see the module's text)."""
     t, pan, a = (np.array(c) for c in zip(*seen))
     tc = (t - t.mean()) / WINDOW_S

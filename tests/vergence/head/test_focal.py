@@ -76,7 +76,7 @@ def test_precise_fast_pairs_stand_over_pursuit_and_a_clear_forgets_the_window():
     g = Focal()
     g.add(0.0, 0.0, 0.0)
     g.clear()
-    assert g.pursuit.seen == [] and g.ratio is None
+    assert not g.pursuit.seen and g.ratio is None
 
 
 @pytest.mark.parametrize("rate,latency,seed", [(60.0, 0.066, 21), (30.0, 0.05, 22)])
