@@ -284,11 +284,16 @@ class MovingRig:
             h = self._homography(tex_mask.shape, s, pz, centre, pan, x)
             if region is not None:
                 h = region.matrix @ h
-            # texture and mask in one warp, outside = 0: the texture channel comes out premultiplied by the mask
-            tm = cv2.warpPerspective(tex_mask, h, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                     borderValue=(0, 0, 0, 0))
+            c0, c1 = _columns(h, tex_mask.shape, size[0])
+            if c1 <= c0:
+                continue  # the plane is off these columns: nothing to blend
+            # texture and mask in one warp, outside = 0: the texture channel comes out premultiplied by the mask;
+            # only the columns the plane can reach (elsewhere the blend leaves `out` as it is)
+            shift = np.array([[1.0, 0.0, -float(c0)], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+            tm = cv2.warpPerspective(tex_mask, shift @ h, (c1 - c0, size[1]), flags=cv2.INTER_LINEAR,
+                                     borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
             a = tm[..., 1].astype(np.float32) * np.float32(1 / 255)
-            out = np.rint(out * (1 - a) + tm[..., 0]).astype(np.uint8)
+            out[:, c0:c1] = np.rint(out[:, c0:c1] * (1 - a) + tm[..., 0]).astype(np.uint8)
         return out
 
     def master_view(self, t: float = 0.0, region: Region | None = None) -> np.ndarray:
@@ -359,3 +364,16 @@ class MovingRig:
     def pan_off_truth(self, px: float, t: float = 0.0) -> float:
         """truth(t) + atan(px / f): the slave pan px pixels past the converged one."""
         return self.truth_pan(t) + math.atan(px / self.focal_px)
+
+
+def _columns(h: np.ndarray, tex_shape, width: int) -> tuple[int, int]:
+    """The output columns c0..c1-1 (of `width`) where the plane of a texture of tex_shape, seen through the homography
+    h (texel -> pixel), can leave anything: its texels and their one-texel border (INTER_LINEAR mixes a border
+    texel with the outside), two pixels more each side. The whole width where the plane reaches behind the camera."""
+    th, tw = tex_shape[:2]
+    corners = np.array([[-1.0, -1.0, tw, tw], [-1.0, th, -1.0, th], [1.0, 1.0, 1.0, 1.0]])
+    p = h @ corners
+    if not np.all(p[2] > 0):
+        return 0, width
+    xs = p[0] / p[2]
+    return max(0, int(math.floor(xs.min())) - 2), min(width, int(math.ceil(xs.max())) + 3)

@@ -1,0 +1,64 @@
+"""vergence.sim.moving: the moving target's views. The renderer warps each plane over the columns it can reach only
+(_columns); here against warping every column, as it did before, byte for byte."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from vergence.sim.moving import MovingRig, _columns
+from vergence.sim.optics import Region
+
+
+def _every_column(rig: MovingRig, z: float, pan: float, region: Region | None) -> np.ndarray:
+    """The pinhole view warped over its whole width, plane after plane (the renderer before _columns)."""
+    size = rig.size if region is None else region.size
+    hb = rig._homography(rig.bg_tex.shape, rig.bg_s, rig.bg_m, (0.0, 0.0), pan)
+    if region is not None:
+        hb = region.matrix @ hb
+    out = cv2.warpPerspective(rig.bg_tex, hb, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    planes = [(z, rig._tex_mask, rig.target_s, 0.0)] + ([(rig.side_m, *rig._side)] if rig._side is not None else [])
+    for pz, tex_mask, s, x in sorted(planes, key=lambda p: -p[0]):
+        h = rig._homography(tex_mask.shape, s, pz, (0.0, 0.0), pan, x)
+        if region is not None:
+            h = region.matrix @ h
+        tm = cv2.warpPerspective(tex_mask, h, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                 borderValue=(0, 0, 0, 0))
+        a = tm[..., 1].astype(np.float32) * np.float32(1 / 255)
+        out = np.rint(out * (1 - a) + tm[..., 0]).astype(np.uint8)
+    return out
+
+
+@pytest.mark.parametrize("opts", [dict(motion="sine:z=0.7,amp=0.25,hz=0.3", seed="11"),
+                                  dict(motion="sine:z=0.5,amp=0.1,hz=1", seed="12", side="1.1", focal="700"),
+                                  dict(motion="step:z0=0.4,z1=1.5,at=0.5", seed="13", size="320x240")],
+                         ids=["demo-like", "side square", "small"])
+def test_a_view_warped_over_the_columns_its_planes_reach_equals_one_warped_over_every_column(opts):
+    rig = MovingRig.from_options(**opts)
+    w, h = rig.size
+    rng = np.random.default_rng(int(opts["seed"]))
+    regions = [None, Region.band(w, h // 2 - 14, h // 2 + 15), Region.band(w, 0, 9), Region.scaled((w, h), (160, 120)),
+               Region.window(-40, h // 3, w - 100, h // 3 + 60)]
+    for i in range(40):
+        z = float(rng.uniform(0.3, 1.6))
+        # a few far turns: the target off the view, or its plane behind the camera (then every column)
+        pan = float(rng.uniform(-1.3, 1.3)) if i % 5 == 0 else float(rng.uniform(-0.2, 0.2))
+        region = regions[i % len(regions)]
+        assert np.array_equal(rig._pinhole(z, (0.0, 0.0), pan, region), _every_column(rig, z, pan, region)), (z, pan)
+
+
+def test_the_columns_a_plane_reaches():
+    """The target straight ahead reaches the middle columns only; turned away, none; reaching behind, all."""
+    rig = MovingRig.from_options(motion="sine:z=0.8,amp=0.3,hz=0.2", seed="1")
+    w = rig.size[0]
+    h = rig._homography(rig._tex_mask.shape, rig.target_s, 0.8, (0.0, 0.0), 0.0)
+    c0, c1 = _columns(h, rig._tex_mask.shape, w)
+    half = rig.target_m / 2 / 0.8 * rig.focal_px  # the target's half width in pixels at 0.8 m
+    assert c0 == pytest.approx(w / 2 - half, abs=4) and c1 == pytest.approx(w / 2 + half, abs=4) and 0 < c0 < c1 < w
+    away = rig._homography(rig._tex_mask.shape, rig.target_s, 0.8, (0.0, 0.0), math.radians(60))
+    assert _columns(away, rig._tex_mask.shape, w)[1] <= _columns(away, rig._tex_mask.shape, w)[0]
+    behind = rig._homography(rig._tex_mask.shape, rig.target_s, 0.8, (0.0, 0.0), math.radians(120))
+    assert _columns(behind, rig._tex_mask.shape, w) == (0, w)
