@@ -11,6 +11,7 @@ vergence.sim.loop.Step is one frame of the simulated loop (the state, and its Ma
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -33,9 +34,17 @@ __all__ = ["frame_params", "Prepared", "prepare", "decide_frame", "reduce", "mak
 
 def frame_params(frame: Frame, params: Params) -> Params:
     """The network settings a frame was computed with: the frame's own window, vertical search, direction
-    comparison and support weights over the reducer's decision settings."""
-    return replace(params, window=frame.window, vsearch=frame.vsearch, circular=frame.circular,
-                   support=frame.support, support_gamma=frame.support_gamma, support_radius=frame.support_radius)
+    comparison and support weights over the reducer's decision settings (made once per such set: they change
+    with the dynamic window only, not per frame)."""
+    return _over(params, frame.window, frame.vsearch, frame.circular, frame.support, frame.support_gamma,
+                 frame.support_radius)
+
+
+@functools.lru_cache(maxsize=32)
+def _over(params: Params, window: int, vsearch: int, circular: bool, support: bool, gamma: float,
+          radius: float) -> Params:
+    return replace(params, window=window, vsearch=vsearch, circular=circular, support=support, support_gamma=gamma,
+                   support_radius=radius)
 
 
 @dataclass
