@@ -93,6 +93,30 @@ def test_photometric_options_and_determinism():
     assert 2.0 < np.abs(ma.astype(float) - mc).mean() < 4.0  # noise sigma 3
 
 
+def test_a_held_pan_renders_its_view_once_and_the_same_bytes():
+    """The still scene's slave views are kept per pan and region: equal byte for byte to a fresh render, read-only,
+    a band not mistaken for another band or the whole view, a new pan rendered anew."""
+    from vergence.sim.optics import Region
+
+    a = Rig.from_spec("gain=1.2:offset=-10:blur=1:seed=5")
+    band, other = Region.band(a.size[0], 200, 260), Region.band(a.size[0], 100, 160)
+    first = a.slave_view(0.01, 0.0, band)
+    again = a.slave_view(0.01, 0.5, band)
+    assert again is first and not first.flags.writeable
+    with pytest.raises(ValueError):
+        first[0, 0] = 1
+    fresh = Rig.from_spec("gain=1.2:offset=-10:blur=1:seed=5")
+    assert np.array_equal(first, fresh.slave_view(0.01, 0.0, band))
+    assert np.array_equal(a.slave_view(0.01, 0.0, other), fresh.slave_view(0.01)[100:160])
+    assert np.array_equal(a.slave_view(0.01), fresh.slave_view(0.01)) and a.slave_view(0.01).shape == (480, 640)
+    turned = a.slave_view(0.02, 0.0, band)
+    assert turned is not first and not np.array_equal(turned, first)
+    assert np.array_equal(turned, fresh.slave_view(0.02)[200:260])
+    for k in range(3 * Rig.VIEWS):  # the cache keeps a few views, not every pan
+        a.slave_view(0.001 * k, 0.0, band)
+    assert len(a._views) == Rig.VIEWS
+
+
 def test_the_two_cameras_noise_is_independent():
     """Sensor noise is drawn for each camera apart: the slave's noise field is never the master's shifted
     (they once shared pre-drawn fields, and the network matched the noise pattern of a flat wall)."""
