@@ -17,16 +17,16 @@ rate lags a target that turns, e.g. a 2 Hz sine at 30 Hz) is a doubt: it holds a
 nothing. Pursuit, slow moves and jumps of the target are never judged. A byte-identical slave image after the motor
 moved IDENTICAL_MOVE_DEG is a frozen camera outright.
 
-The leash. Until the image has been seen to follow (at the start, after a fault), no command goes further than
-UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there for PROBE_S probes back to learn
-whether it follows. Once it has, no command goes further than LEASH_DEG past the pan the last consistent decision
-asked for (its z, moved on at the learnt rate); after a pair that did not follow, none further from the anchor
-than the slave already is, and after SUSPECT_S a probe back toward the anchor, whose image confirms or clears it.
+The leash. Until the image has been seen to follow (r in FOLLOWS_MIN..FOLLOWS_MAX; at the start, after a fault),
+no command goes further than UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there for
+BOUND_S probes back. Once it has, no command goes further than LEASH_DEG past the pan the last consistent decision
+asked for (its z, moved on at the learnt rate); after a pair that did not follow, none further from the anchor than
+the slave already is, and after SUSPECT_S a probe back toward the anchor, whose image confirms or clears it.
 
 A fault: the slave goes back to the anchor and holds; the only moves are probes (PROBE_DEG from the anchor, one
-every PROBE_S), and when the image follows one again (or, for a stalled motor, the encoder moves) the loop resumes
-by itself. A frozen master camera (vergence.head.frozen) holds until it changes. A motor that does not move for
-STALL_S while commanded MIN_MOVE or more away is stalled.
+every PROBE_S, read less the target's own motion at the anchor: follows.Held), and when the image follows one again
+(or, for a stalled motor, the encoder moves) the loop resumes by itself. A frozen master camera (vergence.head.frozen)
+holds until it changes. A motor that does not move for STALL_S while commanded MIN_MOVE or more away is stalled.
 
 A camera later than its frames say is told by the moves of its faults and named (vergence.head.lag); from then on
 each frame goes through shift() first, and a pair's slack grows by the uncertainty of the pans it reads.
@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 from ..choices import Fault
 from .focal import Focal
-from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, fail_kind, verdict
+from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, Held, fail_kind, note, verdict
 from .frozen import Master
 from .lag import LAG_AFTER_S, RETURN_FIT_S, Lag
 
@@ -66,6 +66,7 @@ PROBE_DEG, PROBE_S = 0.5, 1.0  # during a fault: a probing move this far from th
 PROBE_MIN_DEG = 0.3  # a probe's pair counts when the motor moved at least this much
 PROBE_FIT_S = 0.35  # a fault's probe whose image has not followed by this long after it is fitted (Lag.probe)
 SUSPECT_S = 0.1  # a pair that did not follow holds the motor this long, then probes
+BOUND_S = 0.2  # an untrusted head held at its leash's end this long probes (a slipping camera's runaway ends there)
 SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within this
 IDENTICAL_MOVE_DEG = 0.5  # a byte-identical slave image after the motor moved this much is frozen
 STALL_S, STALL_MOVE_DEG = 0.5, 0.2  # commanded MIN_MOVE or more away, no move of STALL_MOVE_DEG for STALL_S: stalled
@@ -98,7 +99,7 @@ class Doubt:
         self.fails, self.t_fail = [], 0.0  # the kinds of the pairs that did not follow, and when the last one was
         self.focal = Focal()  # the focal length's ratio, from precise pairs that followed and from pursuit
         self.t_probe, self.probe_sign, self.fit_ref = None, 1.0, None  # a fault's last probe, its side, its fit's ref
-        self.returned = False  # the fault's move back to the anchor was sent
+        self.returned, self.held = False, Held()  # the fault's move back to the anchor sent; the target's motion there
         self.last_slave: tuple[int, float] | None = None  # (digest, pan) of the last frame
         self.master = Master()  # the master camera's images, frame to frame
         self.stall: tuple[float, float] | None = None  # (t, pan) since which a command far away has not moved it
@@ -111,17 +112,8 @@ class Doubt:
         self.lag, self.u = Lag(), 0.0  # a camera later than its frames say; the last shift()'s pan's uncertainty
 
     @property
-    def note(self) -> str:
-        if self.fault is not None:
-            return f"{self.fault}: {ADVICE[self.fault]}"
-        notes = []
-        if self.focal_ratio is not None:
-            notes.append(f"focal length off: the image moves {self.focal_ratio:.2f} x what [rig] focal_px predicts")
-        if self.late_s is not None:
-            notes.append(f"camera late: the slave's image follows the motor {self.late_s * 1e3:.0f} ms later than its "
-                         "frames say; set [camera] latency_s (`vergence latency` measures it) or stamp the images at "
-                         "their exposure")
-        return "; ".join(notes)
+    def note(self) -> str:  # what to check (vergence.head.follows.note)
+        return note(self.fault, self.focal_ratio, self.late_s)
 
     @property
     def focal_ratio(self) -> float | None:  # the image's motion over the motor's where named (vergence.head.focal)
@@ -210,7 +202,7 @@ class Doubt:
                 self._followed(j, r, slack <= PRECISE * abs(p))
             self._consistent(i, j, learn=False)  # the motor was fast: its motion says nothing of the target's
         elif abs(e) <= slack + 0.5 * abs(p):
-            if big:
+            if big and FOLLOWS_MIN <= moved / p <= FOLLOWS_MAX:  # (within the slack is not yet followed)
                 self._followed(j, moved / p, False)
             elif self.trusted and not self.fails and abs(p) < math.radians(SAME_PAN_DEG):
                 self.anchor = j.pan  # at rest where the image agrees: the pan to go back to
@@ -329,19 +321,21 @@ class Doubt:
             return
         if abs(away) < math.radians(SAME_PAN_DEG):
             self.ref = _Seen(t, pan, a)  # a fresh reference at the anchor for the next probe
+            self.held.add(t, a)
             return
         if self.ref is None or frozen or abs(pan - self.ref.pan) < math.radians(PROBE_MIN_DEG):
             return
-        r = -(a - self.ref.a) / (pan - self.ref.pan)
+        rs = self.held.ratios(self.ref.t, self.ref.pan, self.ref.a, t, pan, a)  # both must follow
         if self.fit_ref is self.ref:
             return  # fitted, and it did not follow: the level, which the target's motion moves too, says no more
-        if not FOLLOWS_MIN <= r <= FOLLOWS_MAX and t - self.ref.t >= PROBE_FIT_S:
+        if not all(FOLLOWS_MIN <= r <= FOLLOWS_MAX for r in rs) and t - self.ref.t >= PROBE_FIT_S:
             self.fit_ref = self.ref  # once a probe: its step against a late image and the target's own motion
-            r = r if (fitted := self.lag.probe(self.ref.t, self.ref.a)) is None else fitted
-        if FOLLOWS_MIN <= r <= FOLLOWS_MAX:
+            rs = rs if (fitted := self.lag.probe(self.ref.t, self.ref.a)) is None else (fitted,)
+        if all(FOLLOWS_MIN <= r <= FOLLOWS_MAX for r in rs):
             if self.fit_ref is not self.ref:  # (a fitted probe has noted its lag)
                 self.lag.expect(self.ref.t, self.ref.a, t + LAG_AFTER_S)  # (then the image's whole step is seen)
-            self._clear(t, pan, f"a probe of {math.degrees(pan - self.ref.pan):+.2f} deg moved the image r = {r:.2f}")
+            how = f"a probe of {math.degrees(pan - self.ref.pan):+.2f} deg moved the image r = {min(rs):.2f}"
+            self._clear(t, pan, how)
 
     # -- commands ----------------------------------------------------------------------------------------------------
     def gate(self, pan: float, goal: float | None, t_now: float) -> float | None:
@@ -373,14 +367,14 @@ class Doubt:
         return goal
 
     def _stuck(self, pan: float, goal: float, t_now: float, lim: float) -> float | None:
-        """A head not yet trusted, held at its leash's end for PROBE_S: a probe back toward the anchor (or None)."""
+        """A head not yet trusted, held at its leash's end for BOUND_S: a probe back toward the anchor (or None)."""
         if self.probe_ref is not None:
             return self._probing(t_now)
         if abs(goal - self.anchor) <= lim or abs(abs(pan - self.anchor) - lim) > math.radians(SAME_PAN_DEG):
             self.t_bound = None
         elif self.t_bound is None:
             self.t_bound = t_now
-        elif t_now - self.t_bound >= PROBE_S and self.last_seen is not None:
+        elif t_now - self.t_bound >= BOUND_S and self.last_seen is not None:
             return self._probe(pan, goal - self.anchor, t_now)
         return None
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from ..choices import Fault
 
-__all__ = ["ADVICE", "FOLLOWS_MAX", "FOLLOWS_MIN", "REVERSED_MAX", "FOCAL_OFF", "focal_off", "verdict"]
+__all__ = ["ADVICE", "FOLLOWS_MAX", "FOLLOWS_MIN", "REVERSED_MAX", "FOCAL_OFF", "Held", "focal_off", "note", "verdict"]
 
 FOLLOWS_MIN, FOLLOWS_MAX = 0.5, 2.2  # r in this range: the image follows (r: image motion / motor motion)
 REVERSED_MAX = -0.35  # r at most this: the camera turns the other way
@@ -37,6 +37,21 @@ def verdict(r: float) -> Fault | None:
     return Fault.SLAVE_FROZEN if r < FOLLOWS_MIN else None
 
 
+def note(fault: Fault | None, focal_ratio: float | None, late_s: float | None) -> str:
+    """What to check, in one line: the fault's advice, or else what the check measured off (the focal length's ratio,
+    a camera later than its frames say); "" where all is right."""
+    if fault is not None:
+        return f"{fault}: {ADVICE[fault]}"
+    notes = []
+    if focal_ratio is not None:
+        notes.append(f"focal length off: the image moves {focal_ratio:.2f} x what [rig] focal_px predicts")
+    if late_s is not None:
+        notes.append(f"camera late: the slave's image follows the motor {late_s * 1e3:.0f} ms later than its frames "
+                     "say; set [camera] latency_s (`vergence latency` measures it) or stamp the images at their "
+                     "exposure")
+    return "; ".join(notes)
+
+
 def focal_off(r: float) -> bool:
     """r (as verdict's) far enough from 1 to name the focal length off."""
     return abs(r - 1) > FOCAL_OFF
@@ -46,3 +61,32 @@ def fail_kind(r: float) -> str:
     """The kind of a pair that did not follow (vergence.head.doubt): "reversed" where r <= 2 REVERSED_MAX (-0.7: a
     slipping camera's pair, its target's motion mispredicted, reaches -0.6), else "frozen"."""
     return "reversed" if r <= 2 * REVERSED_MAX else "frozen"
+
+
+class Held:
+    """The target's own motion while the motor holds still (during a fault, at its anchor): the rate of the offset's
+    angle over the last WINDOW_S (a least-squares line; 0 with fewer than MIN frames). Where the motor does not move,
+    the offset moves with the target only, whether the camera follows the motor or not, so a probe's image motion
+    less this rate times the probe's time is the probe's own (a probe read without it during pursuit took the
+    target's motion for the camera's: a slipping camera's fault cleared by a probe that had not moved it)."""
+
+    WINDOW_S, MIN = 0.25, 4
+
+    def __init__(self):
+        self.seen: list[tuple[float, float]] = []  # (t, a) at the anchor
+
+    def add(self, t: float, a: float) -> None:
+        self.seen = [s for s in self.seen if t - s[0] <= self.WINDOW_S] + [(t, a)]
+
+    def ratios(self, t0: float, pan0: float, a0: float, t: float, pan: float, a: float) -> tuple[float, float]:
+        """A probe's r from (t0, pan0, a0) at the anchor to (t, pan, a): as seen, and less the target's own motion."""
+        dp = pan - pan0
+        return -(a - a0) / dp, -(a - a0 - self.rate() * (t - t0)) / dp
+
+    def rate(self) -> float:
+        n = len(self.seen)
+        if n < self.MIN:
+            return 0.0
+        mt, ma = sum(t for t, _ in self.seen) / n, sum(a for _, a in self.seen) / n
+        var = sum((t - mt) ** 2 for t, _ in self.seen)
+        return sum((t - mt) * (a - ma) for t, a in self.seen) / var if var > 0 else 0.0

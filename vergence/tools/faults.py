@@ -2,7 +2,8 @@
 without 66 ms of camera latency, on the moving target and on the still scene, in `vergence sim`'s loop (virtual
 time, f 500 px, b 0.06 m): how long the loop took to name the fault, how far the slave went past the pan the last
 decision before the lie asked for (a reversed camera: from where it started), the commands sent during the fault,
-and how long after the lie ended the fault had cleared with the slave within 1 px of the truth; and the same runs
+and how long after the lie ended the fault had cleared with the slave camera within 1 px of the truth (its own pan:
+after a slip the shaft stays off by what the motor moved while the coupling slipped); and the same runs
 without a lie, whose faults are false ones. Two lies that are no faults, each from the start: `focal_true` (the
 images at 1.6 x the focal length the loop is told, on a third scene too, a target stepping between 0.6 and 1.0 m
 every second): when the loop named the focal length and the ratio it measured, and how far the steps after that
@@ -73,9 +74,10 @@ def _row(steps, lie: str | None, start: float, focal: float, scene: str = "movin
     excursion = max((max(0.0, way * (s.pan_deg - asked)) for s in during), default=0.0)
     if lie == "reverse":  # from the start: how far from where it started
         excursion = max((abs(s.pan_deg - before.pan_deg) for s in during), default=0.0)
-    # back: the first frame after the lie with the fault cleared and the slave within 1 px of the truth
+    # back: the first frame after the lie with the fault cleared and the slave camera within 1 px of the truth (the
+    # camera's own error: a slipped coupling keeps the motor's move during the slip between the shaft and the camera)
     back = None if lie == "reverse" else next(
-        (s.t_s - end for s in steps if s.t_s >= end and not s.fault and abs(s.error_px) <= 1), None)
+        (s.t_s - end for s in steps if s.t_s >= end and not s.fault and abs(s.camera_error_px) <= 1), None)
     return dict(fault=first.fault if first else None, diagnosed_s=None if first is None else first.t_s - start,
                 excursion_deg=excursion, excursion_px=focal * math.tan(math.radians(excursion)),
                 commands_in_fault=sum(1 for s in faulted if s.target_deg is not None and s.t_s < end),

@@ -176,6 +176,38 @@ def test_a_probe_the_image_follows_clears_the_fault():
     assert d.fault is None and d.resumed == 1 and d.faults == 1
 
 
+@pytest.mark.parametrize("follows", [False, True])
+def test_a_probe_during_pursuit_is_read_less_the_targets_own_motion_at_the_anchor(follows):
+    """A fault held at the anchor while the target moves 6 deg/s: the offset moves by itself. A probe of 0.5 deg three
+    frames later whose image shows the target's motion only (a slipping camera) must not clear the fault (read as
+    seen it moved the image r = 0.6); one whose image also shows the probe clears it."""
+    d = Doubt()
+    feed(d, [(0, 3, 1), (0.3, 3, 2), (1.2, 3, 3), (2.0, 3, 4)])
+    assert d.fault is Fault.SLAVE_FROZEN
+    rate = -6.0  # deg/s: the offset at the anchor, the target's own motion
+    for k in range(20):  # 0.33 s at the anchor
+        d.observe(0.2 + k * DT, 0.0, (3 + rate * k * DT) * DEG, 10 + k, None, (320, 240))
+    t0, a0 = 0.2 + 19 * DT, 3 + rate * 19 * DT
+    probe = 0.5  # with the target: seen as is, the target's motion alone reads r = 0.6
+    for k in range(1, 4):
+        t = t0 + k * DT
+        a = a0 + rate * k * DT - (probe if follows else 0.0)
+        d.observe(t, probe * DEG, a * DEG, 40 + k, None, (320, 240))
+    assert (d.fault is None) == follows and d.resumed == int(follows)
+
+
+def test_a_large_move_read_within_the_slack_but_short_of_follows_min_verifies_nothing():
+    """A move of 0.7 deg over two frames (21 deg/s: no faster than a target, not judged) whose image moved 0.3 (r 0.43:
+    within the slack and half the move, as a slipping camera's runaway reads while the target's learnt rate absorbs it)
+    neither trusts the head nor moves the anchor; one whose image moved 0.7 does."""
+    d = Doubt()
+    feed(d, [(0, 0.0, 1), (0.35, None, 2), (0.7, -0.3, 3)])
+    assert not d.trusted and d.anchor == pytest.approx(0.0) and d.fault is None
+    ok = Doubt()
+    feed(ok, [(0, 0.0, 1), (0.35, None, 2), (0.7, -0.7, 3)])
+    assert ok.trusted and ok.anchor == pytest.approx(0.7 * DEG)
+
+
 # -- the simulator's lies ---------------------------------------------------------------------------------------------
 
 def test_the_fault_keys_parse_and_refuse_by_name():
