@@ -5,6 +5,8 @@ words wherever it is named (the reducer's status, /diagnostics, the monitor, cal
 
 from __future__ import annotations
 
+import math
+
 from ..choices import Fault
 
 __all__ = ["ADVICE", "FOLLOWS_MAX", "FOLLOWS_MIN", "REVERSED_MAX", "FOCAL_OFF", "Held", "focal_off", "note", "verdict"]
@@ -65,12 +67,13 @@ def fail_kind(r: float) -> str:
 
 class Held:
     """The target's own motion while the motor holds still (during a fault, at its anchor): the rate of the offset's
-    angle over the last WINDOW_S (a least-squares line; 0 with fewer than MIN frames). Where the motor does not move,
-    the offset moves with the target only, whether the camera follows the motor or not, so a probe's image motion
-    less this rate times the probe's time is the probe's own (a probe read without it during pursuit took the
-    target's motion for the camera's: a slipping camera's fault cleared by a probe that had not moved it)."""
+    angle over the last WINDOW_S (a least-squares line; none with fewer than MIN frames or off a line). Where the motor
+    does not move, the offset moves with the target only, whether the camera follows the motor or not, so a probe's
+    image motion less this rate times the probe's time is the probe's own (a probe read without it during pursuit took
+    the target's motion for the camera's: a slipping camera's fault cleared by a probe that had not moved it)."""
 
     WINDOW_S, MIN = 0.25, 4
+    RESID_RAD = math.radians(0.1)  # a line's RMS residual at most this (0.1 deg: 0.9 px at f 500)
 
     def __init__(self):
         self.seen: list[tuple[float, float]] = []  # (t, a) at the anchor
@@ -78,15 +81,20 @@ class Held:
     def add(self, t: float, a: float) -> None:
         self.seen = [s for s in self.seen if t - s[0] <= self.WINDOW_S] + [(t, a)]
 
-    def ratios(self, t0: float, pan0: float, a0: float, t: float, pan: float, a: float) -> tuple[float, float]:
-        """A probe's r from (t0, pan0, a0) at the anchor to (t, pan, a): as seen, and less the target's own motion."""
-        dp = pan - pan0
-        return -(a - a0) / dp, -(a - a0 - self.rate() * (t - t0)) / dp
+    def ratios(self, t0: float, pan0: float, a0: float, t: float, pan: float, a: float) -> tuple[float, ...]:
+        """A probe's r from (t0, pan0, a0) at the anchor to (t, pan, a): as seen, and less the target's own motion
+        where that was a line (rate)."""
+        dp, v = pan - pan0, self.rate()
+        return (-(a - a0) / dp,) + (() if v is None else (-(a - a0 - v * (t - t0)) / dp,))
 
-    def rate(self) -> float:
+    def rate(self) -> float | None:
+        """The offset's rate, rad/s; None with fewer than MIN frames, or where a line leaves more than RESID_RAD RMS
+        (a target that stepped, or turned fast: no motion to take out; the probe is read as seen)."""
         n = len(self.seen)
         if n < self.MIN:
-            return 0.0
+            return None
         mt, ma = sum(t for t, _ in self.seen) / n, sum(a for _, a in self.seen) / n
         var = sum((t - mt) ** 2 for t, _ in self.seen)
-        return sum((t - mt) * (a - ma) for t, a in self.seen) / var if var > 0 else 0.0
+        v = sum((t - mt) * (a - ma) for t, a in self.seen) / var if var > 0 else 0.0
+        resid = sum((a - ma - v * (t - mt)) ** 2 for t, a in self.seen) / n
+        return v if resid <= self.RESID_RAD ** 2 else None

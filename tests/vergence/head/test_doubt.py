@@ -196,6 +196,27 @@ def test_a_probe_during_pursuit_is_read_less_the_targets_own_motion_at_the_ancho
     assert (d.fault is None) == follows and d.resumed == int(follows)
 
 
+def test_the_targets_motion_at_the_anchor_is_taken_out_only_where_it_was_a_line():
+    """follows.Held: a steady drift gives its rate (the probe read less it too); a target that stepped while the motor
+    held (a square wave), or too few frames, gives none, and the probe is read as seen only (a step's 'rate' taken out
+    kept a late camera's fault on a stepping target for good)."""
+    from vergence.head.follows import Held
+
+    drift, step = Held(), Held()
+    for k in range(12):
+        drift.add(k * DT, (0.5 - 3.0 * k * DT) * DEG)
+        step.add(k * DT, (0.5 if k < 6 else -1.8) * DEG)
+    assert drift.rate() == pytest.approx(-3.0 * DEG) and step.rate() is None
+    a0 = 0.5 - 3.0 * 11 * DT  # the last frame at the anchor; then a probe of +0.5 deg, its image seen 3 frames on
+    seen, less = drift.ratios(11 * DT, 0.0, a0 * DEG, 14 * DT, 0.5 * DEG, (a0 - 3.0 * 3 * DT - 0.5) * DEG)
+    assert seen == pytest.approx(1.3) and less == pytest.approx(1.0)  # as seen, the target's 0.15 deg counts too
+    assert len(step.ratios(0.0, 0.0, 0.0, DT, 0.5 * DEG, -0.5 * DEG)) == 1
+    few = Held()
+    for k in range(Held.MIN - 1):
+        few.add(k * DT, k * DEG)
+    assert few.rate() is None
+
+
 def test_a_large_move_read_within_the_slack_but_short_of_follows_min_verifies_nothing():
     """A move of 0.7 deg over two frames (21 deg/s: no faster than a target, not judged) whose image moved 0.3 (r 0.43:
     within the slack and half the move, as a slipping camera's runaway reads while the target's learnt rate absorbs it)
