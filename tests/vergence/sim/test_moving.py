@@ -62,3 +62,29 @@ def test_the_columns_a_plane_reaches():
     assert _columns(away, rig._tex_mask.shape, w)[1] <= _columns(away, rig._tex_mask.shape, w)[0]
     behind = rig._homography(rig._tex_mask.shape, rig.target_s, 0.8, (0.0, 0.0), math.radians(120))
     assert _columns(behind, rig._tex_mask.shape, w) == (0, w)
+
+
+def test_the_background_held_by_a_camera_is_warped_once_and_every_view_is_the_same_bytes():
+    """The background stands still: its warp is kept per (camera centre, pan, region) (the last 4), so the master's
+    band (pan 0 always) is warped once over a run, and every view (master and slave, bands, whole, previews, a lens's)
+    equals one rendered with nothing kept."""
+    opts = dict(motion="sine:z=0.8,amp=0.3,hz=0.5", seed="21", side="1.5", k1="-0.1")
+    kept, fresh = MovingRig.from_options(**opts), MovingRig.from_options(**opts)
+    w, h = kept.size
+    for k in range(60):
+        t, pan = k / 60, -0.07 + 0.002 * (k % 7)
+        region = [None, Region.band(w, 200 + k % 5, 240), Region.scaled(kept.size, (160, 120))][k % 3]
+        for view in (lambda r: r.master_view(t, region), lambda r: r.slave_view(pan, t, region)):
+            fresh._bg.clear()
+            assert np.array_equal(view(kept), view(fresh))
+    assert len(kept._bg) == 4
+    band = Region.band(w, 220, 250)
+    first = kept.master_view(0.0, band)
+    warps = []
+    real = cv2.warpPerspective
+    try:
+        cv2.warpPerspective = lambda src, *a, **kw: (warps.append(src.shape), real(src, *a, **kw))[1]
+        again = kept.master_view(0.5, band)  # the target moved: its plane is warped again, the background is not
+    finally:
+        cv2.warpPerspective = real
+    assert kept.bg_tex.shape not in warps and warps and not np.array_equal(first, again)
