@@ -26,7 +26,7 @@ import numpy as np
 
 from ..io.images import read_image
 from .motion import Motion, parse_motion
-from .optics import Region, intrinsics, option_number, rotation
+from .optics import Kept, Region, intrinsics, option_number, rotation
 from .scene import texture
 
 __all__ = ["Head", "MovingRig"]
@@ -193,7 +193,7 @@ class MovingRig:
         self.noise = _Noise(noise, seed)
         self._tex_mask = np.ascontiguousarray(np.dstack([tex, np.full(tex.shape, 255, np.uint8)]))
         self._side = None  # (its texture and mask, metres per texel, its centre's x)
-        self._bg: dict = {}  # the background's last warps: (centre, pan, region) -> view (the master's never changes)
+        self._bg = Kept(4)  # the background's last warps: (centre, pan, region) -> view (the master's never changes)
         if self.side_m is not None:
             n = max(16, round(0.2 * w))
             stex = texture(rng, n, n, float(rng.uniform(90, 160)), 48.0)
@@ -274,13 +274,13 @@ class MovingRig:
 
     def _pinhole(self, z: float, centre: tuple[float, float], pan: float, region: Region | None = None) -> np.ndarray:
         size = self.size if region is None else region.size
-        key = (centre, pan, None if region is None else (region.matrix.tobytes(), region.size))
+        key = (centre, pan, None if region is None else region.key)
         if (bg := self._bg.get(key)) is None:  # the background stands still: a camera that holds sees the same
             hb = self._homography(self.bg_tex.shape, self.bg_s, self.bg_m, centre, pan)
             if region is not None:
                 hb = region.matrix @ hb
-            bg = cv2.warpPerspective(self.bg_tex, hb, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-            self._bg = dict(list(self._bg.items())[-3:]) | {key: bg}
+            bg = self._bg.keep(key, cv2.warpPerspective(self.bg_tex, hb, size, flags=cv2.INTER_LINEAR,
+                                                        borderMode=cv2.BORDER_REFLECT))
         out = bg.copy()
         planes = [(z, self._tex_mask, self.target_s, 0.0)]
         if self._side is not None:

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..head.depth import GIMBALS  # (vergence.choices.Gimbal's words)
 
-__all__ = ["GIMBALS", "Region", "option_number", "rotation", "intrinsics", "homography"]
+__all__ = ["GIMBALS", "Kept", "Region", "option_number", "rotation", "intrinsics", "homography"]
 
 
 
@@ -87,7 +87,28 @@ class Region:
         m = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
         return cls(m, size, 0, True)
 
+    @property
+    def key(self) -> tuple:
+        """What tells two regions' renders apart (a dict key): the matrix, the size, and whether it is a preview."""
+        return self.matrix.tobytes(), self.size, self.scale
+
     def of(self, img: np.ndarray) -> np.ndarray:
         if self.scale:
             return cv2.resize(img, self.size, interpolation=cv2.INTER_AREA)
         return img[self.y0 : self.y0 + self.size[1]]
+
+
+class Kept(dict):
+    """The last `most` renders by key, the oldest forgotten first: what a camera that holds its pan sees again (the
+    simulator's still scene and background stand still)."""
+
+    def __init__(self, most: int):
+        super().__init__()
+        self.most = most
+
+    def keep(self, key, value):
+        """value under key (the oldest forgotten when `most` are kept); value."""
+        if len(self) >= self.most:
+            del self[next(iter(self))]
+        self[key] = value
+        return value

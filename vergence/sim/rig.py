@@ -29,7 +29,7 @@ import numpy as np
 from ..io.images import read_image
 from ..spec import Key, parse
 from .moving import MovingRig
-from .optics import GIMBALS, Region, homography, option_number, rotation
+from .optics import GIMBALS, Kept, Region, homography, option_number, rotation
 from .scene import generate
 
 __all__ = ["Rig", "rotation", "homography"]
@@ -122,7 +122,7 @@ class Rig:
         self.truth_pan_rad: float = math.atan((x - self.disparity - cxs) / fy)
         self._rng = np.random.default_rng(seed)
         self._banks: list[np.ndarray] = []  # per camera: [master, slave]
-        self._views: dict = {}  # the latest slave views rendered: (pan, region) -> view (read-only)
+        self._views = Kept(self.VIEWS)  # the latest slave views rendered: (pan, region) -> view (read-only)
         self._master = self._warp(left, self.master_pan_rad, self.tilt_rad)
 
     # -- construction from the capture source text ------------------------------------------------------
@@ -248,14 +248,11 @@ class Rig:
             raise ValueError(f"slave pan {slave_pan_rad} is not finite")
         # The scene is still: a slave holding its pan sees the same view, rendered once (a band's warp is most of
         # a frame's read, 80 us at 640 x 480, and a converged slave holds). Returned read-only: shared.
-        key = (float(slave_pan_rad), None if region is None else (region.matrix.tobytes(), region.size, region.scale))
+        key = (float(slave_pan_rad), None if region is None else region.key)
         view = self._views.get(key)
         if view is None:
-            view = self._render_slave(float(slave_pan_rad), region)
+            view = self._views.keep(key, self._render_slave(float(slave_pan_rad), region))
             view.setflags(write=False)
-            if len(self._views) >= self.VIEWS:
-                del self._views[next(iter(self._views))]
-            self._views[key] = view
         return view
 
     VIEWS = 8  # slave views kept: the sub-views of an exposure (2 ms each) at one pan, a band and a preview
