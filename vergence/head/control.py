@@ -47,6 +47,7 @@ from ..ranges import Range, check
 from .doubt import Doubt
 from .search import Search
 from .predict import Periodic, Predictor, Referee
+from .scenery import Background
 from .timing import MAX_AGE_S
 
 __all__ = ["pixels_to_angle", "ControlSettings", "Controller", "Predictor", "MODES"]
@@ -135,17 +136,27 @@ class Controller:
         self.pan_prev = 0.0  # the last decision's pan at exposure
         self.period: float | None = None  # the decisions' interval, smoothed
         self.doubt = Doubt()  # whether the image follows the motor, and the leash it keeps (issue #35)
+        self.background = Background()  # whether the slave's background moves with the motor (the doubt's too)
         self.search = Search()  # lost: where to look (issue #35)
 
     def _bounded(self, pan_at_capture: float, step: float) -> float:
         """The set-point pan_at_capture + step, as the motor's Safety bounds it (limits, step)."""
         return self.limits.limit_step(pan_at_capture, pan_at_capture + step)
 
+    def scene(self, t_s: float, pan: float, band, focal_px: float, fovea_col: float, fovea=None) -> float | None:
+        """Whether the slave's background moved with the motor (vergence.head.scenery): one frame's slave band (t_s
+        its exposure as stamped, pan the slave's then, fovea_col the fovea's column in the band), its verdict for
+        target(background=). None where a camera is named late (its stamps are not its image's: no verdict), or
+        none is due. A reducer asks when the Frame arrives, while the workers compute."""
+        if self.doubt.late_s is not None:
+            return None
+        return self.background.see(t_s, pan, band, focal_px, fovea_col, key=fovea)
+
     def target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool = True,
                centre_px: float = 0.0, t_s: float | None = None, t_now: float | None = None,
                slave: int | None = None, master: int | None = None,
                fovea: tuple[int, int] | None = None, doubt: bool = True, textured: bool = True,
-               width_px: int | None = None) -> float | None:
+               width_px: int | None = None, background: float | None = None) -> float | None:
         """The new absolute pan (radians) or None when the camera should not move (not confident, inside
         the dead band, a non-finite input, or a fault: vergence.head.doubt). pan_at_capture: the slave's pan at
         its exposure; t_s: that exposure's time in seconds (any epoch; the predictive mode needs it, and acts as
@@ -154,7 +165,8 @@ class Controller:
         master point decided at (a new one is a new target); doubt: False where the slave's image cannot follow the
         motor (a still pair, a video: nothing to check); textured: the fovea has texture (False: a black or flat
         frame, which holds; an unconfident textured one for long is lost, and searches: vergence.head.search);
-        width_px: the images' width (the band's reach, which sizes the search's steps)."""
+        width_px: the images' width (the band's reach, which sizes the search's steps); background: the frame's
+        verdict of scene() (None: none)."""
         d = self.doubt
         if not doubt:
             return self._aim(pan_at_capture, offset_px, focal_px, confident, centre_px, t_s, t_now)
@@ -163,7 +175,7 @@ class Controller:
             ok = confident and math.isfinite(offset_px) and math.isfinite(focal_px) and focal_px > 0
             a = pixels_to_angle(offset_px, focal_px, centre_px) if ok else None
             before = d.fault, d.focal_ratio is None
-            d.observe(t_s, pan_at_capture, a, slave, master, fovea)
+            d.observe(t_s, pan_at_capture, a, slave, master, fovea, background=background)
             if (d.fault, d.focal_ratio is None) != before:
                 # what the filter learnt while the image lied (or before the fault, or at the focal length told
                 # before it was named) says nothing now

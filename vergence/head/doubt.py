@@ -15,7 +15,8 @@ did not, in a row and agreeing, name the fault ("reversed" only where r is at mo
 of the motor at the learnt rate but not at the target's latest (the rate its last consistent pair showed: the learnt
 rate lags a target that turns, e.g. a 2 Hz sine at 30 Hz) is a doubt: it holds and probes as a fail does, and names
 nothing. Pursuit, slow moves and jumps of the target are never judged. A byte-identical slave image after the motor
-moved IDENTICAL_MOVE_DEG is a frozen camera outright.
+moved IDENTICAL_MOVE_DEG is a frozen camera outright; a background that did not move with it (vergence.head.scenery:
+r under STILL_MAX, no target rate in it) is a pair that did not follow, in pursuit too.
 
 The leash. Until the image has been seen to follow (r in FOLLOWS_MIN..FOLLOWS_MAX; at the start, after a fault),
 no command goes further than UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there for
@@ -43,6 +44,7 @@ from .focal import Focal
 from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, Held, fail_kind, note, verdict
 from .frozen import Master
 from .lag import LAG_AFTER_S, RETURN_FIT_S, Lag
+from .scenery import STILL_MAX
 
 __all__ = ["ADVICE", "Doubt", "Fault"]
 
@@ -132,11 +134,12 @@ class Doubt:
 
     # -- decisions ---------------------------------------------------------------------------------------------------
     def observe(self, t: float, pan: float, a: float | None, slave: int | None = None,
-                master: int | None = None, fovea: tuple[int, int] | None = None) -> Fault | None:
+                master: int | None = None, fovea: tuple[int, int] | None = None,
+                background: float | None = None) -> Fault | None:
         """One decided frame: t the slave's exposure (s), pan the slave's pan then (rad), a the angle of a
         confident decision's offset (None: no confident decision), slave and master the images' digests (None:
-        unknown), fovea the master point it was decided at (a new one is a new target). Returns the present
-        fault."""
+        unknown), fovea the master point it was decided at (a new one is a new target), background the r of the
+        slave's background (vergence.head.scenery; None: no verdict). Returns the present fault."""
         if not (math.isfinite(t) and math.isfinite(pan)) or (self.t_last is not None and t <= self.t_last):
             return self.fault  # out of order or not a time: nothing to learn
         self.t_last = t
@@ -161,6 +164,8 @@ class Doubt:
         self.last_seen = now
         self.lag.saw(t, a)
         self.focal.add(t, pan, a)
+        if background is not None and background < STILL_MAX:  # the scene behind did not move with the motor
+            return self._fail(t, fail_kind(background), f"the background moved {background:.2f} x the motor")
         if self.probe_ref is not None:
             self._probed(t, now)
             return self.fault

@@ -192,7 +192,11 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
         target = controller.target(pan, d.offset_px, focal, d.confident, t_s=t_told, t_now=t_now,
                                    centre_px=(master.shape[1] // 2 if at is None else at[0]) - _cx(rig),
                                    slave=digest(slave, *rows) or None, master=digest(master, *rows) or None, fovea=at,
-                                   textured=has_texture(d, params), width_px=master.shape[1])
+                                   textured=has_texture(d, params), width_px=master.shape[1],
+                                   background=controller.scene(t_told, pan, slave[max(0, rows[0] - rows[1]):
+                                                                                  rows[0] + rows[1] + 1],
+                                                               focal, master.shape[1] // 2 if at is None else at[0],
+                                                               at))
     step = Step(frame=frame, t_s=t_master, pan_deg=math.degrees(seen["at_slave"]),
                 truth_pan_deg=math.degrees(rig.truth_pan(t_master)), error_px=rig.error_px(seen["at_master"], t_master),
                 camera_error_px=rig.error_px(float(np.mean([c for c, _ in seen["slave"]])), t_slave),

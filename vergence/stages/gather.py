@@ -113,11 +113,11 @@ def make_profile(frame: Frame, scores: np.ndarray, d: Decision, t_reduced_ns: in
 
 
 def _command(frame: Frame, d: Decision, controller: Controller, now_ns: int | None = None,
-             textured: bool = True) -> Command | None:
+             textured: bool = True, scene: float | None = None) -> Command | None:
     """The command of a decided frame (None: no move). The measurement is the slave's pan at its exposure plus
     the correction, referred to the slave's exposure time; the controller aims for when the command acts
     (now_ns, this host's clock: default the read time). A frame whose pan at exposure is not known (pan_stale)
-    commands nothing."""
+    commands nothing. scene: the frame's background verdict (Controller.scene, asked when it arrived)."""
     if frame.pan_stale:
         return None
     now = now_ns if now_ns is not None else (frame.t_read_ns or frame.t_capture_ns)
@@ -126,7 +126,7 @@ def _command(frame: Frame, d: Decision, controller: Controller, now_ns: int | No
                                t_now=now / 1e9,
                                slave=frame.slave_digest or None, master=frame.master_digest or None,
                                fovea=(frame.x, frame.y), doubt=frame.follows, textured=textured,
-                               width_px=frame.width)
+                               width_px=frame.width, background=scene)
     if target is None:
         return None
     return Command(rig=frame.rig, frame=frame.frame, t_capture_ns=frame.t_capture_ns, pan_rad=target,
@@ -161,19 +161,21 @@ class Reduced:
     _controller: Controller | None = field(default=None, repr=False)
     _textured: bool = field(default=True, repr=False)
     _cmd: Command | None = field(default=None, repr=False)
+    _scene: float | None = field(default=None, repr=False)
 
     @classmethod
     def of(cls, frame: Frame, scores: np.ndarray, params: Params, controller: Controller,
-           t_reduced_ns: int | None = None, prep: Prepared | None = None) -> "Reduced":
+           t_reduced_ns: int | None = None, prep: Prepared | None = None, scene: float | None = None) -> "Reduced":
         d = decide_frame(frame, scores, params, prep)
         now = time.time_ns() if t_reduced_ns is None else t_reduced_ns
-        return cls(frame, d, scores, now, _controller=controller, _textured=has_texture(d, params))
+        return cls(frame, d, scores, now, _controller=controller, _textured=has_texture(d, params), _scene=scene)
 
     @property
     def command(self) -> Command | None:
         if self._controller is not None:
             controller, self._controller = self._controller, None
-            self._cmd = _command(self.frame, self.decision, controller, self.t_reduced_ns, self._textured)
+            self._cmd = _command(self.frame, self.decision, controller, self.t_reduced_ns, self._textured,
+                                 self._scene)
         return self._cmd
 
     @property
@@ -196,6 +198,7 @@ class _Pending:
     frame: Frame | None = None
     correlations: dict[str, Correlation] = field(default_factory=dict)
     prep: Prepared | None = None
+    scene: float | None = None  # its background's verdict (Controller.scene)
 
 
 class Gatherer:
@@ -303,6 +306,9 @@ class Gatherer:
         prep = prepare(frame, self.params)  # before the frame counts: one that cannot be prepared is not taken
         self.counters["frames"] += 1
         e.frame, e.prep = frame, prep
+        if frame.follows and not frame.pan_stale:  # (while the workers compute: off the command's path)
+            e.scene = self.controller.scene(frame.t_slave_ns / 1e9, frame.pan_rad, frame.band_strip(), frame.focal_px,
+                                            frame.x + 1, (frame.x, frame.y))
         self.newest = max(self.newest, frame.frame)
         # correlations that came first: those that do not fit this plan go, the others are evidence
         for wid, p in list(e.correlations.items()):
@@ -352,7 +358,7 @@ class Gatherer:
         scores = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
         self._finish(fid, now)
         self.counters["complete"] += 1
-        out.append(Reduced.of(f, scores, self.params, self.controller, prep=e.prep))
+        out.append(Reduced.of(f, scores, self.params, self.controller, prep=e.prep, scene=e.scene))
         return out
 
     def _expired(self, fid: int, e: _Pending) -> None:

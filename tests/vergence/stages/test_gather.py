@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 from samples import SHIFT, frame_of, textured
@@ -170,3 +171,32 @@ def test_a_frame_prepared_when_it_arrives_decides_as_one_prepared_at_its_decisio
     assert g.awaiting() and g.pending[1].prep is not None
     (r,) = g.add_correlation(compute_correlation(f, "b"), now=0.002)
     assert not g.awaiting() and r.decision.confident
+
+
+@pytest.mark.parametrize("follows", [True, False])
+def test_a_frame_s_background_is_read_when_it_arrives(follows):
+    """The reducer asks the controller for each Frame's background verdict (vergence.head.scenery) as the Frame
+    arrives, from its slave band and its pan at the slave's exposure: the motor turning 0.4 deg a frame, a slave
+    whose image turns with it reads 1 from the first frame whose pan is 0.6 deg from an earlier one's, one whose image
+    stays (a slipping coupling) 0 once the pans 0.1 s before are known too; the commands carry what the doubt made of
+    it (the first named the fault)."""
+    rng = np.random.default_rng(3)
+    scene = cv2.GaussianBlur(rng.integers(0, 256, (120, 1000), np.uint8), (5, 5), 1.5)
+    master = np.ascontiguousarray(scene[:, 300:940])
+    focal, t0 = 500.0, 1_700_000_000_000_000_000
+    g = Gatherer(Params(max_window=0), ControlSettings(), 0.05, wall_ns=lambda: t0)
+    verdicts = []
+    for i in range(12):
+        pan = math.radians(0.4 * i)
+        dx = round(focal * math.tan(pan)) if follows else 0
+        slave = np.ascontiguousarray(scene[:, 300 + dx:940 + dx])
+        k = master.shape[1] - Params().window + 1
+        f = make_frame(master, slave, rig="r", frame=i + 1, pan_rad=pan, focal_px=focal, params=Params(max_window=0),
+                       plan=plan_shards(["a"], k), t_capture_ns=t0 + i * 16_666_667)
+        g.add_frame(f, now=i * 0.0167)
+        verdicts.append(g.pending[i + 1].scene)
+        g.add_correlation(compute_correlation(f, "a"), now=i * 0.0167 + 0.001)[0].command
+    first = 2 if follows else 8
+    assert all(v is None for v in verdicts[:first])
+    assert all(v == pytest.approx(1.0 if follows else 0.0, abs=0.06) for v in verdicts[first:])
+    assert (g.controller.doubt.fault is None) == follows

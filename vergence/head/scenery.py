@@ -1,0 +1,129 @@
+"""Whether the slave's background moves with the motor (issue #35): the fovea's image motion mixes the camera's turn
+with the target's own motion (pursuit and a slipping camera that chases a moving target look alike there), but a turn
+of the camera shifts every point of its image by f tan(pan change), whatever its depth, where a target moves only its
+own pixels. So between two frames whose pans differ by MIN_MOVE_DEG or more (at most MAX_DT_S apart), the slave
+band's TILE px tiles off the fovea's and its neighbours' must shift by the motor's turn. Each tile's shift is read on
+the bands' column profiles (the mean of each column), searched over +-(the motor's shift + SLACK_PX); the largest
+group of tiles that moved alike (MIN_TILES or more, within AGREE_PX: the background moves as one, a target's zoom
+spreads its tiles) gives r = its median shift / the motor's: 1 for a camera that follows, 0 for one that does not
+(frozen, a slipping coupling), -1 for one that turns against the encoder; no target rate in it.
+
+Only r under STILL_MAX says the image did not follow (a target that fills the band read 0.27-0.48 on clean runs,
+docs/FAULTS.md), and not where the motor's turn between the instants up to LATE_S before the two frames explains the
+shift seen: a camera whose images are that much later than its frames say shows that (a turn that just began, none
+yet), and is told by vergence.head.lag. vergence.head.doubt takes a verdict as a pair that did not follow. The
+library only: the Controller runs it for the reducer (each Frame's slave band, as it arrives) and for `vergence sim`
+(its own)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Background", "profile", "tile_shifts"]
+
+MIN_MOVE_DEG = 0.6  # the pans of a verdict's two frames at least this far apart (as the doubt's decisive pairs)
+MAX_DT_S = 0.3  # ... and at most this far apart in time
+TILE, SLACK_PX = 32, 8  # a tile's width; the search beyond the motor's shift
+MATCHED = 0.9  # a tile's best normalised correlation at least this (a match without doubt) ...
+TEXTURE = 1.0  # ... and its column profile's standard deviation at least this (grey levels)
+MIN_TILES = 6  # background tiles that moved alike, for a verdict ...
+AGREE_PX = 1.0  # ... within this of each other
+STILL_MAX = 0.25  # r below this: the background did not move with the motor
+LATE_S = 0.1  # a still background that the motor's turn up to this earlier explains is no verdict (a late image)
+GAP_S = 0.015  # at most one verdict this often (at 250 Hz one frame in four pays the 0.1-0.2 ms of a verdict)
+
+
+def profile(band: np.ndarray) -> np.ndarray:
+    """A band's column profile: the mean of each column (a horizontal shift moves it as it moves the rows)."""
+    return band.mean(axis=0, dtype=np.float32)
+
+
+def tile_shifts(b: np.ndarray, a: np.ndarray, reach: int) -> list[tuple[int, float]]:
+    """Per TILE px tile of the profile `a` (the tiles from column `reach` on, `reach` short of its end), the shift s
+    (px, sub-pixel) with a[c:c+T] ~ b[c+s:c+s+T] for |s| < reach, b the profile of a band before: [(the tile's first
+    column, s), ...] for the tiles with texture matched without doubt; every tile and shift in one normalised
+    product."""
+    starts = np.arange(reach, a.size - TILE - reach + 1, TILE)
+    if starts.size == 0:
+        return []
+    tiles = np.lib.stride_tricks.sliding_window_view(a, TILE)[starts]  # (tiles, T)
+    tiles = tiles - tiles.mean(axis=1, keepdims=True)
+    norm = np.linalg.norm(tiles, axis=1)
+    wins = np.lib.stride_tricks.sliding_window_view(b, TILE)[starts[:, None] + np.arange(-reach, reach + 1)]
+    wins = wins - wins.mean(axis=2, keepdims=True)  # (tiles, shifts, T)
+    r = np.einsum("it,ist->is", tiles, wins) / (norm[:, None] * np.linalg.norm(wins, axis=2) + 1e-9)
+    n, m = r.shape
+    k = r.argmax(axis=1)
+    kk = np.clip(k, 1, m - 2)
+    best, lo, hi = (r[np.arange(n), j] for j in (k, kk - 1, kk + 1))
+    d = 2 * best - lo - hi
+    shift = k - reach + np.where(d > 0, 0.5 * (hi - lo) / np.where(d > 0, d, 1.0), 0.0)
+    # flat, no match, or at the search's edge: none
+    ok = (norm >= TEXTURE * math.sqrt(TILE)) & (best >= MATCHED) & (k > 0) & (k < m - 1)
+    return list(zip(starts[ok].tolist(), shift[ok].tolist()))
+
+
+@dataclass
+class _Band:
+    t: float
+    pan: float
+    profile: np.ndarray
+
+
+class Background:
+    """The slave bands of the last MAX_DT_S (their exposures and pans); see() one more, a verdict or None."""
+
+    def __init__(self):
+        self.bands: list[_Band] = []
+        self.key = None  # (the band's shape, the fovea): a new one starts anew
+        self.t_verdict = -math.inf  # the last verdict's exposure
+
+    def see(self, t: float, pan: float, band: np.ndarray, focal_px: float, fovea_col: float,
+            key=None) -> float | None:
+        """One frame's slave band (t its exposure, s; pan the slave's then, rad; fovea_col the fovea's column in
+        it): r of its background against the latest earlier band at least MIN_MOVE_DEG away in pan (None: no
+        verdict)."""
+        if not (math.isfinite(t) and math.isfinite(pan) and focal_px > 0) or band.ndim != 2:
+            return None
+        key = (band.shape, key)
+        if key != self.key or (self.bands and t <= self.bands[-1].t):
+            self.bands, self.key, self.t_verdict = [], key, -math.inf
+        self.bands = [b for b in self.bands if t - b.t <= MAX_DT_S + LATE_S]
+        before = next((b for b in reversed(self.bands) if t - b.t <= MAX_DT_S
+                       and abs(pan - b.pan) >= math.radians(MIN_MOVE_DEG)), None)
+        self.bands.append(_Band(t, pan, profile(band)))
+        if before is None or t - self.t_verdict < GAP_S:
+            return None
+        self.t_verdict = t
+        motor = focal_px * math.tan(pan - before.pan)  # the shift a camera that follows shows, px
+        shifts = tile_shifts(before.profile, self.bands[-1].profile, int(abs(motor)) + SLACK_PX)
+        if not shifts:
+            return None
+        # the tiles off the fovea's and its neighbours' (the target there moves as it moves, not as the camera turns)
+        scenery = np.sort([s for c, s in shifts if abs(c + TILE / 2 - fovea_col) > 1.5 * TILE])
+        # the most of them that moved alike (within AGREE_PX): the background moves as one, a target's zoom spreads
+        ends = np.searchsorted(scenery, scenery + AGREE_PX, side="right")
+        i = int(np.argmax(ends - np.arange(scenery.size))) if scenery.size else 0
+        if scenery.size == 0 or ends[i] - i < MIN_TILES:
+            return None
+        moved = float(np.median(scenery[i:ends[i]]))
+        r = moved / motor
+        if r < STILL_MAX and self._late(before, self.bands[-1], moved, focal_px):
+            return None  # what an image up to LATE_S late shows: no verdict
+        return r
+
+    def _late(self, i: _Band, j: _Band, moved: float, focal_px: float) -> bool:
+        """Whether the motor's turn between the instants up to LATE_S before i's and j's exposures explains the
+        background's shift `moved` (within AGREE_PX, or a quarter of the turn): a camera whose images are that much
+        later than its frames say shows that (a turn that just began, none yet). Also where the pans are not known
+        that far back."""
+        ts, ps = [b.t for b in self.bands], [b.pan for b in self.bands]
+        if ts[0] > i.t - LATE_S:
+            return True
+        slack = max(AGREE_PX, 0.25 * focal_px * abs(math.tan(j.pan - i.pan)))
+        return any(abs(focal_px * math.tan(float(np.interp(j.t - lag, ts, ps) - np.interp(i.t - lag, ts, ps)))
+                       - moved) <= slack for lag in (LATE_S / 3, 2 * LATE_S / 3, LATE_S))
+
