@@ -184,19 +184,18 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
     master, slave = lies.images(t_master, at, *_band(rig, shown, at, params))
     m = match(master, slave, at, params)
     d = m.decision
-    rows = (master.shape[0] // 2 if at is None else at[1], m.window // 2 + params.vsearch + 1)  # the band's (digest)
+    y, reach = master.shape[0] // 2 if at is None else at[1], m.window // 2 + params.vsearch + 1
+    band = slice(max(0, y - reach), y + reach + 1)  # the rows the match read (their digests, the background's)
+    x = master.shape[1] // 2 if at is None else at[0]
     t_told = min(t_slave + (lies.f.late or 0.0), times[2])  # the exposure the loop is told (`late`: a later one)
     pan = history.at(t_told)  # the slave's pan at its exposure, as the encoder reports it
     target = None
     if pan is not None:
         target = controller.target(pan, d.offset_px, focal, d.confident, t_s=t_told, t_now=t_now,
-                                   centre_px=(master.shape[1] // 2 if at is None else at[0]) - _cx(rig),
-                                   slave=digest(slave, *rows) or None, master=digest(master, *rows) or None, fovea=at,
-                                   textured=has_texture(d, params), width_px=master.shape[1],
-                                   background=controller.scene(t_told, pan, slave[max(0, rows[0] - rows[1]):
-                                                                                  rows[0] + rows[1] + 1],
-                                                               focal, master.shape[1] // 2 if at is None else at[0],
-                                                               at))
+                                   centre_px=x - _cx(rig), slave=digest(slave[band]) or None,
+                                   master=digest(master[band]) or None, fovea=at, textured=has_texture(d, params),
+                                   width_px=master.shape[1],
+                                   background=controller.scene(t_told, pan, slave[band], focal, x, at))
     step = Step(frame=frame, t_s=t_master, pan_deg=math.degrees(seen["at_slave"]),
                 truth_pan_deg=math.degrees(rig.truth_pan(t_master)), error_px=rig.error_px(seen["at_master"], t_master),
                 camera_error_px=rig.error_px(float(np.mean([c for c, _ in seen["slave"]])), t_slave),
