@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from ..choices import Fault
 from .focal import Focal
 from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, Held, fail_kind, note, verdict
-from .frozen import Master
+from .frozen import IDENTICAL_MOVE_DEG, Master, Slave
 from .lag import LAG_AFTER_S, RETURN_FIT_S, Lag
 from .scenery import STILL_MAX
 
@@ -70,7 +70,6 @@ PROBE_FIT_S = 0.35  # a fault's probe whose image has not followed by this long 
 SUSPECT_S = 0.1  # a pair that did not follow holds the motor this long, then probes
 BOUND_S = 0.2  # an untrusted head held at its leash's end this long probes (a slipping camera's runaway ends there)
 SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within this
-IDENTICAL_MOVE_DEG = 0.5  # a byte-identical slave image after the motor moved this much is frozen
 STALL_S, STALL_MOVE_DEG = 0.5, 0.2  # commanded MIN_MOVE or more away, no move of STALL_MOVE_DEG for STALL_S: stalled
 PRECISE = 0.2  # a decisive pair with at most this slack per motion counts for the focal length (docs/FAULTS.md)
 
@@ -102,8 +101,7 @@ class Doubt:
         self.focal = Focal()  # the focal length's ratio, from precise pairs that followed and from pursuit
         self.t_probe, self.probe_sign, self.fit_ref = None, 1.0, None  # a fault's last probe, its side, its fit's ref
         self.returned, self.held = False, Held()  # the fault's move back to the anchor sent; the target's motion there
-        self.last_slave: tuple[int, float] | None = None  # (digest, pan) of the last frame
-        self.master = Master()  # the master camera's images, frame to frame
+        self.master, self.slave = Master(), Slave()  # each camera's images, frame to frame
         self.stall: tuple[float, float] | None = None  # (t, pan) since which a command far away has not moved it
         self.t_bound: float | None = None  # since when an untrusted head is held at its leash's end; a probe's start
         self.probe_ref, self.probe_goal = None, 0.0  # a probe's decision before it (None: none under way), its goal
@@ -149,7 +147,7 @@ class Doubt:
         if self.anchor is None:
             self.anchor = pan
         self._master(t, master)
-        frozen = self._identical(pan, slave)
+        frozen = self.slave.frozen(pan, slave)
         self._stalled(t, pan)
         if self.fault is not None:
             if a is not None and math.isfinite(a):
@@ -286,16 +284,6 @@ class Doubt:
         self.rate, self.trend, self.zs = 0.0, 0.0, []
         self.fails.clear()
         self._unprobe()
-
-    def _identical(self, pan: float, slave: int | None) -> bool:
-        """The slave's image byte for byte what it was when first seen, though the motor moved IDENTICAL_MOVE_DEG
-        since (more than a backlash or the encoder's noise)."""
-        if slave is None:
-            return False
-        if self.last_slave is None or self.last_slave[0] != slave:
-            self.last_slave = (slave, pan)
-            return False
-        return abs(pan - self.last_slave[1]) >= math.radians(IDENTICAL_MOVE_DEG)
 
     def _master(self, t: float, master: int | None) -> None:
         seen = self.master.see(t, master)

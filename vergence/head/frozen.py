@@ -1,18 +1,22 @@
 """Byte-identical images (issue #35): a frozen camera's driver repeats its last image with fresh stamps. digest() is the
 CRC-32 each Frame carries for its two images; Master watches the master camera's: images that used to change every
 frame (MASTER_LIVE in a row at least: a live camera's noise) and have been the same for FROZEN_MASTER_S are a frozen
-master. (The slave's are judged against the motor's motion: vergence.head.doubt.)"""
+master. Slave watches the slave camera's against the motor: the same bytes after the motor moved IDENTICAL_MOVE_DEG
+since they were first seen (more than a backlash or the encoder's noise) are a frozen slave (vergence.head.doubt).
+"""
 
 from __future__ import annotations
 
+import math
 import zlib
 
 import numpy as np
 
-__all__ = ["FROZEN_MASTER_S", "MASTER_LIVE", "Master", "digest"]
+__all__ = ["FROZEN_MASTER_S", "IDENTICAL_MOVE_DEG", "MASTER_LIVE", "Master", "Slave", "digest"]
 
 FROZEN_MASTER_S = 0.3  # byte-identical master images for this long, where they used to change ...
 MASTER_LIVE = 5  # ... every frame, this many in a row at least (a live camera's noise)
+IDENTICAL_MOVE_DEG = 0.5  # a byte-identical slave image after the motor moved this much is frozen
 
 
 def digest(img: np.ndarray, y: int | None = None, reach: int = 0) -> int:
@@ -52,3 +56,20 @@ class Master:
         if self.changes >= MASTER_LIVE and t - self.same_since >= FROZEN_MASTER_S:
             return "frozen"
         return None
+
+
+class Slave:
+    """The slave camera's digests, with the motor's pan when each was first seen."""
+
+    def __init__(self):
+        self.last: tuple[int, float] | None = None  # (digest, pan) when it was first seen
+
+    def frozen(self, pan: float, digest: int | None) -> bool:
+        """The slave's image (its digest; None: unknown) byte for byte what it was when first seen, though the
+        motor moved IDENTICAL_MOVE_DEG since."""
+        if digest is None:
+            return False
+        if self.last is None or self.last[0] != digest:
+            self.last = (digest, pan)
+            return False
+        return abs(pan - self.last[1]) >= math.radians(IDENTICAL_MOVE_DEG)

@@ -1,12 +1,14 @@
-"""vergence.head.frozen: the images' digests, and the master camera's watch."""
+"""vergence.head.frozen: the images' digests, and each camera's watch."""
 
 from __future__ import annotations
 
 import zlib
 
+import math
+
 import numpy as np
 
-from vergence.head.frozen import FROZEN_MASTER_S, MASTER_LIVE, Master, digest
+from vergence.head.frozen import FROZEN_MASTER_S, IDENTICAL_MOVE_DEG, MASTER_LIVE, Master, Slave, digest
 
 
 def test_the_digest_is_the_images_crc32_and_0_only_for_a_flat_image():
@@ -36,3 +38,12 @@ def test_a_master_that_never_changed_every_frame_is_never_frozen():
     m = Master()  # a still scene rendered clean: a few changes apart (the window growing), then the same bytes
     seen = [m.see(k / 60, 1 if k < 3 else (2 if k < 10 else 3)) for k in range(120)]
     assert "frozen" not in seen and m.changes < MASTER_LIVE
+
+
+def test_a_slave_image_repeated_after_the_motor_moved_identical_move_deg_since_it_was_first_seen_is_frozen():
+    """The same bytes while the motor stays (a still scene) are not; counted from the pan where they were first seen,
+    not the last frame's (a slow drift adds up); new bytes start anew; an unknown digest says nothing."""
+    s, step = Slave(), math.radians(IDENTICAL_MOVE_DEG) / 4
+    assert [s.frozen(0.0, 7) for _ in range(5)] == [False] * 5
+    assert [s.frozen(k * step, 7) for k in range(1, 6)] == [False, False, False, True, True]
+    assert s.frozen(5 * step, 8) is False and s.frozen(9 * step, 8) is True and s.frozen(9 * step, None) is False
