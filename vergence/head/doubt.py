@@ -29,8 +29,9 @@ every PROBE_S, read less the target's own motion at the anchor: follows.Held), a
 (or, for a stalled motor, the encoder moves) the loop resumes by itself. A frozen master camera (vergence.head.frozen)
 holds until it changes. A motor that does not move for STALL_S while commanded MIN_MOVE or more away is stalled.
 
-A camera later than its frames say is told by the moves of its faults and named (vergence.head.lag); from then on
-each frame goes through shift() first, and a pair's slack grows by the uncertainty of the pans it reads.
+A camera later than its frames say is told by the moves of its faults and named (vergence.head.lag): naming it
+clears a frozen or reversed fault (its image follows, later), and from then on each frame goes through shift()
+first, and a pair's slack grows by the uncertainty of the pans it reads.
 The library only: the reducer and `vergence sim` both run it through the Controller."""
 
 from __future__ import annotations
@@ -150,9 +151,12 @@ class Doubt:
         frozen = self.slave.frozen(pan, slave)
         self._stalled(t, pan)
         if self.fault is not None:
+            late = self.late_s
             if a is not None and math.isfinite(a):
                 self.lag.saw(t, a)
             self._probe_result(t, pan, a, frozen)
+            if self.late_s != late and self.fault in (Fault.SLAVE_FROZEN, Fault.REVERSED):  # (the image follows)
+                self._clear(t, pan, f"its image follows the motor {self.late_s * 1e3:.0f} ms later than its frames say")
             return self.fault
         if frozen:
             return self._fail(t, "frozen", f"a byte-identical slave image though the motor moved {IDENTICAL_MOVE_DEG}")

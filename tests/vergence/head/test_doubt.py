@@ -6,6 +6,7 @@ lies (vergence.sim.faults) on a Middlebury scene and on the generated moving tar
 
 from __future__ import annotations
 
+import logging
 import math
 
 import pytest
@@ -453,6 +454,26 @@ def test_a_late_camera_whose_target_moves_fast_during_its_fault_is_cleared_by_a_
     late = [s.error_px for s in steps if s.t_s >= 5.0]
     assert math.sqrt(sum(e * e for e in late) / len(late)) < 1.5
     assert max(abs(s.pan_deg) for s in steps) < 10.0
+
+
+def test_naming_a_camera_late_during_its_fault_clears_the_fault_at_once(caplog):
+    """A draw of its own: a still scene at 0.7 m, 60 Hz, the images 80 ms older than the loop is told, the slave 3 deg
+    off. The first move names a frozen camera; the lag fitted to the fault's move back names the camera late (within
+    20 %) during the fault, and that says its image follows: the fault is cleared in that frame, with a line that
+    says why (it held to its next probe, 0.7 s more, before), and none follows; from 0.5 s after, within 0.5 px RMS
+    (0.32) and never 2 px off (1.33)."""
+    rig = MovingRig.from_options(motion="still:z=0.7", focal="500", seed="57", noise="1")
+    rig.start_pan_rad = rig.truth_pan(0.0) + math.radians(3.0)
+    with caplog.at_level(logging.WARNING, logger="vergence.doubt"):
+        steps = list(closed_loop(rig, 300, None, ControlSettings(), None, 60.0, timing=CameraTiming(0.08),
+                                 faults=Faults.take(parse("late=0.08", FAULT_KEYS, "test")), seed=57))
+    k = next(i for i, s in enumerate(steps) if s.late_ms is not None)
+    assert steps[k - 1].fault == Fault.SLAVE_FROZEN and steps[k].fault is None
+    assert steps[k].late_ms == pytest.approx(80, rel=0.2)
+    assert not any(s.fault for s in steps[k:])
+    assert "cleared (its image follows the motor" in caplog.text
+    after = [s.camera_error_px for s in steps if s.t_s >= steps[k].t_s + 0.5]
+    assert math.sqrt(sum(e * e for e in after) / len(after)) <= 0.5 and max(map(abs, after)) <= 2.0
 
 
 def test_a_probe_that_follows_late_is_fitted_and_two_that_agree_name_the_camera_late():
