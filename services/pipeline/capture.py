@@ -324,7 +324,7 @@ class Capture:
         """One pair read: stamped, planned, published (when some worker is alive), previewed; the status."""
         t_read = time.time_ns()
         t_ns, t_slave = self.clock.stamp(t_read, self.source.exposure_ns)
-        p_now, stale = pan_at.frame(t_slave)
+        p_now, stale, guessed = pan_at.frame(t_slave)
         if stale:
             self.health.count("pan_unknown")
         if pan_at.waited:
@@ -342,7 +342,7 @@ class Capture:
             # subscriptions (just after start): a frame now would go nowhere
             self.health.count("unrouted")
         elif self.plan:
-            if not self.publish(master, slave, w, clip, t_ns, t_slave, t_read, p_now, stale, at):
+            if not self.publish(master, slave, w, clip, t_ns, t_slave, t_read, p_now, (stale, guessed), at):
                 return  # a grown window that no longer fits: back to the base one, and the next pair
         else:
             self.health.count("no_workers")
@@ -353,8 +353,9 @@ class Capture:
         self.node.tick(now)
 
     def publish(self, master, slave, w: int, clip: bool, t_ns: int, t_slave: int, t_read: int, p_now: float,
-                stale: bool, at: tuple[int, int]) -> bool:
-        """The frame of this pair, published; False when the window no longer fits (reset to the base one)."""
+                known: tuple[bool, bool], at: tuple[int, int]) -> bool:
+        """The frame of this pair (known: its pan_stale, pan_guessed), published; False when the window no longer
+        fits (reset to the base one)."""
         windows, fid = self.windows, self.fid
         clipped: list[bool] = []
         try:
@@ -362,7 +363,7 @@ class Capture:
                                params=self.params, plan=self.plan, at=at, window=w,
                                t_capture_ns=t_ns, clip=clip, clipped=clipped)
             frame.master_pan_rad, frame.tilt_rad = self.master_pan, self.tilt
-            frame.skew_ns, frame.t_read_ns, frame.pan_stale = t_slave - t_ns, t_read, stale
+            frame.skew_ns, frame.t_read_ns, (frame.pan_stale, frame.pan_guessed) = t_slave - t_ns, t_read, known
             frame.follows = self.source.follows_pan
             (frame.cx, frame.cy), (frame.slave_cx, frame.slave_cy) = self.principal
         except retina.BorderError:

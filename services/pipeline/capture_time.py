@@ -60,6 +60,7 @@ class PanLookup:
         self.history, self.lock, self.source = history, lock, source
         self.replica = replica
         self.seen: dict[int, float | None] = {}
+        self.guessed: set[int] = set()  # instants whose pan the history extrapolated past its newest state
         self.waited = False  # ready() waited for the motor to count a command
 
     def settle(self, t_ns: int, timeout: float = SETTLE_S) -> None:
@@ -96,6 +97,8 @@ class PanLookup:
                 pan = self.replica.at(t_ns) if self.replica is not None else None
                 if pan is None and len(self.history):  # (before any motor state the pan is not known)
                     pan = self.history.at(t_ns / 1e9)
+                    if t_ns / 1e9 > self.history.t[-1]:
+                        self.guessed.add(t_ns)
                 self.seen[t_ns] = pan
         return self.seen[t_ns]
 
@@ -107,12 +110,14 @@ class PanLookup:
                 pan = self.history.newest()
         return pan if pan is not None else self.source.start_pan_rad
 
-    def frame(self, t_slave_ns: int) -> tuple[float, bool]:
-        """(the frame's pan, stale): the pan at the slave's exposure, and whether the history could not tell."""
+    def frame(self, t_slave_ns: int) -> tuple[float, bool, bool]:
+        """(the frame's pan, stale, guessed): the pan at the slave's exposure, whether the history could not tell,
+        and whether it told it past its newest state (extrapolated at the motor's last rate: a turn since is not in
+        it; vergence.head.scenery reads no verdict on such a pan)."""
         if not self.source.follows_pan:
-            return self.source.start_pan_rad, False
+            return self.source.start_pan_rad, False, False
         pan = self._at(t_slave_ns)
-        return (self(t_slave_ns), True) if pan is None else (pan, False)
+        return (self(t_slave_ns), True, False) if pan is None else (pan, False, t_slave_ns in self.guessed)
 
 
 class ExposureClock:

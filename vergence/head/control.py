@@ -145,7 +145,8 @@ class Controller:
 
     def scene(self, t_s: float, pan: float, band, focal_px: float, fovea_col: float, fovea=None) -> float | None:
         """Whether the slave's background moved with the motor (vergence.head.scenery): one frame's slave band (t_s
-        its exposure as stamped, pan the slave's then, fovea_col the fovea's column in the band), its verdict for
+        its exposure as stamped, pan the slave's then as the motor reported it, not extrapolated past its newest
+        report: vergence.head.scenery; fovea_col the fovea's column in the band), its verdict for
         target(background=). None where a camera is named late (its stamps are not its image's: no verdict), or
         none is due. A reducer asks when the Frame arrives, while the workers compute."""
         if self.doubt.late_s is not None:

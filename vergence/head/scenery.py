@@ -11,9 +11,11 @@ spreads its tiles) gives r = its median shift / the motor's: 1 for a camera that
 Only r under STILL_MAX says the image did not follow (a target that fills the band read 0.27-0.48 on clean runs,
 docs/FAULTS.md), and not where the motor's turn between the instants up to LATE_S before the two frames explains the
 shift seen: a camera whose images are that much later than its frames say shows that (a turn that just began, none
-yet), and is told by vergence.head.lag. vergence.head.doubt takes a verdict as a pair that did not follow. The
-library only: the Controller runs it for the reducer (each Frame's slave band, as it arrives) and for `vergence sim`
-(its own)."""
+yet), and is told by vergence.head.lag. The pans must be ones the motor reported (or interpolated between two
+reports): one told past its newest report, extrapolated at its last rate, misses a turn since, by degrees where a
+loop swings on such a late camera, and is not brought (the Frame's pan_guessed; the sim loop likewise).
+vergence.head.doubt takes a verdict as a pair that did not follow. The library only: the Controller runs it for the
+reducer (each Frame's slave band, as it arrives) and for `vergence sim` (its own)."""
 
 from __future__ import annotations
 

@@ -191,11 +191,12 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
     pan = history.at(t_told)  # the slave's pan at its exposure, as the encoder reports it
     target = None
     if pan is not None:
+        # the background's verdict, not on a pan told past the motor's newest report (a guess: Frame.pan_guessed)
+        scene = controller.scene(t_told, pan, slave[band], focal, x, at) if t_told <= history.t[-1] else None
         target = controller.target(pan, d.offset_px, focal, d.confident, t_s=t_told, t_now=t_now,
                                    centre_px=x - _cx(rig), slave=digest(slave[band]) or None,
                                    master=digest(master[band]) or None, fovea=at, textured=has_texture(d, params),
-                                   width_px=master.shape[1],
-                                   background=controller.scene(t_told, pan, slave[band], focal, x, at))
+                                   width_px=master.shape[1], background=scene)
     step = Step(frame=frame, t_s=t_master, pan_deg=math.degrees(seen["at_slave"]),
                 truth_pan_deg=math.degrees(rig.truth_pan(t_master)), error_px=rig.error_px(seen["at_master"], t_master),
                 camera_error_px=rig.error_px(float(np.mean([c for c, _ in seen["slave"]])), t_slave),

@@ -306,7 +306,7 @@ class Gatherer:
         prep = prepare(frame, self.params)  # before the frame counts: one that cannot be prepared is not taken
         self.counters["frames"] += 1
         e.frame, e.prep = frame, prep
-        if frame.follows and not frame.pan_stale:  # (while the workers compute: off the command's path)
+        if frame.follows and not (frame.pan_stale or frame.pan_guessed):  # (while the workers compute)
             e.scene = self.controller.scene(frame.t_slave_ns / 1e9, frame.pan_rad, frame.band_strip(), frame.focal_px,
                                             frame.x + 1, (frame.x, frame.y))
         self.newest = max(self.newest, frame.frame)

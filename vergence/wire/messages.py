@@ -137,10 +137,12 @@ class Frame(Message):
     # the camera's time (vergence.head.timing): t_capture_ns is the master's exposure; the slave's is skew_ns after it
     # (pan_rad is the slave's pan then); t_read_ns when the capture read the pair (0: an older capture, which
     # stamped its read time); pan_stale: the slave's pan at its exposure is not known (older than the motor's
-    # history, or across a gap in it): the frame is decided, and commands nothing
+    # history, or across a gap in it): the frame is decided, and commands nothing; pan_guessed: the pan was told past
+    # the motor's newest state (extrapolated): no background verdict is read on it (vergence.head.scenery)
     skew_ns: int = 0
     t_read_ns: int = 0
     pan_stale: bool = False
+    pan_guessed: bool = False
     # the CRC-32 of each whole image as read (0: not known): a frozen camera repeats its bytes (vergence.head.doubt)
     master_digest: int = 0
     slave_digest: int = 0

@@ -45,15 +45,20 @@ def test_a_frame_gets_the_slave_pan_at_its_exposure_or_none_where_the_history_ca
     lock = threading.Lock()
     look = PanLookup(h, lock, Source())
     # no motor state yet: rendered at the source's start pan, and stale (the motor may be anywhere: it commands nothing)
-    assert look.frame(10**9) == (0.25, True)
+    assert look.frame(10**9) == (0.25, True, False)
     for t, p in ((1.00, 0.10), (1.02, 0.12), (1.04, 0.14)):
         h.add(t, p)
     look = PanLookup(h, lock, Source())
-    assert look.frame(1010 * MS) == (pytest.approx(0.11), False)
-    assert look.frame(500 * MS) == (pytest.approx(0.14), True)  # older than the history: stale, its newest
+    assert look.frame(1010 * MS) == (pytest.approx(0.11), False, False)
+    assert look.frame(500 * MS) == (pytest.approx(0.14), True, False)  # older than the history: stale, its newest
+    # past the newest state: extrapolated at the last rate, a guess (no background verdict is read on it) ...
+    assert look.frame(1060 * MS) == (pytest.approx(0.16), False, True)
+    h.add(1.08, 0.13)  # ... even once the motor has told a turn since: the frame carries the pan it was rendered at
+    assert look.frame(1060 * MS) == (pytest.approx(0.16), False, True)
+    assert PanLookup(h, lock, Source()).frame(1060 * MS) == (pytest.approx(0.135), False, False)
     src = Source()
     src.follows_pan = False
-    assert PanLookup(h, lock, src).frame(1010 * MS) == (0.25, False)  # a still pair keeps its own pan
+    assert PanLookup(h, lock, src).frame(1010 * MS) == (0.25, False, False)  # a still pair keeps its own pan
 
 
 def test_a_rendering_source_waits_for_the_motors_report_of_its_instant_but_not_for_ever():
