@@ -38,6 +38,7 @@ from vergence.wire.status import WorkerEvidence, WorkersReport
 from vergence.wire.messages import MAX_HOLD_S, Correlation, Frame, Hold, MessageError, MotorState
 from vergence.wire.messages import replace as replace_message
 
+from services.pipeline.capture_time import motor_state_implausible
 from services.runtime import session
 from services.runtime.args import number
 from services.runtime.node import Node
@@ -179,12 +180,13 @@ class MotorPresence:
         self.lock = threading.Lock()
         self.status, self.at = "", -1e9
 
-    def on_state(self, payload: bytes) -> None:
+    def on_state(self, payload: bytes) -> MotorState | None:
+        """One state (None: it did not decode, counted)."""
         try:
             st = MotorState.from_bytes(payload)
         except MessageError as e:
             self.health.reject("motor_state", e)
-            return
+            return None
         with self.lock:
             if st.status == "absent" and self.status != "absent":
                 log.warning("the motor is absent (%s): no command is sent until it answers again", st.note or
@@ -192,6 +194,7 @@ class MotorPresence:
             elif st.status != "absent" and self.status == "absent":
                 log.info("the motor answers again (%s): commands resume", st.status)
             self.status, self.at = st.status, self.clock()
+        return st
 
     def absent(self) -> bool:
         with self.lock:
@@ -372,6 +375,19 @@ class Reducer:
             c = self.gatherer.counters
             return c["complete"], c["dropped"] + c["superseded"], self.health.counters.get("commands", 0)
 
+    def motor_state(self, st: MotorState | None) -> None:
+        """A motor's report of its pan to the controller (a late camera's lag is fitted on them): only one the capture
+        would take too (within the motor's limits, near our clock; an implausible one is counted under
+        bad.motor_state), and not from a motor that does not know its pan (disconnected, absent)."""
+        if st is None or st.status in ("disconnected", "absent"):
+            return
+        why = motor_state_implausible(st, self.settings.actuator.motor, time.time_ns(), self.limits.max_skew_s)
+        if why is not None:
+            self.health.reject("motor_state", MessageError(why))
+            return
+        with self.lock:
+            self.gatherer.controller.motor(st.t_ns / 1e9, st.pan_rad)
+
     def run(self, stop: session.Stop) -> None:
         """The loop, until stop: what arrived, the deadlines, the membership evidence, the status, the summary."""
         next_report = time.monotonic() + REPORT_S
@@ -384,7 +400,7 @@ class Reducer:
             if stop.is_set():
                 break
             while (smp := self.states.try_recv()) is not None:  # (the Node's empty wake comes after the stop)
-                self.presence.on_state(smp.payload.to_bytes())
+                self.motor_state(self.presence.on_state(smp.payload.to_bytes()))
             if batch:
                 self.handle(batch)
             with self.lock:

@@ -143,6 +143,11 @@ class Controller:
         """The set-point pan_at_capture + step, as the motor's Safety bounds it (limits, step)."""
         return self.limits.limit_step(pan_at_capture, pan_at_capture + step)
 
+    def motor(self, t_s: float, pan: float) -> None:
+        """The motor's own report of the slave's pan (rad) at t_s (the frames' clock, s): a camera's lag is fitted
+        on these (vergence.head.lag), denser than the frames' pans. Only plausible reports (the caller's checks)."""
+        self.doubt.lag.motor(t_s, pan)
+
     def scene(self, t_s: float, pan: float, band, focal_px: float, fovea_col: float, fovea=None) -> float | None:
         """Whether the slave's background moved with the motor (vergence.head.scenery): one frame's slave band (t_s
         its exposure as stamped, pan the slave's then as the motor reported it, not extrapolated past its newest

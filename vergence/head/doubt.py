@@ -162,9 +162,13 @@ class Doubt:
             return self._fail(t, "frozen", f"a byte-identical slave image though the motor moved {IDENTICAL_MOVE_DEG}")
         if a is None or not math.isfinite(a):
             return self.fault
-        now = _Seen(t, pan, a, self.u)
+        now, late = _Seen(t, pan, a, self.u), self.late_s
         self.last_seen = now
         self.lag.saw(t, a)
+        if self.late_s != late:  # named late: the next frames are taken at their images' instants, no pair across
+            self.ref, self.centre = None, None
+            self.fails.clear()
+            return self.fault
         self.focal.add(t, pan, a)
         if background is not None and background < STILL_MAX:  # the scene behind did not move with the motor
             return self._fail(t, fail_kind(background), f"the background moved {background:.2f} x the motor")
@@ -263,8 +267,12 @@ class Doubt:
 
     def _raise(self, t: float, fault: Fault, why: str) -> None:
         if fault in (Fault.SLAVE_FROZEN, Fault.REVERSED) and self.last_seen is not None:
-            # the image of the move that raised it, and of the move back to the anchor: a late one shows both
+            late = self.late_s  # the image of the move that raised it, and of the move back: a late one shows both
             self.lag.expect(self.last_seen.t, self.last_seen.a, t + RETURN_FIT_S)
+            if self.late_s != late:  # the fit that was due named the camera late: that is what the pairs saw
+                self.lag.pending, self.ref, self.centre = None, None, None
+                self.fails.clear()
+                return
         self.fault, self.t_probe, self.returned = fault, t, False
         self.trusted, self.ref, self.t_held = False, None, None
         self.fails.clear()

@@ -7,8 +7,9 @@ frozen (or reversed) camera, and names. The moves of a fault tell: the move back
 late image follows them after its lag, a frozen, slipping or reversed one never does. RETURN_FIT_S after a fault is
 named, and LAG_AFTER_S after a probe clears one, the lag L (0..MAX_LAG_S) that best explains the offsets of the
 decisions since the move's reference by the motor's motion L earlier (a_k - a_ref = -(pan(t_k - L) - pan(t_ref -
-L)), the target's own motion fitted as a rate and an acceleration; the pans of every frame kept, read between
-frames linearly) is fitted. A lag counts only where the motor moved PROBE_MIN_DEG under it and is at rest again by
+L)), the target's own motion fitted as a rate and an acceleration; the pans read between the motor's own reports
+(motor(): the reducer's motor states, the sim loop's encoder; the frames' pans where the caller has none, one a
+frame, which a fast move between two frames is not a line through) is fitted. A lag counts only where the motor moved PROBE_MIN_DEG under it and is at rest again by
 the window's end, and where it leaves at most LATE_FIT of no lag's residual, and little. Where LATE_PAIRS such fits
 agree the camera is named late: a log line, `late_ms` in the status, and from then on each frame is taken at its
 exposure less the lag, with the pan then (shift(): the check and the controller both), so that the head runs
@@ -54,6 +55,7 @@ class Lag:
         self.lags: list[float | None] = []  # the latest fits (None: none fitted)
         self.late_s: float | None = None
         self.pending: tuple[float, float, float] | None = None  # (t_ref, a_ref, due) of the next fit
+        self.reported = False  # the motor's own reports are kept (not the frames' pans)
 
     def shift(self, t: float, pan: float) -> tuple[float, float, float]:
         """A frame as its stamp says it (t its slave's exposure, pan the slave's pan then) into (t, pan) as its
@@ -61,10 +63,8 @@ class Lag:
         the pan then, and half of what the motor moved between the two frames' pans it was read between."""
         if not (math.isfinite(t) and math.isfinite(pan)):
             return t, pan, 0.0
-        if not self.pans or t > self.pans[-1][0]:
-            self.pans.append((t, pan))
-            while t - self.pans[0][0] > 4 * MAX_LAG_S:  # (a probe's fit reads 2 MAX_LAG_S before its reference)
-                self.pans.popleft()
+        if not self.reported:
+            self.motor(t, pan, report=False)
         if self.late_s is None:
             return t, pan, 0.0
         ts = t - self.late_s
@@ -73,6 +73,20 @@ class Lag:
             return ts, float(self.pans[min(i, len(self.pans) - 1)][1]), 0.0
         (t0, p0), (t1, p1) = self.pans[i - 1], self.pans[i]
         return ts, float(p0 + (p1 - p0) * (ts - t0) / (t1 - t0)), float(0.5 * abs(p1 - p0))
+
+    def motor(self, t: float, pan: float, report: bool = True) -> None:
+        """The motor's own report of its pan at t (the frames' clock), where the caller has them: denser than one a
+        frame (a fast move between two frames is no line), and never a pan extrapolated to an exposure; from the
+        first on, the frames' pans are not kept (report=False: shift()'s, each frame's at its exposure)."""
+        if not (math.isfinite(t) and math.isfinite(pan)):
+            return
+        self.reported |= report
+        i = bisect.bisect_left(self.pans, (t, -math.inf))
+        if i < len(self.pans) and self.pans[i][0] == t:
+            return
+        self.pans.insert(i, (t, pan))
+        while self.pans[-1][0] - self.pans[0][0] > 4 * MAX_LAG_S:  # (a probe's fit reads 2 MAX_LAG_S before its ref)
+            self.pans.popleft()
 
     def _pan_at(self, t: np.ndarray) -> np.ndarray:
         ts = np.fromiter((q[0] for q in self.pans), float, len(self.pans))

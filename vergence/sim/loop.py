@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import heapq
 import inspect
+import itertools
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -103,10 +104,7 @@ def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: Co
     centre); a Step's truth and error stay the centre's (vergence.sim.fixation.truth_at gives the fovea's).
     faults: the simulator's lies (vergence.sim.faults); focal_px: the focal length the controller is told (default
     the rig's: a rig rendered at focal_true is told another)."""
-    if not (delay_s >= 0 and math.isfinite(delay_s)):
-        raise ValueError(f"delay {delay_s} s must be a finite number >= 0")
-    if not (state_hz > 0 and math.isfinite(state_hz)):
-        raise ValueError(f"state rate {state_hz} Hz must be a positive number")
+    _check(delay_s, state_hz)
     params = params or Params()
     timing = timing or CameraTiming()
     schedule = Schedule(rate_hz, timing, seed)
@@ -118,13 +116,17 @@ def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: Co
     controller = Controller(control, safety)  # asks the motor's limits of the Safety (as the reducer does)
     history = PanHistory(max_gap_s=max(0.1, 3.0 / state_hz))
     lies = Lies(faults or Faults(), seed)
-    history.add(0.0, lies.encoder(ms.from_motor(drive.read_position())))
+
+    def report(t: float) -> None:  # the encoder's reading into the history, and the motor's report to the controller
+        if history.add(t, pan := lies.encoder(ms.from_motor(drive.read_position()))):
+            controller.motor(t, pan)
+
+    report(0.0)
     events: list = []  # (time, order, kind, frame, payload)
-    order = [0]
+    order = itertools.count()
 
     def push(t: float, kind: str, frame: int = -1, payload=None) -> None:
-        order[0] += 1
-        heapq.heappush(events, (t, order[0], kind, frame, payload))
+        heapq.heappush(events, (t, next(order), kind, frame, payload))
 
     times = [schedule.frame(i) for i in range(frames + 1)]
     shafts: dict[int, dict] = {}  # frame -> what its exposures saw of the shaft
@@ -151,9 +153,9 @@ def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: Co
         elif kind in ("at_master", "at_slave"):
             shafts[i][kind] = ms.from_motor(drive.shaft)  # (the pan the encoder would read)
             if kind == "at_slave":  # the encoder's reading at the slave's exposure (see the docstring)
-                history.add(clock[0], lies.encoder(ms.from_motor(drive.read_position())))
+                report(clock[0])
         elif kind == "state":
-            history.add(clock[0], lies.encoder(ms.from_motor(drive.read_position())))
+            report(clock[0])
         elif kind == "read":
             at = (fixations or {}).get(i, at)
             push(t + delay_s, "command", i, _decide(rig, i, shafts.pop(i), times[i], at, params, controller,
@@ -164,8 +166,15 @@ def closed_loop(rig: Rig, frames: int, params: Params | None = None, control: Co
                 target = safety.command(target).goal
                 if target is not None and not lies.stalled(t):
                     drive.write_goal(ms.to_motor(target))
-                    history.add(clock[0], lies.encoder(ms.from_motor(drive.read_position())))
+                    report(clock[0])
             yield replace(step, target_deg=None if target is None else math.degrees(target))
+
+
+def _check(delay_s: float, state_hz: float) -> None:
+    if not (delay_s >= 0 and math.isfinite(delay_s)):
+        raise ValueError(f"delay {delay_s} s must be a finite number >= 0")
+    if not (state_hz > 0 and math.isfinite(state_hz)):
+        raise ValueError(f"state rate {state_hz} Hz must be a positive number")
 
 
 def _cx(rig) -> float:

@@ -138,13 +138,13 @@ def test_a_camera_later_than_its_stamps_gets_no_verdict_on_guessed_pans_and_reco
     report, extrapolated through its turns (1.4 deg off in a traced run): the sim loop, like the reducer (Frame
     pan_guessed), reads no background verdict on them. Before, those verdicts named a fault at a pan where other
     texture matched, whose probes never followed: 8 of 12 such runs (two depths' ranges, 66 and 100 ms, seeds 61-63)
-    ended 10 s in a fault, some `reversed`. Now the lag is named within 8 s (fitted a few ms under, as in
-    docs/FAULTS.md), the fault cleared with it, none after."""
+    ended 10 s in a fault, some `reversed`. Now the lag is named within 8 s (within 20 %: fitted on the motor's own
+    reports), the fault cleared with it, none after."""
     rig = MovingRig.from_options(motion="square:z0=0.65,z1=0.95,hz=0.4", focal="500", seed=str(seed), noise="1")
     rig.start_pan_rad = rig.truth_pan(0.0) + math.radians(4.0)
     faults = Faults.take(parse(f"late={latency}", FAULT_KEYS, "test"))
     steps = list(closed_loop(rig, 300, None, ControlSettings(), None, 30.0, timing=CameraTiming(latency),
                              faults=faults, seed=seed, focal_px=F))
     named = next(i for i, s in enumerate(steps) if s.late_ms is not None)
-    assert steps[named].t_s <= 8.0 and 0.6 * latency <= steps[-1].late_ms / 1e3 <= 1.2 * latency  # (48 ms for 66)
+    assert steps[named].t_s <= 8.0 and steps[-1].late_ms == pytest.approx(latency * 1e3, rel=0.2)  # (70, 101 ms)
     assert not any(s.fault for s in steps[named:])
