@@ -9,8 +9,9 @@ named, and LAG_AFTER_S after a probe clears one, the lag L (0..MAX_LAG_S) that b
 decisions since the move's reference by the motor's motion L earlier (a_k - a_ref = -(pan(t_k - L) - pan(t_ref -
 L)), the target's own motion fitted as a rate and an acceleration; the pans read between the motor's own reports
 (motor(): the reducer's motor states, the sim loop's encoder; the frames' pans where the caller has none, one a
-frame, which a fast move between two frames is not a line through) is fitted. A lag counts only where the motor moved PROBE_MIN_DEG under it and is at rest again by
-the window's end, and where it leaves at most LATE_FIT of no lag's residual, and little. Where LATE_PAIRS such fits
+frame, which a fast move between two frames is not a line through) is fitted. A lag counts only where the motor
+moved PROBE_MIN_DEG under it and is at rest again by the window's end, and where it leaves at most LATE_FIT of no
+lag's residual, and little. Where LATE_PAIRS such fits
 agree the camera is named late: a log line, `late_ms` in the status, and from then on each frame is taken at its
 exposure less the lag, with the pan then (shift(): the check and the controller both), so that the head runs
 without more faults. A fault's probe whose image has not followed PROBE_FIT_S after it is judged by probe(): its
