@@ -38,7 +38,7 @@ from vergence.wire.status import WorkerEvidence, WorkersReport
 from vergence.wire.messages import MAX_HOLD_S, Correlation, Frame, Hold, MessageError, MotorState
 from vergence.wire.messages import replace as replace_message
 
-from services.pipeline.capture_time import motor_state_implausible
+from services.pipeline.capture_time import FUTURE_S, motor_state_implausible
 from services.runtime import session
 from services.runtime.args import number
 from services.runtime.node import Node
@@ -377,11 +377,14 @@ class Reducer:
 
     def motor_state(self, st: MotorState | None) -> None:
         """A motor's report of its pan to the controller (a late camera's lag is fitted on them): only one the capture
-        would take too (within the motor's limits, near our clock; an implausible one is counted under
-        bad.motor_state), and not from a motor that does not know its pan (disconnected, absent)."""
+        would take too (within the motor's limits, near our clock and not FUTURE_S ahead of it; an implausible one is
+        counted under bad.motor_state), and not from a motor that does not know its pan (disconnected, absent)."""
         if st is None or st.status in ("disconnected", "absent"):
             return
-        why = motor_state_implausible(st, self.settings.actuator.motor, time.time_ns(), self.limits.max_skew_s)
+        now = time.time_ns()
+        why = motor_state_implausible(st, self.settings.actuator.motor, now, self.limits.max_skew_s)
+        if why is None and st.t_ns > now + FUTURE_S * 1e9:  # (it would push the true ones out of the lag's second)
+            why = f"state {(st.t_ns - now) / 1e9:+.3g} s ahead of our clock"
         if why is not None:
             self.health.reject("motor_state", MessageError(why))
             return

@@ -192,7 +192,8 @@ def test_a_frame_on_any_other_key_under_the_frames_is_no_frame():
 def test_the_motors_plausible_reports_reach_the_controller_and_the_others_are_counted():
     """Each motor state the reducer reads goes to the controller (a late camera's lag is fitted on the motor's own
     reports, vergence.head.lag) where the capture would take it too: a pan outside the motor's limits, a time far off
-    this host's clock (counted under bad.motor_state) and a motor that does not know its pan (disconnected, absent)
+    this host's clock or ahead of it (counted under bad.motor_state) and a motor that does not know its pan
+    (disconnected, absent)
     do not; one that does not decode is counted by the presence."""
     from vergence.wire.messages import MotorState
     from services.pipeline.reducer import Reducer
@@ -209,9 +210,11 @@ def test_the_motors_plausible_reports_reach_the_controller_and_the_others_are_co
     r.motor_state(state(now - 10_000_000, 0.02))
     r.motor_state(state(now - 5_000_000, 3.0))  # past the limits
     r.motor_state(state(now - 3_600 * 10**9, 0.03))  # an hour off our clock
+    r.motor_state(state(now + 10**9, 0.05))  # a second ahead (it would push the true ones out of the lag's second)
     r.motor_state(state(now - 4_000_000, 0.04, "absent"))
     r.motor_state(None)  # (did not decode: the presence counted it)
     kept = list(r.gatherer.controller.doubt.lag.pans)
     assert [(round(t * 1e9 - now, -3), p) for t, p in kept] == [(-20_000_000, 0.01), (-10_000_000, 0.02)]
-    assert [k for k, _ in r.health.rejected] == ["motor_state", "motor_state"]
+    assert [k for k, _ in r.health.rejected] == ["motor_state"] * 3
     assert "outside the motor limits" in r.health.rejected[0][1] and "off our clock" in r.health.rejected[1][1]
+    assert "ahead of our clock" in r.health.rejected[2][1]
