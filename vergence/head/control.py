@@ -42,12 +42,12 @@ from typing import ClassVar
 
 
 from ..motors.base import MotorSettings, Safety
-from ..choices import ControlMode
+from ..choices import ControlMode, Fault
 from ..ranges import Range, check
-from .doubt import Doubt
+from .doubt import PROBE_MIN_DEG, Doubt
 from .search import Search
 from .predict import Periodic, Predictor, Referee
-from .scenery import Background
+from .scenery import MIN_MOVE_DEG, Background, Verdict
 from .timing import MAX_AGE_S
 
 __all__ = ["pixels_to_angle", "ControlSettings", "Controller", "Predictor", "MODES"]
@@ -148,21 +148,25 @@ class Controller:
         on these (vergence.head.lag), denser than the frames' pans. Only plausible reports (the caller's checks)."""
         self.doubt.lag.motor(t_s, pan)
 
-    def scene(self, t_s: float, pan: float, band, focal_px: float, fovea_col: float, fovea=None) -> float | None:
+    def scene(self, t_s: float, pan: float, band, focal_px: float, fovea_col: float, fovea=None) -> Verdict | None:
         """Whether the slave's background moved with the motor (vergence.head.scenery): one frame's slave band (t_s
         its exposure as stamped, pan the slave's then as the motor reported it, not extrapolated past its newest
         report: vergence.head.scenery; fovea_col the fovea's column in the band), its verdict for
-        target(background=). None where a camera is named late (its stamps are not its image's: no verdict), or
-        none is due. A reducer asks when the Frame arrives, while the workers compute."""
-        if self.doubt.late_s is not None:
+        target(background=); during a fault on moves from PROBE_MIN_DEG (its probes are PROBE_DEG from the anchor).
+        None where a camera is named late (its stamps are not its image's: no verdict), or none is due. A reducer
+        asks when the Frame arrives, while the workers compute."""
+        d = self.doubt
+        if d.late_s is not None:
             return None
-        return self.background.see(t_s, pan, band, focal_px, fovea_col, key=fovea)
+        probing = d.fault in (Fault.SLAVE_FROZEN, Fault.REVERSED)
+        return self.background.see(t_s, pan, band, focal_px, fovea_col, key=fovea,
+                                   min_move_deg=PROBE_MIN_DEG if probing else MIN_MOVE_DEG)
 
     def target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool = True,
                centre_px: float = 0.0, t_s: float | None = None, t_now: float | None = None,
                slave: int | None = None, master: int | None = None,
                fovea: tuple[int, int] | None = None, doubt: bool = True, textured: bool = True,
-               width_px: int | None = None, background: float | None = None) -> float | None:
+               width_px: int | None = None, background: Verdict | None = None) -> float | None:
         """The new absolute pan (radians) or None when the camera should not move (not confident, inside
         the dead band, a non-finite input, or a fault: vergence.head.doubt). pan_at_capture: the slave's pan at
         its exposure; t_s: that exposure's time in seconds (any epoch; the predictive mode needs it, and acts as

@@ -13,25 +13,26 @@ did not follow (near 0: a frozen slave camera or a slipping coupling; near -1: a
 the encoder says), r in FOLLOWS_MIN..FOLLOWS_MAX that it did (r away from 1: the focal length is off by r); two that
 did not, in a row and agreeing, name the fault ("reversed" only where r is at most 2 x REVERSED_MAX). A pair short
 of the motor at the learnt rate but not at the target's latest (the rate its last consistent pair showed: the learnt
-rate lags a target that turns, e.g. a 2 Hz sine at 30 Hz) is a doubt: it holds and probes as a fail does, and names
-nothing. Pursuit, slow moves and jumps of the target are never judged. A byte-identical slave image after the motor
-moved IDENTICAL_MOVE_DEG is a frozen camera outright; a background that did not move with it (vergence.head.scenery:
-r under STILL_MAX, no target rate in it) is a pair that did not follow, in pursuit too.
+rate lags a target that turns) is a doubt: it holds and probes as a fail does, and names nothing. Pursuit, slow moves
+and jumps of the target are never judged. A byte-identical slave image after the motor moved IDENTICAL_MOVE_DEG is a
+frozen camera outright; a background that did not move with it (vergence.head.scenery: r under STILL_MAX, no target
+rate in it) is a pair that did not follow, in pursuit too, or a doubt where the motor's turn a little earlier
+explains it (what a late image shows: Verdict.late), which holds the chase that a slipping camera starts.
 
 The leash. Until the image has been seen to follow (r in FOLLOWS_MIN..FOLLOWS_MAX; at the start, after a fault),
 no command goes further than UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there for
 BOUND_S probes back. Once it has, no command goes further than LEASH_DEG past the pan the last consistent decision
 asked for (its z, moved on at the learnt rate); after a pair that did not follow, none further from the anchor than
-the slave already is, and after SUSPECT_S a probe back toward the anchor, whose image confirms or clears it.
+the slave already is, and after SUSPECT_S a probe back toward the anchor, whose image confirms or clears it (read
+once the motor moved its way; "reversed" only where it reads so with the target held still too).
 
 A fault: the slave goes back to the anchor and holds; the only moves are probes (PROBE_DEG from the anchor, one
-every PROBE_S, read less the target's own motion at the anchor: follows.Held), and when the image follows one again
-(or, for a stalled motor, the encoder moves) the loop resumes by itself. A frozen master camera (vergence.head.frozen)
-holds until it changes. A motor that does not move for STALL_S while commanded MIN_MOVE or more away is stalled.
-
-A camera later than its frames say is told by the moves of its faults and named (vergence.head.lag): naming it
-clears a frozen or reversed fault (its image follows, later), and from then on each frame goes through shift()
-first, and a pair's slack grows by the uncertainty of the pans it reads.
+every PROBE_S, read less the target's own motion at the anchor: follows.Held; none whose background did not move),
+and when the image follows one again (or, for a stalled motor, the encoder moves) the loop resumes by itself. A
+frozen master camera (vergence.head.frozen) holds until it changes. A motor commanded MIN_MOVE or more away that does
+not move for STALL_S is stalled. A camera later than its frames say is told by the moves of its faults and named
+(vergence.head.lag): naming it clears a frozen or reversed fault (its image follows, later), and from then on each
+frame goes through shift() first, and a pair's slack grows by the uncertainty of the pans it reads.
 The library only: the reducer and `vergence sim` both run it through the Controller."""
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ from .focal import Focal
 from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, Held, fail_kind, note, verdict
 from .frozen import IDENTICAL_MOVE_DEG, Master, Slave
 from .lag import LAG_AFTER_S, RETURN_FIT_S, Lag
-from .scenery import STILL_MAX
+from .scenery import STILL_MAX, Verdict
 
 __all__ = ["ADVICE", "Doubt", "Fault"]
 
@@ -93,21 +94,20 @@ class Doubt:
 
     def __init__(self):
         self.fault: Fault | None = None
-        self.anchor: float | None = None  # the last pan at which the image followed (the first pan seen)
+        self.anchor = None  # the last pan at which the image followed (the first pan seen)
         self.trusted = False  # the image has been seen to follow since the start or the last fault
-        self.ref: _Seen | None = None  # the reference decision of the next pair
-        self.centre: _Seen | None = None  # the last consistent measurement (the leash's centre)
+        self.ref = self.centre = None  # the next pair's reference decision; the last consistent one (leash's centre)
         self.rate, self.trend, self.zs = 0.0, 0.0, []  # target rate, rad/s: learnt, the last pair's; (t, z) of LONG_S
         self.fails, self.t_fail = [], 0.0  # the kinds of the pairs that did not follow, and when the last one was
         self.focal = Focal()  # the focal length's ratio, from precise pairs that followed and from pursuit
         self.t_probe, self.probe_sign, self.fit_ref = None, 1.0, None  # a fault's last probe, its side, its fit's ref
+        self.t_still = -math.inf  # the last background verdict that did not move with the motor (not a late one)
         self.returned, self.held = False, Held()  # the fault's move back to the anchor sent; the target's motion there
         self.master, self.slave = Master(), Slave()  # each camera's images, frame to frame
         self.stall: tuple[float, float] | None = None  # (t, pan) since which a command far away has not moved it
         self.t_bound: float | None = None  # since when an untrusted head is held at its leash's end; a probe's start
         self.probe_ref, self.probe_goal = None, 0.0  # a probe's decision before it (None: none under way), its goal
-        self.t_held: float | None = None  # since when a pair that did not follow holds the motor
-        self.last_seen: _Seen | None = None  # the latest confident decision
+        self.t_held = self.last_seen = None  # since when a pair that did not follow holds the motor; the last decision
         self.faults = self.resumed = 0  # faults named so far, and cleared
         self.t_last, self.fovea = None, None  # the last decision's exposure and fovea
         self.lag, self.u = Lag(), 0.0  # a camera later than its frames say; the last shift()'s pan's uncertainty
@@ -134,11 +134,11 @@ class Doubt:
     # -- decisions ---------------------------------------------------------------------------------------------------
     def observe(self, t: float, pan: float, a: float | None, slave: int | None = None,
                 master: int | None = None, fovea: tuple[int, int] | None = None,
-                background: float | None = None) -> Fault | None:
+                background: Verdict | None = None) -> Fault | None:
         """One decided frame: t the slave's exposure (s), pan the slave's pan then (rad), a the angle of a
         confident decision's offset (None: no confident decision), slave and master the images' digests (None:
-        unknown), fovea the master point it was decided at (a new one is a new target), background the r of the
-        slave's background (vergence.head.scenery; None: no verdict). Returns the present fault."""
+        unknown), fovea the master point it was decided at (a new one is a new target), background the verdict on
+        the slave's background (vergence.head.scenery.Verdict; None: none). Returns the present fault."""
         if not (math.isfinite(t) and math.isfinite(pan)) or (self.t_last is not None and t <= self.t_last):
             return self.fault  # out of order or not a time: nothing to learn
         self.t_last = t
@@ -147,9 +147,15 @@ class Doubt:
             self.focal.clear()
         if self.anchor is None:
             self.anchor = pan
-        self._master(t, master)
+        seen = self.master.see(t, master)
+        if seen == "changed" and self.fault is Fault.MASTER_FROZEN:
+            self._clear(t, self.anchor, "the master's images change again")
+        elif seen == "frozen" and self.fault is None:
+            self._raise(t, Fault.MASTER_FROZEN, f"the same master image for {t - self.master.same_since:.2f} s")
         frozen = self.slave.frozen(pan, slave)
         self._stalled(t, pan)
+        if background is not None and not background.late and background.r < STILL_MAX:
+            self.t_still = t  # the background did not move with the motor: no probe over it follows
         if self.fault is not None:
             late = self.late_s
             if a is not None and math.isfinite(a):
@@ -170,8 +176,10 @@ class Doubt:
             self.fails.clear()
             return self.fault
         self.focal.add(t, pan, a)
-        if background is not None and background < STILL_MAX:  # the scene behind did not move with the motor
-            return self._fail(t, fail_kind(background), f"the background moved {background:.2f} x the motor")
+        if background is not None and background.r < STILL_MAX:  # the scene behind did not move with the motor
+            if not background.late:
+                return self._fail(t, fail_kind(background.r), f"the background moved {background.r:.2f} x the motor")
+            self._fail(t, "doubt", "as a late image's might not")  # (held; the pair may say more)
         if self.probe_ref is not None:
             self._probed(t, now)
             return self.fault
@@ -297,13 +305,6 @@ class Doubt:
         self.fails.clear()
         self._unprobe()
 
-    def _master(self, t: float, master: int | None) -> None:
-        seen = self.master.see(t, master)
-        if seen == "changed" and self.fault is Fault.MASTER_FROZEN:
-            self._clear(t, self.anchor, "the master's images change again")
-        elif seen == "frozen" and self.fault is None:
-            self._raise(t, Fault.MASTER_FROZEN, f"the same master image for {t - self.master.same_since:.2f} s")
-
     def _stalled(self, t: float, pan: float) -> None:
         if self.stall is None or self.fault is not None:
             return
@@ -336,7 +337,7 @@ class Doubt:
         if not all(FOLLOWS_MIN <= r <= FOLLOWS_MAX for r in rs) and t - self.ref.t >= PROBE_FIT_S:
             self.fit_ref = self.ref  # once a probe: its step against a late image and the target's own motion
             rs = rs if (fitted := self.lag.probe(self.ref.t, self.ref.a)) is None else (fitted,)
-        if all(FOLLOWS_MIN <= r <= FOLLOWS_MAX for r in rs):
+        if all(FOLLOWS_MIN <= r <= FOLLOWS_MAX for r in rs) and self.t_still <= self.ref.t:
             if self.fit_ref is not self.ref:  # (a fitted probe has noted its lag)
                 self.lag.expect(self.ref.t, self.ref.a, t + LAG_AFTER_S)  # (then the image's whole step is seen)
             how = f"a probe of {math.degrees(pan - self.ref.pan):+.2f} deg moved the image r = {min(rs):.2f}"
@@ -415,16 +416,17 @@ class Doubt:
         """The image of a probe (a head not yet trusted, or held by a pair that did not follow): it followed (the
         head is trusted) or not (a fail; a doubt where the target's latest rate, not the learnt one, explains it)."""
         ref, p = self.probe_ref, now.pan - self.probe_ref.pan
-        if abs(p) < math.radians(PROBE_MIN_DEG):
-            return
+        if abs(p) < math.radians(PROBE_MIN_DEG) or p * (self.probe_goal - ref.pan) <= 0:
+            return  # (not the probe's move yet: a frame's pan can still be on its way the other way)
         r, rt = ((-(now.a - ref.a) + v * (now.t - ref.t)) / p for v in (self.rate, self.trend))
         self._unprobe()
-        if verdict(r) is None and r <= FOLLOWS_MAX:
+        if verdict(r) is None and r <= FOLLOWS_MAX and self.t_still <= ref.t:
             self._followed(now, r, False)
             self.ref = self.centre = now
         else:
             doubt = verdict(rt) is None and rt <= FOLLOWS_MAX
-            self._fail(t, "doubt" if doubt else fail_kind(r), f"a probe moved the image r = {r:.2f}")
+            kind = fail_kind(max(r, -(now.a - ref.a) / p))  # (reversed only where a still target's reading says so too)
+            self._fail(t, "doubt" if doubt else kind, f"a probe moved the image r = {r:.2f}")
 
     def _during_fault(self, pan: float, t_now: float) -> float | None:
         if self.fault is Fault.MASTER_FROZEN or self.anchor is None:
@@ -436,8 +438,7 @@ class Doubt:
             self.t_probe = t_now
             self.probe_sign = -self.probe_sign
             return self.anchor + self.probe_sign * math.radians(PROBE_DEG)
-        if self.t_probe is not None and t_now - self.t_probe >= PROBE_S / 2 and abs(pan - self.anchor) > math.radians(
-                SAME_PAN_DEG):
+        if t_now - self.t_probe >= PROBE_S / 2 and abs(pan - self.anchor) > math.radians(SAME_PAN_DEG):
             return self.anchor  # a probe's time is over: back to the anchor
         return None
 

@@ -9,22 +9,25 @@ spreads its tiles) gives r = its median shift / the motor's: 1 for a camera that
 (frozen, a slipping coupling), -1 for one that turns against the encoder; no target rate in it.
 
 Only r under STILL_MAX says the image did not follow (a target that fills the band read 0.27-0.48 on clean runs,
-docs/FAULTS.md), and not where the motor's turn between the instants up to LATE_S before the two frames explains the
-shift seen: a camera whose images are that much later than its frames say shows that (a turn that just began, none
-yet), and is told by vergence.head.lag. The pans must be ones the motor reported (or interpolated between two
-reports): one told past its newest report, extrapolated at its last rate, misses a turn since, by degrees where a
-loop swings on such a late camera, and is not brought (the Frame's pan_guessed; the sim loop likewise).
-vergence.head.doubt takes a verdict as a pair that did not follow. The library only: the Controller runs it for the
-reducer (each Frame's slave band, as it arrives) and for `vergence sim` (its own)."""
+docs/FAULTS.md); where the motor's turn between the instants up to LATE_S before the two frames explains the shift
+seen, it is a late Verdict: a camera whose images are that much later than its frames say shows that (a turn that
+just began, none yet; told by vergence.head.lag), and so does a slipping camera's chase in its first LATE_S.
+vergence.head.doubt takes a verdict as a pair that did not follow, a late one as a doubt (it holds the turn, names
+nothing). A smaller min_move_deg reads a fault's probes (PROBE_DEG). The pans must be ones the motor reported (or
+interpolated between two reports): one told past its newest report, extrapolated at its last rate, misses a turn
+since, by degrees where a loop swings on such a late camera, and is not brought (the Frame's pan_guessed; the sim
+loop likewise). The library only: the Controller runs it for the reducer (each Frame's slave band, as it arrives)
+and for `vergence sim` (its own)."""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["Background", "profile", "tile_shifts"]
+__all__ = ["Background", "Verdict", "profile", "tile_shifts"]
 
 MIN_MOVE_DEG = 0.6  # the pans of a verdict's two frames at least this far apart (as the doubt's decisive pairs)
 MAX_DT_S = 0.3  # ... and at most this far apart in time
@@ -68,6 +71,13 @@ def tile_shifts(b: np.ndarray, a: np.ndarray, reach: int) -> list[tuple[int, flo
     return list(zip(starts[ok].tolist(), shift[ok].tolist()))
 
 
+class Verdict(NamedTuple):
+    """r: the background's shift over the motor's (1: it follows, 0: it did not move, -1: against); late: it did not
+    move, but the motor's turn up to LATE_S earlier explains that (a late image shows it so): hold, name nothing."""
+    r: float
+    late: bool = False
+
+
 @dataclass
 class _Band:
     t: float
@@ -84,7 +94,7 @@ class Background:
         self.t_verdict = -math.inf  # the last verdict's exposure
 
     def see(self, t: float, pan: float, band: np.ndarray, focal_px: float, fovea_col: float,
-            key=None) -> float | None:
+            key=None, min_move_deg: float = MIN_MOVE_DEG) -> Verdict | None:
         """One frame's slave band (t its exposure, s; pan the slave's then, rad; fovea_col the fovea's column in
         it): r of its background against the latest earlier band at least MIN_MOVE_DEG away in pan (None: no
         verdict)."""
@@ -95,7 +105,7 @@ class Background:
             self.bands, self.key, self.t_verdict = [], key, -math.inf
         self.bands = [b for b in self.bands if t - b.t <= MAX_DT_S + LATE_S]
         before = next((b for b in reversed(self.bands) if t - b.t <= MAX_DT_S
-                       and abs(pan - b.pan) >= math.radians(MIN_MOVE_DEG)), None)
+                       and abs(pan - b.pan) >= math.radians(min_move_deg)), None)
         self.bands.append(_Band(t, pan, profile(band)))
         if before is None or t - self.t_verdict < GAP_S:
             return None
@@ -113,9 +123,7 @@ class Background:
             return None
         moved = float(np.median(scenery[i:ends[i]]))
         r = moved / motor
-        if r < STILL_MAX and self._late(before, self.bands[-1], moved, focal_px):
-            return None  # what an image up to LATE_S late shows: no verdict
-        return r
+        return Verdict(r, r < STILL_MAX and self._late(before, self.bands[-1], moved, focal_px))
 
     def _late(self, i: _Band, j: _Band, moved: float, focal_px: float) -> bool:
         """Whether the motor's turn between the instants up to LATE_S before i's and j's exposures explains the

@@ -22,6 +22,7 @@ import numpy as np
 from ..network import kernel, retina
 from ..config import LimitSettings
 from ..head.control import ControlSettings, Controller
+from ..head.scenery import Verdict
 from ..motors.base import MotorSettings, Safety
 from ..network.decide import Decision, apply_checks, decide_scores, has_texture
 from ..wire import messages
@@ -113,7 +114,7 @@ def make_profile(frame: Frame, scores: np.ndarray, d: Decision, t_reduced_ns: in
 
 
 def _command(frame: Frame, d: Decision, controller: Controller, now_ns: int | None = None,
-             textured: bool = True, scene: float | None = None) -> Command | None:
+             textured: bool = True, scene: Verdict | None = None) -> Command | None:
     """The command of a decided frame (None: no move). The measurement is the slave's pan at its exposure plus
     the correction, referred to the slave's exposure time; the controller aims for when the command acts
     (now_ns, this host's clock: default the read time). A frame whose pan at exposure is not known (pan_stale)
@@ -161,11 +162,11 @@ class Reduced:
     _controller: Controller | None = field(default=None, repr=False)
     _textured: bool = field(default=True, repr=False)
     _cmd: Command | None = field(default=None, repr=False)
-    _scene: float | None = field(default=None, repr=False)
+    _scene: Verdict | None = field(default=None, repr=False)
 
     @classmethod
     def of(cls, frame: Frame, scores: np.ndarray, params: Params, controller: Controller,
-           t_reduced_ns: int | None = None, prep: Prepared | None = None, scene: float | None = None) -> "Reduced":
+           t_reduced_ns: int | None = None, prep: Prepared | None = None, scene: Verdict | None = None) -> "Reduced":
         d = decide_frame(frame, scores, params, prep)
         now = time.time_ns() if t_reduced_ns is None else t_reduced_ns
         return cls(frame, d, scores, now, _controller=controller, _textured=has_texture(d, params), _scene=scene)
@@ -198,7 +199,7 @@ class _Pending:
     frame: Frame | None = None
     correlations: dict[str, Correlation] = field(default_factory=dict)
     prep: Prepared | None = None
-    scene: float | None = None  # its background's verdict (Controller.scene)
+    scene: Verdict | None = None  # its background's verdict (Controller.scene)
 
 
 class Gatherer:

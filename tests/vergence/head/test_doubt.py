@@ -17,6 +17,7 @@ from middlebury import ROOT as MIDDLEBURY, needs_data
 from vergence.head.control import ControlSettings
 from vergence.head.doubt import ADVICE, LEASH_DEG, PROBE_DEG, SUSPECT_S, UNTRUSTED_DEG, Doubt, Fault
 from vergence.head.lag import Lag
+from vergence.head.scenery import Verdict
 from vergence.head.timing import CameraTiming
 from vergence.sim.faults import Faults
 from vergence.sim.fixation import truth_at
@@ -195,6 +196,40 @@ def test_a_probe_during_pursuit_is_read_less_the_targets_own_motion_at_the_ancho
         a = a0 + rate * k * DT - (probe if follows else 0.0)
         d.observe(t, probe * DEG, a * DEG, 40 + k, None, (320, 240))
     assert (d.fault is None) == follows and d.resumed == int(follows)
+
+
+@pytest.mark.parametrize("moved", [None, 0.0, 1.0])
+def test_a_probe_whose_background_did_not_move_clears_nothing_whatever_its_offset_reads(moved):
+    """The probe of the test above as a slipping camera's target moving with it shows it (its offset moved by the
+    probe: the target's own motion changed just then): read on the offset alone it clears the fault. The background
+    behind (vergence.head.scenery) did not move with the probe: no clearing; one that moved with it, or none read
+    (a band without background texture), leaves the offset's reading as it was."""
+    d = Doubt()
+    feed(d, [(0, 3, 1), (0.3, 3, 2), (1.2, 3, 3), (2.0, 3, 4)])
+    for k in range(20):
+        d.observe(0.2 + k * DT, 0.0, 3 * DEG, 10 + k, None, (320, 240))
+    t0 = 0.2 + 19 * DT
+    for k in range(1, 4):
+        d.observe(t0 + k * DT, 0.5 * DEG, 2.5 * DEG, 40 + k, None, (320, 240),
+                  background=None if moved is None else Verdict(moved))
+    assert d.resumed == int(moved != 0.0) and (d.fault is None) == (moved != 0.0)
+
+
+def test_a_background_still_as_a_late_image_would_be_holds_the_chase_and_names_nothing():
+    """A head trusted in pursuit whose background reads still where a late image would too (Verdict.late: the motor's
+    turn up to scenery.LATE_S earlier explains it): no command further from the anchor than the slave is, no fault;
+    then SUSPECT_S later a probe back; two verdicts that no late image explains name the fault."""
+    d = Doubt()
+    feed(d, [(0, 3, 1), (1, 2, 2), (2, 1, 3), (3, 0, 4)])
+    assert d.trusted and d.fault is None
+    t = 4 * DT
+    d.observe(t, 3.4 * DEG, 0.1 * DEG, 5, None, (320, 240), background=Verdict(0.0, late=True))
+    assert d.fault is None and d.gate(3.4 * DEG, 5 * DEG, t) == pytest.approx(3.4 * DEG)
+    probe = d.gate(3.4 * DEG, 5 * DEG, t + SUSPECT_S + DT)
+    assert probe == pytest.approx((3.4 - PROBE_DEG) * DEG)
+    for k in (1, 2):
+        d.observe(t + k * DT, 3.4 * DEG, 0.2 * DEG, 5 + k, None, (320, 240), background=Verdict(0.0))
+    assert d.fault is Fault.SLAVE_FROZEN
 
 
 def test_the_targets_motion_at_the_anchor_is_taken_out_only_where_it_was_a_line():
