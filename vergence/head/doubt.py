@@ -16,15 +16,14 @@ of the motor at the learnt rate but not at the target's latest (the rate its las
 rate lags a target that turns) is a doubt: it holds and probes as a fail does, and names nothing. Pursuit, slow moves
 and jumps of the target are never judged. A byte-identical slave image after the motor moved IDENTICAL_MOVE_DEG is a
 frozen camera outright; a background that did not move with it (vergence.head.scenery: r under STILL_MAX, no target
-rate in it) is a pair that did not follow, in pursuit too, or a doubt where the motor's turn a little earlier
-explains it (what a late image shows: Verdict.late), which holds the chase that a slipping camera starts.
+rate in it) is a pair that did not follow, in pursuit too; one a late image would show too (Verdict.late) is a doubt
+where the offset is under LEASH_DEG: it holds the chase a slipping camera starts (a correction's, not).
 
 The leash. Until the image has been seen to follow (r in FOLLOWS_MIN..FOLLOWS_MAX; at the start, after a fault),
 no command goes further than UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there for
 BOUND_S probes back. Once it has, no command goes further than LEASH_DEG past the pan the last consistent decision
 asked for (its z, moved on at the learnt rate); after a pair that did not follow, none further from the anchor than
-the slave already is, and after SUSPECT_S a probe back toward the anchor, whose image confirms or clears it (read
-once the motor moved its way; "reversed" only where it reads so with the target held still too).
+the slave already is, and after SUSPECT_S a probe back toward the anchor, whose image confirms or clears it.
 
 A fault: the slave goes back to the anchor and holds; the only moves are probes (PROBE_DEG from the anchor, one
 every PROBE_S, read less the target's own motion at the anchor: follows.Held; none whose background did not move),
@@ -32,8 +31,8 @@ and when the image follows one again (or, for a stalled motor, the encoder moves
 frozen master camera (vergence.head.frozen) holds until it changes. A motor commanded MIN_MOVE or more away that does
 not move for STALL_S is stalled. A camera later than its frames say is told by the moves of its faults and named
 (vergence.head.lag): naming it clears a frozen or reversed fault (its image follows, later), and from then on each
-frame goes through shift() first, and a pair's slack grows by the uncertainty of the pans it reads.
-The library only: the reducer and `vergence sim` both run it through the Controller."""
+frame goes through shift() first, and a pair's slack grows by the uncertainty of the pans it reads. The library
+only: the reducer and `vergence sim` both run it through the Controller."""
 
 from __future__ import annotations
 
@@ -179,7 +178,8 @@ class Doubt:
         if background is not None and background.r < STILL_MAX:  # the scene behind did not move with the motor
             if not background.late:
                 return self._fail(t, fail_kind(background.r), f"the background moved {background.r:.2f} x the motor")
-            self._fail(t, "doubt", "as a late image's might not")  # (held; the pair may say more)
+            if abs(a) <= math.radians(LEASH_DEG):  # (near the target: a chase, not a correction a late image lags)
+                self._fail(t, "doubt", "as a late image's might not")  # (held; the pair may say more)
         if self.probe_ref is not None:
             self._probed(t, now)
             return self.fault

@@ -215,17 +215,23 @@ def test_a_probe_whose_background_did_not_move_clears_nothing_whatever_its_offse
     assert d.resumed == int(moved != 0.0) and (d.fault is None) == (moved != 0.0)
 
 
-def test_a_background_still_as_a_late_image_would_be_holds_the_chase_and_names_nothing():
+@pytest.mark.parametrize("offset_deg", [0.1, 2.0])
+def test_a_background_still_as_a_late_image_would_be_holds_the_chase_and_names_nothing(offset_deg):
     """A head trusted in pursuit whose background reads still where a late image would too (Verdict.late: the motor's
-    turn up to scenery.LATE_S earlier explains it): no command further from the anchor than the slave is, no fault;
-    then SUSPECT_S later a probe back; two verdicts that no late image explains name the fault."""
+    turn up to scenery.LATE_S earlier explains it), its offset small (a chase, as a slipping camera's starts): no
+    command further from the anchor than the slave is, no fault; SUSPECT_S later a probe back; two verdicts that no
+    late image explains name the fault. With the offset past LEASH_DEG (a correction toward a target seen far off,
+    which a late camera's image lags) the turn goes on."""
     d = Doubt()
     feed(d, [(0, 3, 1), (1, 2, 2), (2, 1, 3), (3, 0, 4)])
     assert d.trusted and d.fault is None
     t = 4 * DT
-    d.observe(t, 3.4 * DEG, 0.1 * DEG, 5, None, (320, 240), background=Verdict(0.0, late=True))
-    assert d.fault is None and d.gate(3.4 * DEG, 5 * DEG, t) == pytest.approx(3.4 * DEG)
-    probe = d.gate(3.4 * DEG, 5 * DEG, t + SUSPECT_S + DT)
+    d.observe(t, 3.4 * DEG, offset_deg * DEG, 5, None, (320, 240), background=Verdict(0.0, late=True))
+    goal = d.gate(3.4 * DEG, 4.5 * DEG, t)
+    assert d.fault is None and goal == pytest.approx((3.4 if offset_deg < LEASH_DEG else 4.5) * DEG)
+    if offset_deg > LEASH_DEG:
+        return
+    probe = d.gate(3.4 * DEG, 4.5 * DEG, t + SUSPECT_S + DT)
     assert probe == pytest.approx((3.4 - PROBE_DEG) * DEG)
     for k in (1, 2):
         d.observe(t + k * DT, 3.4 * DEG, 0.2 * DEG, 5 + k, None, (320, 240), background=Verdict(0.0))
