@@ -151,7 +151,7 @@ class Doubt:
             self._clear(t, self.anchor, "the master's images change again")
         elif seen == "frozen" and self.fault is None:
             self._raise(t, Fault.MASTER_FROZEN, f"the same master image for {t - self.master.same_since:.2f} s")
-        frozen = self.slave.frozen(pan, slave)
+        frozen = self.slave.frozen(t, pan, slave, seen == "changed")
         self._stalled(t, pan)
         if background is not None and not background.late and background.r < STILL_MAX:
             self.t_still = t  # the background did not move with the motor: no probe over it follows
@@ -164,7 +164,7 @@ class Doubt:
                 self._clear(t, pan, f"its image follows the motor {self.late_s * 1e3:.0f} ms later than its frames say")
             return self.fault
         if frozen:
-            return self._fail(t, "frozen", f"a byte-identical slave image though the motor moved {IDENTICAL_MOVE_DEG}")
+            return self._fail(t, "frozen", f"a byte-identical slave image (a {IDENTICAL_MOVE_DEG} deg move or noise)")
         if a is None or not math.isfinite(a):
             return self.fault
         now, late = _Seen(t, pan, a, self.u), self.late_s

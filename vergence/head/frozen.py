@@ -2,7 +2,10 @@
 CRC-32 each Frame carries for its two images; Master watches the master camera's: images that used to change every
 frame (MASTER_LIVE in a row at least: a live camera's noise) and have been the same for FROZEN_MASTER_S are a frozen
 master. Slave watches the slave camera's against the motor: the same bytes after the motor moved IDENTICAL_MOVE_DEG
-since they were first seen (more than a backlash or the encoder's noise) are a frozen slave (vergence.head.doubt).
+since they were first seen (more than a backlash or the encoder's noise) are a frozen slave (vergence.head.doubt);
+so are the same bytes for FROZEN_MASTER_S while the master's changed MASTER_LIVE times or more (the scene, the
+sensor's noise: what the slave would show too): a slave that freezes while the motor holds (a target that steps in
+depth meanwhile leaves the match nothing to find). A still scene without noise changes neither.
 """
 
 from __future__ import annotations
@@ -63,13 +66,19 @@ class Slave:
 
     def __init__(self):
         self.last: tuple[int, float] | None = None  # (digest, pan) when it was first seen
+        self.since = 0.0  # its first exposure
+        self.master_changes = 0  # the master's changes since
 
-    def frozen(self, pan: float, digest: int | None) -> bool:
-        """The slave's image (its digest; None: unknown) byte for byte what it was when first seen, though the
-        motor moved IDENTICAL_MOVE_DEG since."""
+    def frozen(self, t: float, pan: float, digest: int | None, master_changed: bool = False) -> bool:
+        """The slave's image (t its exposure, its digest; None: unknown) byte for byte what it was when first seen,
+        though the motor moved IDENTICAL_MOVE_DEG since, or for FROZEN_MASTER_S while the master's images changed
+        MASTER_LIVE times or more (master_changed: this frame's did)."""
         if digest is None:
             return False
         if self.last is None or self.last[0] != digest:
-            self.last = (digest, pan)
+            self.last, self.since, self.master_changes = (digest, pan), t, 0
             return False
+        self.master_changes += master_changed
+        if self.master_changes >= MASTER_LIVE and t - self.since >= FROZEN_MASTER_S:
+            return True
         return abs(pan - self.last[1]) >= math.radians(IDENTICAL_MOVE_DEG)

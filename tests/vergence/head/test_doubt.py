@@ -314,6 +314,26 @@ def test_a_frozen_or_slipping_slave_while_a_fixate_asks_a_move_is_held_and_found
     assert for_good - 2.4 <= 2.0 and not any(s.fault for s in after[-60:])
 
 
+@pytest.mark.parametrize("rate,latency,seed", [(60.0, 0.0, 12), (30.0, 0.066, 13)])
+def test_a_slave_frozen_while_the_motor_holds_and_the_target_steps_is_named_and_found_again(rate, latency, seed):
+    """The slave converged on a target 1.0 m ahead freezes at 0.7 s for 2 s; at 1.2 s the target steps to 0.65 m. The
+    frozen image and the master's new one share nothing to match: the decisions abstain and nothing moves, so no
+    motion tells the freeze (before: never named). Its bytes, which the sensor's noise changed every frame while the
+    motor held, stay the same: `slave_frozen` named 0.3 s after the freeze began; the slave never 1 deg from where it
+    was (probes only), and the target found within 1 px within 1 s of the thaw."""
+    rig = MovingRig.from_options(motion="step:z0=1.0,z1=0.65,at=1.2", focal="500", seed=str(seed), noise="1")
+    rig.start_pan_rad = rig.truth_pan(0.0)
+    faults = Faults.take(parse("freeze=0.7-2.7", FAULT_KEYS, "test"))
+    steps = list(closed_loop(rig, int(4.5 * rate), None, ControlSettings(), None, rate, timing=CameraTiming(latency),
+                             faults=faults, seed=seed, focal_px=500.0))
+    named = next(s for s in steps if s.fault)
+    assert named.fault == "slave_frozen" and 0.9 <= named.t_s <= 1.1  # (1.0 s)
+    p0 = [s.pan_deg for s in steps if s.t_s < 0.7][-1]
+    assert max(abs(s.pan_deg - p0) for s in steps if 0.7 <= s.t_s < 2.7) <= 1.0  # (0.53 deg: a probe)
+    found = next(s.t_s for s in steps if s.t_s >= 2.7 and not s.fault and abs(s.camera_error_px) <= 1.0)
+    assert found <= 3.7 and not [s for s in steps if s.t_s > found and s.fault]  # (3.08 and 3.2 s)
+
+
 @pytest.mark.parametrize("latency", [0.0, 0.066])
 def test_a_reversed_camera_from_the_start_never_leaves_3_degrees_and_then_only_probes(latency):
     rig = MovingRig.from_options(motion="still:z=0.8", focal="500", seed="3")

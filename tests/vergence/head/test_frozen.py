@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
+import math
 import zlib
 
-import math
-
 import numpy as np
+import pytest
 
 from vergence.head.frozen import FROZEN_MASTER_S, IDENTICAL_MOVE_DEG, MASTER_LIVE, Master, Slave, digest
 
@@ -44,6 +44,24 @@ def test_a_slave_image_repeated_after_the_motor_moved_identical_move_deg_since_i
     """The same bytes while the motor stays (a still scene) are not; counted from the pan where they were first seen,
     not the last frame's (a slow drift adds up); new bytes start anew; an unknown digest says nothing."""
     s, step = Slave(), math.radians(IDENTICAL_MOVE_DEG) / 4
-    assert [s.frozen(0.0, 7) for _ in range(5)] == [False] * 5
-    assert [s.frozen(k * step, 7) for k in range(1, 6)] == [False, False, False, True, True]
-    assert s.frozen(5 * step, 8) is False and s.frozen(9 * step, 8) is True and s.frozen(9 * step, None) is False
+    assert [s.frozen(k / 60, 0.0, 7) for k in range(5)] == [False] * 5
+    assert [s.frozen((5 + k) / 60, k * step, 7) for k in range(1, 6)] == [False, False, False, True, True]
+    assert s.frozen(0.2, 5 * step, 8) is False and s.frozen(0.21, 9 * step, 8) is True
+    assert s.frozen(0.22, 9 * step, None) is False
+
+
+def test_a_slave_image_that_repeats_while_the_masters_change_is_frozen_though_the_motor_held():
+    """The master's images change every frame (the scene, the sensor's noise: a live slave's would too) while the
+    slave's repeat and the motor holds: after FROZEN_MASTER_S a frozen slave (a target that steps in depth meanwhile
+    leaves the match nothing to find, and nothing moves). A still scene without noise, where neither changes, says
+    nothing; nor a slave whose bytes change; nor fewer than MASTER_LIVE changes of the master."""
+    s, dt = Slave(), 1 / 60
+    got = [s.frozen(k * dt, 0.0, 7, master_changed=True) for k in range(40)]
+    first = next(k for k, f in enumerate(got) if f)
+    assert not any(got[:first]) and all(got[first:]) and first * dt == pytest.approx(FROZEN_MASTER_S, abs=dt)
+    still = Slave()  # a noise-free still scene: neither camera's bytes change
+    assert not any(still.frozen(k * dt, 0.0, 7, master_changed=False) for k in range(60))
+    live = Slave()  # both change
+    assert not any(live.frozen(k * dt, 0.0, 100 + k, master_changed=True) for k in range(60))
+    few = Slave()  # the master changed a few times only (the rows a simulator renders as the window grows)
+    assert not any(few.frozen(k * dt, 0.0, 7, master_changed=k in (3, 9, 20, 31)) for k in range(60))
