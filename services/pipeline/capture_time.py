@@ -91,6 +91,14 @@ class PanLookup:
                 self.waited = True
                 self.lock.wait((since + rep.ANSWER_NS - time.monotonic_ns()) / 1e9 + 1e-4)
 
+    def ahead_ns(self) -> int:
+        """How far past now the pan is known for a source to render ahead: with a trusted replica, half the sim
+        motor's latency (a goal takes effect that long after its write; the other half for a command's trip here,
+        which ready() has waited for), else 0: a history knows nothing after its newest state."""
+        rep = self.replica
+        with self.lock:
+            return rep.m.latency_ns // 2 if rep is not None and rep.trusted else 0
+
     def _at(self, t_ns: int) -> float | None:
         if t_ns not in self.seen:
             with self.lock:

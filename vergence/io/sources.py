@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections import deque
 
 import cv2
 import numpy as np
@@ -264,6 +265,7 @@ class SimSource(Source):
         self.shaft = float
         self._still_truth: tuple = (None, math.nan)  # (fovea, its truth) of the still scene
         self._last: tuple = ([0.0], [(self.start_pan_rad, 0.0)])  # the latest read's instants and pans
+        self.render_ns: deque[int] = deque(maxlen=15)  # the last renders' durations (their median: the lead)
 
     @classmethod
     def camera_timing(cls, timing: dict) -> CameraTiming:
@@ -296,7 +298,12 @@ class SimSource(Source):
         ready = getattr(pan_at, "ready", None)  # the capture's: until the motor has counted the commands seen
         if ready is not None:
             ready()
-        later = time.time_ns() - round(tm.age_s * 1e9)
+        start = time.time_ns()
+        # render ahead: the pair is exposed when its render will be done (a camera's read-out is the camera's, not
+        # the host's), where the pan is known that far ahead (ahead_ns: the capture's, with the sim motor's replica)
+        lead = min(sorted(self.render_ns)[len(self.render_ns) // 2] if self.render_ns else 0,
+                   getattr(pan_at, "ahead_ns", lambda: 0)())
+        later = start + lead - round(tm.age_s * 1e9)
         if tm.jitter_s > 0:
             later += round(float(np.clip(self.rng.normal(0.0, tm.jitter_s), -0.02, 0.02)) * 1e9)
         skew = round(tm.skew_s * 1e9)
@@ -306,6 +313,7 @@ class SimSource(Source):
         settle = getattr(pan_at, "settle", None)  # the capture's: until the motor has told its pan then
         if settle is not None:
             settle(t_slave + round(tm.exposure_s * 5e8))
+        t_render = time.time_ns()
         lies, at = self.lies, (t_master - self.t0) / 1e9
         scene = lies.inputs("master", at, sub_times(at, tm.exposure_s))
         slave = lies.inputs("slave", at, [(lies.camera(self.shaft(pan_of(self.t0 + round(t * 1e9))), t), t)
@@ -315,15 +323,21 @@ class SimSource(Source):
         self.exposure_ns = (t_master, t_slave) if self.stamps else None
         self._last = (scene, slave)
         if self.rows is None:
-            return lies.images(at, None, *expose(self.rig, scene, slave))
-        from ..sim.optics import Region
+            pair = lies.images(at, None, *expose(self.rig, scene, slave))
+        else:
+            from ..sim.optics import Region
 
-        w, h = self.size
-        y0, y1 = max(0, self.rows[0]), min(h, self.rows[1])
-        band = expose(self.rig, scene, slave, Region.band(w, y0, y1))
-        out = np.zeros((2, h, w), np.uint8)
-        out[0, y0:y1], out[1, y0:y1] = band
-        return lies.images(at, (y0, y1), out[0], out[1])
+            w, h = self.size
+            y0, y1 = max(0, self.rows[0]), min(h, self.rows[1])
+            band = expose(self.rig, scene, slave, Region.band(w, y0, y1))
+            out = np.zeros((2, h, w), np.uint8)
+            out[0, y0:y1], out[1, y0:y1] = band
+            pair = lies.images(at, (y0, y1), out[0], out[1])
+        done = time.time_ns()
+        self.render_ns.append(done - t_render)
+        if done < start + lead:  # read out no earlier than the exposure the lead claimed
+            time.sleep((start + lead - done) / 1e9)
+        return pair
 
     def preview(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
         """The latest pair read, rendered whole at width x height without noise (a preview at the cost of a

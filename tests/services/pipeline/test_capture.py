@@ -109,6 +109,24 @@ def test_with_a_trusted_replica_the_exposure_waits_for_the_motor_to_count_the_co
     assert rep.ANSWER_NS / 1e9 <= time.monotonic() - t0 < 1.0 and rep.unheard == 1
 
 
+def test_the_pan_is_known_half_the_motors_latency_ahead_only_with_a_trusted_replica():
+    """PanLookup.ahead_ns, how far ahead a rendering source may expose (issue #33's render ahead): a goal takes
+    effect the sim motor's latency_s (2 ms) after its write, so with a trusted replica 1 ms ahead is known; a
+    history (no replica, or one not trusted) knows nothing past its newest state."""
+    from vergence.motors import MotorSettings
+    from vergence.motors.simulated import Replica
+
+    rep, cond = Replica(MotorSettings()), threading.Condition()
+    assert PanLookup(PanHistory(max_gap_s=0.1), cond, Source()).ahead_ns() == 0
+    look = PanLookup(PanHistory(max_gap_s=0.1), cond, Source(), rep)
+    assert look.ahead_ns() == 0
+    for k in range(3):  # at rest on its goal: trusted
+        rep.observe(10**18 + k * 5 * MS, 0.0, 0.0)
+    assert rep.trusted and look.ahead_ns() == 1 * MS
+    rep.observe(10**18 + 20 * MS, 0.3, 0.3)  # a reading the model cannot explain: a history's again
+    assert not rep.trusted and look.ahead_ns() == 0
+
+
 def test_a_motor_state_from_our_future_is_forgotten_when_the_true_ones_come():
     from vergence.wire.messages import MessageError, MotorState
     from services.pipeline.capture_time import remember

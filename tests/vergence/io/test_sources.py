@@ -14,6 +14,8 @@ from vergence.io.sources import FilesSource, SimSource, SourceError, open_source
 
 from samples import textured
 
+MS = 1_000_000
+
 
 def _video(path, n=6, fps=25):
     w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (64, 48))
@@ -59,6 +61,45 @@ def test_the_sim_source_renders_the_slave_at_the_pan_of_its_exposure():
     src.read(pan_at)
     tm, ts = src.exposure_ns
     assert len(asked) == 2 and all(abs(t - ts) <= 1_000_001 for t in asked)  # two sub-views, +-1 ms
+
+
+def test_the_sim_source_renders_ahead_as_far_as_the_pan_is_known_and_reads_out_at_the_exposure():
+    """Render ahead (issue #33): where the pan is known ahead (the capture's ahead_ns), the pair is exposed the
+    median of the last renders later than its render starts, the slave rendered at its pan then, and read no
+    earlier than that exposure (a camera's read-out is the camera's, not the host's: latency=0 is 0); where it is
+    not known ahead, exposed when its render starts, as a plain pan does."""
+    import time
+
+    src = open_source("sim:motion=sine:z=0.8,amp=0.3,hz=0.2")
+    src.rows = (200, 280)
+    asked = []
+
+    class Lookup:
+        def __init__(self, ahead):
+            self.ahead = ahead
+
+        def ahead_ns(self):
+            return self.ahead
+
+        def __call__(self, t_ns):
+            asked.append(t_ns)
+            return 0.01
+
+    for ahead in (10**9, 0, 10**9):
+        leads, outs = [], []
+        for _ in range(8):
+            before = time.time_ns()
+            expected = sorted(src.render_ns)[len(src.render_ns) // 2] if src.render_ns else 0
+            src.read(Lookup(ahead))
+            after = time.time_ns()
+            t_master, t_slave = src.exposure_ns
+            leads.append((t_master - before, min(expected, ahead)))
+            outs.append(after - t_master)
+            assert asked[-1] == t_slave == t_master  # the slave rendered at its pan at the exposure
+        assert all(lead <= lead_ns + 5 * MS and lead >= lead_ns for lead, lead_ns in leads)
+        assert all(out >= 0 for out in outs)  # never read before its exposure
+        if ahead:
+            assert min(lead for lead, _ in leads[1:]) > 20_000  # the moving target's band: some 0.1-0.5 ms
 
 
 def test_the_sim_sources_truth_is_for_the_fovea_the_capture_sets():
