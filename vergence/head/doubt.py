@@ -25,14 +25,14 @@ BOUND_S probes back. Once it has, no command goes further than LEASH_DEG past th
 asked for (its z, moved on at the learnt rate); after a pair that did not follow, none further from the anchor than
 the slave already is, and after SUSPECT_S a probe back toward the anchor, whose image confirms or clears it.
 
-A fault: the slave goes back to the anchor and holds; the only moves are probes (PROBE_DEG from the anchor, one
-every PROBE_S, read less the target's own motion at the anchor: follows.Held; none whose background did not move),
-and when the image follows one again (or, for a stalled motor, the encoder moves) the loop resumes by itself. A
-frozen master camera (vergence.head.frozen) holds until it changes. A motor commanded MIN_MOVE or more away that does
-not move for STALL_S is stalled. A camera later than its frames say is told by the moves of its faults and named
-(vergence.head.lag): naming it clears a frozen or reversed fault (its image follows, later), and from then on each
-frame goes through shift() first, and a pair's slack grows by the uncertainty of the pans it reads. The library
-only: the reducer and `vergence sim` both run it through the Controller."""
+A fault: the slave goes back to the anchor and holds; the only moves are probes (PROBE_DEG from the anchor, one every
+PROBE_S, read less the target's own motion at the anchor: follows.Held; none whose background did not move; at an
+undecided fovea, its background), and when the image follows one again (or, for a stalled motor, the encoder moves)
+the loop resumes by itself. A frozen master camera (vergence.head.frozen) holds until it changes. A motor commanded
+MIN_MOVE or more away that does not move for STALL_S is stalled. A camera later than its frames say is told by the
+moves of its faults and named (vergence.head.lag): naming it clears a frozen or reversed fault (its image follows,
+later), and from then on each frame goes through shift() first, and a pair's slack grows by the uncertainty of the
+pans it reads. The library only: the reducer and `vergence sim` both run it through the Controller."""
 
 from __future__ import annotations
 
@@ -72,6 +72,7 @@ SUSPECT_S = 0.1  # a pair that did not follow holds the motor this long, then pr
 BOUND_S = 0.2  # an untrusted head held at its leash's end this long probes (a slipping camera's runaway ends there)
 SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within this
 STALL_S, STALL_MOVE_DEG = 0.5, 0.2  # commanded MIN_MOVE or more away, no move of STALL_MOVE_DEG for STALL_S: stalled
+BG_FOLLOWS = 2  # a fault's background verdicts in a row that moved with the motor clear it where the fovea is undecided
 PRECISE = 0.2  # a decisive pair with at most this slack per motion counts for the focal length (docs/FAULTS.md)
 
 
@@ -107,7 +108,7 @@ class Doubt:
         self.t_bound: float | None = None  # since when an untrusted head is held at its leash's end; a probe's start
         self.probe_ref, self.probe_goal = None, 0.0  # a probe's decision before it (None: none under way), its goal
         self.t_held = self.last_seen = None  # since when a pair that did not follow holds the motor; the last decision
-        self.faults = self.resumed = 0  # faults named so far, and cleared
+        self.faults = self.resumed = self.bg_follows = 0  # faults named so far, and cleared; see _probe_result
         self.t_last, self.fovea = None, None  # the last decision's exposure and fovea
         self.lag, self.u = Lag(), 0.0  # a camera later than its frames say; the last shift()'s pan's uncertainty
 
@@ -144,8 +145,7 @@ class Doubt:
         if fovea != self.fovea:
             self.fovea, self.ref, self.centre, self.rate, self.trend, self.zs = fovea, None, None, 0.0, 0.0, []
             self.focal.clear()
-        if self.anchor is None:
-            self.anchor = pan
+        self.anchor = pan if self.anchor is None else self.anchor
         seen = self.master.see(t, master)
         if seen == "changed" and self.fault is Fault.MASTER_FROZEN:
             self._clear(t, self.anchor, "the master's images change again")
@@ -159,7 +159,7 @@ class Doubt:
             late = self.late_s
             if a is not None and math.isfinite(a):
                 self.lag.saw(t, a)
-            self._probe_result(t, pan, a, frozen)
+            self._probe_result(t, pan, a, frozen, background)
             if self.late_s != late and self.fault in (Fault.SLAVE_FROZEN, Fault.REVERSED):  # (the image follows)
                 self._clear(t, pan, f"its image follows the motor {self.late_s * 1e3:.0f} ms later than its frames say")
             return self.fault
@@ -187,8 +187,7 @@ class Doubt:
             self.fails.clear()  # a suspicion nothing confirmed (a probe under way returned above)
         if self.ref is None or t - self.ref.t > REF_MAX_S:
             self.ref = now  # (the leash's centre stays where the last consistent measurement put it)
-            if self.centre is None:
-                self.centre = now
+            self.centre = now if self.centre is None else self.centre
         else:
             self._pair(self.ref, now)
         return self.fault
@@ -200,8 +199,7 @@ class Doubt:
         a pair that agrees with the motor and the learnt rate, one where the target moved by itself (or jumped), or
         one where the motor was no faster than a target, is consistent (the next reference and the leash's centre);
         a fast move not yet far enough keeps i as the reference."""
-        dt = j.t - i.t
-        p = j.pan - i.pan
+        dt, p = j.t - i.t, j.pan - i.pan
         pred = self.rate * dt  # the target's predicted motion
         moved = -(j.a - i.a) + pred  # the image's motion, the target's predicted motion taken out
         e = moved - p  # what the motor's motion does not explain
@@ -235,8 +233,7 @@ class Doubt:
         self.fails.clear()
         if precise:
             self.focal.pair(r)
-        self.trusted = True
-        self.anchor = j.pan
+        self.trusted, self.anchor = True, j.pan
 
     def _consistent(self, i: _Seen, j: _Seen, learn: bool = True) -> None:
         """j agrees with i (or the target moved by itself between them): j is the next reference and the leash's
@@ -264,10 +261,8 @@ class Doubt:
             return self.fault  # (a pair that did not follow is not undone by one that may have)
         if self.fails and self.fails[-1] != kind:
             self.fails.clear()  # a fault is named by pairs that agree on it
-        self.fails.append(kind)
+        self.fails += [kind] * (2 if why.startswith("a byte-identical") else 1)  # (the bytes say it outright)
         self.t_fail = t
-        if why.startswith("a byte-identical"):
-            self.fails.append(kind)  # the bytes say it outright
         if len(self.fails) >= FAILS and kind != "doubt":
             fault = Fault.REVERSED if kind == "reversed" else Fault.SLAVE_FROZEN
             self._raise(t, fault, why)
@@ -281,7 +276,7 @@ class Doubt:
                 self.lag.pending, self.ref, self.centre = None, None, None
                 self.fails.clear()
                 return
-        self.fault, self.t_probe, self.returned = fault, t, False
+        self.fault, self.t_probe, self.returned, self.bg_follows = fault, t, False, 0
         self.trusted, self.ref, self.t_held = False, None, None
         self.fails.clear()
         self.focal.clear()
@@ -292,8 +287,7 @@ class Doubt:
 
     def _clear(self, t: float, pan: float, how: str) -> None:
         log.warning("fault %s cleared (%s): resuming from %.2f deg", self.fault, how, math.degrees(pan))
-        self.fault = None
-        self.resumed += 1
+        self.fault, self.resumed = None, self.resumed + 1
         self.anchor, self.trusted, self.ref, self.centre, self.stall = pan, True, None, None, None
         self.rate, self.trend, self.zs = 0.0, 0.0, []
 
@@ -315,7 +309,9 @@ class Doubt:
             self.anchor = pan  # the encoder tells the truth: the motor is here
             self._raise(t, Fault.STALLED, f"no move in {t - t0:.2f} s")
 
-    def _probe_result(self, t: float, pan: float, a: float | None, frozen: bool) -> None:
+    def _probe_result(self, t: float, pan: float, a: float | None, frozen: bool, background: Verdict | None) -> None:
+        """A frame during a fault: whether a probe's image followed, at the fovea, or where it is undecided (on an
+        edge, a flat patch) from BG_FOLLOWS background verdicts in a row that moved with the motor (a probe's move)."""
         if self.fault is Fault.MASTER_FROZEN or self.anchor is None:
             return
         away = pan - self.anchor
@@ -323,7 +319,12 @@ class Doubt:
             if self.t_probe is not None and abs(away) >= math.radians(PROBE_MIN_DEG):
                 self._clear(t, pan, "the motor moved again")
             return
+        if background is not None:
+            follows = not (frozen or background.late) and FOLLOWS_MIN <= background.r <= FOLLOWS_MAX
+            self.bg_follows = self.bg_follows + 1 if follows else 0
         if a is None or not math.isfinite(a):
+            if self.bg_follows >= BG_FOLLOWS:
+                self._clear(t, pan, f"a probe moved the background r = {background.r:.2f}, the fovea undecided")
             return
         if abs(away) < math.radians(SAME_PAN_DEG):
             self.ref = _Seen(t, pan, a)  # a fresh reference at the anchor for the next probe
@@ -435,8 +436,7 @@ class Doubt:
             self.returned = True
             return self.anchor  # back to the last pan at which the image followed
         if self.t_probe is not None and t_now - self.t_probe >= PROBE_S:
-            self.t_probe = t_now
-            self.probe_sign = -self.probe_sign
+            self.t_probe, self.probe_sign = t_now, -self.probe_sign
             return self.anchor + self.probe_sign * math.radians(PROBE_DEG)
         if t_now - self.t_probe >= PROBE_S / 2 and abs(pan - self.anchor) > math.radians(SAME_PAN_DEG):
             return self.anchor  # a probe's time is over: back to the anchor

@@ -215,6 +215,27 @@ def test_a_probe_whose_background_did_not_move_clears_nothing_whatever_its_offse
     assert d.resumed == int(moved != 0.0) and (d.fault is None) == (moved != 0.0)
 
 
+@pytest.mark.parametrize("verdicts,clears", [([1.05, 1.04], True), ([1.05], False), ([1.05, 0.0, 1.0], False),
+                                             ([0.9, 0.4], False), ([-1.0, -1.0], False)])
+def test_a_fault_whose_fovea_decides_nothing_is_cleared_by_its_probes_background(verdicts, clears):
+    """A fault held where the fovea has no confident decision (a fovea 2 px off a near target's edge: its window holds
+    both depths; tests/scenarios/test_ros2_faults.py): the probes' background (vergence.head.scenery) tells
+    whether the image follows; two verdicts in a row that it moved with the motor clear the fault, one, or one and
+    then a still one, or one under FOLLOWS_MIN, or a reversed one, do not. Before, such a fault held for good
+    (seen through a ROS 2 camera: thawed, the background read r = 1.04 on every probe for 10 s)."""
+    d = Doubt()
+    feed(d, [(0, 3, 1), (0.3, 3, 2), (1.2, 3, 3), (2.0, 3, 4)])
+    assert d.fault is Fault.SLAVE_FROZEN
+    for k in range(20):  # at the anchor, undecided
+        d.observe(0.2 + k * DT, 0.0, None, 10 + k, None, (320, 240))
+    t0 = 0.2 + 19 * DT
+    for k, r in enumerate(verdicts, 1):
+        d.observe(t0 + k * DT, 0.5 * DEG, None, 40 + k, None, (320, 240), background=Verdict(r))
+    assert (d.fault is None) == clears and d.resumed == int(clears)
+    if clears:
+        assert d.anchor == pytest.approx(0.5 * DEG) and d.trusted
+
+
 @pytest.mark.parametrize("offset_deg", [0.1, 2.0])
 def test_a_background_still_as_a_late_image_would_be_holds_the_chase_and_names_nothing(offset_deg):
     """A head trusted in pursuit whose background reads still where a late image would too (Verdict.late: the motor's
