@@ -194,7 +194,8 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
     m = match(master, slave, at, params)
     d = m.decision
     y, reach = master.shape[0] // 2 if at is None else at[1], m.window // 2 + params.vsearch + 1
-    band = slice(max(0, y - reach), y + reach + 1)  # the rows the match read (their digests, the background's)
+    band = slice(max(0, y - reach), y + reach + 1)  # the rows the match read (the background's)
+    base = params.window // 2 + params.vsearch + 1  # the digests': the base window's (a grown one resets no run)
     x = master.shape[1] // 2 if at is None else at[0]
     t_told = min(t_slave + (lies.f.late or 0.0), times[2])  # the exposure the loop is told (`late`: a later one)
     pan = history.at(t_told)  # the slave's pan at its exposure, as the encoder reports it
@@ -203,8 +204,8 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
         # the background's verdict, not on a pan told past the motor's newest report (a guess: Frame.pan_guessed)
         scene = controller.scene(t_told, pan, slave[band], focal, x, at) if t_told <= history.t[-1] else None
         target = controller.target(pan, d.offset_px, focal, d.confident, t_s=t_told, t_now=t_now,
-                                   centre_px=x - _cx(rig), slave=digest(slave[band]) or None,
-                                   master=digest(master[band]) or None, fovea=at, textured=has_texture(d, params),
+                                   centre_px=x - _cx(rig), slave=digest(slave, y, base) or None,
+                                   master=digest(master, y, base) or None, fovea=at, textured=has_texture(d, params),
                                    width_px=master.shape[1], background=scene)
     step = Step(frame=frame, t_s=t_master, pan_deg=math.degrees(seen["at_slave"]),
                 truth_pan_deg=math.degrees(rig.truth_pan(t_master)), error_px=rig.error_px(seen["at_master"], t_master),

@@ -121,3 +121,24 @@ def test_make_frame_says_whether_it_clipped_the_master_as_master_clipped_does(cl
     make_frame(m, s, rig="r", frame=1, pan_rad=0.0, focal_px=100.0, params=params, plan=[["w", 0, 10]],
                clipped=got)
     assert got == [retina.master_clipped(m, s, y, params.window, params)] == [clips]
+
+
+def test_a_frames_digests_are_of_the_base_windows_rows_whatever_window_it_grew_to():
+    """The digests the frozen-camera check compares (vergence.head.frozen) are over the base window's band: a window
+    that grows while the fovea is undecided (15 -> 31 -> 47) reads more rows, but a repeated image keeps its digest, so
+    the run of repeats it counts goes on (2026-12-05: through a ROS 2 camera frozen at a fovea on an edge, each growth
+    restarted it, named after 0.61-0.66 s; now 0.34). Rows outside that band change nothing; one inside does."""
+    from vergence.stages.frames import make_frame
+
+    m, s = textured()
+    params = Params()
+    frames = [make_frame(m, s, rig="r", frame=1, pan_rad=0.0, focal_px=500.0, params=params, plan=[], window=w)
+              for w in (params.window, 31, 47)]
+    assert len({(f.master_digest, f.slave_digest) for f in frames}) == 1 and frames[0].slave_digest not in (0, None)
+    y, reach = m.shape[0] // 2, params.window // 2 + params.vsearch + 1
+    far, near = s.copy(), s.copy()
+    far[y + reach + 2] ^= 1
+    near[y + reach] ^= 1
+    digests = [make_frame(m, img, rig="r", frame=1, pan_rad=0.0, focal_px=500.0, params=params, plan=[],
+                          window=47).slave_digest for img in (far, near)]
+    assert digests[0] == frames[0].slave_digest and digests[1] != frames[0].slave_digest
