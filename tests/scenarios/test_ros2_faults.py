@@ -1,0 +1,145 @@
+"""Issue #35 on a ROS 2 head, as its Why measured it: the test's own rclpy node plays a stereo camera whose slave
+driver freezes (repeats its last image with fresh stamps, a common USB/V4L2 fault) while a look_at asks the head for
+a move; `vergence up --source ros2:LEFT,RIGHT --ros2` with the sim actuator. The slave never runs off (before issue
+#35 it ran to its 45 degree limit in under a second and stayed there), the reducer's status and /diagnostics name
+the fault at ERROR, and once the camera thaws the loop finds the look_at point by itself."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import rosnode
+from procs import Procs, free_port, wait_for
+from vergence.wire.messages import Decision, MotorState
+from vergence.wire.status import decode_status
+
+pytestmark = pytest.mark.slow
+
+F, CX = 256.0, 160
+
+
+class Freezable:
+    """render(pan) of a rig, whose slave image repeats byte for byte while `frozen` is set (the master goes on)."""
+
+    def __init__(self, rig):
+        self.rig, self.frozen, self.last = rig, threading.Event(), None
+
+    def __call__(self, pan: float):
+        master, slave = self.rig.render(pan, 0.0)
+        if self.frozen.is_set() and self.last is not None:
+            return master, self.last
+        self.last = slave
+        return master, slave
+
+
+@pytest.mark.parametrize("look_px,finds", [((40, 120), True), ((88, 150), False)], ids=["background", "edge"])
+def test_a_frozen_ros2_slave_camera_while_look_at_asks_a_move_is_named_held_and_found_again(tmp_path, monkeypatch,
+                                                                                            look_px, finds):
+    """A still target 0.3 m wide 0.55 m ahead (its own texture, seed 7; master columns 90-230, rows 50-190) before a
+    background 2.5 m away, f 256 px, sensor noise 1.5; 1 s after converging on the target, the slave camera freezes
+    and a look_at asks for a background point 5.2 deg of pan away (22 px): well off the target, or 2 px off its
+    edge, where the fovea's window holds both and the network abstains. The Must of issue #35 for a frozen slave:
+    named `slave_frozen` within 0.5 s, at ERROR on /diagnostics; the slave never past the pan the last consistent
+    decision asked for (the look_at point's: the frozen image's first decision there is true), never near a limit;
+    the fault cleared no later than 2 s after the 2 s freeze ends (at the edge by the probes' background: the fovea
+    decides nothing there) and, off the edge, converged on the look_at point (five converged decisions in a row, the
+    slave within 1 px of its truth) by then. At the edge it is not found reliably after that (in some runs after 1 s,
+    in others the search swept the range for 5-9 s: the window grown while undecided straddles both depths;
+    docs/FAULTS.md, not done)."""
+    rosnode.require()
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from geometry_msgs.msg import PointStamped
+    from sensor_msgs.msg import JointState
+    from vergence.ros2.convert import pan_at as interpolate
+    from vergence.sim.moving import Head, MovingRig
+
+    domain = rosnode.ros_env(monkeypatch)
+    rig = MovingRig("still:z=0.55", Head(0.06, F, (320, 240)), target_m=0.3, bg_m=2.5, noise=1.5, seed=7)
+    truth_look = rig.truth_at(*look_px)
+    with Procs(tmp_path) as P, rosnode.TestNode(domain) as t:
+        P.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        joints = t.collect(JointState, f"/vergence/{P.rig}/joint_states")
+        diags = t.collect(DiagnosticArray, "/diagnostics")
+
+        def pan_at(t_ns: int) -> float | None:
+            with t.cond:
+                states = [(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m.position[0]) for _, m in joints[-20:]]
+            if not states or t_ns < states[0][0]:
+                return None
+            return interpolate(states, t_ns, 0.0)
+
+        render = Freezable(rig)
+        cam = rosnode.StereoCamera(t, render, pan_at, F, hz=30.0)
+        try:
+            P.start("up", "up", "--listen", P.endpoint, "--source", f"ros2:{cam.LEFT},{cam.RIGHT}:wait=60", "--ros2",
+                    "--workers", "2", "--rate", "0", "--no-standby", connect=False)
+            s = P.session(60)
+            states = P.collect(s, P.key("motor_state"))
+            statuses = P.collect(s, P.key("status/reducer/*"))
+            decisions = P.collect(s, P.key("decision"))
+
+            def pans(after_ns: int = 0) -> list[tuple[int, float]]:
+                return [(m.t_ns, m.pan_rad) for _, b, _ in states.snapshot()
+                        if (m := MotorState.from_bytes(b)).t_ns >= after_ns]
+
+            def faults(after_ns: int = 0) -> list[tuple[int, object]]:
+                return [(a, decode_status(b).fault()) for a, b, _ in statuses.snapshot() if a >= after_ns]
+
+            decisions.wait(1, 90)
+            wait_for(lambda: pans() and abs(rig.error_px(pans()[-1][1])) <= 1.0, 10, "converged on the target",
+                     logs=P.logs)
+            t_conv = time.time_ns()
+            wait_for(lambda: time.time_ns() - t_conv >= 1e9, 5, "1 s on the target", interval=0.05)
+            limits = MotorState.from_bytes(states.snapshot()[-1][1])
+            limit = min(-limits.min_rad, limits.max_rad)
+            look = t.publisher(PointStamped, f"/vergence/{P.rig}/look_at", logs=P.logs)
+            z = rig.bg_m
+            target = PointStamped()
+            target.header.frame_id = "left_optical_frame"
+            target.point.x, target.point.y, target.point.z = (look_px[0] - CX) * z / F, (look_px[1] - 120) * z / F, z
+            render.frozen.set()
+            t_freeze = time.time_ns()
+            look.publish(target)
+            named = wait_for(lambda: next((a for a, f in faults(t_freeze) if f and f[0] == "slave_frozen"), None), 5,
+                             "slave_frozen named", logs=P.logs)
+            t.wait_until(lambda: next((d for _, arr in diags for d in arr.status if d.level == DiagnosticStatus.ERROR
+                                       and "slave_frozen" in d.message), None), 10, "slave_frozen at ERROR", P.logs)
+            wait_for(lambda: time.time_ns() - t_freeze >= 2e9, 5, "the 2 s freeze", interval=0.05)
+            render.frozen.clear()
+            t_thaw = time.time_ns()
+            during = [p for _, p in pans(t_freeze)]
+            tol = math.atan(1.0 / F)
+
+            def cleared():
+                return next((a for a, f in faults(t_thaw) if f is None), None)
+
+            def found():
+                """Five converged decisions in a row at the look_at point, the slave within 1 px of its truth (not a
+                search's sweep passing it): the first one's arrival."""
+                ds = [(a, d) for a, b, _ in decisions.snapshot() if a > t_thaw
+                      and ((d := Decision.from_bytes(b)).x, d.y) == look_px][-5:]
+                ps = pans(t_thaw)
+                return (len(ds) == 5 and all(d.converged for _, d in ds) and ps and cleared() is not None
+                        and abs(ps[-1][1] - truth_look) <= tol and ds[0][0])
+
+            t_cleared = wait_for(cleared, 10, "the fault cleared after the thaw", logs=P.logs)
+            t_found = wait_for(found, 10, "converged on the look_at point", logs=P.logs) if finds else None
+        finally:
+            cam.close()
+    start = rig.truth_pan_rad
+    past = max((p - truth_look) * np.sign(truth_look - start) for p in during)
+    print(f"\nnamed {(named - t_freeze) / 1e9:.2f} s after the freeze; pans during it "
+          f"{math.degrees(min(during)):.2f} to {math.degrees(max(during)):.2f} deg (look_at truth "
+          f"{math.degrees(truth_look):.2f}, the target's {math.degrees(start):.2f}): {math.degrees(past):.2f} deg "
+          f"past; cleared {(t_cleared - t_thaw) / 1e9:.2f} s after the thaw"
+          + ("" if t_found is None else f", converged there {(t_found - t_thaw) / 1e9:.2f} s after"))
+    assert (named - t_freeze) / 1e9 <= 0.5
+    assert math.degrees(past) <= 2.0
+    assert max(abs(p) for p in during) < limit - math.radians(5)
+    assert (t_cleared - t_thaw) / 1e9 <= 2.0
+    assert t_found is None or (t_found - t_thaw) / 1e9 <= 2.0
