@@ -12,7 +12,9 @@ of the range first), in steps of STEP_OF_BAND of the angle half the band spans (
 32 degrees: 19-degree steps), so that each stop's band overlaps the last one's; the last stop on each side is the
 limit itself. Every stop is inside the motor's limits (and the Safety bounds each command
 as it bounds every other). At each stop the motor is given ARRIVE_S to get there (within ARRIVED_DEG, by the pan at
-the exposures), then DWELL_S of decisions there; when the sweep is done it starts over.
+the exposures), then DWELL_S of decisions there. A sweep that found nothing goes back to where it began (a fovea the
+slave cannot see, occluded behind a nearer object, has nothing to find: no sweep for ever over the whole range) and
+waits there REST_S, twice that after the next one, up to REST_MAX_S, then sweeps again.
 
 Found. The first confident decision ends the search: the loop takes over from that pan, not yet trusted
 (vergence.head.doubt's leash: the image must follow a first move, which tells a true candidate, whose offset changes
@@ -36,6 +38,7 @@ DWELL_S = 0.2  # the decisions taken at a stop, after it arrived
 STEP_OF_BAND = 0.6  # the sweep's step: this fraction of the angle the band reaches
 MIN_STEP_DEG = 2.0  # a band narrower than this still steps this far
 MARGIN_PX = 16  # the band's reach: half the image width less this (a window's half)
+REST_S, REST_MAX_S = 2.0, 16.0  # after a sweep that found nothing, back where it began this long (doubling), then again
 
 
 class Search:
@@ -55,6 +58,7 @@ class Search:
         self.found = 0
         self.step = math.radians(15.0)
         self._all: list[float] = []  # the whole sweep, to start over from
+        self.centre, self.rest, self.t_rest = 0.0, REST_S, None  # where it began; the next rest; the present one's end
 
     def reset(self) -> None:
         """Forget being lost (a fault began: the doubt holds; or a new target)."""
@@ -63,6 +67,7 @@ class Search:
 
     def _stop(self) -> None:
         self.searching, self.stops, self.goal, self.t_arrived = False, [], None, None
+        self.rest, self.t_rest = REST_S, None
 
     def observe(self, t: float, pan: float, confident: bool, textured: bool, offset_px: float, focal_px: float,
                 width_px: int | None, lo: float, hi: float) -> float | None:
@@ -120,7 +125,7 @@ class Search:
         log.warning("search: no confident match for %.1f s with a textured fovea: searching %d pans in steps of "
                     "%.1f deg from %.2f deg", t - self.t_lost, len(self.stops), math.degrees(self.step),
                     math.degrees(c))
-        self._all = list(self.stops)
+        self._all, self.centre = list(self.stops), c
 
     def _next(self, t: float, pan: float) -> float:
         if self.goal is not None:
@@ -130,8 +135,15 @@ class Search:
                 (self.t_arrived is None and t - self.t_goal >= ARRIVE_S)
             if not done:
                 return self.goal
-        if not self.stops:
-            self.stops = list(self._all)  # the sweep is done: again
+        if not self.stops:  # the sweep is done: back where it began, a while, then again
+            if self.t_rest is None:
+                self.t_rest, self.rest = t + self.rest, min(2 * self.rest, REST_MAX_S)
+                log.warning("search: nothing found in a sweep of %d pans: back at %.2f deg, again in %.0f s",
+                            len(self._all), math.degrees(self.centre), self.t_rest - t)
+            if t < self.t_rest:
+                self.goal = self.centre
+                return self.goal
+            self.stops, self.t_rest = list(self._all), None
         self.goal, self.t_goal, self.t_arrived = self.stops.pop(0), t, None  # (_start made every stop inside)
         return self.goal
 

@@ -13,7 +13,7 @@ import pytest
 import background
 import sweeps
 from vergence.head.control import ControlSettings, Controller
-from vergence.head.search import HELD_S, LOST_S, STEP_OF_BAND, Search
+from vergence.head.search import HELD_S, LOST_S, REST_S, STEP_OF_BAND, Search
 
 DEG = math.pi / 180
 DT = 1 / 60
@@ -42,17 +42,25 @@ def stops(goals) -> list[float]:
     return seen
 
 
-def test_lost_at_a_limit_sweeps_inward_to_the_other_limit_and_starts_over():
+def test_lost_at_a_limit_sweeps_inward_to_the_other_limit_rests_where_it_began_and_starts_over():
+    """A sweep that found nothing goes back where it began and waits REST_S there, then sweeps again, then rests twice
+    as long (before 2026-12-05 it swept on for ever: a look_at on a point the slave cannot see, occluded by a nearer
+    object, swung a ROS 2 head between +-41 deg for as long as it lasted)."""
     s = Search()
-    out = run(s, 45 * DEG, 400)
+    out = run(s, 45 * DEG, 900)
     first = next(t for t, g in out if g is not None)
     assert first == pytest.approx(LOST_S, abs=DT)  # lost after LOST_S of textured, unconfident exposures
     step = STEP_OF_BAND * math.degrees(math.atan((W / 2 - 16) / F))  # 18.78 deg: 0.6 of the band's 31.3
     assert step == pytest.approx(18.78, abs=0.01)
     got = stops(out)
     assert got[:5] == pytest.approx([45 - step, 45 - 2 * step, 45 - 3 * step, 45 - 4 * step, -45], abs=1e-6)
-    assert got[5] == pytest.approx(45 - step)  # the sweep done: again (45 itself is where it was lost)
+    assert got[5:12] == pytest.approx([45, 45 - step, 45 - 2 * step, 45 - 3 * step, 45 - 4 * step, -45, 45], abs=1e-6)
     assert all(-45 <= g <= 45 for g in got) and s.searching and s.searches == 1
+    pairs = list(zip(out, out[1:]))
+    back = [t for (_, g0), (t, g) in pairs if g == 45 * DEG and g0 != 45 * DEG]
+    again = [t for (_, g0), (t, g) in pairs if g0 == 45 * DEG and g == pytest.approx((45 - step) * DEG)]
+    assert len(back) == 3 and len(again) == 2  # 15 s: three sweeps, rests of 2 and 4 s between, the third one's on
+    assert [a - b for a, b in zip(again, back)] == pytest.approx([REST_S, 2 * REST_S], abs=1.5 * DT)
 
 
 def test_first_back_to_the_last_converged_pan_then_about_it_alternating_from_where_it_was():
