@@ -1,8 +1,9 @@
 """Issue #35 on a ROS 2 head, as its Why measured it: the test's own rclpy node plays a stereo camera whose slave
 driver freezes (repeats its last image with fresh stamps, a common USB/V4L2 fault) while a look_at asks the head for
-a move; `vergence up --source ros2:LEFT,RIGHT --ros2` with the sim actuator. The slave never runs off (before issue
-#35 it ran to its 45 degree limit in under a second and stayed there), the reducer's status and /diagnostics name
-the fault at ERROR, and once the camera thaws the loop finds the look_at point by itself."""
+a move, or whose slave turns against its encoder from the start; `vergence up --source ros2:LEFT,RIGHT --ros2` with
+the sim actuator. The slave never runs off (before issue #35 it ran to its 45 degree limit in under a second and
+stayed there), the reducer's status and /diagnostics name the fault at ERROR, and once the camera thaws the loop
+finds the look_at point by itself."""
 
 from __future__ import annotations
 
@@ -156,3 +157,63 @@ def test_a_frozen_ros2_slave_camera_while_look_at_asks_a_move_is_named_held_and_
     assert max(abs(p) for p in during) < limit - math.radians(5)
     assert (t_cleared - t_thaw) / 1e9 <= 2.0
     assert t_found is None or (t_found - t_thaw) / 1e9 <= 2.0
+
+
+def test_a_ros2_camera_turning_against_its_encoder_is_named_within_1_s_and_the_slave_stays_within_3_degrees(
+        tmp_path, monkeypatch):
+    """The issue's second Why: a camera that turns the other way than the encoder says (a motor wired or configured
+    backwards), from the first frame. The test's camera node renders the slave at minus the pan its joint_states say
+    (a target 0.35 m wide at 0.7 m before a background at 3 m, f 256 px, noise 1, seed 11: its own scene). Must:
+    named `reversed` within 1 s of the first decision, at ERROR on /diagnostics, the note saying which setting to
+    flip; |pan - start| never over 3 deg; after it, no command but back to the start pan and probes (within 0.5 deg
+    of it). Before issue #35 such a head ran to its limit from the first frame."""
+    rosnode.require()
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from sensor_msgs.msg import JointState
+    from vergence.ros2.convert import pan_at as interpolate
+    from vergence.sim.moving import Head, MovingRig
+
+    domain = rosnode.ros_env(monkeypatch)
+    rig = MovingRig("still:z=0.7", Head(0.06, F, (320, 240)), target_m=0.35, bg_m=3.0, noise=1.0, seed=11)
+    with Procs(tmp_path) as P, rosnode.TestNode(domain) as t:
+        P.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        joints = t.collect(JointState, f"/vergence/{P.rig}/joint_states")
+        diags = t.collect(DiagnosticArray, "/diagnostics")
+
+        def pan_at(t_ns: int) -> float | None:
+            with t.cond:
+                states = [(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m.position[0]) for _, m in joints[-20:]]
+            if not states or t_ns < states[0][0]:
+                return None
+            return interpolate(states, t_ns, 0.0)
+
+        cam = rosnode.StereoCamera(t, lambda pan: rig.render(-pan, 0.0), pan_at, F, hz=30.0)
+        try:
+            P.start("up", "up", "--listen", P.endpoint, "--source", f"ros2:{cam.LEFT},{cam.RIGHT}:wait=60", "--ros2",
+                    "--workers", "2", "--rate", "0", "--no-standby", connect=False)
+            s = P.session(60)
+            states = P.collect(s, P.key("motor_state"))
+            statuses = P.collect(s, P.key("status/reducer/*"))
+            decisions = P.collect(s, P.key("decision"))
+
+            def pans() -> list[tuple[int, float]]:
+                return [(m.t_ns, m.pan_rad) for _, b, _ in states.snapshot() for m in [MotorState.from_bytes(b)]]
+
+            t_first = decisions.wait(1, 90)[0][0]
+            named, note = wait_for(lambda: next(((a, f[1]) for a, b, _ in statuses.snapshot()
+                                                 if (f := decode_status(b).fault()) and f[0] == "reversed"), None),
+                                   5, "reversed named", logs=P.logs)
+            t.wait_until(lambda: next((d for _, arr in diags for d in arr.status if d.level == DiagnosticStatus.ERROR
+                                       and "reversed" in d.message), None), 10, "reversed at ERROR", P.logs)
+            wait_for(lambda: time.time_ns() - named >= 2.5e9, 5, "2.5 s more", interval=0.05)  # two probes at least
+            got = pans()
+        finally:
+            cam.close()
+    after = [p for ts, p in got if ts >= named + 300_000_000]
+    print(f"\nreversed named {(named - t_first) / 1e9:.2f} s after the first decision; the slave within "
+          f"{math.degrees(max(abs(p) for _, p in got)):.2f} deg of its start, {math.degrees(max(map(abs, after))):.2f}"
+          f" deg from 0.3 s after ({len(after)} states)")
+    assert (named - t_first) / 1e9 <= 1.0
+    assert "flip [actuator.motor] direction" in note
+    assert max(abs(p) for _, p in got) <= math.radians(3.0)
+    assert after and max(map(abs, after)) <= math.radians(0.5 + 360 / 4096)  # a probe, to the sim motor's tick
