@@ -1,23 +1,23 @@
-"""Whether the slave's image follows the motor (issue #35): every decision is checked against the motor's own
-motion, and a measurement that the motion cannot explain is a fault to name and hold on, never a target to chase.
+"""Whether the slave's image follows the motor (issue #35): every decision is checked against the motor's own motion,
+and a measurement that the motion cannot explain is a fault to name and hold on, never a target to chase.
 
-The check. A confident decision at the slave's exposure t says the target's pan is z = pan + a (a: the angle of
-its offset at the frame's focal length). Between a reference decision i and a newer one j the image moved by
-m = -(a_j - a_i) while the motor moved p = pan_j - pan_i; if the image follows, m = p less the target's own
-motion, predicted from the target's rate as learnt here (from consistent decisions while tracking or while the
-motor moved slowly: a correction's image could teach the motor's own motion): r = (m + rate dt) / p is 1. Only
-where the motor moved faster than any target (JUDGE_RATE_DEG_S beyond the learnt rate) and at least MIN_MOVE_DEG,
-with the pair's slack (the target's acceleration, the offset's and the encoder's noise) small against it, must the
-image show most of that motion, whatever the target did: such a pair is judged. r below FOLLOWS_MIN says the image
-did not follow (near 0: a frozen slave camera or a slipping coupling; near -1: a camera turning the other way than
-the encoder says), r in FOLLOWS_MIN..FOLLOWS_MAX that it did (r away from 1: the focal length is off by r); two that
-did not, in a row and agreeing, name the fault ("reversed" only where r is at most 2 x REVERSED_MAX). A pair short
-of the motor at the learnt rate but not at the target's latest (the rate its last consistent pair showed: the learnt
-rate lags a target that turns) is a doubt: it holds and probes as a fail does, and names nothing. Pursuit, slow moves
-and jumps of the target are never judged. A byte-identical slave image after the motor moved IDENTICAL_MOVE_DEG is a
-frozen camera outright; a background that did not move with it (vergence.head.scenery: r under STILL_MAX, no target
-rate in it) is a pair that did not follow, in pursuit too; one a late image would show too (Verdict.late) is a doubt
-where the offset is under LEASH_DEG: it holds the chase a slipping camera starts (a correction's, not).
+The check. A confident decision at the slave's exposure t says the target's pan is z = pan + a (a: the angle of its
+offset at the frame's focal length). Between a reference decision i and a newer one j the image moved by m = -(a_j -
+a_i) while the motor moved p = pan_j - pan_i; if the image follows, m = p less the target's own motion, predicted from
+the target's rate as learnt here (from consistent decisions while tracking or while the motor moved slowly: a
+correction's image could teach the motor's own motion): r = (m + rate dt) / p is 1. Only where the motor moved faster
+than any target (JUDGE_RATE_DEG_S beyond the learnt rate) and at least MIN_MOVE_DEG, with the pair's slack (the target's
+acceleration, the offset's and the encoder's noise) small against it, must the image show most of that motion, whatever
+the target did: such a pair is judged. r below FOLLOWS_MIN says the image did not follow (near 0: a frozen slave camera
+or a slipping coupling; near -1: a camera turning the other way than the encoder says), r in FOLLOWS_MIN..FOLLOWS_MAX
+that it did (r away from 1: the focal length is off by r); two that did not, in a row and agreeing, name the fault
+("reversed" only where r is at most 2 x REVERSED_MAX and no lag explains it: Lag.unless_late). A pair short of the motor
+at the learnt rate but not at the target's latest (the rate its last consistent pair showed: the learnt rate lags a
+target that turns) is a doubt: it holds and probes as a fail does, and names nothing. Pursuit, slow moves and jumps of
+the target are never judged. A byte-identical slave image after the motor moved IDENTICAL_MOVE_DEG is a frozen camera
+outright; a background that did not move with it (vergence.head.scenery: r under STILL_MAX, no target rate in it) is a
+pair that did not follow, in pursuit too; one a late image would show too (Verdict.late) is a doubt where the offset is
+under LEASH_DEG: it holds the chase a slipping camera starts (a correction's, not).
 
 The leash. Until the image has been seen to follow (r in FOLLOWS_MIN..FOLLOWS_MAX; at the start, after a fault),
 no command goes further than UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there for
@@ -213,7 +213,8 @@ class Doubt:
             # learnt rate lags a target that turns; that one is learnt only where the motor could not teach it)
             if verdict(r) is not None:
                 vetoed = verdict((moved - pred + self.trend * dt) / p) is None
-                self._fail(j.t, "doubt" if vetoed else fail_kind(r), f"r = {r:.2f} over {math.degrees(p):.2f} deg")
+                kind = "doubt" if vetoed else self.lag.unless_late(fail_kind(r), i.t, j.t, moved)
+                self._fail(j.t, kind, f"r = {r:.2f} over {math.degrees(p):.2f} deg")
                 return
             if r <= FOLLOWS_MAX:
                 self._followed(j, r, slack <= PRECISE * abs(p))
@@ -228,8 +229,7 @@ class Doubt:
             self._consistent(i, j)  # the target moved by itself (or jumped), or the motor was no faster than it
 
     def _followed(self, j: _Seen, r: float, precise: bool) -> None:
-        """A decisive pair whose image followed the motor: j's pan is verified (and a precise one's r counts
-        towards the focal length's ratio)."""
+        """A decisive pair that followed: j's pan is verified (a precise one's r counts toward the focal ratio)."""
         self.fails.clear()
         if precise:
             self.focal.pair(r)
@@ -398,8 +398,7 @@ class Doubt:
         return pan
 
     def _probe(self, pan: float, away: float, t_now: float) -> float:
-        """A probe PROBE_DEG from `pan` against `away` (toward the anchor), whose image shows whether it follows
-        (observe: _probed). Its goal."""
+        """A probe PROBE_DEG from `pan` toward the anchor (against `away`), read in _probed. Its goal."""
         self.probe_ref, self.t_bound = self.last_seen, t_now
         self.probe_goal = pan - math.copysign(math.radians(PROBE_DEG), away)
         return self.probe_goal
@@ -427,6 +426,7 @@ class Doubt:
         else:
             doubt = verdict(rt) is None and rt <= FOLLOWS_MAX
             kind = fail_kind(max(r, -(now.a - ref.a) / p))  # (reversed only where a still target's reading says so too)
+            kind = self.lag.unless_late(kind, ref.t, now.t, -(now.a - ref.a))
             self._fail(t, "doubt" if doubt else kind, f"a probe moved the image r = {r:.2f}")
 
     def _during_fault(self, pan: float, t_now: float) -> float | None:

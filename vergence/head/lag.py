@@ -103,6 +103,19 @@ class Lag:
             return None
         return lags, self._pan_at(tk[None, :] - lags[:, None]) - self._pan_at(t_ref - lags)[:, None]
 
+    def unless_late(self, kind: str, t_i: float, t_j: float, moved: float) -> str:
+        """A pair's fail kind: "frozen" for a "reversed" one where the motor's motion a lag (2 LAG_STEP_S..MAX_LAG_S)
+        earlier explains the image's motion `moved` between t_i and t_j as following it (r in FOLLOWS_MIN..FOLLOWS_MAX,
+        over MOVED_DEG or more): a late image of an earlier turn, not a camera turning the other way (whose advice,
+        flip the direction, would break a good head). Before the first pan kept, the motor is taken at that pan."""
+        if kind != "reversed" or len(self.pans) < 2:
+            return kind
+        lags = np.arange(2 * LAG_STEP_S, MAX_LAG_S + 1e-9, LAG_STEP_S)
+        p = self._pan_at(t_j - lags) - self._pan_at(t_i - lags)
+        big = np.abs(p) >= math.radians(MOVED_DEG)
+        r = np.divide(moved, p, out=np.zeros_like(p), where=big)
+        return "frozen" if bool((big & (r >= FOLLOWS_MIN) & (r <= FOLLOWS_MAX)).any()) else kind
+
     def saw(self, t: float, a: float) -> None:
         """A confident decision's offset (t as shift() returned it); a fit when due."""
         self.seen.append((t + (self.late_s or 0.0), a))
