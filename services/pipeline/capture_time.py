@@ -111,11 +111,14 @@ class PanLookup:
         return self.seen[t_ns]
 
     def __call__(self, t_ns: int) -> float:
-        """The pan to render the slave at (where the history cannot tell, its newest: the frame is stale)."""
+        """The pan to render the slave at (where the history cannot tell, its newest: the frame is stale; before its
+        oldest state, that one: the motor was there, and a camera's image can be older than the motor's first report
+        the capture heard: rendered at the newest, a late camera's first frames showed a move before it was made)."""
         pan = self._at(t_ns)
         if pan is None:
             with self.lock:
-                pan = self.history.newest()
+                h = self.history
+                pan = h.pan[0] if len(h) and t_ns / 1e9 < h.t[0] else h.newest()
         return pan if pan is not None else self.source.start_pan_rad
 
     def frame(self, t_slave_ns: int) -> tuple[float, bool, bool]:

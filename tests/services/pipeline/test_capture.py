@@ -50,7 +50,9 @@ def test_a_frame_gets_the_slave_pan_at_its_exposure_or_none_where_the_history_ca
         h.add(t, p)
     look = PanLookup(h, lock, Source())
     assert look.frame(1010 * MS) == (pytest.approx(0.11), False, False)
-    assert look.frame(500 * MS) == (pytest.approx(0.14), True, False)  # older than the history: stale, its newest
+    # older than the history: stale, its oldest (the motor was there; its newest rendered a late camera's first frames
+    # at a move not yet made)
+    assert look.frame(500 * MS) == (pytest.approx(0.10), True, False)
     # past the newest state: extrapolated at the last rate, a guess (no background verdict is read on it) ...
     assert look.frame(1060 * MS) == (pytest.approx(0.16), False, True)
     h.add(1.08, 0.13)  # ... even once the motor has told a turn since: the frame carries the pan it was rendered at
