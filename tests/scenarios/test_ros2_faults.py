@@ -25,22 +25,27 @@ F, CX = 256.0, 160
 
 
 class Freezable:
-    """render(pan) of a rig, whose slave image repeats byte for byte while `frozen` is set (the master goes on)."""
+    """render(pan) of a rig, whose slave image, while `frozen` is set, repeats byte for byte ("freeze": the master goes
+    on) or is rendered at the pan it had when it was set, with fresh noise ("slip": the coupling slips, the encoder
+    moves, the camera does not)."""
 
-    def __init__(self, rig):
-        self.rig, self.frozen, self.last = rig, threading.Event(), None
+    def __init__(self, rig, lie: str = "freeze"):
+        self.rig, self.lie, self.frozen, self.last, self.held = rig, lie, threading.Event(), None, None
 
     def __call__(self, pan: float):
-        master, slave = self.rig.render(pan, 0.0)
-        if self.frozen.is_set() and self.last is not None:
+        if not self.frozen.is_set():
+            self.held = pan
+        master, slave = self.rig.render(pan if self.lie == "freeze" else self.held, 0.0)
+        if self.lie == "freeze" and self.frozen.is_set() and self.last is not None:
             return master, self.last
         self.last = slave
         return master, slave
 
 
-@pytest.mark.parametrize("look_px,finds", [((40, 120), True), ((88, 150), False)], ids=["background", "edge"])
+@pytest.mark.parametrize("lie,look_px,finds", [("freeze", (40, 120), True), ("freeze", (88, 150), False),
+                                              ("slip", (40, 120), True)], ids=["background", "edge", "slip"])
 def test_a_frozen_ros2_slave_camera_while_look_at_asks_a_move_is_named_held_and_found_again(tmp_path, monkeypatch,
-                                                                                            look_px, finds):
+                                                                                            lie, look_px, finds):
     """A still target 0.3 m wide 0.55 m ahead (its own texture, seed 7; master columns 90-230, rows 50-190) before a
     background 2.5 m away, f 256 px, sensor noise 1.5; 1 s after converging on the target, the slave camera freezes
     and a look_at asks for a background point 5.2 deg of pan away (22 px): well off the target, or 2 px off its
@@ -51,7 +56,9 @@ def test_a_frozen_ros2_slave_camera_while_look_at_asks_a_move_is_named_held_and_
     decides nothing there) and, off the edge, converged on the look_at point (five converged decisions in a row, the
     slave within 1 px of its truth) by then. The edge point is occluded in the slave's view (the near target hides
     the 22 px left of its edge there): nothing can find it; the search sweeps once and goes back to the pan it last
-    converged at, and rests there (before, it swept +-41 deg for as long as the look_at lasted)."""
+    converged at, and rests there (before, it swept +-41 deg for as long as the look_at lasted). "slip": the same
+    Must with the coupling slipping instead (the slave rendered at the pan it had when the slip began, with fresh
+    noise: no repeated bytes to tell it)."""
     rosnode.require()
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     from geometry_msgs.msg import PointStamped
@@ -74,7 +81,7 @@ def test_a_frozen_ros2_slave_camera_while_look_at_asks_a_move_is_named_held_and_
                 return None
             return interpolate(states, t_ns, 0.0)
 
-        render = Freezable(rig)
+        render = Freezable(rig, lie)
         cam = rosnode.StereoCamera(t, render, pan_at, F, hz=30.0)
         try:
             P.start("up", "up", "--listen", P.endpoint, "--source", f"ros2:{cam.LEFT},{cam.RIGHT}:wait=60", "--ros2",
