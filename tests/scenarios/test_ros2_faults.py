@@ -1,7 +1,8 @@
 """Issue #35 on a ROS 2 head, as its Why measured it: the test's own rclpy node plays a stereo camera whose slave
 driver freezes (repeats its last image with fresh stamps, a common USB/V4L2 fault) while a look_at asks the head for
-a move, or whose slave turns against its encoder from the start; `vergence up --source ros2:LEFT,RIGHT --ros2` with
-the sim actuator. The slave never runs off (before issue #35 it ran to its 45 degree limit in under a second and
+a move, or slips, or turns against its encoder from the start, or lags its joint by a second, and a joint that jams;
+`vergence up --source ros2:LEFT,RIGHT --ros2` with the sim actuator (the jam: `--driver ros2` against a forward
+command controller). The slave never runs off (before issue #35 it ran to its 45 degree limit in under a second and
 stayed there), the reducer's status and /diagnostics name the fault at ERROR, and once the camera thaws the loop
 finds the look_at point by itself."""
 
@@ -276,3 +277,65 @@ def test_a_ros2_slave_camera_a_second_behind_its_joint_is_held_not_chased(tmp_pa
     assert max(abs(p) for _, p in got) <= math.radians(2.9 + 360 / 4096)
     assert after and max(map(abs, after)) <= math.radians(0.5 + 360 / 4096)
     assert last is not None and last[0] == "slave_frozen"  # held, not chased
+
+
+def test_a_jammed_ros2_joint_is_named_stalled_within_1_s_probed_and_resumed(tmp_path, monkeypatch):
+    """A stall through the ROS 2 driver: `--driver ros2` against the test's forward command controller (its joint
+    heads for each command at 170 deg/s and says where it is on /joint_states, truthfully). Converged on the target of
+    the first test's scene, the joint jams (speed 0) and a fixate asks for the background point 5.2 deg away. Must:
+    named `stalled` within 1 s; from then on the commands the joint receives are probes, within 0.5 deg of where it
+    stands and at most about one a second; 3 s later the joint is freed: a probe moves it, the fault clears by itself
+    and the loop converges on the point (five converged decisions there within 3 s)."""
+    rosnode.require()
+    from vergence.sim.moving import Head, MovingRig
+    from vergence.wire.messages import Fixate
+
+    domain = rosnode.ros_env(monkeypatch)
+    rig = MovingRig("still:z=0.55", Head(0.06, F, (320, 240)), target_m=0.3, bg_m=2.5, noise=1.5, seed=7)
+    look_px = (40, 120)
+    with Procs(tmp_path) as P, rosnode.TestNode(domain) as t:
+        P.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        ctl = rosnode.ForwardController(t)
+        cam = rosnode.StereoCamera(t, lambda p: rig.render(p, 0.0), ctl.pan_at, F, hz=30.0)
+        try:
+            P.start("up", "up", "--listen", P.endpoint, "--source", f"ros2:{cam.LEFT},{cam.RIGHT}:wait=60", "--ros2",
+                    "--driver", "ros2", "--port", "forward_position_controller:joint=slave_pan", "--workers", "2",
+                    "--rate", "0", "--no-standby", connect=False)
+            s = P.session(60)
+            statuses = P.collect(s, P.key("status/reducer/*"))
+            decisions = P.collect(s, P.key("decision"))
+            wait_for(lambda: abs(rig.error_px(ctl.position())) <= 1.0 and len(decisions.snapshot()) > 0, 90,
+                     "converged on the target", logs=P.logs)
+            t_conv = time.time_ns()
+            wait_for(lambda: time.time_ns() - t_conv >= 1e9, 5, "1 s on the target", interval=0.05)
+            stand = ctl.position()
+            ctl.speed = 0.0  # jammed: its joint states still say where it is
+            t_jam = time.time_ns()
+            s.put(P.key("fixate"), Fixate(x=look_px[0], y=look_px[1], t_ns=t_jam).to_bytes())
+
+            def faults(after_ns: int) -> list[tuple[int, object]]:
+                return [(a, decode_status(b).fault()) for a, b, _ in statuses.snapshot() if a >= after_ns]
+
+            named = wait_for(lambda: next((a for a, f in faults(t_jam) if f and f[0] == "stalled"), None), 5,
+                             "stalled named", logs=P.logs)
+            wait_for(lambda: time.time_ns() - t_jam >= 3e9, 5, "3 s jammed", interval=0.05)
+            held = [(ts, g) for ts, g in ctl.commands if ts >= named]
+            ctl.speed = 3.0
+            t_free = time.time_ns()
+            wait_for(lambda: any(f is None for _, f in faults(t_free)), 5, "the fault cleared", logs=P.logs)
+            wait_for(lambda: sum(d.converged for a, b, _ in decisions.snapshot() if a > t_free
+                                 and ((d := Decision.from_bytes(b)).x, d.y) == look_px) >= 5, 5,
+                     "converged on the point", logs=P.logs)
+            t_found = time.time_ns()
+        finally:
+            cam.close()
+            ctl.close()
+    probes = [g for _, g in held]
+    moves = [ts for (ts, g), (_, g0) in zip(held[1:], held) if g != g0]
+    print(f"\nstalled named {(named - t_jam) / 1e9:.2f} s after the jam; {len(held)} commands held, "
+          f"{math.degrees(max(abs(g - stand) for g in probes)):.2f} deg from where it stood at most, "
+          f"{len(moves)} changes of goal in {(t_free - named) / 1e9:.1f} s; converged there "
+          f"{(t_found - t_free) / 1e9:.2f} s after it was freed")
+    assert (named - t_jam) / 1e9 <= 1.0
+    assert probes and max(abs(g - stand) for g in probes) <= math.radians(0.5 + 360 / 4096)
+    assert len(moves) <= 2 * (t_free - named) / 1e9 + 1  # a probe and its return, about one a second
