@@ -323,7 +323,7 @@ class Doubt:
             follows = not (frozen or background.late) and FOLLOWS_MIN <= background.r <= FOLLOWS_MAX
             self.bg_follows = self.bg_follows + 1 if follows else 0
         if a is None or not math.isfinite(a):
-            if self.bg_follows >= BG_FOLLOWS:
+            if background is not None and self.bg_follows >= BG_FOLLOWS:
                 self._clear(t, pan, f"a probe moved the background r = {background.r:.2f}, the fovea undecided")
             return
         if abs(away) < math.radians(SAME_PAN_DEG):

@@ -236,6 +236,18 @@ def test_a_fault_whose_fovea_decides_nothing_is_cleared_by_its_probes_background
         assert d.anchor == pytest.approx(0.5 * DEG) and d.trusted
 
 
+def test_background_verdicts_that_followed_under_a_decided_fovea_then_a_frame_with_neither_clear_nothing():
+    """Two verdicts that followed while the fovea decided (read there, not from the background), then an undecided
+    frame with no verdict: nothing clears and nothing fails (a frame without a verdict was read as one)."""
+    d = Doubt()
+    feed(d, [(0, 3, 1), (0.3, 3, 2), (1.2, 3, 3), (2.0, 3, 4)])
+    t0 = 0.2
+    for k, r in enumerate([1.05, 1.04]):
+        d.observe(t0 + k * DT, 0.0, 3 * DEG, 10 + k, None, (320, 240), background=Verdict(r))
+    assert d.observe(t0 + 2 * DT, 0.0, None, 12, None, (320, 240), background=None) is Fault.SLAVE_FROZEN
+    assert d.resumed == 0
+
+
 @pytest.mark.parametrize("offset_deg", [0.1, 2.0])
 def test_a_background_still_as_a_late_image_would_be_holds_the_chase_and_names_nothing(offset_deg):
     """A head trusted in pursuit whose background reads still where a late image would too (Verdict.late: the motor's
