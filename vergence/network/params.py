@@ -117,6 +117,11 @@ class Params:
         growing in proportion with the dynamic window (a grown window is there for its outer pixels)."""
         return self.support_radius * window / self.window
 
+    def band_reach(self, window: int | None = None) -> int:
+        """How many rows each side of the fovea's a frame reads for a window of this size (default the base one): the
+        window's half, the vertical search and the Sobel kernels' one-row margin."""
+        return (self.window if window is None else window) // 2 + self.vsearch + 1
+
     def windows(self) -> list[int]:
         """The dynamic window's sizes, smallest first: window, window + WINDOW_STEP, ... up to max_window (just
         window when max_window is 0). vergence.match() tries them in turn; the capture's WindowControl moves

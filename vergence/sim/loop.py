@@ -193,9 +193,9 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
     master, slave = lies.images(t_master, at, *_band(rig, shown, at, params))
     m = match(master, slave, at, params)
     d = m.decision
-    y, reach = master.shape[0] // 2 if at is None else at[1], m.window // 2 + params.vsearch + 1
+    y, reach = master.shape[0] // 2 if at is None else at[1], params.band_reach(m.window)
     band = slice(max(0, y - reach), y + reach + 1)  # the rows the match read (the background's)
-    base = params.window // 2 + params.vsearch + 1  # the digests': the base window's (a grown one resets no run)
+    base = params.band_reach()  # the digests': the base window's (a grown one resets no run)
     x = master.shape[1] // 2 if at is None else at[0]
     t_told = min(t_slave + (lies.f.late or 0.0), times[2])  # the exposure the loop is told (`late`: a later one)
     pan = history.at(t_told)  # the slave's pan at its exposure, as the encoder reports it
@@ -227,7 +227,7 @@ def _band(rig, seen: dict, at, params: Params) -> tuple[np.ndarray, np.ndarray]:
         return expose(rig, seen["master_t"], seen["slave"])
     w, h = rig.size
     y = h // 2 if at is None else at[1]
-    margin = max(params.windows()) // 2 + params.vsearch + 1
+    margin = params.band_reach(max(params.windows()))
     y0, y1 = max(0, y - margin), min(h, y + margin + 1)
     band = expose(rig, seen["master_t"], seen["slave"], Region.band(w, y0, y1))
     out = np.zeros((2, h, w), np.uint8)

@@ -55,7 +55,7 @@ def make_frame(master: np.ndarray, slave: np.ndarray, *, rig: str, frame: int, p
                                                  params.lr_check, params.clip_master and clip)
     if clipped is not None:
         clipped.append(lims is not None)
-    reach = params.window // 2 + params.vsearch + 1  # the base window's band (a grown one's too), its Sobel margin
+    reach = params.band_reach()  # the digests': the base window's band (within a grown one's)
     return Frame(rig=rig, frame=frame, t_capture_ns=t_capture_ns, pan_rad=float(pan_rad), width=wd, height=h,
                  x=x, y=y, window=w, vsearch=params.vsearch, focal_px=float(focal_px), fovea=fovea.tobytes(),
                  band=band.tobytes(), plan=plan, circular=params.circular, support=params.support,
