@@ -11,10 +11,9 @@ kernels, OpenCV, zenoh): services/ops/launch.py, Proc(fork=True); services/runti
 
 Supervised: a child that exits (the router too) is started again after a back-off ([supervise] restart_s, 0.2 s,
 doubled at each quick death up to restart_max_s, 5 s; back to restart_s once it has run 10 s), with one log line
-per restart and the counts;
-the reducer and the capture, slow to start, each have a standby (a second process that has imported and
-warmed up and waits in session.open_session) that takes over the moment its child dies. A child that exits
-with 2 at its first start (bad options or settings) stops everything instead.
+per restart and the counts; the reducer and the capture, slow to start, each have a standby (a second process that
+has imported and warmed up and waits in session.open_session) that takes over the moment its child dies. A child
+that exits with 2 at its first start (bad options or settings) stops everything instead.
 
 Liveness by heartbeat, not by exit (issue #29): each child and standby beats on a pipe of its own from a
 thread that its work cannot starve (services/runtime/heartbeat.py). One silent for longer than [supervise]
@@ -43,7 +42,7 @@ from vergence.config import Settings, SuperviseSettings, load
 from vergence.motors import DRIVERS, check_driver
 from vergence.io.sources import SourceError, check_source
 
-from services.runtime import heartbeat, session, warm
+from services.runtime import heartbeat, session, wake, warm
 from services.runtime.args import number, whole
 from services.ops.launch import GRACE_S, Proc, accepts, vergence, wait_listening
 
@@ -408,6 +407,7 @@ def compile_first(stop: session.Stop) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     settings = load(args.config)
+    wake.request_us(os.environ.get(wake.ENV))  # a bad VERGENCE_CPU_WAKE_US stops here, as a bad setting: exit 2
     rig = args.rig or settings.rig
     why = check(args, settings)
     if why is not None:

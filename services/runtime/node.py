@@ -10,7 +10,8 @@ is mostly its job:
 
 Entering opens the session (session.open_session: a SIGINT/SIGTERM before a router answers exits cleanly;
 past `timeout` seconds without one, session.NoRouter, which `vergence` prints as one line, exit 1: every
-client passes its wait) and declares the status publisher. The id is
+client passes its wait) and declares the status publisher. The loop's roles (capture, worker, reducer, actuator) also
+ask the kernel for short wake-ups while the block runs (services/runtime/wake.py: a PM QoS request). The id is
 session.alive_key's (<name or host>-<pid>); the token is vergence/<rig>/alive/<role>/<id>; the status, JSON of
 health.Health.status() plus fields(), goes out on vergence/<rig>/status/<role>/<id> every STATUS_S (run_status,
 or tick() from the service's own loop), and PROMPT_S after a bad message was counted (Health.news): a forged or
@@ -35,7 +36,7 @@ import zenoh
 
 from vergence.wire import keys
 
-from services.runtime import heartbeat, session
+from services.runtime import heartbeat, session, wake
 from services.runtime.health import Health
 
 STATUS_S = 1.0
@@ -61,16 +62,24 @@ class Node:
         self._wake: list[str] = []
         self._threads: list[threading.Thread] = []
         self._token = None
+        self._cpu = wake.Hold()  # the loop's roles: short wake-ups asked of the kernel while the block runs
         self._next_status = self._last_status = 0.0
 
     # -- the block --------------------------------------------------------------------------------------------
 
     def __enter__(self) -> Node:
-        self.session = session.open_session(self.conf, timeout=self.timeout)
+        if self.role in wake.ROLES:
+            self._cpu = wake.Hold.open()
+        try:
+            self.session = session.open_session(self.conf, timeout=self.timeout)
+        except BaseException:
+            self._cpu.close()
+            raise
         try:
             self._status = self.session.declare_publisher(keys.status(self.rig, self.role, self.ident))
         except BaseException:
             self.session.close()
+            self._cpu.close()
             raise
         self._last_status = time.monotonic()
         self._next_status = self._last_status + STATUS_S
@@ -95,6 +104,7 @@ class Node:
                          self.ident, self.health.counters, self.health.bad, final)
         finally:
             s.close()
+            self._cpu.close()
 
     # -- declarations -----------------------------------------------------------------------------------------
 

@@ -1,0 +1,76 @@
+"""The loop's processes ask the kernel for short wake-ups while they run (issue #33): a PM QoS request on
+/dev/cpu_dma_latency, the one real-time tools (cyclictest, tuned's latency profiles) hold, which keeps every CPU out
+of the idle states slower to leave than the request while the file is open.
+
+Why: every stage of the loop runs after an idle wait (a frame every 4 ms at 250 Hz), and on this project's 2-vCPU
+virtual machine a CPU woken from its halt runs the first work cold: a Zenoh put took 21 us after a 4 ms sleep
+against 2.7 us with the request held, `vergence.match` 0.75 ms against 0.42 in a loop; `vergence bench pipeline`
+at 250 Hz 0.2-0.3 ms less at the p50 with it (docs/PERFORMANCE.md). The cost: an idle CPU polls instead of
+sleeping (more power; on a virtual machine the host sees the vCPUs busy). The kernel drops the request when the
+process exits, however it exits.
+
+VERGENCE_CPU_WAKE_US (children inherit it): unset, the request is 0 us (no idle state but polling); a number N,
+N us (e.g. 10 on a laptop keeps the shallow states); `off`, nothing is asked. Opening the device needs root or a
+udev rule granting it; where it cannot be opened, one log line says so and the process runs as it would without."""
+
+from __future__ import annotations
+
+import logging
+import os
+import struct
+
+DEVICE = "/dev/cpu_dma_latency"
+ENV = "VERGENCE_CPU_WAKE_US"
+ROLES = ("capture", "worker", "reducer", "actuator")  # the processes on the loop's path
+
+log = logging.getLogger("vergence.wake")
+
+
+def request_us(value: str | None) -> int | None:
+    """The request VERGENCE_CPU_WAKE_US asks for: None (unset) -> 0, "off" -> None (nothing), a whole number of
+    microseconds >= 0 -> it; anything else a ConfigError naming the variable (`vergence` prints it, exit 2)."""
+    if value is None or value.strip() == "":
+        return 0
+    if value.strip().lower() == "off":
+        return None
+    try:
+        us = int(value)
+    except ValueError:
+        us = -1
+    if us < 0:
+        from vergence.config import ConfigError
+
+        raise ConfigError(f"{ENV}={value!r}: a whole number of microseconds (0: the shortest wake-ups) or 'off'")
+    return us
+
+
+class Hold:
+    """The request, held from open() to close() (or the process's exit). fd: None when nothing is held."""
+
+    def __init__(self, fd: int | None = None):
+        self.fd = fd
+
+    @classmethod
+    def open(cls, device: str = DEVICE) -> Hold:
+        us = request_us(os.environ.get(ENV))
+        if us is None:
+            return cls()
+        try:
+            fd = os.open(device, os.O_WRONLY | os.O_CLOEXEC)
+        except OSError as e:
+            log.info("the CPUs' wake-up latency is not held (%s: %s): run as root or let this user write it "
+                     "(a udev rule) for faster wake-ups; %s=off stops asking", device, e.strerror, ENV)
+            return cls()
+        try:
+            os.write(fd, struct.pack("=i", us))
+        except OSError as e:
+            os.close(fd)
+            log.info("the CPUs' wake-up latency is not held (%s refused %d us: %s)", device, us, e.strerror)
+            return cls()
+        log.debug("holding %s at %d us", device, us)
+        return cls(fd)
+
+    def close(self) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
