@@ -4,9 +4,12 @@ value VERGENCE_CPU_WAKE_US asks for, the bytes written, a device that cannot be 
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import struct
+import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -54,6 +57,34 @@ def test_a_device_that_cannot_be_opened_holds_nothing_and_says_which(tmp_path, m
     assert h.fd is None
     assert f"not held ({tmp_path / 'none'}: No such file or directory)" in caplog.text
     assert "VERGENCE_CPU_WAKE_US=off stops asking" in caplog.text
+
+
+def _slack_after(fn) -> int:
+    """The timer slack (ns, prctl PR_GET_TIMERSLACK) of a thread of its own after fn() ran on it from 50 us."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    out = []
+
+    def run():
+        libc.prctl(wake.PR_SET_TIMERSLACK, 50_000, 0, 0, 0)
+        fn()
+        out.append(libc.prctl(30, 0, 0, 0, 0))  # PR_GET_TIMERSLACK
+
+    th = threading.Thread(target=run)
+    th.start()
+    th.join(10)
+    return out[0]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl is Linux's")
+@pytest.mark.parametrize("value,slack", [(None, wake.SLACK_NS), ("20", wake.SLACK_NS), ("off", 50_000)])
+def test_holding_sets_the_thread_s_timer_slack_to_1_us(tmp_path, monkeypatch, value, slack):
+    if value is None:
+        monkeypatch.delenv(wake.ENV, raising=False)
+    else:
+        monkeypatch.setenv(wake.ENV, value)
+    holds = []
+    assert _slack_after(lambda: holds.append(wake.Hold.open(str(tmp_path / "none")))) == slack
+    holds[0].close()
 
 
 def _holds(pid: int) -> bool:
