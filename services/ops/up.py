@@ -407,7 +407,7 @@ def compile_first(stop: session.Stop) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     settings = load(args.config)
-    wake.request_us(os.environ.get(wake.ENV))  # a bad VERGENCE_CPU_WAKE_US stops here, as a bad setting: exit 2
+    wake.check()  # a bad VERGENCE_CPU_WAKE_US stops here, as a bad setting (exit 2); a device not writable: said once
     rig = args.rig or settings.rig
     why = check(args, settings)
     if why is not None:

@@ -27,6 +27,7 @@ PR_SET_TIMERSLACK = 29  # prctl(2): the calling thread's timer slack, ns; thread
 SLACK_NS = 1000
 ENV = "VERGENCE_CPU_WAKE_US"
 ROLES = ("capture", "worker", "reducer", "actuator")  # the processes on the loop's path
+SAID_ENV = "VERGENCE_CPU_WAKE_SAID"  # set by check(): the children of `vergence up` need not say it again
 
 log = logging.getLogger("vergence.wake")
 
@@ -49,6 +50,16 @@ def request_us(value: str | None) -> int | None:
     return us
 
 
+def check() -> None:
+    """`vergence up`'s, before its children start: a bad VERGENCE_CPU_WAKE_US stops it (ConfigError, exit 2), and a
+    device it cannot open is said once, here, not by each child (they inherit SAID_ENV)."""
+    us = request_us(os.environ.get(ENV))
+    if us is not None and not os.access(DEVICE, os.W_OK):
+        log.info("the CPUs' wake-up latency is not held (%s is not writable here): run as root or let this user "
+                 "write it (a udev rule) for faster wake-ups; %s=off stops asking", DEVICE, ENV)
+    os.environ[SAID_ENV] = "1"
+
+
 class Hold:
     """The request, held from open() to close() (or the process's exit). fd: None when nothing is held."""
 
@@ -64,8 +75,9 @@ class Hold:
         try:
             fd = os.open(device, os.O_WRONLY | os.O_CLOEXEC)
         except OSError as e:
-            log.info("the CPUs' wake-up latency is not held (%s: %s): run as root or let this user write it "
-                     "(a udev rule) for faster wake-ups; %s=off stops asking", device, e.strerror, ENV)
+            level = logging.DEBUG if os.environ.get(SAID_ENV) else logging.INFO
+            log.log(level, "the CPUs' wake-up latency is not held (%s: %s): run as root or let this user write it "
+                    "(a udev rule) for faster wake-ups; %s=off stops asking", device, e.strerror, ENV)
             return cls()
         try:
             os.write(fd, struct.pack("=i", us))

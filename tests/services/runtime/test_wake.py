@@ -52,11 +52,28 @@ def test_the_request_is_the_kernel_s_32_bit_integer_held_until_closed(tmp_path, 
 
 def test_a_device_that_cannot_be_opened_holds_nothing_and_says_which(tmp_path, monkeypatch, caplog):
     monkeypatch.delenv(wake.ENV, raising=False)
+    monkeypatch.delenv(wake.SAID_ENV, raising=False)
     with caplog.at_level(logging.INFO, logger="vergence.wake"):
         h = wake.Hold.open(str(tmp_path / "none"))
     assert h.fd is None
     assert f"not held ({tmp_path / 'none'}: No such file or directory)" in caplog.text
     assert "VERGENCE_CPU_WAKE_US=off stops asking" in caplog.text
+
+
+def test_up_s_check_refuses_a_bad_value_and_says_an_unwritable_device_once_for_all_its_children(tmp_path, monkeypatch,
+                                                                                                   caplog):
+    monkeypatch.setenv(wake.ENV, "soon")
+    with pytest.raises(ConfigError, match="VERGENCE_CPU_WAKE_US='soon'"):
+        wake.check()
+    monkeypatch.delenv(wake.ENV)
+    monkeypatch.delenv(wake.SAID_ENV, raising=False)
+    monkeypatch.setattr(wake, "DEVICE", str(tmp_path / "none"))
+    with caplog.at_level(logging.INFO, logger="vergence.wake"):
+        wake.check()
+        assert os.environ[wake.SAID_ENV] == "1"
+        wake.Hold.open(str(tmp_path / "none"))  # a child: it inherits SAID_ENV, and says nothing at INFO
+    assert [r.levelno for r in caplog.records] == [logging.INFO]
+    assert f"not held ({tmp_path / 'none'} is not writable here)" in caplog.text
 
 
 def _slack_after(fn) -> int:
