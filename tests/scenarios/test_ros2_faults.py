@@ -266,6 +266,7 @@ def test_a_ros2_slave_camera_a_second_behind_its_joint_is_held_not_chased(tmp_pa
             cam.close()
     _held_near_start("slave_frozen", got, named, t_first)
     assert last is not None and last[0] == "slave_frozen"  # held, not chased
+    assert "images more than 0.25 s later than their stamps" in last[1]  # what to check names this case too
 
 
 def test_a_jammed_ros2_joint_is_named_stalled_within_1_s_probed_and_resumed(tmp_path, monkeypatch):

@@ -18,7 +18,8 @@ FOCAL_OFF = 0.2  # |r - 1| above this: the focal length is off
 ADVICE = {
     Fault.SLAVE_FROZEN: "the slave's image does not follow the motor: a frozen slave camera (the driver repeating "
                         "its last image) or a slipping coupling between the motor and the camera; check the "
-                        "camera's cable and driver, and the coupling",
+                        "camera's cable and driver, and the coupling (or images more than 0.25 s later than their "
+                        "stamps: `vergence latency` measures it)",
     Fault.REVERSED: "the slave's image moves against the motor: the motor turns the other way than the encoder "
                     "says; flip [actuator.motor] direction (or the camera's mounting) and restart",
     Fault.STALLED: "the motor does not follow its commands: stalled, jammed, or its torque off (an overload); "

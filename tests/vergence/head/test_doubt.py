@@ -16,7 +16,7 @@ import sweeps
 from middlebury import ROOT as MIDDLEBURY, needs_data
 from vergence.head.control import ControlSettings
 from vergence.head.doubt import ADVICE, LEASH_DEG, PROBE_DEG, SUSPECT_S, UNTRUSTED_DEG, Doubt, Fault
-from vergence.head.lag import Lag
+from vergence.head.lag import MAX_LAG_S, Lag
 from vergence.head.scenery import Verdict
 from vergence.head.timing import CameraTiming
 from vergence.sim.faults import Faults
@@ -55,6 +55,8 @@ def test_an_offset_that_stays_while_the_motor_corrects_it_is_a_frozen_camera_or_
     assert d.gate(2.0 * DEG, 5 * DEG, 0.1) == pytest.approx(0.0)  # back there, whatever the controller wants
     assert d.gate(0.0, 5 * DEG, 0.11) is None  # then nothing but probes
     assert "slipping coupling" in d.note and "check the camera" in d.note
+    # a camera later than any lag the check fits (vergence.head.lag) looks the same: the note names that too
+    assert f"more than {MAX_LAG_S:g} s later than their stamps" in d.note
 
 
 def test_a_byte_identical_slave_image_after_the_motor_moved_is_a_frozen_camera_at_once():
