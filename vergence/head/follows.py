@@ -19,7 +19,8 @@ ADVICE = {
     Fault.SLAVE_FROZEN: "the slave's image does not follow the motor: a frozen slave camera (the driver repeating "
                         "its last image) or a slipping coupling between the motor and the camera; check the "
                         "camera's cable and driver, and the coupling (or images more than 0.25 s later than their "
-                        "stamps: `vergence latency` measures it)",
+                        "stamps: stamp them at the exposure or set [camera] latency_s; `vergence latency` measures "
+                        "up to 0.7 s)",
     Fault.REVERSED: "the slave's image moves against the motor: the motor turns the other way than the encoder "
                     "says; flip [actuator.motor] direction (or the camera's mounting) and restart",
     Fault.STALLED: "the motor does not follow its commands: stalled, jammed, or its torque off (an overload); "
