@@ -184,7 +184,8 @@ def run_rate(up: Up, setting: Setting, rate: float, seconds: float) -> dict:
     if setting.shifted:
         wrong += sum(abs(c.magnitude_px - SHIFT) > 1.0 for _, c in cmds)
     asked = int(round(rate * seconds))
-    return dict(rate_hz=rate, frames=asked, decided=len(dec), drops=max(0, asked - len(dec)),
+    undecided = (max(frames) - min(frames) + 1 - len(frames)) if frames else 0  # published ids with no decision
+    return dict(rate_hz=rate, frames=asked, decided=len(dec), drops=max(0, asked - len(dec)), undecided=undecided,
                 decided_share=len(dec) / asked, commands=len(cmds), wrong=wrong,
                 behind_p99=_p(red, 99) * rate / 1e3, executed=len(act),
                 actuator_p50_ms=_p(act, 50), actuator_p99_ms=_p(act, 99),
@@ -337,7 +338,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             print(f"{r['setting']:6s} {r['width']:5d}px w={r['window']:<2d} R={r['vsearch']:<2d} "
                   f"{r['workers']} worker(s) {r['rate_hz']:6.0f} Hz: {r['decided']:5d}/{r['frames']:<5d} decided "
-                  f"({100 * r['decided_share']:5.1f} %) drops {r['drops']:4d}  "
+                  f"({100 * r['decided_share']:5.1f} %) drops {r['drops']:4d} ({r['undecided']} undecided)  "
                   f"p50 {r['p50_ms']:6.2f} ms  p99 {r['p99_ms']:6.2f} ms  max {r['max_ms']:6.1f} ms  "
                   f"cmds {r['commands']:5d} wrong {r['wrong']} behind {r['behind_p99']:4.1f}  "
                   f"actuator p50 {r['actuator_p50_ms']:5.2f} p99 {r['actuator_p99_ms']:5.2f} ms  "
