@@ -52,7 +52,7 @@ REPORT_S = 0.1  # the membership evidence (vergence/<rig>/workers) goes out this
 # so they are larger than what the inbox keeps, whose sheds are)
 FRAME_RING, CORRELATION_RING = 32, 128
 STATE_RING = 256  # the motor's states between two wakes (50 a second, and one a command): each is counted
-KEEP_FRAMES = 2  # the newest valid frames of one batch that are decoded and gathered
+KEEP_FRAMES = 3  # the newest valid frames of one batch that are decoded and gathered
 WAKE = "_wake"  # the key segment of the local sample that wakes the reducer's thread (Alarm, exit)
 
 
@@ -235,10 +235,10 @@ class Lease:
 
 def gather_order(msgs: list) -> list:
     """Decoded messages (Frame or Correlation) in the order the gatherer should see them, each Frame before its
-    correlations. Those of up to KEEP_FRAMES frames (a stall of a frame period: the thread descheduled while two came)
-    oldest first: each complete frame is reduced, the older for one decision's time, not dropped (superseded by the
-    newer, as newest first did: 1 frame of 750 in a quarter of the runs at 250 Hz). Of more (a backlog) newest
-    first: the newest complete frame is reduced, every older message is late (cheap): overloaded, it serves that."""
+    correlations. Those of up to KEEP_FRAMES frames (a stall of up to two frame periods: the thread descheduled while
+    they came) oldest first: each complete frame is reduced, the older for a decision's time, not dropped (newest
+    first superseded them: frames lost in a quarter of the runs at 250 Hz). Of more (a backlog) newest first: the
+    newest complete frame is reduced, every older message is late (cheap): overloaded, it serves that."""
     sign = -1 if len({m.frame for m in msgs}) > KEEP_FRAMES else 1
     return sorted(msgs, key=lambda m: (sign * m.frame, not isinstance(m, Frame)))
 

@@ -1,8 +1,9 @@
 """`vergence worker [--name ID]`: computes layer 4 for its shard of each frame.
 
-Subscribes to vergence/<rig>/frame with a RingChannel(1): a slow worker always works on the newest frame and
-never builds a queue; the frames its ring replaced before it took them are counted (`skipped`, from the
-gaps in the frame ids). Frames beyond [limits] max_frame_bytes / max_frame_ops, or captured further than
+Subscribes to vergence/<rig>/frame with a RingChannel(RING = 2), oldest first: a stall of a frame period (the
+process descheduled while two frames came) loses no frame, and a slow worker works at most one frame behind and
+never builds a queue; the frames its ring replaced before it took them are counted (`skipped`, from the gaps in
+the frame ids). Frames beyond [limits] max_frame_bytes / max_frame_ops, or captured further than
 [limits] max_skew_s from this host's clock, are counted as bad and not computed. For each frame whose plan
 names it, publishes messages.Correlation on
 vergence/<rig>/correlation/<id>. Membership is its liveliness token vergence/<rig>/alive/worker/<id>, declared
@@ -30,6 +31,7 @@ from services.runtime.node import Node
 from services.runtime.warm import warm_up
 
 log = logging.getLogger("vergence.worker")
+RING = 2  # frames held for the loop's thread (1: a stall of a period skipped a frame in a quarter of 250 Hz runs)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -38,7 +40,7 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 class Gaps:
-    """Frames a one-slot ring replaced before the worker took them, from the gaps in the frame ids (a jump
+    """Frames the ring replaced before the worker took them, from the gaps in the frame ids (a jump
     back or a jump beyond `window` is a new capture or a forged id: not counted)."""
 
     def __init__(self, window: int = 1000):
@@ -58,7 +60,7 @@ class Worker:
         self.node, self.health, self.limits = node, node.health, limits
         self.gaps = Gaps(limits.frame_window)
         self.busy_ns = 0
-        self.sub = node.ring(keys.frame(node.rig), 1)
+        self.sub = node.ring(keys.frame(node.rig), RING)
         self.pub = node.publisher(keys.correlation(node.rig, node.ident), express=True)
 
     def loop(self) -> None:

@@ -282,24 +282,27 @@ def _gathered(order):
     return [r.frame.frame for r in out], g.counters
 
 
-def test_reducer_decides_both_frames_of_a_stall_and_serves_the_newest_of_a_backlog():
-    """A batch with two frames (the reducer's thread descheduled for a frame period while both came: a quarter of the
-    runs at 250 Hz dropped one frame of 750 so) is gathered oldest first: both decided, in order. One with more frames
-    (a backlog) newest first: only the newest is decided, every older message is late."""
-    from services.pipeline.reducer import gather_order
+def test_reducer_decides_every_frame_of_a_stall_and_serves_the_newest_of_a_backlog():
+    """A batch with up to three frames (the reducer's thread descheduled for up to two frame periods while they came:
+    newest first, a quarter of the runs at 250 Hz dropped frames so) is gathered oldest first: each decided, in
+    order. One with more frames (a backlog) newest first: only the newest is decided, every older message is late."""
+    from services.pipeline.reducer import KEEP_FRAMES, gather_order
 
+    assert KEEP_FRAMES == 3
     t = time.time_ns()
-    fs = [frame(i, t + i) for i in (1, 2, 3)]
+    fs = [frame(i, t + i) for i in (1, 2, 3, 4)]
     two = [fs[0], compute_correlation(fs[0], "a"), compute_correlation(fs[1], "a"), fs[1],
            compute_correlation(fs[1], "b"), compute_correlation(fs[0], "b")]
     order = gather_order(two)
     assert [(m.frame, type(m).__name__) for m in order[:2]] == [(1, "Frame"), (1, "Correlation")]
     assert _gathered(order)[0] == [1, 2]
     three = two + [compute_correlation(fs[2], "b"), fs[2], compute_correlation(fs[2], "a")]
-    order = gather_order(three)
-    assert [(m.frame, type(m).__name__) for m in order[:2]] == [(3, "Frame"), (3, "Correlation")]
+    assert _gathered(gather_order(three))[0] == [1, 2, 3]
+    four = three + [compute_correlation(fs[3], "a"), compute_correlation(fs[3], "b"), fs[3]]
+    order = gather_order(four)
+    assert [(m.frame, type(m).__name__) for m in order[:2]] == [(4, "Frame"), (4, "Correlation")]
     decided, counters = _gathered(order)
-    assert decided == [3] and counters["late"] == 6  # frames 1 and 2 are not decided at all
+    assert decided == [4] and counters["late"] == 9  # frames 1-3 are not decided at all
 
 
 # -- the attacks, against real processes ---------------------------------------------------------------------

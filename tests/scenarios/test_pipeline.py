@@ -218,14 +218,14 @@ def test_sigstop_worker_frames_dropped_not_queued(tmp_path, pair):
         # dropped, not queued: about 0.3-0.4 s of frames, until the reducer's evidence takes the silent worker
         # out of the plan (vergence.stages.frames.Roster), or the 0.6 s of the stop
         assert 0.2 * RATE <= dropped <= 2 * RATE, dropped
-        # not queued: after SIGCONT the stopped worker computes at most the stale frame its ring holds, plus
+        # not queued: after SIGCONT the stopped worker computes at most the two stale frames its ring holds, plus
         # the frames that were in flight while the signal landed (under load, up to two)
         fr = by_frame(frames.snapshot(), Frame)
         w1_id = [k for k in P.wait_alive(s, "worker", 2) if k.startswith("w1-")][0]
         stale = [p.frame for _, b, k in parts.snapshot() if k.endswith(w1_id)
                  for p in [Correlation.from_bytes(b)] if fr.get(p.frame) and
                  t_stop < fr[p.frame][1].t_capture_ns < t_cont - 100_000_000]
-        assert len(stale) <= 3, stale
+        assert len(stale) <= 4, stale
         cmds = by_frame(commands.snapshot(), Command)
         resumed = [fid for fid, (_, c) in cmds.items() if c.t_capture_ns > t_cont]
         assert len(resumed) >= 10 and reducer.alive()
@@ -376,7 +376,7 @@ def test_garbage_on_every_key_kills_nothing(tmp_path, pair):
         (w,) = st["worker"].values()
         (r,) = st["reducer"].values()
         (c,) = st["capture"].values()
-        assert w["bad"]["frame"] >= 3  # its RingChannel(1) keeps only the newest of a burst
+        assert w["bad"]["frame"] >= 3  # its ring of 2 keeps only the newest of a burst
         # every message is counted: rejected, or shed by the reducer's bounded inbox under the burst
         assert r["bad"]["frame"] + r["shed"]["frame"] >= 3 * 10
         assert r["bad"]["correlation"] + r["shed"]["correlation"] >= 3 * 2 * 10
