@@ -6,7 +6,8 @@ and the capture with their standbys, all as real processes on this machine), wai
 more, then subscribes for --seconds to the decisions, the commands and the motor states, as a peer of the pipeline's
 processes (connected to up's router, it then hears each process directly, as any program of the user's on the same
 host can with `--mode peer`; through the router, a client, each decision comes 60-200 us later). Reported per run:
-decisions against the frames the rate asks for in that time (rate x seconds; drops: the difference), capture-to-
+decisions against the frames the rate asks for in that time (rate x seconds; drops: the difference; undecided: the
+frame ids between the first and the last decided that have no decision, frames made and lost), capture-to-
 decision latency p50/p99/max (a decision's arrival here minus its frame's t_capture_ns, the master's exposure: one
 hop more than the reducer's own), the commands and how many were wrong (files: an offset other than the pair's SHIFT
 px, or older than one sent before it), capture-to-executed (the first motor state naming a frame, at the actuator),
