@@ -86,6 +86,7 @@ def test_bench_pipeline_runs_vergence_up_and_leaves_none_behind():
     assert (row["setting"], row["source"], row["workers"], row["rate_hz"], row["frames"]) == ("source", DEMO, 1, 40, 60)
     # a 1.5 s window holds 60 frames of a 40 Hz schedule, or 61 when the capture's jitter puts one more inside it
     assert 50 <= row["decided"] <= 61 and row["drops"] == max(0, 60 - row["decided"])
+    assert 0 <= row["undecided"] <= 61 - row["decided"]  # ids the window's decisions span, with none
     assert row["decided_share"] == row["decided"] / 60 and row["wrong"] == 0
     assert 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"] < 1000
     assert row["overhead"] == pytest.approx(row["p50_ms"] / row["match_ms"])
