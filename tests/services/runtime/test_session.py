@@ -14,20 +14,32 @@ from procs import VERGENCE, Procs, free_port, run, wait_for
 pytestmark = pytest.mark.slow
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["term", "int"])
 # a client's wait of at most session.SAY_QUIET_S ends in its one line, with no "still trying" before it: 60 s here
-@pytest.mark.parametrize("argv", [["worker"], ["reducer"], ["record", "{tmp}/x.vrec", "--wait", "60"],
-                                  ["monitor", "--wait", "60"]],
-                         ids=["worker", "reducer", "record", "monitor"])
-def test_waiting_for_a_router_stops_on_a_signal(tmp_path, argv, sig):
-    argv = [a.format(tmp=tmp_path) for a in argv]
-    with Procs(tmp_path) as P:
-        p = P.spawn("client", [VERGENCE, *argv, "--connect", f"tcp/127.0.0.1:{free_port()}"])
-        wait_for(lambda: "still trying (Ctrl-C stops)" in p.text(), 60, "the waiting line", logs=p.tail)
-        t0 = time.monotonic()
-        p.signal(sig)
-        assert p.wait(10) == 0
-        assert time.monotonic() - t0 < 2
+CLIENTS = {"worker": ["worker"], "reducer": ["reducer"], "record": ["record", "{tmp}/x.vrec", "--wait", "60"],
+           "monitor": ["monitor", "--wait", "60"]}
+SIGNALS = {"term": signal.SIGTERM, "int": signal.SIGINT}
+
+
+@pytest.fixture(scope="module")
+def waiting(tmp_path_factory):
+    """Every client of CLIENTS twice (one for each signal), all started at once, each waiting for a router that does
+    not answer (each says it is still trying after SAY_WAITING_S): the tests below signal one each."""
+    tmp = tmp_path_factory.mktemp("waiting")
+    with Procs(tmp) as P:
+        yield {(name, sig): P.spawn(f"{name}-{sig}", [VERGENCE, *[a.format(tmp=tmp) for a in argv],
+                                                      "--connect", f"tcp/127.0.0.1:{free_port()}"])
+               for name, argv in CLIENTS.items() for sig in SIGNALS}
+
+
+@pytest.mark.parametrize("sig", list(SIGNALS))
+@pytest.mark.parametrize("name", list(CLIENTS))
+def test_waiting_for_a_router_stops_on_a_signal(waiting, name, sig):
+    p = waiting[name, sig]
+    wait_for(lambda: "still trying (Ctrl-C stops)" in p.text(), 60, "the waiting line", logs=p.tail)
+    t0 = time.monotonic()
+    p.signal(SIGNALS[sig])
+    assert p.wait(10) == 0
+    assert time.monotonic() - t0 < 2
 
 
 def test_monitor_once_gives_up_at_its_timeout(tmp_path):
