@@ -29,6 +29,10 @@ if HERE not in sys.path:
 from reaper import pytest_configure, pytest_runtest_setup, pytest_unconfigure  # noqa: E402, F401
 
 import background  # noqa: E402
+import split  # noqa: E402
+
+if split.is_child():  # the other half of a whole run (tests/split.py): idle priority
+    split.idle()
 from services.runtime import warm  # noqa: E402  (no numba: compiled() only looks at the cache)
 
 # Where the environment says not to write bytecode (PYTHONDONTWRITEBYTECODE, as this machine and its CI do), every
@@ -49,7 +53,8 @@ _compile = None if warm.compiled() else subprocess.Popen([sys.executable, "-m", 
 
 
 def pytest_collection_finish(session):
-    """The kernels compiled (see above) before the first test; then the slow tests' long computations start in the
+    """The kernels compiled (see above) before the first test; then, in a run of the whole suite, the in-process tests
+    start beside it in a pytest of their own (tests/split.py), and the slow tests' long computations in the
     background, ahead of the tests (tests/background.py)."""
     if _compile is not None and _compile.returncode is None:
         t0 = time.monotonic()
@@ -57,11 +62,21 @@ def pytest_collection_finish(session):
         print(f"\ncompiled the kernels once while the tests were collected (numba's cache was empty): "
               f"{time.monotonic() - _T0:.1f} s, {time.monotonic() - t0:.1f} s of it after the collection"
               + ("" if _compile.returncode == 0 else f", failed (exit {_compile.returncode}): {err[-500:]}"))
+    split.start(session.config.rootpath)
     background.start(session.items)
 
 
+def pytest_collection_modifyitems(session, config, items):
+    split.modify(config, items)  # a run of the whole suite: the tests of real processes here, the others beside
+
+
 def pytest_sessionfinish(session, exitstatus):
+    split.finish(session)
     background.stop()
+
+
+def pytest_terminal_summary(terminalreporter):
+    split.summary(terminalreporter)
 
 
 @pytest.fixture

@@ -1,0 +1,94 @@
+"""tests/split.py: a run of the whole suite runs its in-process tests beside it, in a pytest of their own at idle
+priority, and their outcome is the run's. A real pytest run of a tiny tree (its conftest wires tests/split.py as
+tests/conftest.py does) with a slow test, a fast one that records where it ran, and a fast one that fails on demand."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.slow  # real pytest runs
+
+TESTS = Path(__file__).resolve().parent
+
+CONFTEST = f"""
+import sys
+sys.path.insert(0, {str(TESTS)!r})
+import split
+if split.is_child():
+    split.idle()
+def pytest_collection_modifyitems(session, config, items):
+    split.modify(config, items)
+def pytest_collection_finish(session):
+    split.start(session.config.rootpath)
+def pytest_sessionfinish(session, exitstatus):
+    split.finish(session)
+def pytest_terminal_summary(terminalreporter):
+    split.summary(terminalreporter)
+"""
+
+TESTS_PY = """
+import json, os
+import pytest
+
+def _where(name):
+    with open(os.environ["INNER_OUT"], "a") as f:
+        f.write(json.dumps({"test": name, "pid": os.getpid(), "child": os.environ.get("VERGENCE_TESTS_CHILD"),
+                            "policy": os.sched_getscheduler(0)}) + "\\n")
+
+@pytest.mark.slow
+def test_slow():
+    _where("slow")
+
+def test_fast():
+    _where("fast")
+
+def test_fast_fails_on_demand():
+    assert os.environ.get("INNER_FAIL") != "1", "failed on demand"
+"""
+
+
+def _run(tmp_path: Path, *args: str, **env: str) -> tuple[subprocess.CompletedProcess, list[dict]]:
+    inner = tmp_path / "inner"
+    inner.mkdir(exist_ok=True)
+    (inner / "pytest.ini").write_text("[pytest]\nmarkers = slow: real processes\n")
+    (inner / "conftest.py").write_text(CONFTEST)
+    (inner / "test_inner.py").write_text(TESTS_PY)
+    out = tmp_path / "where.jsonl"
+    out.unlink(missing_ok=True)
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *args], cwd=inner,
+                       env=dict(os.environ, INNER_OUT=str(out), **env), capture_output=True, text=True, timeout=120)
+    return r, [json.loads(line) for line in out.read_text().splitlines()] if out.exists() else []
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="the split needs two cores")
+def test_the_whole_run_runs_the_in_process_tests_beside_it_at_idle_priority(tmp_path):
+    r, where = _run(tmp_path, VERGENCE_TESTS_SPLIT="1")
+    assert r.returncode == 0, r.stdout + r.stderr
+    by = {w["test"]: w for w in where}
+    assert by["slow"]["child"] is None and by["slow"]["policy"] == os.SCHED_OTHER
+    assert by["fast"]["child"] == "1" and by["fast"]["policy"] == os.SCHED_IDLE
+    assert by["fast"]["pid"] != by["slow"]["pid"]
+    assert "the 2 tests of -m 'not slow': 2 passed" in r.stdout
+    assert "1 passed" in r.stdout.strip().splitlines()[-1]  # this process's own: the slow one
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="the split needs two cores")
+def test_a_failure_beside_the_run_fails_the_run_and_is_shown_in_full(tmp_path):
+    r, _ = _run(tmp_path, VERGENCE_TESTS_SPLIT="1", INNER_FAIL="1")
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "the 2 tests that run in their own process (-m 'not slow'): exit 1" in r.stdout
+    assert "failed on demand" in r.stdout and "1 failed, 1 passed" in r.stdout
+
+
+def test_a_selection_or_split_0_runs_in_one_process(tmp_path):
+    for args, env in ((("test_inner.py",), {}), ((), {"VERGENCE_TESTS_SPLIT": "0"}), (("-m", "not slow"), {})):
+        r, where = _run(tmp_path, *args, **env)
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert {w["child"] for w in where} == {None} and len({w["pid"] for w in where}) == 1, (args, env)
+        assert "beside this run" not in r.stdout
