@@ -1,7 +1,7 @@
 """The test tree mirrors the code: tests/vergence/ tests the library (vergence/*.py, motors/, sim/), tests/services/
 the services (processes, the CLI, the deployment); tests/ itself holds the project-wide checks (lint, install,
-layout) and the helpers the test files share (procs, emulators, middlebury, cdp, deploy_helpers, references,
-samples), imported by their bare names.
+layout, the split run) and the helpers the test files share (procs, emulators, middlebury, cdp, deploy_helpers,
+references, samples), imported by their bare names.
 
 pytest runs in importlib mode (pyproject.toml), so two test files may share a name in different folders (e.g.
 tests/vergence/test_monitor.py and tests/services/observe/test_monitor.py) and no test folder is a package; this

@@ -1,7 +1,8 @@
 """The whole suite in two processes at once (issue #33: CI under 10 minutes on 2 cores).
 
 The slow tier (real processes: routers, services, ROS 2 nodes) mostly waits on real time: the machine is 40-45 %
-busy while it runs. The rest (what runs in the test's own process, `-m "not slow"`: CPU, no waiting) runs beside it,
+busy while it runs. The rest (what runs in the test's own process and times nothing, `-m "not slow and not realtime"`:
+CPU, no waiting; a `realtime` test, in-process but timing something, a thread's wake-up say, stays here) runs beside it,
 in a pytest of its own at idle priority (SCHED_IDLE: it runs only on a core nothing else wants, so the timings under
 test are not disturbed, as tests/background.py's sweeps are not), and its outcome joins this run's: its summary line,
 its failures in full, and this run's exit status (1 when it failed). Measured on this machine (2026-12-06): the slow
@@ -19,12 +20,13 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 
 CHILD = "VERGENCE_TESTS_CHILD"  # set in the other pytest's environment
+BESIDE = "not slow and not realtime"  # the tests it runs: in-process ones that measure no wall-clock time
+KEEP = ("slow", "realtime")  # this process's: real processes, and in-process tests that time something
 WAIT_S = 1800.0
 
-_child: dict = {}  # "proc", "out" (its output file), "n" (its tests), "t0"
+_child: dict = {}  # "proc", "out" (its output file), "n" (its tests)
 
 
 def is_child() -> bool:
@@ -57,9 +59,12 @@ def modify(config, items: list) -> None:
     are counted for the pytest that start() makes."""
     if is_child() or not _whole_suite(config):
         return
-    fast = [it for it in items if it.get_closest_marker("slow") is None]
+    def kept(it) -> bool:
+        return any(it.get_closest_marker(m) is not None for m in KEEP)
+
+    fast = [it for it in items if not kept(it)]
     if fast and len(fast) < len(items):
-        items[:] = [it for it in items if it.get_closest_marker("slow") is not None]
+        items[:] = [it for it in items if kept(it)]
         _child["n"] = len(fast)
 
 
@@ -68,9 +73,9 @@ def start(rootdir) -> None:
     if "n" not in _child:
         return
     out = tempfile.TemporaryFile(mode="w+")
-    argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", "not slow"]
+    argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", BESIDE]
     _child.update(proc=subprocess.Popen(argv, cwd=str(rootdir), stdout=out, stderr=subprocess.STDOUT,
-                                        env=dict(os.environ, **{CHILD: "1"})), out=out, t0=time.monotonic())
+                                        env=dict(os.environ, **{CHILD: "1"})), out=out)
 
 
 def finish(session) -> None:
@@ -83,7 +88,6 @@ def finish(session) -> None:
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait()
-    _child["took"] = time.monotonic() - _child["t0"]
     if proc.returncode != 0 and session.exitstatus == 0:
         session.exitstatus = 1
 
@@ -99,8 +103,8 @@ def summary(terminalreporter) -> None:
     lines = [ln for ln in text.splitlines() if ln.strip()]
     tr = terminalreporter
     if proc.returncode != 0:
-        tr.section(f"the {_child['n']} tests that run in their own process (-m 'not slow'): exit {proc.returncode}")
+        tr.section(f"the {_child['n']} tests that ran beside this run (-m '{BESIDE}'): exit {proc.returncode}")
         tr.write(text)
     last = lines[-1].strip("= ") if lines else "no output"
     tr.write_line(f"beside this run, in a pytest of its own at idle priority, the {_child['n']} tests of "
-                  f"-m 'not slow': {last} (done {_child['took']:.0f} s after this run's collection)")
+                  f"-m '{BESIDE}': {last}")

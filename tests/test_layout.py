@@ -268,14 +268,16 @@ TESTED_ELSEWHERE = {
 
 
 def test_the_tests_mirror_the_tree():
-    """tests/ holds the project-wide checks and the shared helpers; tests/vergence/ and tests/services/ mirror the
+    """tests/ holds the project-wide checks (and the check of the test run itself, test_split.py) and the shared
+    helpers; tests/vergence/ and tests/services/ mirror the
     two packages folder by folder: a test file per library module (test_<module>.py; vergence/sim's and
     vergence/motors' in their folders), a test folder per services subpackage; tests/scenarios/ the tests of
     several processes or modules at once; tests/deploy/ the deployment's (deploy/). No test file names a module
     that does not exist, and no test folder is a package (pytest's importlib mode lets two folders hold a file of
     the same name)."""
     tests = Path(__file__).resolve().parent
-    assert sorted(p.name for p in tests.glob("test_*.py")) == ["test_install.py", "test_layout.py", "test_lint.py"]
+    assert sorted(p.name for p in tests.glob("test_*.py")) == ["test_install.py", "test_layout.py", "test_lint.py",
+                                                               "test_split.py"]
     places = {p.parent.relative_to(tests).as_posix() for p in tests.rglob("test_*.py")}
     folders = {p.parent.relative_to(TREE).as_posix() for top in PACKAGES for p in (TREE / top).rglob("__init__.py")}
     assert places == {".", "scenarios", "deploy"} | folders - {"services"}, places ^ folders

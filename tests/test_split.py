@@ -48,6 +48,10 @@ def test_slow():
 def test_fast():
     _where("fast")
 
+@pytest.mark.realtime
+def test_realtime():
+    _where("realtime")
+
 def test_fast_fails_on_demand():
     assert os.environ.get("INNER_FAIL") != "1", "failed on demand"
 """
@@ -56,7 +60,7 @@ def test_fast_fails_on_demand():
 def _run(tmp_path: Path, *args: str, **env: str) -> tuple[subprocess.CompletedProcess, list[dict]]:
     inner = tmp_path / "inner"
     inner.mkdir(exist_ok=True)
-    (inner / "pytest.ini").write_text("[pytest]\nmarkers = slow: real processes\n")
+    (inner / "pytest.ini").write_text("[pytest]\nmarkers =\n    slow: real processes\n    realtime: timing\n")
     (inner / "conftest.py").write_text(CONFTEST)
     (inner / "test_inner.py").write_text(TESTS_PY)
     out = tmp_path / "where.jsonl"
@@ -73,17 +77,19 @@ def test_the_whole_run_runs_the_in_process_tests_beside_it_at_idle_priority(tmp_
     by = {w["test"]: w for w in where}
     assert by["slow"]["child"] is None and by["slow"]["policy"] == os.SCHED_OTHER
     assert by["fast"]["child"] == "1" and by["fast"]["policy"] == os.SCHED_IDLE
+    assert by["realtime"]["child"] is None and by["realtime"]["pid"] == by["slow"]["pid"]
     assert by["fast"]["pid"] != by["slow"]["pid"]
-    assert "the 2 tests of -m 'not slow': 2 passed" in r.stdout
-    assert "1 passed" in r.stdout.strip().splitlines()[-1]  # this process's own: the slow one
+    assert "the 2 tests of -m 'not slow and not realtime': 2 passed" in r.stdout
+    assert "2 passed" in r.stdout.strip().splitlines()[-1]  # this process's own: the slow and the realtime one
 
 
 @pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="the split needs two cores")
 def test_a_failure_beside_the_run_fails_the_run_and_is_shown_in_full(tmp_path):
     r, _ = _run(tmp_path, VERGENCE_TESTS_SPLIT="1", INNER_FAIL="1")
     assert r.returncode == 1, r.stdout + r.stderr
-    assert "the 2 tests that run in their own process (-m 'not slow'): exit 1" in r.stdout
+    assert "the 2 tests that ran beside this run (-m 'not slow and not realtime'): exit 1" in r.stdout
     assert "failed on demand" in r.stdout and "1 failed, 1 passed" in r.stdout
+    assert "2 passed" in r.stdout.strip().splitlines()[-1]
 
 
 def test_a_selection_or_split_0_runs_in_one_process(tmp_path):

@@ -63,6 +63,7 @@ def test_a_frame_gets_the_slave_pan_at_its_exposure_or_none_where_the_history_ca
     assert PanLookup(h, lock, src).frame(1010 * MS) == (0.25, False, False)  # a still pair keeps its own pan
 
 
+@pytest.mark.realtime  # times a thread or a wake-up: kept in the main process of a split run
 def test_a_rendering_source_waits_for_the_motors_report_of_its_instant_but_not_for_ever():
     h = PanHistory(max_gap_s=0.1)
     lock = threading.Lock()
@@ -76,6 +77,7 @@ def test_a_rendering_source_waits_for_the_motors_report_of_its_instant_but_not_f
     assert look(1010 * MS) == pytest.approx(0.11)
 
 
+@pytest.mark.realtime  # times a thread or a wake-up: kept in the main process of a split run
 def test_with_a_trusted_replica_the_exposure_waits_for_the_motor_to_count_the_commands_seen():
     """PanLookup.ready: no wait with nothing out; with a command out, until a state counts it (the capture's
     on_motor notifies), or at most Replica.ANSWER_NS."""

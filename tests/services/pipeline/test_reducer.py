@@ -5,6 +5,8 @@ import collections
 import threading
 import time
 
+import pytest
+
 from vergence.wire.messages import MAX_HOLD_S, Hold
 from services.pipeline.reducer import Lease
 
@@ -134,6 +136,7 @@ def test_the_inbox_takes_both_rings_whole_keeps_the_newest_and_counts_the_rest()
     assert box.take() == [("correlation", (f"vergence/r/correlation/{WAKE}", b"x"))]
 
 
+@pytest.mark.realtime  # times a thread or a wake-up: kept in the main process of a split run
 def test_the_alarm_wakes_at_the_time_set_then_every_expire_s_and_stops():
     from services.pipeline.reducer import EXPIRE_S, Alarm
 

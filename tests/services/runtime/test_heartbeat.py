@@ -40,6 +40,7 @@ def test_up_takes_a_child_for_hung_after_heartbeat_s_and_a_fresh_one_after_start
         hb.close()
 
 
+@pytest.mark.realtime  # times a thread or a wake-up: kept in the main process of a split run
 def test_the_thread_beats_and_leaves_when_up_is_gone(monkeypatch):
     r, w = os.pipe()
     monkeypatch.setenv(heartbeat.ENV, f"{w},0")

@@ -63,6 +63,7 @@ def test_the_sim_source_renders_the_slave_at_the_pan_of_its_exposure():
     assert len(asked) == 2 and all(abs(t - ts) <= 1_000_001 for t in asked)  # two sub-views, +-1 ms
 
 
+@pytest.mark.realtime  # times a thread or a wake-up: kept in the main process of a split run
 def test_the_sim_source_renders_ahead_as_far_as_the_pan_is_known_and_reads_out_at_the_exposure():
     """Render ahead (issue #33): where the pan is known ahead (the capture's ahead_ns), the pair is exposed the
     median of the last renders later than its render starts, the slave rendered at its pan then, and read no

@@ -196,6 +196,7 @@ def test_driver_missing_port_names_it():
     assert "/dev/ttyNOPE42" in str(e.value) and "python -m serial.tools.list_ports" in str(e.value)
 
 
+@pytest.mark.realtime  # times a thread or a wake-up: kept in the main process of a split run
 def test_loop_survives_unplug_and_replug(dxl):
     emu, dev = dxl
     ms = MotorSettings(timeout_s=0.03, watchdog_s=0)
