@@ -5,9 +5,9 @@ busy while it runs. The rest (what runs in the test's own process and times noth
 CPU, no waiting; a `realtime` test, in-process but timing something, a thread's wake-up say, stays here) runs beside it,
 in a pytest of its own at idle priority (SCHED_IDLE: it runs only on a core nothing else wants, so the timings under
 test are not disturbed, as tests/background.py's sweeps are not), and its outcome joins this run's: its summary line,
-its failures in full, and this run's exit status (1 when it failed). Measured on this machine (2026-12-06): the slow
-tier alone 445 s with the other tier beside it (993 tests, 195 s at idle priority), against 534-549 s for the whole
-suite in one process.
+its failures in full, and this run's exit status (1 when it failed). Measured on this machine (2026-12-06, a fresh
+clone's `.ci/run`): 455 s of pytest, the 988 tests beside it done in 219 s at idle priority, against 534-549 s for
+the whole suite in one process.
 
 Only a run of the whole suite is split (`python -m pytest [-q]`, no paths, no -m, -k, --lf, -x and the like: what
 README.md and .ci/run run); any selection runs as before, in one process. VERGENCE_TESTS_SPLIT=0 runs the whole
@@ -55,10 +55,11 @@ def _whole_suite(config) -> bool:
 
 
 def modify(config, items: list) -> None:
-    """pytest_collection_modifyitems: in a run of the whole suite, this process keeps the slow tests; the others
-    are counted for the pytest that start() makes."""
+    """pytest_collection_modifyitems: in a run of the whole suite, this process keeps the slow and the realtime
+    tests; the others are counted for the pytest that start() makes."""
     if is_child() or not _whole_suite(config):
         return
+
     def kept(it) -> bool:
         return any(it.get_closest_marker(m) is not None for m in KEEP)
 
