@@ -54,7 +54,8 @@ class Gaps:
 
 
 class Worker:
-    """One worker's loop (a thread of its Node): the newest frame, checked, its shard computed and published."""
+    """One worker's loop (a thread of its Node): the oldest frame its ring holds, checked, its shard computed and
+    published."""
 
     def __init__(self, node: Node, limits: LimitSettings):
         self.node, self.health, self.limits = node, node.health, limits
