@@ -165,6 +165,9 @@ def test_a_frozen_ros2_slave_camera_while_look_at_asks_a_move_is_named_held_and_
             t_cleared = wait_for(cleared, 10, "the fault cleared after the thaw", logs=P.logs)
             t_found = wait_for(found, 10, "converged on the look_at point", logs=P.logs) if finds else None
             t_rest = None if finds else wait_for(rests, 20, "a sweep, then resting where it converged", logs=P.logs)
+            if not finds:  # the status says the sweep found nothing (`vergence monitor` asks if the slave can see it)
+                wait_for(lambda: any((decode_status(b).search() or 0) >= 1 for _, b, _ in statuses.snapshot()), 5,
+                         "a status with an empty sweep", logs=P.logs)
         finally:
             cam.close()
     past = max((p - truth_look) * np.sign(truth_look - start) for p in during)

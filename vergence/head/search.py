@@ -14,7 +14,8 @@ limit itself. Every stop is inside the motor's limits (and the Safety bounds eac
 as it bounds every other). At each stop the motor is given ARRIVE_S to get there (within ARRIVED_DEG, by the pan at
 the exposures), then DWELL_S of decisions there. A sweep that found nothing goes back to where it began (a fovea the
 slave cannot see, occluded behind a nearer object, has nothing to find: no sweep for ever over the whole range) and
-waits there REST_S, twice that after the next one, up to REST_MAX_S, then sweeps again.
+waits there REST_S, twice that after the next one, up to REST_MAX_S, then sweeps again. The status counts those
+sweeps (`sweeps_empty`): `vergence monitor` asks whether the point is visible to the slave at all.
 
 Found. The first confident decision ends the search: the loop takes over from that pan, not yet trusted
 (vergence.head.doubt's leash: the image must follow a first move, which tells a true candidate, whose offset changes
@@ -56,6 +57,7 @@ class Search:
         self.searching = False
         self.searches = 0
         self.found = 0
+        self.empty = 0  # the present search's sweeps that found nothing (a point the slave cannot see: say so)
         self.step = math.radians(15.0)
         self._all: list[float] = []  # the whole sweep, to start over from
         self.centre, self.rest, self.t_rest = 0.0, REST_S, None  # where it began; the next rest; the present one's end
@@ -66,7 +68,7 @@ class Search:
         self._stop()
 
     def _stop(self) -> None:
-        self.searching, self.stops, self.goal, self.t_arrived = False, [], None, None
+        self.searching, self.stops, self.goal, self.t_arrived, self.empty = False, [], None, None, 0
         self.rest, self.t_rest = REST_S, None
 
     def observe(self, t: float, pan: float, confident: bool, textured: bool, offset_px: float, focal_px: float,
@@ -138,6 +140,7 @@ class Search:
         if not self.stops:  # the sweep is done: back where it began, a while, then again
             if self.t_rest is None:
                 self.t_rest, self.rest = t + self.rest, min(2 * self.rest, REST_MAX_S)
+                self.empty += 1
                 log.warning("search: nothing found in a sweep of %d pans: back at %.2f deg, again in %.0f s",
                             len(self._all), math.degrees(self.centre), self.t_rest - t)
             if t < self.t_rest:
@@ -148,4 +151,7 @@ class Search:
         return self.goal
 
     def status(self) -> dict:
-        return {"searching": self.searching, "searches": self.searches, "found": self.found}
+        """The reducer's status fields: searching, searches (begun), found (ended by a confident decision), and
+        sweeps_empty (the present search's sweeps of the range that found nothing)."""
+        return {"searching": self.searching, "searches": self.searches, "found": self.found,
+                "sweeps_empty": self.empty}

@@ -78,6 +78,12 @@ class Status(msgspec.Struct, frozen=True, kw_only=True):
             return f, note[:400] if isinstance(note, str) else ""
         return None
 
+    def search(self) -> int | None:
+        """A reducer searching for its lost target (vergence.head.search): the sweeps of the range that found nothing
+        so far, or None when it does not search (or says nothing plausible)."""
+        n = self.extra.get("sweeps_empty", 0)
+        return n if self.extra.get("searching") is True and _count(n) else None
+
     def fixate_rejection(self) -> tuple[int, str] | None:
         """A capture's refusal of a fixate request: (the request's t_ns, why), or None."""
         r = self.extra.get("fixate_rejection")

@@ -63,6 +63,28 @@ def test_lost_at_a_limit_sweeps_inward_to_the_other_limit_rests_where_it_began_a
     assert [a - b for a, b in zip(again, back)] == pytest.approx([REST_S, 2 * REST_S], abs=1.5 * DT)
 
 
+def test_the_status_counts_the_sweeps_that_found_nothing_until_a_candidate():
+    """sweeps_empty: 0 while the first sweep runs, 1 once it ended with nothing (the reducer's status; `vergence
+    monitor` then asks whether the slave can see the point), 2 after the second; a confident decision ends the
+    search and the count."""
+    s = Search()
+    assert s.status() == {"searching": False, "searches": 0, "found": 0, "sweeps_empty": 0}
+    out = run(s, 45 * DEG, 60)
+    assert s.status()["searching"] and s.status()["sweeps_empty"] == 0
+    pan = next(g for _, g in reversed(out) if g is not None)
+    counts = []
+    t = out[-1][0]
+    for _ in range(900):
+        t += DT
+        g = s.observe(t, pan, False, True, 0.0, F, W, LO, HI)
+        pan = g if g is not None else pan
+        counts.append(s.status()["sweeps_empty"])
+    assert counts[0] == 0 and sorted(set(counts)) == [0, 1, 2, 3]  # three sweeps in those 15 s, as above
+    assert all(b - a in (0, 1) for a, b in zip(counts, counts[1:]))
+    s.observe(t + DT, pan, True, True, 0.3, F, W, LO, HI)
+    assert s.status() == {"searching": False, "searches": 1, "found": 1, "sweeps_empty": 0}
+
+
 def test_first_back_to_the_last_converged_pan_then_about_it_alternating_from_where_it_was():
     s = Search()
     run(s, 5 * DEG, 3, confident=True, offset=0.4)  # converged at 5 deg
@@ -90,7 +112,8 @@ def test_black_frames_hold_and_a_confident_decision_ends_the_search():
     out = run(s, 10 * DEG, 60, t0=3.0)
     assert s.searching and any(g is not None for _, g in out)
     assert run(s, 0.0, 1, t0=5.0, confident=True, offset=-40.0) == [(5.0, None)]
-    assert not s.searching and s.found == 1 and s.status() == {"searching": False, "searches": 1, "found": 1}
+    assert not s.searching and s.found == 1 and s.status() == {"searching": False, "searches": 1, "found": 1,
+                                                        "sweeps_empty": 0}
 
 
 def test_the_controller_searches_only_where_the_image_can_follow_and_holds_in_a_fault():

@@ -312,6 +312,26 @@ def test_a_camera_named_late_is_a_yellow_line_with_what_to_set():
         assert "camera late" not in render_text(mon.snapshot(T0 + 2_000 * MS), color=False)
 
 
+def test_a_search_is_a_yellow_line_that_asks_whether_the_slave_can_see_the_point():
+    """The reducer's `searching` with `sweeps_empty` (vergence.head.search): a yellow line, and from the first sweep
+    that found nothing the question to check; not searching, or forged values, show nothing."""
+    mon = Monitor("head")
+    run_stream(mon, 1.0, 100.0)
+    st = {"role": "reducer", "id": "r-1", "pid": 1, "t_ns": T0, "counters": {}, "bad": {}, "gatherer": {"frames": 3},
+          "fault": None, "searching": True, "sweeps_empty": 0}
+    mon.feed("vergence/head/status/reducer/r-1", json.dumps(st).encode())
+    text = render_text(mon.snapshot(T0 + 2_000 * MS), color=False).replace("\n  ", " ")
+    assert "searching: no confident match at the fovea" in text and "sweep" not in text
+    mon.feed("vergence/head/status/reducer/r-1", json.dumps(dict(st, sweeps_empty=2)).encode())
+    s = mon.snapshot(T0 + 2_000 * MS)
+    assert ("searching: no confident match at the fovea; 2 sweeps of the pan range found nothing: is the point "
+            "visible to the slave camera") in render_text(s, color=False).replace("\n  ", " ")
+    assert "\x1b[33msearching" in render_text(s, color=True)
+    for forged in (dict(searching=False), dict(searching="yes"), dict(sweeps_empty=-1), dict(sweeps_empty="2")):
+        mon.feed("vergence/head/status/reducer/r-1", json.dumps(dict(st, **forged)).encode())
+        assert "searching" not in render_text(mon.snapshot(T0 + 2_000 * MS), color=False), forged
+
+
 def test_screen_lines_fit_the_terminal():
     """Each screen line fits the terminal's width (ANSI codes do not count): a line too wide is broken between
     its fields, the rest on the next line indented by 2, nothing lost."""

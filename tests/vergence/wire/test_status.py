@@ -28,6 +28,11 @@ def test_a_services_status_decodes_to_its_values():
     assert st.gatherer() == {"frames": 9}  # the plausible counters only
     assert st.number("published_hz", 0, 100) is None and st.get("nothing", "x") == "x"
     assert status_of(st.to_dict()) == st  # to_dict is the wire's object
+    assert st.search() is None  # not searching
+    assert status_of(dict(st.to_dict(), searching=True, sweeps_empty=2)).search() == 2
+    assert status_of(dict(st.to_dict(), searching=True)).search() == 0
+    assert status_of(dict(st.to_dict(), searching=True, sweeps_empty=-1)).search() is None
+    assert status_of(dict(st.to_dict(), searching="yes", sweeps_empty=2)).search() is None
     assert decode_status(json.dumps(dict(st.to_dict(), exiting=True)).encode()).exiting
 
 
