@@ -168,6 +168,9 @@ def test_a_frozen_ros2_slave_camera_while_look_at_asks_a_move_is_named_held_and_
             if not finds:  # the status says the sweep found nothing (`vergence monitor` asks if the slave can see it)
                 wait_for(lambda: any((decode_status(b).search() or 0) >= 1 for _, b, _ in statuses.snapshot()), 5,
                          "a status with an empty sweep", logs=P.logs)
+                t.wait_until(lambda: next((d for _, arr in diags for d in arr.status if d.level == DiagnosticStatus.WARN
+                                           and "found nothing: is the point visible to the slave" in d.message), None),
+                             5, "the empty sweep at WARN on /diagnostics", P.logs)
         finally:
             cam.close()
     past = max((p - truth_look) * np.sign(truth_look - start) for p in during)

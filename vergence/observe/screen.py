@@ -260,10 +260,8 @@ def _status_lines(name: str, d: Status, c) -> list[str]:
     elif (late := d.number("late_ms", 0.0, 1000.0)) is not None:  # a camera the loop named late (vergence.head.lag)
         out.append(c(YELLOW, f"camera late: the slave's image follows the motor {late:.0f} ms later than its frames "
                              "say; set [camera] latency_s (`vergence latency` measures it)"))
-    if (empty := d.search()) is not None:  # lost: the slave sweeps its range (vergence.head.search)
-        out.append(c(YELLOW, "searching: no confident match at the fovea" + (
-            f"; {empty} sweep{'s' if empty > 1 else ''} of the pan range found nothing: is the point visible to the "
-            "slave camera (hidden behind a nearer object, or out of its view)?" if empty else "")))
+    if (note := d.search_note()) is not None:  # lost: the slave sweeps its range (vergence.head.search)
+        out.append(c(YELLOW, note))
     if g:
         pending = d.number("pending", 0, 2 ** 53)
         out.append(f"{name}: " + "  ".join(f"{k} {g[k]}" for k in ("frames", "complete", "dropped",

@@ -324,7 +324,8 @@ def _flat(prefix: str, value, out: list[tuple[str, str]]) -> None:
 def diagnostic(rig: str, status: Status, age_s: float, stale_s: float, bad_before: int | None) -> Diagnostic:
     """One process's DiagnosticStatus from its latest status (vergence.wire.status.Status), received age_s ago: STALE
     when older than stale_s, ERROR when it said it exits or names a fault (vergence.head.doubt), WARN when its `bad`
-    total grew since the previous status (bad_before; None: the first one), else OK. Its counters and fields as
+    total grew since the previous status (bad_before; None: the first one) or it searches (vergence.head.search),
+    else OK. Its counters and fields as
     key-values."""
     values: list[tuple[str, str]] = []
     for k, v in status.to_dict().items():
@@ -340,6 +341,8 @@ def diagnostic(rig: str, status: Status, age_s: float, stale_s: float, bad_befor
     if bad_before is not None and status.bad_total > bad_before:
         kinds = ", ".join(f"{k} {v}" for k, v in sorted(status.bad.items()))
         return Diagnostic(WARN, name, f"bad messages: {kinds}", rig, values)
+    if (note := status.search_note()) is not None:  # lost, searching (vergence.head.search)
+        return Diagnostic(WARN, name, note, rig, values)
     return Diagnostic(OK, name, "ok", rig, values)
 
 

@@ -84,6 +84,15 @@ class Status(msgspec.Struct, frozen=True, kw_only=True):
         n = self.extra.get("sweeps_empty", 0)
         return n if self.extra.get("searching") is True and _count(n) else None
 
+    def search_note(self) -> str | None:
+        """What a search says to a person (`vergence monitor`, /diagnostics at WARN), or None when none runs."""
+        n = self.search()
+        if n is None:
+            return None
+        return "searching: no confident match at the fovea" + (
+            f"; {n} sweep{'s' if n > 1 else ''} of the pan range found nothing: is the point visible to the slave "
+            "camera (hidden behind a nearer object, or out of its view)?" if n else "")
+
     def fixate_rejection(self) -> tuple[int, str] | None:
         """A capture's refusal of a fixate request: (the request's t_ns, why), or None."""
         r = self.extra.get("fixate_rejection")

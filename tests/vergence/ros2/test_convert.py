@@ -158,6 +158,13 @@ def test_diagnostic_levels_and_values():
     assert status_of(dict(raw, fault=None)).fault() is None
     assert conv.diagnostic("head", status_of(dict(raw, exiting=True)), 0.5, 3.0, None).level == conv.ERROR
     assert conv.diagnostic("head", st, 3.5, 3.0, None).level == conv.STALE
+    # a search (vergence.head.search) is a WARN that says what to check once a sweep found nothing
+    lost = conv.diagnostic("head", status_of(dict(raw, searching=True, sweeps_empty=1)), 0.5, 3.0, None)
+    assert (lost.level, lost.message) == (conv.WARN, "searching: no confident match at the fovea; 1 sweep of the pan "
+                                          "range found nothing: is the point visible to the slave camera (hidden "
+                                          "behind a nearer object, or out of its view)?")
+    assert conv.diagnostic("head", status_of(dict(raw, searching=False, sweeps_empty=1)), 0.5, 3.0, None).level \
+        == conv.OK
     with pytest.raises(MessageError, match="role"):
         status_of({"bad": "x"})
 
