@@ -92,6 +92,7 @@ class Cockpit:
         self.readout_ns: int | None = None  # the capture time of the decision last put in the readout
         self.motor_status: str | None = None  # the latest motor state's status (logged as text when it changes)
         self.fault: tuple[str, str] | None = None  # the reducer's named fault (logged at `fault` when it changes)
+        self.search: str | None = None  # what the reducer's search says (logged at `search` when it changes)
 
     # -- helpers -------------------------------------------------------------------------------------------
 
@@ -253,8 +254,12 @@ class Cockpit:
         self._time(None, t_ns)
         self._log(rest, self.rr.TextLog(text))
         if rest.startswith("status/reducer/"):  # the loop's doubt (issue #35): a fault named or cleared is an event
-            fault = status_of(json.loads(text)).fault()
+            st = status_of(json.loads(text))
+            fault, note = st.fault(), st.search_note()
             if fault != self.fault:
                 self.fault = fault
                 self._log("fault", self.rr.TextLog(f"FAULT {fault[0]}: {fault[1]}" if fault else "fault cleared",
                                                    level="ERROR" if fault else "INFO"))
+            if note != self.search:  # lost and searching (vergence.head.search), a sweep that found nothing, found
+                self.search = note
+                self._log("search", self.rr.TextLog(note or "search over", level="WARN" if note else "INFO"))

@@ -631,6 +631,26 @@ def test_a_named_fault_is_an_error_in_the_cockpit_and_its_clearing_an_info(tmp_p
                    ("FAULT stalled: torque", "ERROR")], got
 
 
+def test_a_search_is_a_warning_in_the_cockpit_each_time_it_says_more(tmp_path):
+    """Issue #35: the reducer's search (vergence.head.search) goes to `search` when what it says changes: searching,
+    a sweep that found nothing (asking whether the slave can see the point), over; the same again logs nothing."""
+    import json
+
+    rec = rr.RecordingStream("vergence-test")
+    path = tmp_path / "s.rrd"
+    rec.save(str(path))
+    c = view.Cockpit(rr, rec)
+    st = {"role": "reducer", "id": "r-1", "counters": {}, "bad": {}}
+    for i, extra in enumerate([{}, {"searching": True, "sweeps_empty": 0}, {"searching": True, "sweeps_empty": 0},
+                               {"searching": True, "sweeps_empty": 1}, {"searching": False, "sweeps_empty": 0}]):
+        c._status("status/reducer/r-1", json.dumps(dict(st, **extra)).encode(), 1 + i)
+    rec.disconnect()
+    got = [(r["TextLog:text"][0], r["TextLog:level"][0]) for r in read_rrd(path)["/search"]]
+    assert [level for _, level in got] == ["WARN", "WARN", "INFO"], got
+    assert got[0][0] == "searching: no confident match at the fovea" and got[2][0] == "search over"
+    assert got[1][0].startswith("searching: no confident match at the fovea; 1 sweep of the pan range found nothing")
+
+
 @pytest.mark.slow
 def test_view_save_on_a_full_filesystem_stops_with_one_line(tmp_path, tiny_fs):
     """`vergence view --save` into a 1 MiB tmpfs (issue #29): Rerun's writer fails silently, so the view
