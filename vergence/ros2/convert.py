@@ -325,8 +325,7 @@ def diagnostic(rig: str, status: Status, age_s: float, stale_s: float, bad_befor
     """One process's DiagnosticStatus from its latest status (vergence.wire.status.Status), received age_s ago: STALE
     when older than stale_s, ERROR when it said it exits or names a fault (vergence.head.doubt), WARN when its `bad`
     total grew since the previous status (bad_before; None: the first one) or it searches (vergence.head.search),
-    else OK. Its counters and fields as
-    key-values."""
+    else OK. Its counters and fields as key-values."""
     values: list[tuple[str, str]] = []
     for k, v in status.to_dict().items():
         if k not in ("role", "id"):
