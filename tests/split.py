@@ -12,7 +12,8 @@ the whole suite in one process.
 Only a run of the whole suite is split (`python -m pytest [-q]`, no paths, no -m, -k, --lf, -x and the like: what
 README.md and .ci/run run); any selection runs as before, in one process. VERGENCE_TESTS_SPLIT=0 runs the whole
 suite in one process too. tests/conftest.py calls these at its hooks; the reaper ends the other pytest with the run
-(it is a descendant), and a run that ends waits for it (at most WAIT_S)."""
+(it is a descendant), a SIGKILLed run ends it by its parent-death signal (SIGTERM: its own reaper runs), and a run
+that ends waits for it (at most WAIT_S)."""
 
 from __future__ import annotations
 
@@ -73,10 +74,14 @@ def start(rootdir) -> None:
     """pytest_collection_finish (after the kernels are compiled): the other pytest, on the tests `modify` left out."""
     if "n" not in _child:
         return
+    from services.ops import launch
+
     out = tempfile.TemporaryFile(mode="w+")
     argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", BESIDE]
+    launch._prctl()  # (resolved here, before the fork: the child only calls it)
     _child.update(proc=subprocess.Popen(argv, cwd=str(rootdir), stdout=out, stderr=subprocess.STDOUT,
-                                        env=dict(os.environ, **{CHILD: "1"})), out=out)
+                                        env=dict(os.environ, **{CHILD: "1"}), preexec_fn=launch._die_with_parent),
+                  out=out)
 
 
 def finish(session) -> None:

@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -18,6 +20,7 @@ TESTS = Path(__file__).resolve().parent
 
 CONFTEST = f"""
 import sys
+import vergence, services  # noqa: E401,F401  (as tests/conftest.py: the real packages first)
 sys.path.insert(0, {str(TESTS)!r})
 import split
 if split.is_child():
@@ -47,6 +50,9 @@ def test_slow():
 
 def test_fast():
     _where("fast")
+    if os.environ.get("INNER_HANG") == "1":  # until the outer test kills the run
+        import time
+        time.sleep(60)
 
 @pytest.mark.realtime
 def test_realtime():
@@ -98,3 +104,46 @@ def test_a_selection_or_split_0_runs_in_one_process(tmp_path):
         assert r.returncode == 0, r.stdout + r.stderr
         assert {w["child"] for w in where} == {None} and len({w["pid"] for w in where}) == 1, (args, env)
         assert "beside this run" not in r.stdout
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="the split needs two cores")
+def test_the_pytest_beside_a_sigkilled_run_ends_with_it(tmp_path):
+    """SIGKILL runs no reaper: the pytest beside the run ends by its parent-death signal (SIGTERM) within 5 s."""
+    import psutil
+
+    inner = tmp_path / "inner"
+    inner.mkdir()
+    (inner / "pytest.ini").write_text("[pytest]\nmarkers =\n    slow: real processes\n    realtime: timing\n")
+    (inner / "conftest.py").write_text(CONFTEST)
+    (inner / "test_inner.py").write_text(TESTS_PY.replace("def test_slow():\n    _where(\"slow\")",
+                                                          "def test_slow():\n    _where(\"slow\")\n"
+                                                          "    import time\n    time.sleep(60)"))
+    out = tmp_path / "where.jsonl"
+    run = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"], cwd=inner,
+                           env=dict(os.environ, INNER_OUT=str(out), INNER_HANG="1", VERGENCE_TESTS_SPLIT="1"),
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            where = [json.loads(line) for line in out.read_text().splitlines()] if out.exists() else []
+            if {w["test"] for w in where} >= {"slow", "fast"}:
+                break
+            time.sleep(0.05)
+        child = next(w["pid"] for w in where if w["test"] == "fast")
+        assert child != run.pid and psutil.pid_exists(child)
+        run.send_signal(signal.SIGKILL)
+        run.wait(10)
+        deadline = time.monotonic() + 5
+        while psutil.pid_exists(child) and psutil.Process(child).status() != psutil.STATUS_ZOMBIE:
+            assert time.monotonic() < deadline, "the pytest beside the run outlived it by 5 s"
+            time.sleep(0.05)
+    finally:
+        run.kill()
+        run.wait(10)
+        if out.exists():
+            for w in (json.loads(line) for line in out.read_text().splitlines()):
+                if psutil.pid_exists(w["pid"]):
+                    try:
+                        psutil.Process(w["pid"]).kill()
+                    except psutil.Error:
+                        pass
