@@ -43,6 +43,9 @@ def _where(name):
     with open(os.environ["INNER_OUT"], "a") as f:
         f.write(json.dumps({"test": name, "pid": os.getpid(), "child": os.environ.get("VERGENCE_TESTS_CHILD"),
                             "policy": os.sched_getscheduler(0)}) + "\\n")
+    if os.environ.get("INNER_HANG") == "1":  # until the outer test kills the run
+        import time
+        time.sleep(60)
 
 @pytest.mark.slow
 def test_slow():
@@ -50,9 +53,6 @@ def test_slow():
 
 def test_fast():
     _where("fast")
-    if os.environ.get("INNER_HANG") == "1":  # until the outer test kills the run
-        import time
-        time.sleep(60)
 
 @pytest.mark.realtime
 def test_realtime():
@@ -63,12 +63,18 @@ def test_fast_fails_on_demand():
 """
 
 
-def _run(tmp_path: Path, *args: str, **env: str) -> tuple[subprocess.CompletedProcess, list[dict]]:
+def _tree(tmp_path: Path) -> Path:
+    """The tiny tree: its pytest.ini (the markers), its conftest (tests/split.py wired in) and its tests."""
     inner = tmp_path / "inner"
     inner.mkdir(exist_ok=True)
     (inner / "pytest.ini").write_text("[pytest]\nmarkers =\n    slow: real processes\n    realtime: timing\n")
     (inner / "conftest.py").write_text(CONFTEST)
     (inner / "test_inner.py").write_text(TESTS_PY)
+    return inner
+
+
+def _run(tmp_path: Path, *args: str, **env: str) -> tuple[subprocess.CompletedProcess, list[dict]]:
+    inner = _tree(tmp_path)
     out = tmp_path / "where.jsonl"
     out.unlink(missing_ok=True)
     r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *args], cwd=inner,
@@ -111,13 +117,7 @@ def test_the_pytest_beside_a_sigkilled_run_ends_with_it(tmp_path):
     """SIGKILL runs no reaper: the pytest beside the run ends by its parent-death signal (SIGTERM) within 5 s."""
     import psutil
 
-    inner = tmp_path / "inner"
-    inner.mkdir()
-    (inner / "pytest.ini").write_text("[pytest]\nmarkers =\n    slow: real processes\n    realtime: timing\n")
-    (inner / "conftest.py").write_text(CONFTEST)
-    (inner / "test_inner.py").write_text(TESTS_PY.replace("def test_slow():\n    _where(\"slow\")",
-                                                          "def test_slow():\n    _where(\"slow\")\n"
-                                                          "    import time\n    time.sleep(60)"))
+    inner = _tree(tmp_path)
     out = tmp_path / "where.jsonl"
     run = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"], cwd=inner,
                            env=dict(os.environ, INNER_OUT=str(out), INNER_HANG="1", VERGENCE_TESTS_SPLIT="1"),
