@@ -53,7 +53,7 @@ from services.runtime import session
 from services.runtime.args import number, pixel, whole
 from services.runtime.node import STATUS_S, Node
 from services.pipeline.fovea import Fovea
-from services.pipeline.capture_time import ExposureClock, PanLookup, motor_state_implausible, remember
+from services.pipeline.capture_time import ExposureClock, PanLookup, Pacer, motor_state_implausible, remember
 
 log = logging.getLogger("vergence.capture")
 
@@ -273,18 +273,16 @@ class Capture:
 
     def run(self, frames: int = 0) -> int:
         """Read, plan and publish until the stop or `frames` published (0: never); 2 when the source fails."""
-        stop, period = self.stop, self.period
-        next_t = time.monotonic()
-        self.next_preview = next_t
+        stop = self.stop
+        pacer = Pacer(self.period) if self.period else None
+        self.next_preview = time.monotonic()
         while not stop.is_set() and (frames <= 0 or self.rates.published < frames):
-            if period:
-                delay = next_t - time.monotonic()
-                if delay > 0:
-                    stop.wait(delay)
-                    if stop.is_set():
-                        break
-                # keep the schedule, but never try to catch up more than one period late
-                next_t = max(next_t + period, time.monotonic() - period)
+            if pacer is not None:
+                missed = pacer.wait(stop)  # a stall is made up, up to a camera buffer's frames
+                if stop.is_set():
+                    break
+                if missed:
+                    self.health.count("periods_missed", missed)
             pan_at = PanLookup(self.history, self.history_lock, self.source, self.replica)
             at = self.source.fovea = self.fovea.at()  # this pair's fovea (a simulator's truth is for it)
             window = self.windows.state  # this pair's window (a decision may change it meanwhile)

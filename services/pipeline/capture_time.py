@@ -6,6 +6,7 @@ Split from services/pipeline/capture.py (issue #34); what each does and why: doc
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 
@@ -170,3 +171,28 @@ class ExposureClock:
             self.latency.clear()
             self.skew.clear()
         return out
+
+
+class Pacer:
+    """The capture's schedule at one period (s): wait() returns when the next read is due, and how many reads of
+    the schedule were given up. A read late by up to BUFFER periods (the process descheduled, a slow render) is
+    made up at once; later than that, the reads between are given up (`periods_missed` in the status), and the
+    schedule goes on from there. One: the workers' rings hold two frames and the reducer gathers up to three in
+    order, and a larger buffer measured no better at 250 Hz under load (docs/PERFORMANCE.md)."""
+
+    BUFFER = 1
+
+    def __init__(self, period: float, clock=time.monotonic):
+        self.period, self.clock = period, clock
+        self.next_t = clock()
+
+    def wait(self, stop: threading.Event) -> int:
+        """Sleep until the next read is due (or the stop); the reads given up since the last call."""
+        delay = self.next_t - self.clock()
+        if delay > 0:
+            stop.wait(delay)
+        due = self.next_t + self.period
+        floor = self.clock() - self.BUFFER * self.period
+        missed = max(0, math.ceil((floor - due) / self.period - 1e-9))
+        self.next_t = due + missed * self.period
+        return missed

@@ -7,7 +7,7 @@ import threading
 import pytest
 
 from vergence.head.timing import CameraTiming, PanHistory
-from services.pipeline.capture_time import ExposureClock, PanLookup
+from services.pipeline.capture_time import ExposureClock, Pacer, PanLookup
 
 MS = 1_000_000
 
@@ -154,3 +154,32 @@ def test_a_motor_state_from_our_future_is_forgotten_when_the_true_ones_come():
         st = MotorState(rig="r", t_ns=now + 40 * MS, pan_rad=0.0, goal_rad=0.0, min_rad=-1, max_rad=1, status=status)
         assert remember(h, st, now) is False
     assert list(h.pan) == [0.11, 0.12]
+
+
+def test_the_pacer_makes_up_a_stall_of_a_period_at_once_and_counts_the_reads_given_up_past_it():
+    now = [100.0]
+    clock = lambda: now[0]  # noqa: E731
+
+    class Stop:  # stop.wait advances the clock by what it was asked to wait
+        def wait(self, s):
+            now[0] += s
+
+    pacer, stop, p = Pacer(0.004, clock), Stop(), 0.004
+    reads = []
+
+    def read(stall=0.0):
+        missed = pacer.wait(stop)
+        reads.append(round((now[0] - 100.0) / p, 6))
+        now[0] += stall
+        return missed
+
+    assert [read() for _ in range(3)] == [0, 0, 0]
+    assert reads == [0, 1, 2]  # on the schedule, each a period after the last
+    assert read(1.9 * p) == 0  # a stall of nearly two periods...
+    assert [read() for _ in range(3)] == [0, 0, 0]
+    assert reads[3:] == [3, 4.9, 5, 6]  # ...is made up at once: no read given up, back on the schedule
+    reads.clear()
+    assert read(5.5 * p) == 0
+    assert read() == 3  # 5.5 periods late: the read due at 8, then 12 at once; 9-11 given up
+    assert [read() for _ in range(2)] == [0, 0]
+    assert reads == [7, 12.5, 12.5, 13]
