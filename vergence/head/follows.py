@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from ..choices import Fault
 
 __all__ = ["ADVICE", "FOLLOWS_MAX", "FOLLOWS_MIN", "REVERSED_MAX", "FOCAL_OFF", "Held", "focal_off", "note", "verdict"]
@@ -68,14 +70,15 @@ def fail_kind(r: float) -> str:
 
 
 class Held:
-    """The target's own motion while the motor holds still (during a fault, at its anchor): the rate of the offset's
-    angle over the last WINDOW_S (a least-squares line; none with fewer than MIN frames or off a line). Where the motor
-    does not move, the offset moves with the target only, whether the camera follows the motor or not, so a probe's
-    image motion less this rate times the probe's time is the probe's own (a probe read without it during pursuit took
-    the target's motion for the camera's: a slipping camera's fault cleared by a probe that had not moved it)."""
+    """The target's own motion while the motor holds still (during a fault, at its anchor): the offset's angle over the
+    last WINDOW_S, a least-squares line where it is one, else a parabola where that is one (a target turning); none with
+    too few frames or off both. Where the motor does not move, the offset moves with the target only, whether the
+    camera follows the motor or not, so a probe's image motion less the target's is the probe's own (a probe read
+    without it during pursuit took the target's motion for the camera's: a slipping camera's fault cleared by a probe
+    that had not moved it; read without the parabola, the same at a sine's turn, and the chase then ran 4.7 deg)."""
 
     WINDOW_S, MIN = 0.25, 4
-    RESID_RAD = math.radians(0.1)  # a line's RMS residual at most this (0.1 deg: 0.9 px at f 500)
+    RESID_RAD = math.radians(0.1)  # a line's (a parabola's) RMS residual at most this (0.1 deg: 0.9 px at f 500)
 
     def __init__(self):
         self.seen: list[tuple[float, float]] = []  # (t, a) at the anchor
@@ -84,14 +87,30 @@ class Held:
         self.seen = [s for s in self.seen if t - s[0] <= self.WINDOW_S] + [(t, a)]
 
     def ratios(self, t0: float, pan0: float, a0: float, t: float, pan: float, a: float) -> tuple[float, ...]:
-        """A probe's r from (t0, pan0, a0) at the anchor to (t, pan, a): as seen, and less the target's own motion
-        where that was a line (rate)."""
-        dp, v = pan - pan0, self.rate()
-        return (-(a - a0) / dp,) + (() if v is None else (-(a - a0 - v * (t - t0)) / dp,))
+        """A probe's r from (t0, pan0, a0) at the anchor to (t, pan, a): less the target's own motion where that was
+        a line or a parabola (motion), else as seen."""
+        dp, m = pan - pan0, self.motion(t0, t)
+        seen = -(a - a0) / dp
+        return (seen,) if m is None else (-(a - a0 - m) / dp, min(seen, FOLLOWS_MAX))
+
+    def motion(self, t0: float, t: float) -> float | None:
+        """The target's own change of the offset's angle from t0 to t (rad), along a parabola through the last WINDOW_S
+        (MIN + 1 frames or more), else along its line (rate), where that leaves at most RESID_RAD RMS; None off both
+        (a target that stepped: no motion to take out; the probe is read as seen). A parabola: a target turns or
+        speeds up within a probe's time (the near turn of a 0.4 Hz sine at 0.5-1 m, 27 deg/s^2: a line through the
+        turn, within 0.1 deg of it, missed 0.27 deg of the target's motion over a 0.5 deg probe's 0.09 s)."""
+        if len(self.seen) > self.MIN:
+            ts, offs = np.array(self.seen).T
+            mt = ts.mean()
+            c = np.polyfit(ts - mt, offs, 2)
+            if np.mean((np.polyval(c, ts - mt) - offs) ** 2) <= self.RESID_RAD ** 2:
+                return float(np.polyval(c, t - mt) - np.polyval(c, t0 - mt))
+        v = self.rate()
+        return None if v is None else v * (t - t0)
 
     def rate(self) -> float | None:
         """The offset's rate, rad/s; None with fewer than MIN frames, or where a line leaves more than RESID_RAD RMS
-        (a target that stepped, or turned fast: no motion to take out; the probe is read as seen)."""
+        (a target that stepped, or turned)."""
         n = len(self.seen)
         if n < self.MIN:
             return None

@@ -273,21 +273,51 @@ def test_a_background_still_as_a_late_image_would_be_holds_the_chase_and_names_n
     assert d.fault is Fault.SLAVE_FROZEN
 
 
-def test_the_targets_motion_at_the_anchor_is_taken_out_only_where_it_was_a_line():
-    """follows.Held: a steady drift gives its rate (the probe read less it too); a target that stepped while the motor
-    held (a square wave), or too few frames, gives none, and the probe is read as seen only (a step's 'rate' taken out
-    kept a late camera's fault on a stepping target for good)."""
+def test_the_targets_motion_at_the_anchor_is_taken_out_only_where_it_was_a_line_or_a_parabola():
+    """follows.Held: a steady drift gives its rate (the probe read less it, and as seen at least FOLLOWS_MIN); a target
+    that stepped while the motor held (a square wave), or too few frames, gives none, and the probe is read as seen
+    only (a step's 'rate' taken out kept a late camera's fault on a stepping target for good)."""
     from vergence.head.follows import Held
 
     drift, step = Held(), Held()
     for k in range(12):
         drift.add(k * DT, (0.5 - 3.0 * k * DT) * DEG)
         step.add(k * DT, (0.5 if k < 6 else -1.8) * DEG)
-    assert drift.rate() == pytest.approx(-3.0 * DEG) and step.rate() is None
+    assert drift.rate() == pytest.approx(-3.0 * DEG) and step.rate() is None and step.motion(0.0, DT) is None
     a0 = 0.5 - 3.0 * 11 * DT  # the last frame at the anchor; then a probe of +0.5 deg, its image seen 3 frames on
-    seen, less = drift.ratios(11 * DT, 0.0, a0 * DEG, 14 * DT, 0.5 * DEG, (a0 - 3.0 * 3 * DT - 0.5) * DEG)
+    less, seen = drift.ratios(11 * DT, 0.0, a0 * DEG, 14 * DT, 0.5 * DEG, (a0 - 3.0 * 3 * DT - 0.5) * DEG)
     assert seen == pytest.approx(1.3) and less == pytest.approx(1.0)  # as seen, the target's 0.15 deg counts too
     assert len(step.ratios(0.0, 0.0, 0.0, DT, 0.5 * DEG, -0.5 * DEG)) == 1
+
+
+def test_a_probe_at_a_targets_turn_is_read_less_the_turn():
+    """A target that turns while the motor holds at the anchor (a sine's near turn, 27 deg/s^2 in the image: within
+    0.1 deg of a line over the window) and a probe of -0.53 deg whose camera did not move (a slipping coupling): the
+    target's own motion over the probe's 0.09 s, 0.34 deg, read as seen or less a line is the probe followed (r 0.64
+    and 0.51: the fault cleared and the slave ran 4.7 deg, `vergence sim` at 45 Hz, seed 31); less the parabola, 0.
+    A camera that follows on a target turning fast the probe's way reads 1 less it, and more than 2.2 as seen."""
+    from vergence.head.follows import FOLLOWS_MAX, FOLLOWS_MIN, Held
+
+    acc, turn, dt = 27.0 * DEG, 4.38, 1 / 45
+
+    def a(t: float, gain: float = 1.0) -> float:
+        return -3.33 * DEG + gain * 0.5 * acc * (t - turn) ** 2
+
+    for gain, probe_follows in ((1.0, False), (1.0, True), (6.0, True)):
+        held = Held()
+        ts = [4.533 - k * dt for k in range(12)][::-1]
+        for t in ts:
+            held.add(t, a(t, gain))
+        t0, t1, dp = ts[-1], ts[-1] + 4 * dt, -0.527 * DEG
+        rs = held.ratios(t0, 0.0, a(t0, gain), t1, dp, a(t1, gain) - (dp if probe_follows else 0.0))
+        followed = all(FOLLOWS_MIN <= r <= FOLLOWS_MAX for r in rs)
+        assert followed == probe_follows, (gain, probe_follows, rs)
+        if gain == 1.0 and not probe_follows:  # a line fits the window within 0.1 deg, and misses the turn
+            line = held.rate()
+            seen_less_line = -(a(t1, gain) - a(t0, gain) - line * (t1 - t0)) / dp
+            assert FOLLOWS_MIN <= seen_less_line and FOLLOWS_MIN <= rs[1] and rs[0] == pytest.approx(0.0, abs=0.05)
+        if gain == 6.0:
+            assert rs[1] == FOLLOWS_MAX and -(a(t1, gain) - dp - a(t0, gain)) / dp > FOLLOWS_MAX  # (as seen: clipped)
     few = Held()
     for k in range(Held.MIN - 1):
         few.add(k * DT, k * DEG)
