@@ -278,7 +278,7 @@ class Capture:
         self.next_preview = time.monotonic()
         while not stop.is_set() and (frames <= 0 or self.rates.published < frames):
             if pacer is not None:
-                missed = pacer.wait(stop)  # a stall is made up, up to a camera buffer's frames
+                missed = pacer.wait(stop)  # a read a period late is made up at once
                 if stop.is_set():
                     break
                 if missed:

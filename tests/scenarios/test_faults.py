@@ -125,8 +125,8 @@ def test_up_with_a_slip_in_pursuit_holds_through_the_targets_turn(tmp_path):
         first = Decision.from_bytes(decisions.wait(1, 60)[0][1])
         t0 = first.t_capture_ns - round((first.frame - 1) * 1e9 / 45)  # the scene's time 0
         wait_for(lambda: time.time_ns() > t0 + 6.5e9, 20, "the scene's 6.5 s", interval=0.1, logs=P.logs)
-        pans = [((m.t_ns - t0) / 1e9, math.degrees(m.pan_rad)) for _, b, _ in states.snapshot()
-                if (m := MotorState.from_bytes(b))]
+        pans = [((m.t_ns - t0) / 1e9, math.degrees(m.pan_rad))
+                for m in (MotorState.from_bytes(b) for _, b, _ in states.snapshot())]
         named = [((t - t0) / 1e9, decode_status(b).fault()) for t, b, _ in statuses.snapshot()]
         ds = [Decision.from_bytes(b) for _, b, _ in decisions.snapshot()]
     at = next(t for t, f in named if f and f[0] == "slave_frozen")

@@ -71,7 +71,7 @@ def fail_kind(r: float) -> str:
 
 class Held:
     """The target's own motion while the motor holds still (during a fault, at its anchor): the offset's angle over the
-    last WINDOW_S, a least-squares line where it is one, else a parabola where that is one (a target turning); none with
+    last WINDOW_S, a least-squares parabola where one fits (a target turning), else a line where one does; none with
     too few frames or off both. Where the motor does not move, the offset moves with the target only, whether the
     camera follows the motor or not, so a probe's image motion less the target's is the probe's own (a probe read
     without it during pursuit took the target's motion for the camera's: a slipping camera's fault cleared by a probe
