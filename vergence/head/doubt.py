@@ -16,8 +16,8 @@ at the learnt rate but not at the target's latest (the rate its last consistent 
 target that turns) is a doubt: it holds and probes as a fail does, and names nothing. Pursuit, slow moves and jumps of
 the target are never judged. A byte-identical slave image after the motor moved IDENTICAL_MOVE_DEG is a frozen camera
 outright; a background that did not move with it (vergence.head.scenery: r under STILL_MAX, no target rate in it) is a
-pair that did not follow, in pursuit too; one a late image would show too (Verdict.late) is a doubt where the offset is
-under LEASH_DEG: it holds the chase a slipping camera starts (a correction's, not).
+pair that did not follow, in pursuit and at an undecided fovea too; one a late image would show too (Verdict.late) is a
+doubt where the offset is under LEASH_DEG: it holds the chase a slipping camera starts (a correction's, not).
 
 The leash. Until the image has been seen to follow (r in FOLLOWS_MIN..FOLLOWS_MAX; at the start, after a fault),
 no command goes further than UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there for
@@ -165,8 +165,10 @@ class Doubt:
             return self.fault
         if frozen:
             return self._fail(t, "frozen", f"a byte-identical slave image (a {IDENTICAL_MOVE_DEG} deg move or noise)")
-        if a is None or not math.isfinite(a):
-            return self.fault
+        still = background is not None and background.r < STILL_MAX  # the scene behind did not move with the motor
+        why = f"the background moved {background.r:.2f} x the motor" if still else ""
+        if a is None or not math.isfinite(a):  # (the fovea undecided: its background still says it)
+            return self._fail(t, fail_kind(background.r), why) if still and not background.late else self.fault
         now, late = _Seen(t, pan, a, self.u), self.late_s
         self.last_seen = now
         self.lag.saw(t, a)
@@ -175,11 +177,10 @@ class Doubt:
             self.fails.clear()
             return self.fault
         self.focal.add(t, pan, a)
-        if background is not None and background.r < STILL_MAX:  # the scene behind did not move with the motor
-            if not background.late:
-                return self._fail(t, fail_kind(background.r), f"the background moved {background.r:.2f} x the motor")
-            if abs(a) <= math.radians(LEASH_DEG):  # (near the target: a chase, not a correction a late image lags)
-                self._fail(t, "doubt", "as a late image's might not")  # (held; the pair may say more)
+        if still and not background.late:
+            return self._fail(t, fail_kind(background.r), why)
+        if still and abs(a) <= math.radians(LEASH_DEG):  # (a late image's: near the target, a chase, not a correction)
+            self._fail(t, "doubt", "as a late image's might not")  # (held; the pair may say more)
         if self.probe_ref is not None:
             self._probed(t, now)
             return self.fault
@@ -288,13 +289,12 @@ class Doubt:
     def _clear(self, t: float, pan: float, how: str) -> None:
         log.warning("fault %s cleared (%s): resuming from %.2f deg", self.fault, how, math.degrees(pan))
         self.fault, self.resumed = None, self.resumed + 1
-        self.anchor, self.trusted, self.ref, self.centre, self.stall = pan, True, None, None, None
-        self.rate, self.trend, self.zs = 0.0, 0.0, []
+        self.relocate(pan, trusted=True)
 
-    def relocate(self, pan: float) -> None:
-        """A search found a candidate at `pan` (vergence.head.search): the loop goes on from there as at the start,
-        its image not yet seen to follow (the leash about it until a move shows it does)."""
-        self.anchor, self.trusted, self.ref, self.centre, self.stall = pan, False, None, None, None
+    def relocate(self, pan: float, trusted: bool = False) -> None:
+        """A search found a candidate at `pan` (vergence.head.search), or a fault cleared there (trusted): the loop
+        goes on from there as at the start, untrusted its image not yet seen to follow (the leash until a move does)."""
+        self.anchor, self.trusted, self.ref, self.centre, self.stall = pan, trusted, None, None, None
         self.rate, self.trend, self.zs = 0.0, 0.0, []
         self.fails.clear()
         self._unprobe()

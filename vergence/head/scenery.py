@@ -92,6 +92,7 @@ class Background:
         self.bands: list[_Band] = []
         self.key = None  # (the band's shape, the fovea): a new one starts anew
         self.t_verdict = -math.inf  # the last verdict's exposure
+        self.pans: list[tuple[float, float]] = []  # (t, pan) of every band of the last MAX_DT_S + LATE_S, any key
 
     def see(self, t: float, pan: float, band: np.ndarray, focal_px: float, fovea_col: float,
             key=None, min_move_deg: float = MIN_MOVE_DEG) -> Verdict | None:
@@ -101,9 +102,13 @@ class Background:
         if not (math.isfinite(t) and math.isfinite(pan) and focal_px > 0) or band.ndim != 2:
             return None
         key = (band.shape, key)
-        if key != self.key or (self.bands and t <= self.bands[-1].t):
+        if self.pans and t <= self.pans[-1][0]:
+            self.pans = []
+        if key != self.key or not self.pans:
             self.bands, self.key, self.t_verdict = [], key, -math.inf
         self.bands = [b for b in self.bands if t - b.t <= MAX_DT_S + LATE_S]
+        # the pans outlive a new key (a window grown and back, a new fovea): what the motor did is what it did
+        self.pans = [p for p in self.pans if t - p[0] <= MAX_DT_S + LATE_S] + [(t, pan)]
         before = next((b for b in reversed(self.bands) if t - b.t <= MAX_DT_S
                        and abs(pan - b.pan) >= math.radians(min_move_deg)), None)
         self.bands.append(_Band(t, pan, profile(band)))
@@ -130,7 +135,7 @@ class Background:
         background's shift `moved` (within AGREE_PX, or a quarter of the turn): a camera whose images are that much
         later than its frames say shows that (a turn that just began, none yet). Also where the pans are not known
         that far back."""
-        ts, ps = [b.t for b in self.bands], [b.pan for b in self.bands]
+        ts, ps = [p[0] for p in self.pans], [p[1] for p in self.pans]
         if ts[0] > i.t - LATE_S:
             return True
         slack = max(AGREE_PX, 0.25 * focal_px * abs(math.tan(j.pan - i.pan)))

@@ -90,6 +90,21 @@ def test_a_still_background_that_a_late_image_would_show_is_a_late_verdict():
     assert verdicts[-1].r == pytest.approx(1.0, abs=0.05)
 
 
+def test_the_pans_outlive_a_new_band_shape_so_a_slip_after_it_is_no_late_verdict():
+    """A slipping camera while the motor turns 0.35 deg a frame, its band changing shape at frame 12 (a dynamic window
+    grown and back: the bands start anew): the verdicts right after read 0 and not late, the motor's pans being known
+    from before (before, the bands' own pans were, so for LATE_S after a new shape every verdict was late, as if the
+    turn had just begun: `vergence sim`, a slip while a fixate asked a move at 66 ms, the still scene, seed 41, ran
+    11.9 deg past the asked pan before it was named)."""
+    bg, turn = Background(), lambda i: 0.35 * i  # noqa: E731
+    got = []
+    for i in range(20):
+        b = band(0.0, -px(turn(i)))
+        v = bg.see(i / 60, math.radians(turn(i)), b[:27] if i == 12 else b, F, 320 - px(turn(i)))
+        got += [(i, v)] if v is not None and i > 12 else []
+    assert got and all(abs(v.r) < 0.05 and not v.late for _, v in got) and got[0][0] - 12 < LATE_S * 60
+
+
 def test_a_target_that_fills_the_band_and_grows_gives_no_verdict():
     """Pursuit of a target that fills the band while it comes nearer (it grows 2 % a frame about the fovea): its
     tiles spread with the zoom and none is the background's, so nothing is read (a still verdict would be a false
