@@ -95,18 +95,19 @@ class Held:
 
     def motion(self, t0: float, t: float) -> float | None:
         """The target's own change of the offset's angle from t0 to t (rad), along a parabola through the last WINDOW_S
-        (MIN + 1 frames or more), else along its line (rate), where that leaves at most RESID_RAD RMS; None off both
+        (MIN + 1 frames or more; MIN: a line, as rate()), where that leaves at most RESID_RAD RMS; None off it
         (a target that stepped: no motion to take out; the probe is read as seen). A parabola: a target turns or
         speeds up within a probe's time (the near turn of a 0.4 Hz sine at 0.5-1 m, 27 deg/s^2: a line through the
         turn, within 0.1 deg of it, missed 0.27 deg of the target's motion over a 0.5 deg probe's 0.09 s)."""
-        if len(self.seen) > self.MIN:
-            ts, offs = np.array(self.seen).T
-            mt = ts.mean()
-            c = np.polyfit(ts - mt, offs, 2)
-            if np.mean((np.polyval(c, ts - mt) - offs) ** 2) <= self.RESID_RAD ** 2:
-                return float(np.polyval(c, t - mt) - np.polyval(c, t0 - mt))
-        v = self.rate()
-        return None if v is None else v * (t - t0)
+        n = len(self.seen)
+        if n < self.MIN:
+            return None
+        ts, offs = np.array(self.seen).T
+        mt = ts.mean()
+        c = np.polyfit(ts - mt, offs, 2 if n > self.MIN else 1)  # (off a parabola, off its line too)
+        if np.mean((np.polyval(c, ts - mt) - offs) ** 2) > self.RESID_RAD ** 2:
+            return None
+        return float(np.polyval(c, t - mt) - np.polyval(c, t0 - mt))
 
     def rate(self) -> float | None:
         """The offset's rate, rad/s; None with fewer than MIN frames, or where a line leaves more than RESID_RAD RMS
