@@ -6,7 +6,10 @@ band's TILE px tiles off the fovea's and its neighbours' must shift by the motor
 the bands' column profiles (the mean of each column), searched over +-(the motor's shift + SLACK_PX); the largest
 group of tiles that moved alike (MIN_TILES or more, within AGREE_PX: the background moves as one, a target's zoom
 spreads its tiles) gives r = its median shift / the motor's: 1 for a camera that follows, 0 for one that does not
-(frozen, a slipping coupling), -1 for one that turns against the encoder; no target rate in it.
+(frozen, a slipping coupling), -1 for one that turns against the encoder; no target rate in it. MAX_DT_S is 0.6 s:
+a slip that the target's learnt rate drives on at 1-2 deg/s turns the motor MIN_MOVE_DEG within it (at 0.3 s it was
+never read, docs/FAULTS.md). A live band is read against live ones only: a frozen camera's repeats (the band before,
+byte for byte) show the pan at which it froze, not their own; a repeat against any band (it did not move).
 
 Only r under STILL_MAX says the image did not follow (a target that fills the band read 0.27-0.48 on clean runs,
 docs/FAULTS.md); where the motor's turn between the instants up to LATE_S before the two frames explains the shift
@@ -30,7 +33,7 @@ import numpy as np
 __all__ = ["Background", "Verdict", "profile", "tile_shifts"]
 
 MIN_MOVE_DEG = 0.6  # the pans of a verdict's two frames at least this far apart (as the doubt's decisive pairs)
-MAX_DT_S = 0.3  # ... and at most this far apart in time
+MAX_DT_S = 0.6  # ... and at most this far apart in time
 TILE, SLACK_PX = 32, 8  # a tile's width; the search beyond the motor's shift
 MATCHED = 0.9  # a tile's best normalised correlation at least this (a match without doubt) ...
 TEXTURE = 1.0  # ... and its column profile's standard deviation at least this (grey levels)
@@ -83,6 +86,7 @@ class _Band:
     t: float
     pan: float
     profile: np.ndarray
+    repeat: bool = False  # the band before's, repeated (a frozen camera's): no image of its instant
 
 
 class Background:
@@ -109,9 +113,13 @@ class Background:
         self.bands = [b for b in self.bands if t - b.t <= MAX_DT_S + LATE_S]
         # the pans outlive a new key (a window grown and back, a new fovea): what the motor did is what it did
         self.pans = [p for p in self.pans if t - p[0] <= MAX_DT_S + LATE_S] + [(t, pan)]
-        before = next((b for b in reversed(self.bands) if t - b.t <= MAX_DT_S
+        seen = profile(band)
+        repeat = bool(self.bands) and np.array_equal(seen, self.bands[-1].profile)
+        # a live band is read against live ones: a frozen camera's repeats are no image of their instants (a frozen
+        # one against them all: it did not move)
+        before = next((b for b in reversed(self.bands) if t - b.t <= MAX_DT_S and (repeat or not b.repeat)
                        and abs(pan - b.pan) >= math.radians(min_move_deg)), None)
-        self.bands.append(_Band(t, pan, profile(band)))
+        self.bands.append(_Band(t, pan, seen, repeat))
         if before is None or t - self.t_verdict < GAP_S:
             return None
         self.t_verdict = t
