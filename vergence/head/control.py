@@ -136,6 +136,7 @@ class Controller:
         self.pan_prev = 0.0  # the last decision's pan at exposure
         self.period: float | None = None  # the decisions' interval, smoothed
         self.doubt = Doubt()  # whether the image follows the motor, and the leash it keeps (issue #35)
+        self.doubt.stall.dead_band = self.limits.dead_band_rad
         self.background = Background()  # whether the slave's background moves with the motor (the doubt's too)
         self.search = Search()  # lost: where to look (issue #35)
 
@@ -201,8 +202,9 @@ class Controller:
             look = self.search.observe(t_s, pan_at_capture, confident, textured, offset_px, focal_px, width_px,
                                        self.limits.lo, self.limits.hi)
             if look is not None:
-                d.stall = None  # a search's stops are not commands the motor failed to follow
-                return self.limits.limit_step(pan_at_capture, look)
+                look = self.limits.limit_step(pan_at_capture, look)
+                d.stall.commanded(pan_at_capture, look, now)  # (a motor that never moves while it searches is stalled)
+                return look
             if was and not self.search.searching:
                 d.relocate(pan_at_capture)  # found: from here, not yet trusted
                 self.reset()

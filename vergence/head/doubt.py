@@ -25,14 +25,15 @@ BOUND_S probes back. Once it has, no command goes further than LEASH_DEG past th
 asked for (its z, moved on at the learnt rate); after a pair that did not follow, none further from the anchor than
 the slave already is, and after SUSPECT_S a probe back toward the anchor, whose image confirms or clears it.
 
-A fault: the slave goes back to the anchor and holds; the only moves are probes (PROBE_DEG from the anchor, one every
-PROBE_S, read less the target's own motion at the anchor: follows.Held; none whose background did not move; at an
-undecided fovea, its background), and when the image follows one again (or, for a stalled motor, the encoder moves)
-the loop resumes by itself. A frozen master camera (vergence.head.frozen) holds until it changes. A motor commanded
-MIN_MOVE or more away that does not move for STALL_S is stalled. A camera later than its frames say is told by the
-moves of its faults and named (vergence.head.lag): naming it clears a frozen or reversed fault (its image follows,
-later), and from then on each frame goes through shift() first, and a pair's slack grows by the uncertainty of the
-pans it reads. The library only: the reducer and `vergence sim` both run it through the Controller."""
+A fault: the slave goes back to the anchor (a search's candidate never seen to follow: where the search began) and
+holds; the only moves are probes (PROBE_DEG from the anchor, one every PROBE_S, read less the target's own motion at
+the anchor: follows.Held; none whose background did not move; at an undecided fovea, its background), and when the
+image follows one again (a stalled motor: the encoder moves) the loop resumes by itself. A frozen master camera
+(vergence.head.frozen) holds until it changes. A motor commanded STALL_ARM_DEG or more away (past its dead band) that
+does not move for STALL_S is stalled, a search's commands too. A camera later than its frames say is told by the moves
+of its faults and named (vergence.head.lag): naming it clears a frozen or reversed fault (its image follows, later);
+from then on each frame goes through shift() first, and a pair's slack grows by the uncertainty of the pans it reads.
+The library only: the reducer and `vergence sim` both run it through the Controller."""
 
 from __future__ import annotations
 
@@ -46,6 +47,7 @@ from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, Held, fail_kind, note, ve
 from .frozen import IDENTICAL_MOVE_DEG, Master, Slave
 from .lag import LAG_AFTER_S, RETURN_FIT_S, Lag
 from .scenery import STILL_MAX, Verdict
+from .stall import Stall
 
 __all__ = ["ADVICE", "Doubt", "Fault"]
 
@@ -71,7 +73,6 @@ PROBE_FIT_S = 0.35  # a fault's probe whose image has not followed by this long 
 SUSPECT_S = 0.1  # a pair that did not follow holds the motor this long, then probes
 BOUND_S = 0.2  # an untrusted head held at its leash's end this long probes (a slipping camera's runaway ends there)
 SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within this
-STALL_S, STALL_MOVE_DEG = 0.5, 0.2  # commanded MIN_MOVE or more away, no move of STALL_MOVE_DEG for STALL_S: stalled
 BG_FOLLOWS = 2  # a fault's background verdicts in a row that moved with the motor clear it where the fovea is undecided
 PRECISE = 0.2  # a decisive pair with at most this slack per motion counts for the focal length (docs/FAULTS.md)
 
@@ -95,6 +96,7 @@ class Doubt:
     def __init__(self):
         self.fault: Fault | None = None
         self.anchor = None  # the last pan at which the image followed (the first pan seen)
+        self.home: float | None = None  # the anchor before a search's candidate, until its image is seen to follow
         self.trusted = False  # the image has been seen to follow since the start or the last fault
         self.ref = self.centre = None  # the next pair's reference decision; the last consistent one (leash's centre)
         self.rate, self.trend, self.zs = 0.0, 0.0, []  # target rate, rad/s: learnt, the last pair's; (t, z) of LONG_S
@@ -104,7 +106,7 @@ class Doubt:
         self.t_still = -math.inf  # the last background verdict that did not move with the motor (not a late one)
         self.returned, self.held = False, Held()  # the fault's move back to the anchor sent; the target's motion there
         self.master, self.slave = Master(), Slave()  # each camera's images, frame to frame
-        self.stall: tuple[float, float] | None = None  # (t, pan) since which a command far away has not moved it
+        self.stall = Stall()  # a motor that does not follow its commands (its dead band: the Controller's Safety's)
         self.t_bound: float | None = None  # since when an untrusted head is held at its leash's end; a probe's start
         self.probe_ref, self.probe_goal = None, 0.0  # a probe's decision before it (None: none under way), its goal
         self.t_held = self.last_seen = None  # since when a pair that did not follow holds the motor; the last decision
@@ -234,7 +236,7 @@ class Doubt:
         self.fails.clear()
         if precise:
             self.focal.pair(r)
-        self.trusted, self.anchor = True, j.pan
+        self.trusted, self.anchor, self.home = True, j.pan, None
 
     def _consistent(self, i: _Seen, j: _Seen, learn: bool = True) -> None:
         """j agrees with i (or the target moved by itself between them): j is the next reference and the leash's
@@ -277,7 +279,9 @@ class Doubt:
                 self.lag.pending, self.ref, self.centre = None, None, None
                 self.fails.clear()
                 return
-        self.fault, self.t_probe, self.returned, self.bg_follows = fault, t, False, 0
+        if fault in (Fault.SLAVE_FROZEN, Fault.REVERSED) and not self.trusted and self.home is not None:
+            self.anchor = self.home  # a search's candidate never seen to follow: back to where the search began
+        self.fault, self.t_probe, self.returned, self.bg_follows, self.home = fault, t, False, 0, None
         self.trusted, self.ref, self.t_held = False, None, None
         self.fails.clear()
         self.focal.clear()
@@ -294,20 +298,17 @@ class Doubt:
     def relocate(self, pan: float, trusted: bool = False) -> None:
         """A search found a candidate at `pan` (vergence.head.search), or a fault cleared there (trusted): the loop
         goes on from there as at the start, untrusted its image not yet seen to follow (the leash until a move does)."""
-        self.anchor, self.trusted, self.ref, self.centre, self.stall = pan, trusted, None, None, None
+        self.home = None if trusted else self.anchor if self.home is None else self.home
+        self.anchor, self.trusted, self.ref, self.centre = pan, trusted, None, None
+        self.stall.reset()
         self.rate, self.trend, self.zs = 0.0, 0.0, []
         self.fails.clear()
         self._unprobe()
 
     def _stalled(self, t: float, pan: float) -> None:
-        if self.stall is None or self.fault is not None:
-            return
-        t0, p0 = self.stall
-        if abs(pan - p0) >= math.radians(STALL_MOVE_DEG):
-            self.stall = None
-        elif t - t0 >= STALL_S:
+        if self.fault is None and (still := self.stall.stalled(t, pan)) is not None:
             self.anchor = pan  # the encoder tells the truth: the motor is here
-            self._raise(t, Fault.STALLED, f"no move in {t - t0:.2f} s")
+            self._raise(t, Fault.STALLED, f"no move in {still:.2f} s")
 
     def _probe_result(self, t: float, pan: float, a: float | None, frozen: bool, background: Verdict | None) -> None:
         """A frame during a fault: whether a probe's image followed, at the fovea, or where it is undecided (on an
@@ -366,11 +367,7 @@ class Doubt:
             goal = self._suspect(pan, t_now)  # a pair did not follow: no further from the last pan that did
         else:
             self.t_held = None
-        if abs(goal - pan) >= math.radians(MIN_MOVE_DEG):
-            if self.stall is None:
-                self.stall = (t_now, pan)
-        else:
-            self.stall = None
+        self.stall.commanded(pan, goal, t_now)
         return goal
 
     def _stuck(self, pan: float, goal: float, t_now: float, lim: float) -> float | None:

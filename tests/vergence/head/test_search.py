@@ -12,7 +12,10 @@ import pytest
 
 import background
 import sweeps
+from vergence.choices import Fault
 from vergence.head.control import ControlSettings, Controller
+from vergence.head.doubt import Doubt
+from vergence.head.scenery import Verdict
 from vergence.head.search import HELD_S, LOST_S, REST_S, STEP_OF_BAND, Search
 
 DEG = math.pi / 180
@@ -117,9 +120,13 @@ def test_black_frames_hold_and_a_confident_decision_ends_the_search():
 
 
 def test_the_controller_searches_only_where_the_image_can_follow_and_holds_in_a_fault():
+    """Lost, it searches; a motor that never moves while it searches is stalled (STALL_S after the search's first
+    command) and holds; without the doubt (a still pair: the image cannot follow) it never searches."""
     c = Controller(ControlSettings(mode="p"))
-    goals = [c.target(0.2, 0.0, F, False, t_s=k * DT, width_px=W) for k in range(60)]
+    goals = [c.target(0.2, 0.0, F, False, t_s=k * DT, width_px=W) for k in range(40)]
     assert goals[-1] is not None and c.search.searching  # lost, searching
+    goals = [c.target(0.2, 0.0, F, False, t_s=k * DT, width_px=W) for k in range(40, 60)]
+    assert c.doubt.fault is Fault.STALLED and goals[-1] is None and not c.search.searching
     still = Controller(ControlSettings(mode="p"))
     assert all(still.target(0.2, 0.0, F, False, t_s=k * DT, width_px=W, doubt=False) is None for k in range(60))
 
@@ -147,3 +154,24 @@ def test_a_lost_slave_is_found_within_3_s_in_16_draws():
     bad = [(d, r) for d, r in got if not (r[0] is not None and r[0] <= 3.0 and r[1] <= 45.0 + 1e-9 and not r[2])]
     print("\nfound after (s):", sorted(round(r[0], 2) for _, r in got if r[0] is not None))
     assert bad == []
+
+
+def test_a_fault_at_a_searchs_candidate_never_seen_to_follow_holds_where_the_search_began():
+    """The image never followed at the start (2 deg: the anchor, untrusted); a search took a candidate at 12 deg,
+    and the background then turns against the motor: the reversal is held at 2 deg, where the search began (it was
+    held at the candidate, 10 deg off: Cones, seed 7203, a camera reversed from the start, docs/FAULTS.md); once a
+    candidate's image has followed, a fault there holds there."""
+    d = Doubt()
+    d.observe(0.0, math.radians(2.0), None, 1, 7, (320, 240))
+    d.relocate(math.radians(12.0))
+    for k in range(1, 4):
+        d.observe(k / 60, math.radians(12.0 + 0.7 * k), math.radians(0.5), 1 + k, 7 + k, (320, 240),
+                  background=Verdict(-1.0))
+    assert d.fault is Fault.REVERSED and math.degrees(d.anchor) == pytest.approx(2.0)
+    t = Doubt()
+    t.observe(0.0, math.radians(2.0), None, 1, 7, (320, 240))
+    t.relocate(math.radians(12.0), trusted=True)  # (a fault cleared there: its image followed)
+    for k in range(1, 4):
+        t.observe(k / 60, math.radians(12.0 + 0.7 * k), math.radians(0.5), 1 + k, 7 + k, (320, 240),
+                  background=Verdict(-1.0))
+    assert t.fault is Fault.REVERSED and math.degrees(t.anchor) == pytest.approx(12.0)
