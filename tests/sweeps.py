@@ -121,6 +121,29 @@ def teddy_rig(**kw):
                             dscale="4", size="640x480", fixate="400,240", **kw)
 
 
+def middlebury_lie(name: str, fixate: tuple[int, int], lie: str, fixations: dict, latency: float, seed: int,
+                   frames: int):
+    """Middlebury's `name` on the simulated rig (640 x 480, f 500 px, sensor noise 1) fixated at `fixate` of its left
+    image, the slave converged there, lying as the spec `lie` says, the fovea moved as `fixations` says ({frame: (x,
+    y)}), at 60 Hz with the images `latency` old: (the rig, its Steps)."""
+    import json
+
+    from middlebury import ROOT
+    from vergence.sim import Rig
+    from vergence.sim.faults import FAULT_KEYS, Faults
+    from vergence.sim.fixation import truth_at
+    from vergence.spec import parse
+
+    s = json.loads((ROOT / "scenes.json").read_text())[name]
+    rig = Rig.from_options(left=str(ROOT / s["left"]), right=str(ROOT / s["right"]),
+                           disparity=str(ROOT / s["disparity"]), dscale=str(s["disparity_scale"]), size="640x480",
+                           fixate="{},{}".format(*fixate), focal="500", noise="1")
+    rig.start_pan_rad = truth_at(rig, 320, 240)[0]
+    faults = Faults.take(parse(lie, FAULT_KEYS, "test"))
+    return rig, list(closed_loop(rig, frames, None, ControlSettings(), None, 60.0, fixations=fixations,
+                                 timing=CameraTiming(latency), faults=faults, seed=seed))
+
+
 def teddy_lie(lie: str, latency: float) -> list:
     """Teddy at 60 Hz with sensor noise 1, the fovea moved at frame 30 to (150, 200), the slave lying (`lie`: freeze
     or slip) from 0.4 to 2.4 s, the image `latency` old when read: the loop's Steps over 5 s."""

@@ -11,12 +11,12 @@ import cv2
 import numpy as np
 import pytest
 
-from middlebury import ROOT as MIDDLEBURY, needs_data
+import sweeps
+from middlebury import needs_data
 from vergence.head.control import ControlSettings
 from vergence.head.doubt import Doubt, Fault
 from vergence.head.scenery import LATE_S, MIN_MOVE_DEG, STILL_MAX, Background, Verdict, profile, tile_shifts
 from vergence.head.timing import CameraTiming
-from vergence.sim import Rig
 from vergence.sim.faults import FAULT_KEYS, Faults
 from vergence.sim.fixation import truth_at
 from vergence.sim.loop import closed_loop
@@ -242,13 +242,7 @@ def test_a_slip_that_the_targets_rate_drives_on_slowly_is_named_before_it_runs_2
     check, docs/FAULTS.md). The image offset stays at -0.9 px while the target's learnt rate walks the motor on at
     1-2 deg/s, too slowly for 0.6 deg within 0.3 s: before, 2.3 deg past the pan the first decision asked and never
     named; now named within 0.7 s of the move, at most 0.5 deg past, and within 1 px of the truth 1.2 s after."""
-    d = MIDDLEBURY / "cones"
-    rig = Rig.from_options(left=str(d / "left.png"), right=str(d / "right.png"), disparity=str(d / "disparity.png"),
-                           dscale="4", size="640x480", fixate="92,285", focal="500", noise="1")
-    rig.start_pan_rad = truth_at(rig, 320, 240)[0]
-    faults = Faults.take(parse("slip=0.56-2.56", FAULT_KEYS, "test"))
-    steps = list(closed_loop(rig, 240, None, ControlSettings(), None, 60.0, fixations={44: (405, 181)},
-                             timing=CameraTiming(0.033), faults=faults, seed=7105))
+    rig, steps = sweeps.middlebury_lie("cones", (92, 285), "slip=0.56-2.56", {44: (405, 181)}, 0.033, 7105, 240)
     first = next(s for s in steps if s.frame >= 44 and s.confident)
     asked = first.pan_deg + math.degrees(math.atan(first.offset_px / F))
     named = next(s for s in steps if s.fault)

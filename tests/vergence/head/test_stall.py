@@ -9,15 +9,9 @@ import math
 
 import pytest
 
-from middlebury import ROOT as MIDDLEBURY, needs_data
-from vergence.head.control import ControlSettings
+import sweeps
+from middlebury import needs_data
 from vergence.head.stall import STALL_ARM_DEG, STALL_MOVE_DEG, STALL_S, Stall
-from vergence.head.timing import CameraTiming
-from vergence.sim import Rig
-from vergence.sim.faults import FAULT_KEYS, Faults
-from vergence.sim.fixation import truth_at
-from vergence.sim.loop import closed_loop
-from vergence.spec import parse
 
 R = math.radians
 
@@ -56,12 +50,6 @@ def test_a_stall_while_a_fixate_asks_a_small_move_is_named(latency):
     at 1.9 s the fovea moves to (161, 249), 0.43 deg away: the loop asks that every frame and the motor never moves.
     Before, never named (a command 0.6 deg away started the clock); now within 1 s of the move, and nothing named
     before the stall."""
-    d = MIDDLEBURY / "venus"
-    rig = Rig.from_options(left=str(d / "left.png"), right=str(d / "right.png"), disparity=str(d / "disparity.pgm"),
-                           dscale="8", size="640x480", fixate="289,210", focal="500", noise="1")
-    rig.start_pan_rad = truth_at(rig, 320, 240)[0]
-    faults = Faults.take(parse("stall=1.1-3.1", FAULT_KEYS, "test"))
-    steps = list(closed_loop(rig, 210, None, ControlSettings(), None, 60.0, fixations={114: (161, 249)},
-                             timing=CameraTiming(latency), faults=faults, seed=7201))
+    _, steps = sweeps.middlebury_lie("venus", (289, 210), "stall=1.1-3.1", {114: (161, 249)}, latency, 7201, 210)
     named = next(s for s in steps if s.fault)
     assert named.fault == "stalled" and 1.9 < named.t_s <= 2.9
