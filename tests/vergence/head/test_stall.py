@@ -1,7 +1,7 @@
 """vergence.head.stall (issue #35): a motor that does not follow its commands. The clock starts at a command
-STALL_ARM_DEG or more away (past twice the dead band), a move of STALL_MOVE_DEG or a nearer command stops it, and
-STALL_S on it the motor is stalled; then `vergence sim`'s loop on a scene of this file's own, where the loop asked
-0.4 deg every frame of a stall and it was never named."""
+STALL_ARM_DEG or more away (past twice the dead band), a move of STALL_MOVE_DEG or a command nearer than half that
+stops it, and STALL_S on it the motor is stalled; then `vergence sim`'s loop on a scene of this file's own, where the
+loop asked 0.4 deg every frame of a stall and it was never named."""
 
 from __future__ import annotations
 
