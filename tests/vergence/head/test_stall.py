@@ -20,7 +20,7 @@ def test_a_command_far_away_that_never_moves_the_motor_is_a_stall_after_stall_s(
     s = Stall()
     s.commanded(0.0, R(STALL_ARM_DEG), 1.0)
     assert s.stalled(1.0 + STALL_S - 0.01, 0.0) is None
-    assert s.stalled(1.0 + STALL_S, R(STALL_MOVE_DEG) * 0.9) == pytest.approx(STALL_S)
+    assert s.stalled(1.0 + STALL_S, R(STALL_ARM_DEG) * 0.45) == pytest.approx(STALL_S)  # (less than half the ask)
     s.commanded(0.0, R(STALL_ARM_DEG), 1.6)  # (a clock that runs keeps its start)
     assert s.stalled(1.7, 0.0) == pytest.approx(0.7)
 
@@ -29,6 +29,10 @@ def test_a_move_a_near_command_or_a_goal_within_the_dead_band_stops_or_starts_no
     s = Stall()
     s.commanded(0.0, R(1.0), 0.0)
     assert s.stalled(0.2, R(STALL_MOVE_DEG)) is None and s.stalled(0.9, R(STALL_MOVE_DEG)) is None  # it moved
+    half = Stall()  # a goal 0.3 deg away the next goal took back: a motor that moved half of it follows
+    half.commanded(R(-2.11), R(-2.41), 1.888)
+    half.commanded(R(-2.28), R(-2.16), 1.9)  # (0.12 deg: keeps a clock that runs)
+    assert half.stalled(1.9, R(-2.28)) is None and half.stalled(2.5, R(-2.20)) is None  # (before: stalled at 2.4)
     s.commanded(0.0, R(1.0), 1.0)
     s.commanded(0.0, R(STALL_ARM_DEG) * 0.9, 1.1)  # one between keeps it running (the goals scatter)
     assert s.stalled(1.5, 0.0) == pytest.approx(0.5)
