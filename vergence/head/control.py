@@ -186,7 +186,8 @@ class Controller:
             ok = confident and math.isfinite(offset_px) and math.isfinite(focal_px) and focal_px > 0
             a = pixels_to_angle(offset_px, focal_px, centre_px) if ok else None
             before = d.fault, d.focal_ratio is None
-            d.observe(t_s, pan_at_capture, a, slave, master, fovea, background=background)
+            d.observe(t_s, pan_at_capture, a, slave, master, fovea, background=background,
+                      off_axis=centre_px / focal_px if ok and math.isfinite(centre_px) else 0.0)
             if (d.fault, d.focal_ratio is None) != before:
                 # what the filter learnt while the image lied (or before the fault, or at the focal length told
                 # before it was named) says nothing now

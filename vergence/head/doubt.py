@@ -136,7 +136,7 @@ class Doubt:
     # -- decisions ---------------------------------------------------------------------------------------------------
     def observe(self, t: float, pan: float, a: float | None, slave: int | None = None,
                 master: int | None = None, fovea: tuple[int, int] | None = None,
-                background: Verdict | None = None) -> Fault | None:
+                background: Verdict | None = None, off_axis: float = 0.0) -> Fault | None:
         """One decided frame: t the slave's exposure (s), pan the slave's pan then (rad), a the angle of a
         confident decision's offset (None: no confident decision), slave and master the images' digests (None:
         unknown), fovea the master point it was decided at (a new one is a new target), background the verdict on
@@ -178,6 +178,7 @@ class Doubt:
             self.ref, self.centre = None, None
             self.fails.clear()
             return self.fault
+        self.focal.off_axis = off_axis  # (the fovea's column off the principal point over the focal length told)
         self.focal.add(t, pan, a)
         if still and not background.late:
             return self._fail(t, fail_kind(background.r), why)

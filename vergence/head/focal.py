@@ -24,7 +24,7 @@ import numpy as np
 
 from .follows import FOCAL_OFF, FOLLOWS_MAX, focal_off
 
-__all__ = ["Focal", "Pursuit"]
+__all__ = ["Focal", "Pursuit", "on_axis"]
 
 log = logging.getLogger("vergence.doubt")
 
@@ -86,9 +86,10 @@ class Focal:
         self.pairs: list[float] = []
         self.pursuit = Pursuit()
         self.ratio: float | None = None
+        self.off_axis = 0.0  # the fovea's column off the principal point over the focal length told (on_axis())
 
     def pair(self, r: float) -> None:
-        self.pairs = (self.pairs + [r])[-4 * FOCAL_PAIRS:]
+        self.pairs = (self.pairs + [on_axis(r, self.off_axis)])[-4 * FOCAL_PAIRS:]
         self._name()
 
     def add(self, t: float, pan: float, a: float) -> None:
@@ -103,10 +104,20 @@ class Focal:
             med = sorted(self.pairs)[len(self.pairs) // 2]
             ratio = med if focal_off(med) else None
         else:
-            ratio = self.pursuit.ratio
+            ratio = None if self.pursuit.ratio is None else on_axis(self.pursuit.ratio, self.off_axis)
         if ratio is not None and self.ratio is None:
             log.warning("the focal length is off: the image moves %.2f x what focal_px predicts", ratio)
         self.ratio = ratio
+
+
+def on_axis(r: float, u: float) -> float:
+    """The focal length's ratio k from r, the image's motion over the motor's as read at a fovea u x the focal length
+    told off the principal point: the angles read with the focal length told, a column there moves k (1 + u^2) / (1 +
+    (u / k)^2) x what they predict, so k is the root of k^2 - r (1 + u^2) k + u^2 = 0 near r (k = r on the axis; 200
+    px off at 500 told and 800 true, r reads 1.466 for 1.6: the outside check's Cones and Tsukuba, docs/FAULTS.md)."""
+    b = r * (1 + u * u)
+    d = b * b - 4 * u * u
+    return (b + math.sqrt(d)) / 2 if d >= 0 and r > 0 else r
 
 
 def fit(seen: Sequence[tuple[float, float, float]]) -> float | None:

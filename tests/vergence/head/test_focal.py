@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from vergence.head.control import ControlSettings
-from vergence.head.focal import FITS, FOCAL_PAIRS, Focal, Pursuit, fit
+from vergence.head.focal import FITS, FOCAL_PAIRS, Focal, Pursuit, fit, on_axis
 from vergence.head.timing import CameraTiming
 from vergence.sim.loop import closed_loop
 from vergence.sim.moving import MovingRig
@@ -106,3 +106,15 @@ def test_in_the_loop_a_1_6_x_focal_length_is_named_in_pursuit_and_the_loop_track
         assert rms <= 1.3 * rms_right, (rms, rms_right)
     else:
         assert rms <= 1.5 and rms_right <= 1.5, (rms, rms_right)
+
+
+def test_the_ratio_read_off_the_axis_is_the_focal_lengths_once_the_column_is_accounted_for():
+    """Images at 800 px, the loop told 500, a fovea 200 px off the principal point: the angles read with 500 px make
+    a column there move 1.6 (1 + 0.4^2) / (1 + 0.25^2) = 1.466 x what they predict (the outside check's Cones and
+    Tsukuba named 1.449-1.518); on_axis gives 1.6 back, and r itself on the axis."""
+    f_told, f_true, c, d = 500.0, 800.0, 200.0, 1e-4
+    moved = f_true * (math.tan(math.atan(c / f_true) + d) - c / f_true)  # px, the column's shift for a turn d
+    r = (math.atan((c + moved) / f_told) - math.atan(c / f_told)) / d  # as the check reads it, angles at 500 px
+    assert r == pytest.approx(1.466, abs=0.002)
+    assert on_axis(r, c / f_told) == pytest.approx(1.6, abs=0.002)
+    assert on_axis(1.3, 0.0) == 1.3 and on_axis(0.0, 0.4) == 0.0
