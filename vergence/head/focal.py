@@ -11,7 +11,9 @@ a cubic in t and -pan reads rho off the part of the motor's motion no cubic expl
 is at least MOTION_DEG (RMS: against the encoder's noise, which biases rho towards 0 as the square of their ratio)
 and rho's standard error at most SE. The median of the last KEEP such fits (FITS at least) names the ratio where it
 is off (vergence.head.follows.focal_off) and above 1: a gain too high is what makes the loop oscillate, and a camera
-later than its frames say reads as a ratio below 1 (docs/FAULTS.md has the figures)."""
+later than its frames say reads as a ratio below 1 (docs/FAULTS.md has the figures). A fovea off the principal point
+reads a ratio off the focal length's (the angles are read with the focal length told): each pair's and the pursuit's
+are taken back to the axis (on_axis)."""
 
 from __future__ import annotations
 
