@@ -95,7 +95,7 @@ class Held:
 
     def motion(self, t0: float, t: float) -> float | None:
         """The target's own change of the offset's angle from t0 to t (rad), along a parabola through the last WINDOW_S
-        (MIN + 1 frames or more; MIN: a line, as rate()), where that leaves at most RESID_RAD RMS; None off it
+        (MIN + 1 frames or more; MIN: a line), where that leaves at most RESID_RAD RMS; None off it
         (a target that stepped: no motion to take out; the probe is read as seen). A parabola: a target turns or
         speeds up within a probe's time (the near turn of a 0.4 Hz sine at 0.5-1 m, 27 deg/s^2: a line through the
         turn, within 0.1 deg of it, missed 0.27 deg of the target's motion over a 0.5 deg probe's 0.09 s)."""
@@ -109,14 +109,3 @@ class Held:
             return None
         return float(np.polyval(c, t - mt) - np.polyval(c, t0 - mt))
 
-    def rate(self) -> float | None:
-        """The offset's rate, rad/s; None with fewer than MIN frames, or where a line leaves more than RESID_RAD RMS
-        (a target that stepped, or turned)."""
-        n = len(self.seen)
-        if n < self.MIN:
-            return None
-        mt, ma = sum(t for t, _ in self.seen) / n, sum(a for _, a in self.seen) / n
-        var = sum((t - mt) ** 2 for t, _ in self.seen)
-        v = sum((t - mt) * (a - ma) for t, a in self.seen) / var if var > 0 else 0.0
-        resid = sum((a - ma - v * (t - mt)) ** 2 for t, a in self.seen) / n
-        return v if resid <= self.RESID_RAD ** 2 else None
