@@ -28,22 +28,22 @@ the slave already is, and after SUSPECT_S a probe back toward the anchor, whose 
 A fault: the slave goes back to the anchor (a search's candidate never seen to follow: where the search began) and
 holds; the only moves are probes (PROBE_DEG from the anchor, one every PROBE_S, read less the target's own motion at
 the anchor: follows.Held; none whose background did not move; at an undecided fovea, its background), and when the
-image follows one again (a stalled motor: the encoder moves) the loop resumes by itself. A frozen master camera
-(vergence.head.frozen) holds until it changes. A motor commanded STALL_ARM_DEG or more away (past its dead band) that
-does not move for STALL_S is stalled, a search's commands too. A camera later than its frames say is told by the moves
-of its faults and named (vergence.head.lag): naming it clears a frozen or reversed fault (its image follows, later);
-from then on each frame goes through shift() first, and a pair's slack grows by the uncertainty of the pans it reads.
+image follows one again (a reversed camera's: one to either side in turn; a stalled motor: the encoder moves) the
+loop resumes by itself. A frozen master camera (vergence.head.frozen) holds until it changes. A motor commanded
+STALL_ARM_DEG or more away (past its dead band) that does not move for STALL_S is stalled, a search's commands too. A
+camera later than its frames say is told by the moves of its faults and named (vergence.head.lag): naming it clears a
+frozen or reversed fault (its image follows, later); from then on each frame goes through shift() first, and a pair's
+slack grows by the uncertainty of the pans it reads.
 The library only: the reducer and `vergence sim` both run it through the Controller."""
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
 
 from ..choices import Fault
 from .focal import Focal
-from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, Held, fail_kind, note, verdict
+from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, Held, Seen, fail_kind, note, verdict
 from .frozen import IDENTICAL_MOVE_DEG, Master, Slave
 from .lag import LAG_AFTER_S, RETURN_FIT_S, Lag
 from .scenery import STILL_MAX, Verdict
@@ -77,18 +77,6 @@ BG_FOLLOWS = 2  # a fault's background verdicts in a row that moved with the mot
 PRECISE = 0.2  # a decisive pair with at most this slack per motion counts for the focal length (docs/FAULTS.md)
 
 
-@dataclass
-class _Seen:
-    t: float  # the slave's exposure, s
-    pan: float  # the slave's pan then, rad
-    a: float  # the angle of the measured offset, rad
-    u: float = 0.0  # how far off pan may be (a late camera's pan, read between two frames' pans), rad
-
-    @property
-    def z(self) -> float:
-        return self.pan + self.a  # where the target is, as this decision says
-
-
 class Doubt:
     """The check and its leash for one slave camera (see the module's text). observe() every decision,
     gate() every command; `fault` is the present fault (None: the image follows), `note` what to check."""
@@ -103,6 +91,7 @@ class Doubt:
         self.fails, self.t_fail = [], 0.0  # the kinds of the pairs that did not follow, and when the last one was
         self.focal = Focal()  # the focal length's ratio, from precise pairs that followed and from pursuit
         self.t_probe, self.probe_sign, self.fit_ref = None, 1.0, None  # a fault's last probe, its side, its fit's ref
+        self.sides = (0.0, -math.inf)  # a reversed fault's last probe that followed: its side, when
         self.t_still = -math.inf  # the last background verdict that did not move with the motor (not a late one)
         self.returned, self.held = False, Held()  # the fault's move back to the anchor sent; the target's motion there
         self.master, self.slave = Master(), Slave()  # each camera's images, frame to frame
@@ -147,6 +136,7 @@ class Doubt:
         if fovea != self.fovea:
             self.fovea, self.ref, self.centre, self.rate, self.trend, self.zs = fovea, None, None, 0.0, 0.0, []
             self.focal.clear()
+            self.held = Held()  # (the old point's offsets and the new one's are no motion of a target)
         self.anchor = pan if self.anchor is None else self.anchor
         seen = self.master.see(t, master)
         if seen == "changed" and self.fault is Fault.MASTER_FROZEN:
@@ -171,7 +161,7 @@ class Doubt:
         why = f"the background moved {background.r:.2f} x the motor" if still else ""
         if a is None or not math.isfinite(a):  # (the fovea undecided: its background still says it)
             return self._fail(t, fail_kind(background.r), why) if still and not background.late else self.fault
-        now, late = _Seen(t, pan, a, self.u), self.late_s
+        now, late = Seen(t, pan, a, self.u), self.late_s
         self.last_seen = now
         self.lag.saw(t, a)
         if self.late_s != late:  # named late: the next frames are taken at their images' instants, no pair across
@@ -196,7 +186,7 @@ class Doubt:
             self._pair(self.ref, now)
         return self.fault
 
-    def _pair(self, i: _Seen, j: _Seen) -> None:
+    def _pair(self, i: Seen, j: Seen) -> None:
         """What the pair (i, j) says. Where the motor moved faster than any target (JUDGE_RATE_DEG_S, beyond the
         target's learnt rate) and far enough, the image must show most of that motion, whatever the target did: the
         pair is judged, the image followed (j's pan is verified) or did not (a fail). Otherwise nothing is judged:
@@ -232,14 +222,14 @@ class Doubt:
         elif abs(p) < 0.5 * abs(e) or abs(p) < math.radians(JUDGE_RATE_DEG_S) * dt:
             self._consistent(i, j)  # the target moved by itself (or jumped), or the motor was no faster than it
 
-    def _followed(self, j: _Seen, r: float, precise: bool) -> None:
+    def _followed(self, j: Seen, r: float, precise: bool) -> None:
         """A decisive pair that followed: j's pan is verified (a precise one's r counts toward the focal ratio)."""
         self.fails.clear()
         if precise:
             self.focal.pair(r)
         self.trusted, self.anchor, self.home = True, j.pan, None
 
-    def _consistent(self, i: _Seen, j: _Seen, learn: bool = True) -> None:
+    def _consistent(self, i: Seen, j: Seen, learn: bool = True) -> None:
         """j agrees with i (or the target moved by itself between them): j is the next reference and the leash's
         centre, and, while tracking (i's offset small) or where the motor moved slowly, the target's rate is learnt
         (a correction's image could teach the motor's own motion: a slipping coupling's does). A pair faster than any
@@ -283,6 +273,7 @@ class Doubt:
         if fault in (Fault.SLAVE_FROZEN, Fault.REVERSED) and not self.trusted and self.home is not None:
             self.anchor = self.home  # a search's candidate never seen to follow: back to where the search began
         self.fault, self.t_probe, self.returned, self.bg_follows, self.home = fault, t, False, 0, None
+        self.sides = (0.0, -math.inf)
         self.trusted, self.ref, self.t_held = False, None, None
         self.fails.clear()
         self.focal.clear()
@@ -329,7 +320,7 @@ class Doubt:
                 self._clear(t, pan, f"a probe moved the background r = {background.r:.2f}, the fovea undecided")
             return
         if abs(away) < math.radians(SAME_PAN_DEG):
-            self.ref = _Seen(t, pan, a)  # a fresh reference at the anchor for the next probe
+            self.ref = Seen(t, pan, a)  # a fresh reference at the anchor for the next probe
             self.held.add(t, a)
             return
         if self.ref is None or frozen or abs(pan - self.ref.pan) < math.radians(PROBE_MIN_DEG):
@@ -341,6 +332,10 @@ class Doubt:
             self.fit_ref = self.ref  # once a probe: its step against a late image and the target's own motion
             rs = rs if (fitted := self.lag.probe(self.ref.t, self.ref.a)) is None else (fitted,)
         if all(FOLLOWS_MIN <= r <= FOLLOWS_MAX for r in rs) and self.t_still <= self.ref.t:
+            side, self.sides = self.sides, (math.copysign(1.0, away), t)
+            if self.fault is Fault.REVERSED and (side[0] == self.sides[0] or t - side[1] > 1.5 * PROBE_S):
+                return  # a reversed camera's image follows probes to both sides, one after the other (a false match
+                # can follow one: an ambiguous fovea's two matches, 15 px apart, taken in turn)
             if self.fit_ref is not self.ref:  # (a fitted probe has noted its lag)
                 self.lag.expect(self.ref.t, self.ref.a, t + LAG_AFTER_S)  # (then the image's whole step is seen)
             how = f"a probe of {math.degrees(pan - self.ref.pan):+.2f} deg moved the image r = {min(rs):.2f}"
@@ -410,7 +405,7 @@ class Doubt:
     def _unprobe(self) -> None:
         self.probe_ref = self.t_bound = None
 
-    def _probed(self, t: float, now: _Seen) -> None:
+    def _probed(self, t: float, now: Seen) -> None:
         """The image of a probe (a head not yet trusted, or held by a pair that did not follow): it followed (the
         head is trusted) or not (a fail; a doubt where the target's latest rate, not the learnt one, explains it)."""
         ref, p = self.probe_ref, now.pan - self.probe_ref.pan

@@ -6,12 +6,14 @@ words wherever it is named (the reducer's status, /diagnostics, the monitor, cal
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..choices import Fault
 
-__all__ = ["ADVICE", "FOLLOWS_MAX", "FOLLOWS_MIN", "REVERSED_MAX", "FOCAL_OFF", "Held", "focal_off", "note", "verdict"]
+__all__ = ["ADVICE", "FOLLOWS_MAX", "FOLLOWS_MIN", "REVERSED_MAX", "FOCAL_OFF", "Held", "Seen", "focal_off", "note",
+           "verdict"]
 
 FOLLOWS_MIN, FOLLOWS_MAX = 0.5, 2.2  # r in this range: the image follows (r: image motion / motor motion)
 REVERSED_MAX = -0.35  # r at most this: the camera turns the other way
@@ -67,6 +69,19 @@ def fail_kind(r: float) -> str:
     """The kind of a pair that did not follow (vergence.head.doubt): "reversed" where r <= 2 REVERSED_MAX (-0.7: a
     slipping camera's pair, its target's motion mispredicted, reaches -0.6), else "frozen"."""
     return "reversed" if r <= 2 * REVERSED_MAX else "frozen"
+
+
+@dataclass
+class Seen:
+    """One confident decision, as the check keeps it (vergence.head.doubt)."""
+    t: float  # the slave's exposure, s
+    pan: float  # the slave's pan then, rad
+    a: float  # the angle of the measured offset, rad
+    u: float = 0.0  # how far off pan may be (a late camera's pan, read between two frames' pans), rad
+
+    @property
+    def z(self) -> float:
+        return self.pan + self.a  # where the target is, as this decision says
 
 
 class Held:

@@ -133,6 +133,39 @@ def test_a_new_fovea_is_a_new_target():
     feed(d, [(0, 0, 1), (0, 0, 2)])
     d.observe(2 * DT, 0.0, 2 * DEG, 3, None, (100, 100))
     assert d.ref.a == pytest.approx(2 * DEG) and d.rate == 0.0 and d.fault is None
+    # during a fault, the offsets at the anchor are the target's own motion (follows.Held), the new point's only
+    # (the old point's and the new one's read together were a motion: Tsukuba, seed 7207, docs/FAULTS.md)
+    feed(d, [(0, 3, 4), (0.3, 3, 5), (1.2, 3, 6), (2.0, 3, 7)], t0=0.1)
+    assert d.fault is Fault.SLAVE_FROZEN
+    feed(d, [(0, 3, 8 + k) for k in range(5)], t0=0.2)
+    assert len(d.held.seen) == 5
+    d.observe(0.3, 0.0, 1 * DEG, 20, None, (200, 100))
+    assert d.held.seen == [(0.3, pytest.approx(1 * DEG))]
+
+
+@pytest.mark.parametrize("sides,clears", [((1,), False), ((-1,), False), ((1, -1), True)])
+def test_a_reversed_fault_is_cleared_only_by_probes_that_follow_to_both_sides_one_after_the_other(sides, clears):
+    """A camera named reversed, probed PROBE_DEG either side of its anchor in turn, one probe every PROBE_S: the
+    image read as a following camera's on the probes to `sides` only, as a reversed one's elsewhere. One side's
+    probes are what a false match gives (Tsukuba, seed 7207, 66 ms: a fovea with two matches 15 px apart, taken in
+    turn; at a probe's pan the other one read r = 1.15, the fault cleared, and the slave ran 10.8 deg from its
+    start); a camera named reversed falsely follows both ways, and is cleared by the second probe."""
+    d = Doubt()
+    feed(d, [(0, 3, 1), (1, 4, 2), (2, 5, 3)])
+    assert d.fault is Fault.REVERSED and d.anchor == 0.0
+    pan, cleared = 2.0, None
+    for k in range(4, int(3.6 / DT)):  # 3.5 s: three probes
+        t = k * DT
+        if (g := d.gate(pan * DEG, None, t)) is not None:
+            pan = g / DEG  # (at the goal by the next exposure)
+        side = (pan > 0.2) - (pan < -0.2)
+        d.observe(t, pan * DEG, (3 - pan if side in sides else 3 + pan) * DEG, k, None, (320, 240))
+        if d.fault is None:
+            cleared = t
+            break
+    assert (cleared is not None) == clears, cleared
+    if clears:
+        assert 2.0 < cleared < 2.3 and d.resumed == 1  # the second probe's first frame (the first one: 1.0-1.5 s)
 
 
 def test_a_motor_that_does_not_follow_its_commands_is_stalled_and_a_move_clears_it():
