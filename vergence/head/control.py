@@ -44,7 +44,8 @@ from typing import ClassVar
 from ..motors.base import MotorSettings, Safety
 from ..choices import ControlMode, Fault
 from ..ranges import Range, check
-from .doubt import PROBE_MIN_DEG, Doubt
+from .doubt import PROBE_MIN_DEG, UNTRUSTED_DEG, Doubt
+from .follows import FOLLOWS_MAX, FOLLOWS_MIN
 from .search import Search
 from .predict import Periodic, Predictor, Referee
 from .scenery import MIN_MOVE_DEG, Background, Verdict
@@ -139,6 +140,7 @@ class Controller:
         self.doubt.stall.dead_band = self.limits.dead_band_rad
         self.background = Background()  # whether the slave's background moves with the motor (the doubt's too)
         self.search = Search()  # lost: where to look (issue #35)
+        self.turned = False  # the background turned with the motor since the last fault: the camera turns the right way
 
     def _bounded(self, pan_at_capture: float, step: float) -> float:
         """The set-point pan_at_capture + step, as the motor's Safety bounds it (limits, step)."""
@@ -197,11 +199,17 @@ class Controller:
         now = t_now if t_now is not None and math.isfinite(t_now) else t_s
         if d.fault is not None:
             self.search.reset()
+            self.turned = False
             return d.gate(pan_at_capture, None, now if now is not None else 0.0)
         if t_s is not None and math.isfinite(t_s):
             was = self.search.searching
+            if background is not None and not background.late and FOLLOWS_MIN <= background.r <= FOLLOWS_MAX:
+                self.turned = True
+            leash = None
+            if not (d.trusted or self.turned) and d.anchor is not None:  # (the search's first move stays within)
+                leash = (d.anchor - math.radians(UNTRUSTED_DEG), d.anchor + math.radians(UNTRUSTED_DEG))
             look = self.search.observe(t_s, pan_at_capture, confident, textured, offset_px, focal_px, width_px,
-                                       self.limits.lo, self.limits.hi)
+                                       self.limits.lo, self.limits.hi, leash)
             if look is not None:
                 look = self.limits.limit_step(pan_at_capture, look)
                 d.stall.commanded(pan_at_capture, look, now)  # (a motor that never moves while it searches is stalled)

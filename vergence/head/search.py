@@ -15,7 +15,10 @@ as it bounds every other). At each stop the motor is given ARRIVE_S to get there
 the exposures), then DWELL_S of decisions there. A sweep that found nothing goes back to where it began (a fovea the
 slave cannot see, occluded behind a nearer object, has nothing to find: no sweep for ever over the whole range) and
 waits there REST_S, twice that after the next one, up to REST_MAX_S, then sweeps again. The status counts those
-sweeps (`sweeps_empty`): `vergence monitor` asks whether the point is visible to the slave at all.
+sweeps (`sweeps_empty`): `vergence monitor` asks whether the point is visible to the slave at all. A head whose image
+has not yet been seen to follow the motor (from the start: the doubt's leash, 2.9 deg) looks first, to the leash's
+end: a camera reversed from the start is named over that move, by its background turning against the motor, not 19
+degrees away after a sweep's first step; once the background turned with the motor (or after DWELL_S there) it sweeps.
 
 Found. The first confident decision ends the search: the loop takes over from that pan, not yet trusted
 (vergence.head.doubt's leash: the image must follow a first move, which tells a true candidate, whose offset changes
@@ -40,6 +43,7 @@ STEP_OF_BAND = 0.6  # the sweep's step: this fraction of the angle the band reac
 MIN_STEP_DEG = 2.0  # a band narrower than this still steps this far
 MARGIN_PX = 16  # the band's reach: half the image width less this (a window's half)
 REST_S, REST_MAX_S = 2.0, 16.0  # after a sweep that found nothing, back where it began this long (doubling), then again
+LOOK_MIN_DEG = 0.6  # a look shorter than this tells nothing (the background's verdicts want a turn this long)
 
 
 class Search:
@@ -61,6 +65,7 @@ class Search:
         self.step = math.radians(15.0)
         self._all: list[float] = []  # the whole sweep, to start over from
         self.centre, self.rest, self.t_rest = 0.0, REST_S, None  # where it began; the next rest; the present one's end
+        self.look: float | None = None  # the first move of a head whose image has not yet been seen to follow
 
     def reset(self) -> None:
         """Forget being lost (a fault began: the doubt holds; or a new target)."""
@@ -68,13 +73,16 @@ class Search:
         self._stop()
 
     def _stop(self) -> None:
-        self.searching, self.stops, self.goal, self.t_arrived, self.empty = False, [], None, None, 0
+        self.searching, self.stops, self.goal, self.t_arrived, self.empty, self.look = False, [], None, None, 0, None
         self.rest, self.t_rest = REST_S, None
 
     def observe(self, t: float, pan: float, confident: bool, textured: bool, offset_px: float, focal_px: float,
-                width_px: int | None, lo: float, hi: float) -> float | None:
+                width_px: int | None, lo: float, hi: float, leash: tuple[float, float] | None = None) -> float | None:
         """One decided frame (t: the slave's exposure, s; pan: its pan then, rad; lo, hi: the motor's soft limits,
-        rad): the search's goal, or None (not lost, found, or held: black or flat frames)."""
+        rad): the search's goal, or None (not lost, found, or held: black or flat frames). leash: where the image
+        has not yet been seen to follow the motor, the pans it may go to until it has (None: anywhere): a search
+        then looks first, to the leash's end nearer the range's middle (or the other, LOOK_MIN_DEG away at least),
+        and sweeps after DWELL_S there or as soon as the leash is None (the image followed)."""
         if not (math.isfinite(t) and math.isfinite(pan)):
             return None
         if confident and math.isfinite(offset_px):
@@ -99,6 +107,10 @@ class Search:
             if t - self.t_lost < (HELD_S if held else LOST_S):
                 return None
             self._start(t, pan, focal_px, width_px, lo, hi)
+            ends = sorted((min(max(e, lo), hi) for e in leash or ()), key=lambda e: abs(e - (lo + hi) / 2))
+            self.look = next((e for e in ends if abs(e - pan) >= math.radians(LOOK_MIN_DEG)), None)
+        if leash is None and self.look is not None:
+            self.look = self.goal = None  # the image followed: the sweep
         return self._next(t, pan)
 
     def _start(self, t: float, pan: float, focal_px: float, width_px: int | None, lo: float, hi: float) -> None:
@@ -130,6 +142,8 @@ class Search:
         self._all, self.centre = list(self.stops), c
 
     def _next(self, t: float, pan: float) -> float:
+        if self.look is not None and self.goal is None:
+            self.goal, self.t_goal, self.t_arrived = self.look, t, None
         if self.goal is not None:
             if self.t_arrived is None and abs(pan - self.goal) <= math.radians(ARRIVED_DEG):
                 self.t_arrived = t
@@ -137,6 +151,7 @@ class Search:
                 (self.t_arrived is None and t - self.t_goal >= ARRIVE_S)
             if not done:
                 return self.goal
+            self.look = None
         if not self.stops:  # the sweep is done: back where it began, a while, then again
             if self.t_rest is None:
                 self.t_rest, self.rest = t + self.rest, min(2 * self.rest, REST_MAX_S)

@@ -16,7 +16,7 @@ from vergence.choices import Fault
 from vergence.head.control import ControlSettings, Controller
 from vergence.head.doubt import Doubt
 from vergence.head.scenery import Verdict
-from vergence.head.search import HELD_S, LOST_S, REST_S, STEP_OF_BAND, Search
+from vergence.head.search import DWELL_S, HELD_S, LOST_S, REST_S, STEP_OF_BAND, Search
 
 DEG = math.pi / 180
 DT = 1 / 60
@@ -95,6 +95,44 @@ def test_first_back_to_the_last_converged_pan_then_about_it_alternating_from_whe
     step = 18.78
     # the side it was lost on first; 5 + 2 x 18.78 = 42.56 is within a quarter step of the limit: no stop at 45
     assert got[:7] == pytest.approx([5.0, 5 + step, 5 - step, 5 + 2 * step, 5 - 2 * step, -45.0, 5.0], abs=0.01)
+
+
+@pytest.mark.parametrize("start,look", [(10.9, 8.0), (8.2, 13.8)])
+@pytest.mark.parametrize("followed", [False, True])
+def test_a_search_whose_image_was_never_seen_to_follow_looks_within_the_leash_first(start, look, followed):
+    """A head whose image has not yet followed the motor (the doubt's leash: 2.9 deg about where it started, 10.9
+    deg) looks first to the leash's end toward the range's middle (or the other end where that one is under 0.6 deg
+    away: no turn to read): a camera reversed from the start is named over that move by its background, within the
+    leash (before, a search's first step of 18.8 deg: Venus, seed 7205, 11.6 deg from its start before it was named,
+    the issue's bound 3). After DWELL_S there the sweep, or at once when told that the image followed (no leash)."""
+    s = Search()
+    leash, pan, out = (8.0 * DEG, 13.8 * DEG), start * DEG, []
+    for k in range(90):
+        t = k * DT
+        told = None if followed and abs(pan - look * DEG) < 1e-9 else leash  # (the background: it turned)
+        g = s.observe(t, pan, False, True, 0.0, F, W, LO, HI, told)
+        out.append((t, g))
+        pan = g if g is not None else pan
+    got = stops(out)
+    assert got[0] == pytest.approx(look) and got[1] == pytest.approx(start - 18.78, abs=0.01)
+    t_look = next(t for t, g in out if g is not None)
+    t_sweep = next(t for t, g in out if g is not None and abs(g / DEG - look) > 1e-6)
+    assert t_look == pytest.approx(LOST_S, abs=DT)
+    assert t_sweep - t_look == pytest.approx(DT if followed else DT + DWELL_S, abs=DT / 2)
+
+
+@pytest.mark.parametrize("latency", [0.0, 0.066])
+def test_a_camera_reversed_from_a_start_it_never_decides_is_named_within_the_leash(latency):
+    """Venus, seed 7205 (a draw of the outside checks, docs/FAULTS.md): the slave on the truth at the image's centre,
+    the fovea at (312, 73), then (326, 375) from 0.3 s, the camera reversed from the start. The start never decides
+    and the loop searches: the reversal named over the search's look, at most 2.9 deg from the start (before: after
+    its first step, 8.8 and 11.6 deg away), then only the move back and probes."""
+    rig, steps = sweeps.middlebury_lie("venus", (312, 73), "reverse", {18: (326, 375)}, latency, 7205, 150)
+    start = math.degrees(rig.start_pan_rad)
+    assert max(abs(s.pan_deg - start) for s in steps) <= 3.0
+    first = next(s for s in steps if s.fault)
+    assert first.fault == "reversed" and first.t_s <= 1.0
+    assert all(abs(s.target_deg - start) <= 0.6 for s in steps if s.frame > first.frame and s.target_deg is not None)
 
 
 def test_converged_and_held_with_sparse_confident_decisions_waits_held_s_not_lost_s():
