@@ -151,11 +151,13 @@ class Controller:
         on these (vergence.head.lag), denser than the frames' pans. Only plausible reports (the caller's checks)."""
         self.doubt.lag.motor(t_s, pan)
 
-    def scene(self, t_s: float, pan: float, band, focal_px: float, fovea_col: float, fovea=None) -> Verdict | None:
+    def scene(self, t_s: float, pan: float, band, focal_px: float, fovea_col: float, fovea=None,
+              centre_col: float | None = None) -> Verdict | None:
         """Whether the slave's background moved with the motor (vergence.head.scenery): one frame's slave band (t_s
         its exposure as stamped, pan the slave's then as the motor reported it, not extrapolated past its newest
-        report: vergence.head.scenery; fovea_col the fovea's column in the band), its verdict for
-        target(background=); during a fault on moves from PROBE_MIN_DEG (its probes are PROBE_DEG from the anchor).
+        report: vergence.head.scenery; fovea_col the fovea's column in the band, centre_col the principal point's,
+        default the band's middle), its verdict for target(background=); during a fault on moves from PROBE_MIN_DEG
+        (its probes are PROBE_DEG from the anchor).
         None where a camera is named late (its stamps are not its image's: no verdict), or none is due. A reducer
         asks when the Frame arrives, while the workers compute."""
         d = self.doubt
@@ -163,7 +165,7 @@ class Controller:
             return None
         probing = d.fault in (Fault.SLAVE_FROZEN, Fault.REVERSED)
         return self.background.see(t_s, pan, band, focal_px, fovea_col, key=fovea,
-                                   min_move_deg=PROBE_MIN_DEG if probing else MIN_MOVE_DEG)
+                                   min_move_deg=PROBE_MIN_DEG if probing else MIN_MOVE_DEG, centre_col=centre_col)
 
     def target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool = True,
                centre_px: float = 0.0, t_s: float | None = None, t_now: float | None = None,

@@ -1,15 +1,17 @@
 """Whether the slave's background moves with the motor (issue #35): the fovea's image motion mixes the camera's turn
 with the target's own motion (pursuit and a slipping camera that chases a moving target look alike there), but a turn
-of the camera shifts every point of its image by f tan(pan change), whatever its depth, where a target moves only its
-own pixels. So between two frames whose pans differ by MIN_MOVE_DEG or more (at most MAX_DT_S apart), the slave
-band's TILE px tiles off the fovea's and its neighbours' must shift by the motor's turn. Each tile's shift is read on
-the bands' column profiles (the mean of each column), searched over +-(the motor's shift + SLACK_PX); the largest
-group of tiles that moved alike (MIN_TILES or more, within AGREE_PX: the background moves as one, a target's zoom
-spreads its tiles) gives r = its median shift / the motor's: 1 for a camera that follows, 0 for one that does not
-(frozen, a slipping coupling), -1 for one that turns against the encoder; no target rate in it. MAX_DT_S is 0.6 s:
-a slip that the target's learnt rate drives on at 1-2 deg/s turns the motor MIN_MOVE_DEG within it (at 0.3 s it was
-never read, docs/FAULTS.md). A live band is read against live ones only: a frozen camera's repeats (the band before,
-byte for byte) show the pan at which it froze, not their own; a repeat against any band (it did not move).
+of the camera turns every point of its image by that angle, whatever its depth (a column u px off the principal point
+shifts by f tan(atan(u/f) + turn) - u: 1 + (u/f)^2 times the axis's f tan(turn)), where a target moves only its own
+pixels. So between two frames whose pans differ by MIN_MOVE_DEG or more (at most MAX_DT_S apart), the slave band's
+TILE px tiles off the fovea's and its neighbours' must turn by the motor's turn. Each tile's shift is read on the
+bands' column profiles (the mean of each column), searched over +-(the motor's shift + SLACK_PX), and taken as the
+turn it shows at its column; the largest group of tiles that turned alike (MIN_TILES or more, within AGREE_PX on the
+axis: the background turns as one, a target's zoom spreads its tiles) gives r = its median turn / the motor's: 1 for
+a camera that follows, 0 for one that does not (frozen, a slipping coupling), -1 for one that turns against the
+encoder; no target rate in it. MAX_DT_S is 0.6 s: a slip that the target's learnt rate drives on at 1-2 deg/s turns
+the motor MIN_MOVE_DEG within it (at 0.3 s it was never read, docs/FAULTS.md). A live band is read against live ones
+only: a frozen camera's repeats (the band before, byte for byte) show the pan at which it froze, not their own; a
+repeat against any band (it did not move).
 
 Only r under STILL_MAX says the image did not follow (a target that fills the band read 0.27-0.48 on clean runs,
 docs/FAULTS.md); where the motor's turn between the instants up to LATE_S before the two frames explains the shift
@@ -99,10 +101,10 @@ class Background:
         self.pans: list[tuple[float, float]] = []  # (t, pan) of every band of the last MAX_DT_S + LATE_S, any key
 
     def see(self, t: float, pan: float, band: np.ndarray, focal_px: float, fovea_col: float,
-            key=None, min_move_deg: float = MIN_MOVE_DEG) -> Verdict | None:
+            key=None, min_move_deg: float = MIN_MOVE_DEG, centre_col: float | None = None) -> Verdict | None:
         """One frame's slave band (t its exposure, s; pan the slave's then, rad; fovea_col the fovea's column in
-        it): r of its background against the latest earlier band at least MIN_MOVE_DEG away in pan (None: no
-        verdict)."""
+        it; centre_col the principal point's, default its middle): r of its background against the latest earlier
+        band at least MIN_MOVE_DEG away in pan (None: no verdict)."""
         if not (math.isfinite(t) and math.isfinite(pan) and focal_px > 0) or band.ndim != 2:
             return None
         key = (band.shape, key)
@@ -123,30 +125,36 @@ class Background:
         if before is None or t - self.t_verdict < GAP_S:
             return None
         self.t_verdict = t
-        motor = focal_px * math.tan(pan - before.pan)  # the shift a camera that follows shows, px
+        motor = focal_px * math.tan(pan - before.pan)  # the shift a camera that follows shows, px (on its axis)
         shifts = tile_shifts(before.profile, self.bands[-1].profile, int(abs(motor)) + SLACK_PX)
         if not shifts:
             return None
-        # the tiles off the fovea's and its neighbours' (the target there moves as it moves, not as the camera turns)
-        scenery = np.sort([s for c, s in shifts if abs(c + TILE / 2 - fovea_col) > 1.5 * TILE])
-        # the most of them that moved alike (within AGREE_PX): the background moves as one, a target's zoom spreads
-        ends = np.searchsorted(scenery, scenery + AGREE_PX, side="right")
+        # the tiles off the fovea's and its neighbours' (the target there moves as it moves, not as the camera turns),
+        # each as the turn it shows: a column u px off the axis moves f (tan(atan(u/f) + turn) - u/f), 1 + (u/f)^2
+        # times the axis's (a 2.9 deg turn 35 deg off the scene's middle spread the tiles' shifts over 3.6 px)
+        c0 = (band.shape[1] - 1) / 2 if centre_col is None else centre_col
+        u = np.array([c + TILE / 2 - c0 for c, s in shifts if abs(c + TILE / 2 - fovea_col) > 1.5 * TILE])
+        s = np.array([s for c, s in shifts if abs(c + TILE / 2 - fovea_col) > 1.5 * TILE])
+        scenery = np.sort(np.arctan((u + s) / focal_px) - np.arctan(u / focal_px))
+        # the most of them that turned alike (within AGREE_PX on the axis): the background turns as one, a target's
+        # zoom spreads
+        ends = np.searchsorted(scenery, scenery + AGREE_PX / focal_px, side="right")
         i = int(np.argmax(ends - np.arange(scenery.size))) if scenery.size else 0
         if scenery.size == 0 or ends[i] - i < MIN_TILES:
             return None
-        moved = float(np.median(scenery[i:ends[i]]))
-        r = moved / motor
+        moved = float(np.median(scenery[i:ends[i]]))  # rad
+        r = moved / math.atan(motor / focal_px)
         return Verdict(r, r < STILL_MAX and self._late(before, self.bands[-1], moved, focal_px))
 
     def _late(self, i: _Band, j: _Band, moved: float, focal_px: float) -> bool:
         """Whether the motor's turn between the instants up to LATE_S before i's and j's exposures explains the
-        background's shift `moved` (within AGREE_PX, or a quarter of the turn): a camera whose images are that much
-        later than its frames say shows that (a turn that just began, none yet). Also where the pans are not known
-        that far back."""
+        background's turn `moved` (rad; within AGREE_PX on the axis, or a quarter of the turn): a camera whose images
+        are that much later than its frames say shows that (a turn that just began, none yet). Also where the pans
+        are not known that far back."""
         ts, ps = [p[0] for p in self.pans], [p[1] for p in self.pans]
         if ts[0] > i.t - LATE_S:
             return True
-        slack = max(AGREE_PX, 0.25 * focal_px * abs(math.tan(j.pan - i.pan)))
-        return any(abs(focal_px * math.tan(float(np.interp(j.t - lag, ts, ps) - np.interp(i.t - lag, ts, ps)))
-                       - moved) <= slack for lag in (LATE_S / 3, 2 * LATE_S / 3, LATE_S))
+        slack = max(AGREE_PX / focal_px, 0.25 * abs(j.pan - i.pan))
+        return any(abs(float(np.interp(j.t - lag, ts, ps) - np.interp(i.t - lag, ts, ps)) - moved) <= slack
+                   for lag in (LATE_S / 3, 2 * LATE_S / 3, LATE_S))
 

@@ -202,7 +202,7 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
     target = None
     if pan is not None:
         # the background's verdict, not on a pan told past the motor's newest report (a guess: Frame.pan_guessed)
-        scene = controller.scene(t_told, pan, slave[band], focal, x, at) if t_told <= history.t[-1] else None
+        scene = controller.scene(t_told, pan, slave[band], focal, x, at, _cx(rig)) if t_told <= history.t[-1] else None
         target = controller.target(pan, d.offset_px, focal, d.confident, t_s=t_told, t_now=t_now,
                                    centre_px=x - _cx(rig), slave=digest(slave, y, base) or None,
                                    master=digest(master, y, base) or None, fovea=at, textured=has_texture(d, params),

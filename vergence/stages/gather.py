@@ -309,7 +309,7 @@ class Gatherer:
         e.frame, e.prep = frame, prep
         if frame.follows and not (frame.pan_stale or frame.pan_guessed):  # (while the workers compute)
             e.scene = self.controller.scene(frame.t_slave_ns / 1e9, frame.pan_rad, frame.band_strip(), frame.focal_px,
-                                            frame.x + 1, (frame.x, frame.y))
+                                            frame.x + 1, (frame.x, frame.y), frame.slave_principal[0] + 1)
         self.newest = max(self.newest, frame.frame)
         # correlations that came first: those that do not fit this plan go, the others are evidence
         for wid, p in list(e.correlations.items()):
