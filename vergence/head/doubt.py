@@ -68,6 +68,7 @@ REF_MAX_S = 0.3  # a reference older than this is replaced by the newest decisio
 UNTRUSTED_DEG = 2.9  # the leash about the anchor until the image has been seen to follow
 LEASH_DEG = 1.5  # the leash past the pan the last consistent measurement asked for
 PROBE_DEG, PROBE_S = 0.5, 1.0  # during a fault: a probing move this far from the anchor, at most one a period
+RETURN_S = 0.25  # a fault's move back to the anchor is sent again this long after it where the pan never got there
 PROBE_MIN_DEG = 0.3  # a probe's pair counts when the motor moved at least this much
 PROBE_FIT_S = 0.35  # a fault's probe whose image has not followed by this long after it is fitted (Lag.probe)
 SUSPECT_S = 0.1  # a pair that did not follow holds the motor this long, then probes
@@ -93,7 +94,7 @@ class Doubt:
         self.t_probe, self.probe_sign, self.fit_ref = None, 1.0, None  # a fault's last probe, its side, its fit's ref
         self.sides = (0.0, -math.inf)  # a reversed fault's last probe that followed: its side, when
         self.t_still = -math.inf  # the last background verdict that did not move with the motor (not a late one)
-        self.returned, self.held = False, Held()  # the fault's move back to the anchor sent; the target's motion there
+        self.returned, self.held = None, Held()  # when the move back to the anchor was sent; the target's motion there
         self.master, self.slave = Master(), Slave()  # each camera's images, frame to frame
         self.stall = Stall()  # a motor that does not follow its commands (its dead band: the Controller's Safety's)
         self.t_bound: float | None = None  # since when an untrusted head is held at its leash's end; a probe's start
@@ -272,7 +273,7 @@ class Doubt:
                 return
         if fault in (Fault.SLAVE_FROZEN, Fault.REVERSED) and not self.trusted and self.home is not None:
             self.anchor = self.home  # a search's candidate never seen to follow: back to where the search began
-        self.fault, self.t_probe, self.returned, self.bg_follows, self.home = fault, t, False, 0, None
+        self.fault, self.t_probe, self.returned, self.bg_follows, self.home = fault, t, None, 0, None
         self.sides = (0.0, -math.inf)
         self.trusted, self.ref, self.t_held = False, None, None
         self.fails.clear()
@@ -425,9 +426,13 @@ class Doubt:
     def _during_fault(self, pan: float, t_now: float) -> float | None:
         if self.fault is Fault.MASTER_FROZEN or self.anchor is None:
             return None
-        if not self.returned:
-            self.returned = True
-            return self.anchor  # back to the last pan at which the image followed
+        far = abs(pan - self.anchor) > math.radians(PROBE_DEG + SAME_PAN_DEG)
+        if self.returned is None or (far and t_now - self.returned >= RETURN_S):
+            # back to the last pan at which the image followed (again where the Safety's max_step_deg cut it short)
+            self.returned = t_now
+            return self.anchor
+        if not far:
+            self.returned = math.inf  # back (a probe's overshoot is no move back cut short)
         if self.t_probe is not None and t_now - self.t_probe >= PROBE_S:
             self.t_probe, self.probe_sign = t_now, -self.probe_sign
             return self.anchor + self.probe_sign * math.radians(PROBE_DEG)
