@@ -44,7 +44,7 @@ from typing import ClassVar
 from ..motors.base import MotorSettings, Safety
 from ..choices import ControlMode, Fault
 from ..ranges import Range, check
-from .doubt import PROBE_MIN_DEG, UNTRUSTED_DEG, Doubt
+from .doubt import LEASH_DEG, PROBE_MIN_DEG, UNTRUSTED_DEG, Doubt
 from .follows import FOLLOWS_MAX, FOLLOWS_MIN
 from .search import Search
 from .predict import Periodic, Predictor, Referee
@@ -140,7 +140,7 @@ class Controller:
         self.doubt.stall.dead_band = self.limits.dead_band_rad
         self.background = Background()  # whether the slave's background moves with the motor (the doubt's too)
         self.search = Search()  # lost: where to look (issue #35)
-        self.turned = False  # the background turned with the motor since the last fault: the camera turns the right way
+        self.turned = False  # the background turned with the motor since the search began: its image follows
 
     def _bounded(self, pan_at_capture: float, step: float) -> float:
         """The set-point pan_at_capture + step, as the motor's Safety bounds it (limits, step)."""
@@ -205,11 +205,17 @@ class Controller:
             return d.gate(pan_at_capture, None, now if now is not None else 0.0)
         if t_s is not None and math.isfinite(t_s):
             was = self.search.searching
-            if background is not None and not background.late and FOLLOWS_MIN <= background.r <= FOLLOWS_MAX:
-                self.turned = True
-            leash = None
-            if not (d.trusted or self.turned) and d.anchor is not None:  # (the search's first move stays within)
-                leash = (d.anchor - math.radians(UNTRUSTED_DEG), d.anchor + math.radians(UNTRUSTED_DEG))
+            follows = background is not None and not background.late and FOLLOWS_MIN <= background.r <= FOLLOWS_MAX
+            self.turned = follows or (self.turned and was)
+            leash = None  # a search's first move stays within LEASH_DEG (and the doubt's first leash where the image
+            # never followed) until its background turned with the motor: a camera that lies is named over that look
+            # (reversed from the start, or frozen, slipping since it followed), not over a sweep's step of 19 deg
+            if not self.turned:
+                look, first = math.radians(LEASH_DEG), math.radians(UNTRUSTED_DEG)
+                lo, hi = pan_at_capture - look, pan_at_capture + look
+                if not d.trusted and d.anchor is not None:
+                    lo, hi = max(lo, d.anchor - first), min(hi, d.anchor + first)
+                leash = (lo, hi)
             look = self.search.observe(t_s, pan_at_capture, confident, textured, offset_px, focal_px, width_px,
                                        self.limits.lo, self.limits.hi, leash)
             if look is not None:

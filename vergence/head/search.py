@@ -15,10 +15,11 @@ as it bounds every other). At each stop the motor is given ARRIVE_S to get there
 the exposures), then DWELL_S of decisions there. A sweep that found nothing goes back to where it began (a fovea the
 slave cannot see, occluded behind a nearer object, has nothing to find: no sweep for ever over the whole range) and
 waits there REST_S, twice that after the next one, up to REST_MAX_S, then sweeps again. The status counts those
-sweeps (`sweeps_empty`): `vergence monitor` asks whether the point is visible to the slave at all. A head whose image
-has not yet been seen to follow the motor (from the start: the doubt's leash, 2.9 deg) looks first, to the leash's
-end: a camera reversed from the start is named over that move, by its background turning against the motor, not 19
-degrees away after a sweep's first step; once the background turned with the motor (or after DWELL_S there) it sweeps.
+sweeps (`sweeps_empty`): `vergence monitor` asks whether the point is visible to the slave at all. First of all it
+looks, within a leash (the Controller's: 1.5 deg from the pan, and within 2.9 deg of the anchor where the image was
+never seen to follow): a camera reversed from the start, or one frozen or slipping since, is named over that move by
+its background, not 19 degrees away after a sweep's first step; once the background turned with the motor (or after
+DWELL_S there) it sweeps.
 
 Found. The first confident decision ends the search: the loop takes over from that pan, not yet trusted
 (vergence.head.doubt's leash: the image must follow a first move, which tells a true candidate, whose offset changes
@@ -79,10 +80,10 @@ class Search:
     def observe(self, t: float, pan: float, confident: bool, textured: bool, offset_px: float, focal_px: float,
                 width_px: int | None, lo: float, hi: float, leash: tuple[float, float] | None = None) -> float | None:
         """One decided frame (t: the slave's exposure, s; pan: its pan then, rad; lo, hi: the motor's soft limits,
-        rad): the search's goal, or None (not lost, found, or held: black or flat frames). leash: where the image
-        has not yet been seen to follow the motor, the pans it may go to until it has (None: anywhere): a search
-        then looks first, to the leash's end nearer the range's middle (or the other, LOOK_MIN_DEG away at least),
-        and sweeps after DWELL_S there or as soon as the leash is None (the image followed)."""
+        rad): the search's goal, or None (not lost, found, or held: black or flat frames). leash: the pans it may
+        go to until its image has been seen to follow the motor (None: it has): a search then looks first, to the
+        leash's end nearer the range's middle (or the other, LOOK_MIN_DEG away at least), and sweeps after DWELL_S
+        there or as soon as the leash is None."""
         if not (math.isfinite(t) and math.isfinite(pan)):
             return None
         if confident and math.isfinite(offset_px):

@@ -100,8 +100,8 @@ def test_first_back_to_the_last_converged_pan_then_about_it_alternating_from_whe
 @pytest.mark.parametrize("start,look", [(10.9, 8.0), (8.2, 13.8)])
 @pytest.mark.parametrize("followed", [False, True])
 def test_a_search_whose_image_was_never_seen_to_follow_looks_within_the_leash_first(start, look, followed):
-    """A head whose image has not yet followed the motor (the doubt's leash: 2.9 deg about where it started, 10.9
-    deg) looks first to the leash's end toward the range's middle (or the other end where that one is under 0.6 deg
+    """A search given a leash (8-13.8 deg: the pans it may go to until its image has been seen to follow the motor)
+    looks first to the leash's end toward the range's middle (or the other end where that one is under 0.6 deg
     away: no turn to read): a camera reversed from the start is named over that move by its background, within the
     leash (before, a search's first step of 18.8 deg: Venus, seed 7205, 11.6 deg from its start before it was named,
     the issue's bound 3). After DWELL_S there the sweep, or at once when told that the image followed (no leash)."""
@@ -119,6 +119,35 @@ def test_a_search_whose_image_was_never_seen_to_follow_looks_within_the_leash_fi
     t_sweep = next(t for t, g in out if g is not None and abs(g / DEG - look) > 1e-6)
     assert t_look == pytest.approx(LOST_S, abs=DT)
     assert t_sweep - t_look == pytest.approx(DT if followed else DT + DWELL_S, abs=DT / 2)
+
+
+@pytest.mark.parametrize("trusted", [False, True])
+@pytest.mark.parametrize("turned", [False, True])
+def test_the_controllers_search_looks_within_leash_deg_until_the_background_turned_with_the_motor(trusted, turned):
+    """Lost, the Controller's search first looks LEASH_DEG (1.5 deg) toward the range's middle, whether or not the
+    image was ever seen to follow (a camera that froze or slipped since it did: a slip at a point that stopped
+    deciding, Tsukuba seed 7103 with the slave's gain 1.3, ran a sweep's 18.8 deg step before it was named, now 1.4
+    deg past), then sweeps as soon as a background verdict says the image turned with the motor, or after DWELL_S."""
+    c = Controller(ControlSettings(mode="p"))
+    pan = 5 * DEG
+    if trusted:  # a correction whose image followed: the offset shrinks by the motor's moves (not converged: 4 px)
+        for k, (p, off) in enumerate([(5, 3.5), (6, 2.5), (7, 1.5), (8, 0.5)]):
+            c.target(p * DEG, F * math.tan(off * DEG), F, True, t_s=k * DT, width_px=W, fovea=(320, 240))
+        pan = 8 * DEG
+    assert c.doubt.trusted == trusted
+    goals, t0 = [], 4 * DT
+    for k in range(60):
+        moved = turned and goals and any(g is not None for _, g in goals)
+        g = c.target(pan, 0.0, F, False, t_s=t0 + k * DT, width_px=W, fovea=(320, 240),
+                     background=Verdict(1.0) if moved else None)
+        goals.append((t0 + k * DT, g))
+        pan = g if g is not None else pan
+    got = stops(goals)
+    start = 8.0 if trusted else 5.0
+    assert got[0] == pytest.approx(start - 1.5) and abs(got[1] - got[0]) >= 9.9  # the look, then a sweep's step
+    t_look = next(t for t, g in goals if g is not None)
+    t_sweep = next(t for t, g in goals if g is not None and abs(g / DEG - got[0]) > 1e-6)
+    assert t_sweep - t_look == pytest.approx(DT if turned else DT + DWELL_S, abs=DT / 2) and c.doubt.fault is None
 
 
 @pytest.mark.parametrize("latency", [0.0, 0.066])
