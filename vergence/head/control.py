@@ -226,6 +226,8 @@ class Controller:
                 d.relocate(pan_at_capture)  # found: from here, not yet trusted
                 self.reset()
         goal = self._aim(pan_at_capture, offset_px, focal_px, confident, centre_px, t_s, t_now)
+        if goal is None and confident and now is not None:
+            d.stall.commanded(pan_at_capture, pan_at_capture, now)  # content where it is: no move asked of the motor
         if goal is None or now is None:
             return goal
         gated = d.gate(pan_at_capture, goal, now)

@@ -48,6 +48,24 @@ def test_a_move_a_near_command_or_a_goal_within_the_dead_band_stops_or_starts_no
 
 
 @needs_data
+def test_a_loop_content_where_it_is_asks_no_move_and_names_no_stall():
+    """A goal 0.39 deg away the motor followed 0.18 deg, the next decision on the target, and then only decisions the
+    loop is content with (inside its dead band): no command is asked, so none is unfollowed (before, the clock that
+    goal started ran on and named the motor stalled 0.5 s later, the slave converged: Venus, seed 7202, a clean run
+    of the outside draws, docs/FAULTS.md). A stalled motor the loop keeps asking to move is named as before."""
+    from vergence.head.control import ControlSettings, Controller
+
+    f, dt = 500.0, 1 / 60
+    for stalled in (False, True):
+        c = Controller(ControlSettings(mode="p"))
+        c.target(0.0, f * math.tan(R(0.39)), f, True, t_s=0.0, fovea=(320, 240))  # (the clock starts)
+        pan = 0.0 if stalled else R(0.176)
+        for k in range(1, 50):
+            off = f * math.tan(R(0.39) - pan) if stalled else 0.1
+            c.target(pan, off, f, True, t_s=k * dt, fovea=(320, 240))
+        assert (str(c.doubt.fault) == "stalled") == stalled, c.doubt.fault
+
+
 @pytest.mark.parametrize("latency", [0.0, 0.066])
 def test_a_stall_while_a_fixate_asks_a_small_move_is_named(latency):
     """Venus (Middlebury) fixated at (289, 210) of its left image, converged; the motor stalls from 1.1 s for 2 s and
