@@ -17,7 +17,8 @@ target that turns) is a doubt: it holds and probes as a fail does, and names not
 the target are never judged. A byte-identical slave image after the motor moved IDENTICAL_MOVE_DEG is a frozen camera
 outright; a background that did not move with it (vergence.head.scenery: r under STILL_MAX, no target rate in it) is a
 pair that did not follow, in pursuit and at an undecided fovea too; one a late image would show too (Verdict.late) is a
-doubt where the offset is under LEASH_DEG: it holds the chase a slipping camera starts (a correction's, not).
+doubt where the offset is under LEASH_DEG: it holds the chase a slipping camera starts (a correction's, not); and a
+fovea's pair that did not follow, on a frame whose background turned with the motor, is a doubt (the fovea misread).
 
 The leash. Until the image has been seen to follow (r in FOLLOWS_MIN..FOLLOWS_MAX; at the start, after a fault),
 no command goes further than UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there for
@@ -139,7 +140,7 @@ class Doubt:
             self.focal.clear()
             self.held = Held()  # (the old point's offsets and the new one's are no motion of a target)
         self.anchor = pan if self.anchor is None else self.anchor
-        seen = self.master.see(t, master)
+        seen = self.master.see(t, master, fovea)
         if seen == "changed" and self.fault is Fault.MASTER_FROZEN:
             self._clear(t, self.anchor, "the master's images change again")
         elif seen == "frozen" and self.fault is None:

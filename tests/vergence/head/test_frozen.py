@@ -34,6 +34,24 @@ def test_a_master_that_changed_every_frame_and_now_repeats_is_frozen_after_froze
     assert m.see(1.01, None) is None  # unknown: nothing said
 
 
+@pytest.mark.parametrize("live", [False, True])
+def test_a_fovea_moved_during_a_master_freeze_is_no_change_of_its_images(live):
+    """A master frozen at frame 10 (its rows' bytes repeat), the fovea moved at frame 20 to other rows (their digest
+    other, but repeated from there on): frozen FROZEN_MASTER_S after the freeze began (before, the new rows' first
+    digest was a change: 0.3 s after the move, 0.56 s after the freeze on the outside draw Cones seed 7210); a live
+    camera's new rows change every frame after the move: never frozen."""
+    m, dt = Master(), 1 / 60
+    seen = []
+    for k in range(60):
+        key = (320, 240) if k < 20 else (100, 300)
+        digest = 100 + k if k < 10 or live else (7 if k < 20 else 8)
+        seen.append(m.see(k * dt, digest, key))
+    if live:
+        assert "frozen" not in seen
+    else:
+        assert seen.index("frozen") * dt - 10 * dt == pytest.approx(FROZEN_MASTER_S, abs=dt / 2)
+
+
 def test_a_master_that_never_changed_every_frame_is_never_frozen():
     m = Master()  # a still scene rendered clean: a few changes apart (the window growing), then the same bytes
     seen = [m.see(k / 60, 1 if k < 3 else (2 if k < 10 else 3)) for k in range(120)]
