@@ -180,17 +180,22 @@ def test_a_frame_s_background_is_read_when_it_arrives(follows, guessed):
     whose image turns with it reads 1 from the first frame whose pan is 0.6 deg from an earlier one's, one whose image
     stays (a slipping coupling) 0: a late verdict (a late image's too) until the pans 0.1 s before are known; the
     commands carry what the doubt made of it (the first named the fault). Frames whose pans the capture extrapolated
-    past the motor's newest state (pan_guessed) read none."""
+    past the motor's newest state (pan_guessed) read none. (The images are rendered as turns of a camera.)"""
     rng = np.random.default_rng(3)
-    scene = cv2.GaussianBlur(rng.integers(0, 256, (120, 1000), np.uint8), (5, 5), 1.5)
-    master = np.ascontiguousarray(scene[:, 300:940])
+    scene = cv2.GaussianBlur(rng.integers(0, 256, (120, 1000), np.uint8), (5, 5), 1.5)  # a column a direction
+
+    def view(turn: float) -> np.ndarray:  # a camera turned `turn` rad (its columns' directions, f px a radian)
+        cols = (620 + 500.0 * (np.arctan((np.arange(640) - 320) / 500.0) + turn)).astype(np.float32)
+        return cv2.remap(scene, np.tile(cols, (120, 1)), np.tile(np.arange(120, dtype=np.float32)[:, None], (1, 640)),
+                         cv2.INTER_LINEAR)
+
+    master = view(0.0)
     focal, t0 = 500.0, 1_700_000_000_000_000_000
     g = Gatherer(Params(max_window=0), ControlSettings(), 0.05, wall_ns=lambda: t0)
     verdicts = []
     for i in range(12):
         pan = math.radians(0.4 * i)
-        dx = round(focal * math.tan(pan)) if follows else 0
-        slave = np.ascontiguousarray(scene[:, 300 + dx:940 + dx])
+        slave = view(pan if follows else 0.0)
         k = master.shape[1] - Params().window + 1
         f = make_frame(master, slave, rig="r", frame=i + 1, pan_rad=pan, focal_px=focal, params=Params(max_window=0),
                        plan=plan_shards(["a"], k), t_capture_ns=t0 + i * 16_666_667)
