@@ -150,7 +150,7 @@ class Doubt:
         if background is not None and not background.late and background.r < STILL_MAX:
             self.t_still = t  # the background did not move with the motor: no probe over it follows
         # this frame's background turned with the motor: a fovea's pair that did not is the fovea's misreading (a doubt)
-        self.turned = background is not None and not background.late and FOLLOWS_MIN <= background.r <= FOLLOWS_MAX
+        self.turned_now = background is not None and not background.late and FOLLOWS_MIN <= background.r <= FOLLOWS_MAX
         if self.fault is not None:
             late = self.late_s
             if a is not None and math.isfinite(a):
@@ -211,7 +211,7 @@ class Doubt:
             # learnt rate lags a target that turns; that one is learnt only where the motor could not teach it)
             if verdict(r) is not None:
                 vetoed = verdict((moved - pred + self.trend * dt) / p) is None
-                kind = "doubt" if vetoed or self.turned else self.lag.unless_late(fail_kind(r), i.t, j.t, moved)
+                kind = "doubt" if vetoed or self.turned_now else self.lag.unless_late(fail_kind(r), i.t, j.t, moved)
                 self._fail(j.t, kind, f"r = {r:.2f} over {math.degrees(p):.2f} deg")
                 return
             if r <= FOLLOWS_MAX:
@@ -420,7 +420,7 @@ class Doubt:
             self._followed(now, r, False)
             self.ref = self.centre = now
         else:
-            doubt = (verdict(rt) is None and rt <= FOLLOWS_MAX) or self.turned
+            doubt = (verdict(rt) is None and rt <= FOLLOWS_MAX) or self.turned_now
             kind = fail_kind(max(r, -(now.a - ref.a) / p))  # (reversed only where a still target's reading says so too)
             kind = self.lag.unless_late(kind, ref.t, now.t, -(now.a - ref.a))
             self._fail(t, "doubt" if doubt else kind, f"a probe moved the image r = {r:.2f}")
