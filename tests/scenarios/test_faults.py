@@ -162,6 +162,26 @@ def test_up_with_the_slave_started_far_off_searches_and_finds_the_target(tmp_pat
 
 
 @pytest.mark.slow
+def test_up_with_a_reversed_camera_started_far_off_names_it_over_the_searchs_look(tmp_path):
+    """A camera reversed from the start, the slave started at 40 degrees ([actuator.motor] start_deg; the camera looks
+    at -40, 37 degrees and 377 px from the target, outside the band): the start never decides and the loop searches;
+    its first move is a look of 1.5 degrees, over which the background names the reversal (before session 39 its
+    first step was 18.8 degrees), and the slave stays within 3 degrees of 40."""
+    conf = tmp_path / "far.toml"
+    conf.write_text("[actuator.motor]\nstart_deg = 40\n")
+    with Procs(tmp_path) as P:
+        pans, faults = _up(P, tmp_path, f"sim:focal={FOCAL:g}:reverse", "--config", str(conf))
+        wait_for(lambda: any(f and f[0] == "reversed" for f in faults()), 40, "the reducer naming the fault",
+                 logs=P.logs)
+        n = len(pans())
+        wait_for(lambda: len(pans()) >= n + 60, 10, "a second of motor states", logs=P.logs)
+        assert math.degrees(pans()[0]) == pytest.approx(40.0, abs=0.1)
+        assert max(abs(math.degrees(p) - 40.0) for p in pans()) <= 3.0
+        wait_for(lambda: re.search(r"search: no confident match.*\n(.*\n)*.*fault reversed \(the background moved -",
+                                   P.procs[-1].text()), 10, "the search's line, then the fault's", logs=P.logs)
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("spec,rate", [
     ("sim:motion=sine:z=0.9,amp=0.2,hz=0.4:latency=0.08:stamps=no:focal=500:seed=5", 60),
     ("sim:motion=still:z=0.7:latency=0.08:stamps=no:focal=500:pan=3:seed=6", 30)])
