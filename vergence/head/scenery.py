@@ -136,9 +136,10 @@ class Background:
         # the tiles off the fovea's and its neighbours' (the target there moves as it moves, not as the camera turns),
         # each as the turn it shows: a column u px off the axis moves f (tan(atan(u/f) + turn) - u/f), 1 + (u/f)^2
         # times the axis's (a 2.9 deg turn 35 deg off the scene's middle spread the tiles' shifts over 3.6 px)
-        c0 = (band.shape[1] - 1) / 2 if centre_col is None else centre_col
-        u = np.array([c + TILE / 2 - c0 for c, s in shifts if abs(c + TILE / 2 - fovea_col) > 1.5 * TILE])
-        s = np.array([s for c, s in shifts if abs(c + TILE / 2 - fovea_col) > 1.5 * TILE])
+        mid, s = np.array(shifts).T
+        mid = mid + TILE / 2  # (each tile's middle column)
+        keep = np.abs(mid - fovea_col) > 1.5 * TILE
+        u, s = mid[keep] - ((band.shape[1] - 1) / 2 if centre_col is None else centre_col), s[keep]
         scenery = np.sort(np.arctan((u + s) / focal_px) - np.arctan(u / focal_px))
         # the most of them that turned alike (within AGREE_PX on the axis): the background turns as one, a target's
         # zoom spreads
@@ -147,7 +148,7 @@ class Background:
         if scenery.size == 0 or ends[i] - i < MIN_TILES:
             return None
         moved = float(np.median(scenery[i:ends[i]]))  # rad
-        r = moved / math.atan(motor / focal_px)
+        r = moved / (pan - before.pan)
         return Verdict(r, r < STILL_MAX and self._late(before, self.bands[-1], moved, focal_px))
 
     def _late(self, i: _Band, j: _Band, moved: float, focal_px: float) -> bool:
