@@ -25,7 +25,8 @@ def dev(tmp_path):
 
 def test_lines_on_the_wire(dev):
     emu, d = dev
-    drv = LineDriver(MotorSettings(), d.link)
+    # (the emulator answers from a thread of this process: a loaded run starved it past 50 ms, three times)
+    drv = LineDriver(MotorSettings(timeout_s=0.5), d.link)
     assert drv.open() == pytest.approx(-48 * 2 * math.pi / 4096)
     goal = round(2048 + 0.25 * 4096 / (2 * math.pi))
     drv.write_goal(0.25)
@@ -60,7 +61,7 @@ def test_device_without_enable(tmp_path):
     emu = LineEmulator(supports_enable=False, banner="stepper v1 ready\n")
     d = PtyDevice(emu, str(tmp_path / "tty"))
     try:
-        drv = LineDriver(MotorSettings(), d.link)
+        drv = LineDriver(MotorSettings(timeout_s=0.5), d.link)
         drv.open()
         assert not drv.enable_supported
         drv.write_goal(-0.1)
