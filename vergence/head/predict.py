@@ -30,6 +30,11 @@ class Predictor:
     def reset(self) -> None:
         self.t = None
 
+    def jump(self, t: float, z: float) -> None:
+        """The target is now at z (another one): there at rest, the filter's confidence kept (a restart's wide rate
+        would take the next decisions' noise for motion)."""
+        self.t, self.x, self.v = t, z, 0.0
+
     def _start(self, t: float, z: float) -> None:
         self.t, self.x, self.v = t, z, 0.0
         self.p = [[self.r, 0.0], [0.0, (self.vmax / 2) ** 2]]
