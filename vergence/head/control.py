@@ -185,7 +185,7 @@ class Controller:
         frame, which holds; an unconfident textured one for long is lost, and searches: vergence.head.search);
         width_px: the images' width (the band's reach, which sizes the search's steps); background: the frame's
         verdict of scene() (None: none)."""
-        d = self.doubt
+        d, a = self.doubt, None
         if fovea != self.fovea:
             self.fovea, self.fovea_new = fovea, True
         if not doubt:
@@ -222,7 +222,7 @@ class Controller:
                     lo, hi = max(lo, d.anchor - first), min(hi, d.anchor + first)
                 leash = (lo, hi)
             look = self.search.observe(t_s, pan_at_capture, confident, textured, offset_px, focal_px, width_px,
-                                       self.limits.lo, self.limits.hi, leash)
+                                       self.limits.lo, self.limits.hi, leash, None if a is None else pan_at_capture + a)
             if look is not None:
                 look = self.limits.limit_step(pan_at_capture, look)
                 d.stall.commanded(pan_at_capture, look, now)  # (a motor that never moves while it searches is stalled)

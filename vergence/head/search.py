@@ -2,9 +2,11 @@
 
 Lost. The fovea has texture (the frames are not black or flat: those hold, as before) but no decision has been
 confident for LOST_S of exposures: the target is outside the band (further off than the slave image reaches, at a
-limit after a fault, or started there), or the slave looks at something else. Where the last confident decision said
-converged and the slave is still at that pan, HELD_S: a fovea whose matches are sparse (near the image's edge, say)
-converges, then decides confidently only now and then, and a search would take it away from where it is right.
+limit after a fault, or started there), or the slave looks at something else. Where the slave is at the pan the last
+confident decision put the target at (converged there, or moved there since), HELD_S: a fovea whose matches are sparse
+(near the image's edge, on a flat patch) converges, then decides confidently only now and then, and a search would
+take it away from where it is right (a fixate's weakly textured new point, its one confident decision followed: a sweep
+found a look-alike 19 deg away and the slave stayed there, 30-195 px off the truth).
 
 The search. First back to the last pan at which the loop was converged (where the target was last seen), then a
 sweep about it, nearer stops first, alternating sides (without such a pan: about the present one, toward the middle
@@ -54,7 +56,7 @@ class Search:
     def __init__(self):
         self.t_lost: float | None = None  # the first textured, unconfident exposure since the last confident one
         self.converged: float | None = None  # the last pan at which the loop was converged (within 1 px)
-        self.held = False  # the last confident decision said converged
+        self.seen: float | None = None  # the pan the last confident decision put the target at
         self.stops: list[float] = []
         self.goal: float | None = None
         self.t_goal = 0.0  # when the present stop was set
@@ -78,17 +80,20 @@ class Search:
         self.rest, self.t_rest = REST_S, None
 
     def observe(self, t: float, pan: float, confident: bool, textured: bool, offset_px: float, focal_px: float,
-                width_px: int | None, lo: float, hi: float, leash: tuple[float, float] | None = None) -> float | None:
+                width_px: int | None, lo: float, hi: float, leash: tuple[float, float] | None = None,
+                at: float | None = None) -> float | None:
         """One decided frame (t: the slave's exposure, s; pan: its pan then, rad; lo, hi: the motor's soft limits,
         rad): the search's goal, or None (not lost, found, or held: black or flat frames). leash: the pans it may
         go to until its image has been seen to follow the motor (None: it has): a search then looks first, to the
         leash's end nearer the range's middle (or the other, LOOK_MIN_DEG away at least), and sweeps after DWELL_S
-        there or as soon as the leash is None."""
+        there or as soon as the leash is None. at: the target's pan a confident decision says (pan plus its offset's
+        angle; default pan + atan(offset_px / focal_px), the principal point's)."""
         if not (math.isfinite(t) and math.isfinite(pan)):
             return None
         if confident and math.isfinite(offset_px):
-            self.held = abs(offset_px) <= 1.0
-            if self.held:
+            ok = math.isfinite(focal_px) and focal_px > 0
+            self.seen = at if at is not None else pan + math.atan(offset_px / focal_px) if ok else pan
+            if abs(offset_px) <= 1.0:
                 self.converged = pan
             if self.searching:
                 self.found += 1
@@ -104,7 +109,7 @@ class Search:
         if self.t_lost is None:
             self.t_lost = t
         if not self.searching:
-            held = self.held and self.converged is not None and abs(pan - self.converged) <= math.radians(ARRIVED_DEG)
+            held = self.seen is not None and abs(pan - self.seen) <= math.radians(ARRIVED_DEG)
             if t - self.t_lost < (HELD_S if held else LOST_S):
                 return None
             self._start(t, pan, focal_px, width_px, lo, hi)

@@ -176,6 +176,21 @@ def test_converged_and_held_with_sparse_confident_decisions_waits_held_s_not_los
     assert first == pytest.approx(DT + LOST_S, abs=DT)
 
 
+def test_at_the_pan_the_last_confident_decision_put_the_target_waits_held_s():
+    """A weakly textured point decided once, 8 px off, then never again: the slave moved there and waits HELD_S as at a
+    converged one (it searched after LOST_S: a fixate's new point on Venus, seeds 7500-7509, then found a look-alike a
+    sweep's step away and stayed there, 30-195 px off the truth). Where the motor did not get there, LOST_S."""
+    there = math.atan(8 / F)
+    for at, wait in ((there, HELD_S), (0.0, LOST_S)):
+        s = Search()
+        run(s, 0.0, 1, confident=True, offset=8.0)
+        first = next(t for t, g in run(s, at, 240, t0=DT) if g is not None)
+        assert first == pytest.approx(DT + wait, abs=DT)
+    s = Search()  # the Controller's angle, off the principal point: the pan it names
+    s.observe(0.0, 0.0, True, True, 8.0, F, W, LO, HI, None, 2 * DEG)
+    assert next(t for t, g in run(s, 2 * DEG, 240, t0=DT) if g is not None) == pytest.approx(DT + HELD_S, abs=DT)
+
+
 def test_black_frames_hold_and_a_confident_decision_ends_the_search():
     s = Search()
     assert all(g is None for _, g in run(s, 10 * DEG, 120, textured=False))  # 2 s of black: no search
