@@ -30,7 +30,7 @@ __all__ = ["Focal", "Pursuit", "on_axis"]
 
 log = logging.getLogger("vergence.doubt")
 
-FOCAL_PAIRS = 8  # precise fast pairs before their median names the ratio (it then stands over pursuit's)
+FOCAL_PAIRS = 6  # precise fast pairs before their median names the ratio (it then stands over pursuit's)
 
 WINDOW_S = 0.6  # the fits' span: a target's pan is a cubic over it
 MIN_SAMPLES = 12  # decisions in a window before it is fitted
