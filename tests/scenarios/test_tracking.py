@@ -280,7 +280,6 @@ def test_predictive_controller_coasts_then_holds():
     assert all(g is None for g in coast[6:])
 
 
-
 def _pursue(c: Controller, frames: range, target, fovea, pan: float = 0.0) -> tuple[float, list]:
     """c's predictive loop at 60 Hz on a target at target(t) (rad), the fovea fovea(i), images 66 ms old when their
     command goes out, the motor at each set-point by the next exposure: the last pan and the set-points."""
@@ -312,6 +311,7 @@ def test_a_new_fovea_off_the_prediction_is_a_new_target_at_rest_not_a_motion():
     c = Controller(ControlSettings(mode="predictive"))  # a streamed look_at: a new fovea every frame, 0.1 rad/s
     _pursue(c, range(60), lambda t: 0.1 * t, lambda i: (320 + i, 240))
     assert c.predictor.v == pytest.approx(0.1, rel=0.05)
+
 
 # -- the motor's limits: the controller asks the Safety ---------------------------------------------------------
 

@@ -15,7 +15,9 @@ Two modes ([control] mode):
   predicts a target moving to and fro far past where any polynomial holds (its fit and the referee take no decision
   made after the motor moved more than FAST_DEG since the last one: its pan at the exposure is the least sure, a
   skewed or blurred exposure's most of all; the filter takes every one). A measurement far off the filter's
-  prediction (gate_px) restarts them all (a jump, not a motion). An abstention coasts on the filter's
+  prediction (gate_px) restarts them all (a jump, not a motion); a new fovea's first one more than NEW_TARGET_PX
+  off it moves the filter there at rest (another target: a fixate's new point, under the gate, was taken for a
+  motion and overshot). An abstention coasts on the filter's
   estimate (its rate fading with the time constant coast_s / 2) for at most coast_s, then the slave holds.
   No command within dead_band_px of the present pan, nor of the last set-point while the motor is there
   (within 1 px or 0.1 degree: a motor settles on its nearest tick).
@@ -113,7 +115,7 @@ PREDICTORS = ("hold", "rate", "periodic")  # what the predictive mode's Referee 
 PERIOD_ALPHA = 0.1  # the decisions' interval is smoothed with this weight per decision (about 10 decisions)
 FAST_DEG = 1.0  # a decision made after the motor moved this much since the last one: no periodic sample
 PERIOD_GAP_S = 1.0  # an interval this long or longer is a pause, not the decisions' rate
-NEW_TARGET_PX = 3.0  # a new fovea's first decision this far off the prediction: a new target (the filter restarts)
+NEW_TARGET_PX = 3.0  # a new fovea's first decision this far off the prediction: a new target (the filter there at rest)
 log = logging.getLogger("vergence.control")
 
 
