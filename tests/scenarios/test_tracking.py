@@ -18,6 +18,7 @@ import vergence
 from procs import run as cli
 from vergence.head.control import ControlSettings, Controller, Predictor
 from vergence.head.doubt import Doubt
+from vergence.head.timing import CameraTiming
 from vergence.motors import MotorSettings, Safety
 from vergence.motors.simulated import SimMotor
 from vergence.sim import Rig
@@ -312,6 +313,24 @@ def test_a_new_fovea_off_the_prediction_is_a_new_target_at_rest_not_a_motion():
     _pursue(c, range(60), lambda t: 0.1 * t, lambda i: (320 + i, 240))
     assert c.predictor.v == pytest.approx(0.1, rel=0.05)
 
+
+
+@pytest.mark.parametrize("latency", [0.066, 0.1])
+def test_a_fixate_from_the_target_to_the_background_behind_it_does_not_overshoot(latency):
+    """The loop converged on a target 0.2 m wide at 0.6 m (seed 3), a fixate moves the fovea to the background 0.64 m
+    away beside it: a step of about 9 px, under gate_px. The filter took it for the target's motion and the slave ran
+    6-12 px past the new point (before 2026-12-06: 6.1-12.2 px at 66-100 ms on seeds 0-1, 8.4 on this one at 66 ms);
+    now under 1 px, no fault."""
+    rig = MovingRig("still:z=0.6", Head(B, F, (640, 480)), target_m=0.2, bg_m=0.64, noise=1.0, seed=3)
+    rig.start_pan_rad = rig.truth_pan(0.0)
+    look = (150, 240)
+    truth = rig.truth_at(*look)
+    steps = list(closed_loop(rig, 90, None, ControlSettings(), None, 60.0, fixations={30: look},
+                             timing=CameraTiming(latency), seed=3))
+    err = [F * math.tan(math.radians(s.pan_deg) - truth) for s in steps[30:]]
+    assert abs(err[0]) >= 8  # (the step asked)
+    past = max(max(0.0, -math.copysign(1.0, err[0]) * e) for e in err)
+    assert past <= 1.0 and abs(err[-1]) <= 1.0 and not any(s.fault for s in steps)
 
 # -- the motor's limits: the controller asks the Safety ---------------------------------------------------------
 
