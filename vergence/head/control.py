@@ -47,7 +47,6 @@ from ..motors.base import MotorSettings, Safety
 from ..choices import ControlMode, Fault
 from ..ranges import Range, check
 from .doubt import LEASH_DEG, PROBE_MIN_DEG, UNTRUSTED_DEG, Doubt
-from .follows import FOLLOWS_MAX, FOLLOWS_MIN
 from .search import Search
 from .predict import Periodic, Predictor, Referee
 from .scenery import MIN_MOVE_DEG, Background, Verdict
@@ -212,8 +211,7 @@ class Controller:
             return d.gate(pan_at_capture, None, now if now is not None else 0.0)
         if t_s is not None and math.isfinite(t_s):
             was = self.search.searching
-            follows = background is not None and not background.late and FOLLOWS_MIN <= background.r <= FOLLOWS_MAX
-            self.turned = follows or (self.turned and was)
+            self.turned = (background is not None and background.turned) or (self.turned and was)
             leash = None  # a search's first move stays within LEASH_DEG (and the doubt's first leash where the image
             # never followed) until its background turned with the motor: a camera that lies is named over that look
             # (reversed from the start, or frozen, slipping since it followed), not over a sweep's step of 19 deg

@@ -94,7 +94,7 @@ class Doubt:
         self.focal = Focal()  # the focal length's ratio, from precise pairs that followed and from pursuit
         self.t_probe, self.probe_sign, self.fit_ref = None, 1.0, None  # a fault's last probe, its side, its fit's ref
         self.sides = (0.0, -math.inf)  # a reversed fault's last probe that followed: its side, when
-        self.t_still = -math.inf  # the last background verdict that did not move with the motor (not a late one)
+        self.t_still, self.turned_now = -math.inf, False  # the last still background (not late); this one turned
         self.returned, self.held = None, Held()  # when the move back to the anchor was sent; the target's motion there
         self.master, self.slave = Master(), Slave()  # each camera's images, frame to frame
         self.stall = Stall()  # a motor that does not follow its commands (its dead band: the Controller's Safety's)
@@ -150,7 +150,7 @@ class Doubt:
         if background is not None and not background.late and background.r < STILL_MAX:
             self.t_still = t  # the background did not move with the motor: no probe over it follows
         # this frame's background turned with the motor: a fovea's pair that did not is the fovea's misreading (a doubt)
-        self.turned_now = background is not None and not background.late and FOLLOWS_MIN <= background.r <= FOLLOWS_MAX
+        self.turned_now = background is not None and background.turned
         if self.fault is not None:
             late = self.late_s
             if a is not None and math.isfinite(a):
@@ -316,7 +316,7 @@ class Doubt:
                 self._clear(t, pan, "the motor moved again")
             return
         if background is not None:
-            follows = not (frozen or background.late) and FOLLOWS_MIN <= background.r <= FOLLOWS_MAX
+            follows = not frozen and background.turned
             self.bg_follows = self.bg_follows + 1 if follows else 0
         if a is None or not math.isfinite(a):
             if background is not None and self.bg_follows >= BG_FOLLOWS:

@@ -32,6 +32,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .follows import FOLLOWS_MAX, FOLLOWS_MIN
+
 __all__ = ["Background", "Verdict", "profile", "tile_shifts"]
 
 MIN_MOVE_DEG = 0.6  # the pans of a verdict's two frames at least this far apart (as the doubt's decisive pairs)
@@ -83,6 +85,11 @@ class Verdict(NamedTuple):
     move, but the motor's turn up to LATE_S earlier explains that (a late image shows it so): hold, name nothing."""
     r: float
     late: bool = False
+
+    @property
+    def turned(self) -> bool:
+        """The background turned with the motor (r in FOLLOWS_MIN..FOLLOWS_MAX, not a late image's)."""
+        return not self.late and FOLLOWS_MIN <= self.r <= FOLLOWS_MAX
 
 
 @dataclass
