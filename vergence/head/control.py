@@ -49,6 +49,7 @@ from ..ranges import Range, check
 from .doubt import LEASH_DEG, PROBE_MIN_DEG, UNTRUSTED_DEG, Doubt
 from .search import Search
 from .predict import Periodic, Predictor, Referee
+from .rest import Rest
 from .scenery import MIN_MOVE_DEG, Background, Verdict
 from .timing import MAX_AGE_S
 
@@ -145,6 +146,7 @@ class Controller:
         self.turned = False  # the background turned with the motor since the search began: its image follows
         self.fovea: tuple[int, int] | None = None  # the master point of the last decision ...
         self.fovea_new = False  # ... new since the last confident one (a new point: maybe a new target)
+        self.rest = Rest()  # the motor's readings while it rests: a frame's pan then is their mean (a noisy encoder)
 
     def _bounded(self, pan_at_capture: float, step: float) -> float:
         """The set-point pan_at_capture + step, as the motor's Safety bounds it (limits, step)."""
@@ -152,8 +154,10 @@ class Controller:
 
     def motor(self, t_s: float, pan: float) -> None:
         """The motor's own report of the slave's pan (rad) at t_s (the frames' clock, s): a camera's lag is fitted
-        on these (vergence.head.lag), denser than the frames' pans. Only plausible reports (the caller's checks)."""
+        on these (vergence.head.lag), denser than the frames' pans, and a resting motor's pan is their mean
+        (vergence.head.rest). Only plausible reports (the caller's checks)."""
         self.doubt.lag.motor(t_s, pan)
+        self.rest.motor(t_s, pan)
 
     def scene(self, t_s: float, pan: float, band, focal_px: float, fovea_col: float, fovea=None,
               centre_col: float | None = None) -> Verdict | None:
@@ -185,7 +189,22 @@ class Controller:
         motor (a still pair, a video: nothing to check); textured: the fovea has texture (False: a black or flat
         frame, which holds; an unconfident textured one for long is lost, and searches: vergence.head.search);
         width_px: the images' width (the band's reach, which sizes the search's steps); background: the frame's
-        verdict of scene() (None: none)."""
+        verdict of scene() (None: none). While the motor rests, the pan is the mean of its readings since it came to
+        rest (vergence.head.rest), not the one reading the frame carries."""
+        if t_s is not None and self.doubt.late_s is None:
+            pan_at_capture = self.rest.at(t_s, pan_at_capture)
+        goal = self._target(pan_at_capture, offset_px, focal_px, confident, centre_px, t_s, t_now, slave, master,
+                            fovea, doubt, textured, width_px, background)
+        when = t_now if t_now is not None and math.isfinite(t_now) else t_s
+        if goal is not None and when is not None:
+            self.rest.commanded(when)
+        return goal
+
+    def _target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool, centre_px: float,
+                t_s: float | None, t_now: float | None, slave: int | None, master: int | None,
+                fovea: tuple[int, int] | None, doubt: bool, textured: bool, width_px: int | None,
+                background: Verdict | None) -> float | None:
+        """target(), the pan as the rest gives it."""
         d, a = self.doubt, None
         if fovea != self.fovea:
             self.fovea, self.fovea_new = fovea, True
