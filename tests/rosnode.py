@@ -196,14 +196,17 @@ class ForwardController:
     """A ros2_control forward command controller played by the test: std_msgs/Float64MultiArray goals on
     /<name>/commands (one value: the joint's), a joint that heads for its goal at `speed` rad/s, and
     sensor_msgs/JointState on /joint_states at `hz`, stamped now. Every command it took is in `commands`
-    (arrival time.time_ns(), value); `publishing` cleared: no more joint states (a controller manager gone)."""
+    (arrival time.time_ns(), value); `publishing` cleared: no more joint states (a controller manager gone). noise:
+    each joint state's position off the joint's by that much (rad, Gaussian: a noisy encoder; the joint is where it
+    is, and the camera there)."""
 
     def __init__(self, t: TestNode, name: str = "forward_position_controller", joint: str = "slave_pan",
-                 speed: float = 3.0, hz: float = 100.0):
+                 speed: float = 3.0, hz: float = 100.0, noise: float = 0.0):
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray
 
         self.t, self.joint, self.speed, self.period = t, joint, speed, 1.0 / hz
+        self.noise, self.rng = noise, random.Random(7)
         self.lock = threading.Lock()
         self.pan = self.goal = 0.0
         self.commands: list[tuple[int, float]] = []
@@ -243,7 +246,8 @@ class ForwardController:
         m = JointState()
         m.header.stamp.sec, m.header.stamp.nanosec = divmod(t_ns, 10**9)
         m.name = names if names is not None else [self.joint]
-        m.position = positions if positions is not None else [self.position()]
+        m.position = positions if positions is not None else [self.position() + (self.rng.gauss(0.0, self.noise)
+                                                                                  if self.noise else 0.0)]
         return m
 
     def _loop(self):

@@ -332,3 +332,40 @@ def test_a_jammed_ros2_joint_is_named_stalled_within_1_s_probed_and_resumed(tmp_
     assert (named - t_jam) / 1e9 <= 1.0
     assert probes and max(abs(g - stand) for g in probes) <= math.radians(0.5 + 360 / 4096)
     assert len(moves) <= 2 * (t_free - named) / 1e9 + 1  # a probe and its return, about one a second
+
+
+def test_a_noisy_ros2_joint_at_rest_is_not_chased(tmp_path, monkeypatch):
+    """A joint whose /joint_states carry 0.1 deg of noise (a noisy encoder: 0.45 px at f 256; the joint and the camera
+    are where they are), `--driver ros2` against the test's forward command controller, the first test's still
+    target: converged, the reducer takes the pan at rest as the mean of the motor's readings since it came to rest
+    (vergence.head.rest), so it no longer sends a command every few frames on the noise. Measured over the 3 s after
+    the first second on it (2026-12-06): 1-4 commands, the joint at most 0.11-1.0 px off the truth; with each
+    frame's one reading as its pan (rest bypassed) 11-20 commands, 0.48-0.93 px."""
+    rosnode.require()
+    from vergence.sim.moving import Head, MovingRig
+
+    domain = rosnode.ros_env(monkeypatch)
+    rig = MovingRig("still:z=0.55", Head(0.06, F, (320, 240)), target_m=0.3, bg_m=2.5, noise=1.5, seed=7)
+    with Procs(tmp_path) as P, rosnode.TestNode(domain) as t:
+        P.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        ctl = rosnode.ForwardController(t, noise=math.radians(0.1))
+        cam = rosnode.StereoCamera(t, lambda p: rig.render(p, 0.0), ctl.pan_at, F, hz=30.0)
+        try:
+            s = _up(P, cam, "--driver", "ros2", "--port", "forward_position_controller:joint=slave_pan")
+            decisions = P.collect(s, P.key("decision"))
+            wait_for(lambda: abs(rig.error_px(ctl.position())) <= 1.0 and len(decisions.snapshot()) > 0, 90,
+                     "converged on the target", logs=P.logs)
+            t_conv = time.time_ns()
+            wait_for(lambda: time.time_ns() - t_conv >= 1e9, 5, "1 s on the target", interval=0.05)
+            t0 = time.time_ns()
+            errors = []
+            wait_for(lambda: errors.append(abs(rig.error_px(ctl.position()))) or time.time_ns() - t0 >= 3e9, 5,
+                     "3 s on the target", interval=0.05)
+            sent = [g for ts, g in ctl.commands if ts >= t0]
+        finally:
+            cam.close()
+            ctl.close()
+    print(f"\n{len(sent)} commands in the 3 s after the first second on the target; the joint at most "
+          f"{max(errors):.2f} px off the truth")
+    assert len(sent) <= 6
+    assert max(errors) <= 1.5

@@ -10,8 +10,10 @@ final approach, a few of its time constants), up to the next command, and readin
 means within REST_DEG: a shaft still moving, pushed or drifting is left as read). A clean encoder's readings at
 rest are all one tick, so their mean is that reading: the loop is unchanged there, to the digit. The mean is
 used only within NEAR_DEG of the frame's own pan, so a reading that is no claim of the shaft (the caller's checks
-let only plausible reports in) moves no pan by more than that. Measured: docs/FAULTS.md, "The encoder's noise
-at rest"."""
+let only plausible reports in) moves no pan by more than that. Both bounds widen with the encoder's own scatter
+(SIGMAS of it, from successive readings, which a drift barely moves; NEAR_MAX_DEG at most): an encoder noisier than
+0.05 deg failed them often, and each frame that fell back to its one reading sent a command that the next frames'
+single readings chased. Measured: docs/FAULTS.md, "The encoder's noise at rest"."""
 
 from __future__ import annotations
 
@@ -19,11 +21,13 @@ import bisect
 import math
 from collections import deque
 
-__all__ = ["Rest", "SETTLE_S", "REST_DEG", "NEAR_DEG"]
+__all__ = ["Rest", "SETTLE_S", "REST_DEG", "NEAR_DEG", "NEAR_MAX_DEG", "SIGMAS"]
 
 SETTLE_S = 0.06  # a command's motor at rest this long after it (2 ms latency, 10 ms time constant, a move's travel)
 REST_DEG = 0.1  # the first and second halves of the readings since then agree within this: the shaft did not move
-NEAR_DEG = 0.25  # the mean moves a frame's pan by at most this (5 x the encoder noise the simulator's bench uses)
+NEAR_DEG = 0.25  # the mean moves a frame's pan by at most this (5 x the encoder noise the simulator's bench uses),
+NEAR_MAX_DEG = 1.0  # or SIGMAS x the readings' scatter, up to this
+SIGMAS = 4.0  # the halves' means apart by more than this many standard errors (or REST_DEG): the shaft moved
 KEEP_S = 2.0  # readings and commands kept this long
 MIN_READINGS = 3
 
@@ -76,7 +80,11 @@ class Rest:
         p0 = self.pan[a]
         ds = [self.pan[k] - p0 for k in range(a, b)]  # (about the first: equal readings' mean is theirs exactly)
         half = n // 2
-        if abs(sum(ds[:half]) / half - sum(ds[half:]) / (n - half)) > math.radians(REST_DEG):
+        m = sum(ds) / n
+        # the encoder's scatter, from successive readings (a drift barely moves them; 0: a clean one's tick)
+        sd = math.sqrt(sum((ds[k + 1] - ds[k]) ** 2 for k in range(n - 1)) / (2 * (n - 1)))
+        drift = abs(sum(ds[:half]) / half - sum(ds[half:]) / (n - half))
+        if drift > max(math.radians(REST_DEG), SIGMAS * sd * math.sqrt(1 / half + 1 / (n - half))):
             return pan
-        mean = p0 + sum(ds) / n
-        return mean if abs(mean - pan) <= math.radians(NEAR_DEG) else pan
+        near = min(max(math.radians(NEAR_DEG), SIGMAS * sd), math.radians(NEAR_MAX_DEG))
+        return p0 + m if abs(p0 + m - pan) <= near else pan
