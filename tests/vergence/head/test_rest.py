@@ -80,6 +80,26 @@ def test_readings_that_moved_and_a_mean_far_from_the_frames_pan_leave_the_pan_as
     assert Rest().at(0.3, 1.0) == 1.0  # no readings
 
 
+def test_a_noisier_encoders_bounds_widen_with_its_scatter():
+    """0.15 deg of noise: a frame's one reading 0.35 deg off the rest's mean (2.3 sigma) is still this rest's (the
+    fixed 0.25 deg took it for another pan, and the loop chased it); a drift of 1 deg/s under the same noise is not
+    a rest (its successive readings' scatter is the noise's, not the drift's)."""
+    from vergence.head.rest import SIGMAS
+    r = Rest()
+    r.commanded(0.0)
+    ps = _readings(r, 0.0, 0.5, 2.0, 0.15, seed=3)
+    mean = sum(ps[6:]) / len(ps[6:])
+    far = mean + 0.35 * DEG
+    assert 0.35 > NEAR_DEG and r.at(0.3, far) == pytest.approx(mean, abs=1e-12)
+    assert r.at(0.3, mean + SIGMAS * 0.3 * DEG) == mean + SIGMAS * 0.3 * DEG  # past 4 x its scatter: not this rest
+    r = Rest()
+    r.commanded(0.0)
+    rng = np.random.default_rng(4)
+    for k in range(50):
+        r.motor(0.01 * k, (0.01 * k + rng.normal(0, 0.15)) * DEG)
+    assert r.at(0.3, 0.3 * DEG) == 0.3 * DEG
+
+
 def test_a_clock_that_goes_back_forgets_the_commands():
     r = Rest()
     r.commanded(10.0)
