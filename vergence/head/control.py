@@ -1,7 +1,9 @@
 """From the network's decision to a pan set-point: pixels -> angle, gain, dead band, then the motor's limits.
 
 Every measurement is referred to the instant the slave's image was exposed (vergence.head.timing): the pan it
-is given is the slave's pan then, t_s that exposure's time, t_now the time of the command.
+is given is the slave's pan then, t_s that exposure's time, t_now the time of the command. While the motor rests
+(no command for a while), that pan is the mean of the motor's readings since it came to rest, not the frame's one
+reading (vergence.head.rest): a noisy encoder's noise is not taken for the target's motion.
 
 Two modes ([control] mode):
 - "p": each confident decision sets the target pan at exposure + gain x the measured correction; an
