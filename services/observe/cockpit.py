@@ -93,6 +93,7 @@ class Cockpit:
         self.motor_status: str | None = None  # the latest motor state's status (logged as text when it changes)
         self.fault: tuple[str, str] | None = None  # the reducer's named fault (logged at `fault` when it changes)
         self.search: str | None = None  # what the reducer's search says (logged at `search` when it changes)
+        self.texture: str | None = None  # what it says of a fovea with no texture (logged at `texture`)
 
     # -- helpers -------------------------------------------------------------------------------------------
 
@@ -263,3 +264,7 @@ class Cockpit:
             if note != self.search:  # lost and searching (vergence.head.search), a sweep that found nothing, found
                 self.search = note
                 self._log("search", self.rr.TextLog(note or "search over", level="WARN" if note else "INFO"))
+            if (blind := st.texture_note()) != self.texture:  # black or flat frames: the loop holds
+                self.texture = blind
+                self._log("texture", self.rr.TextLog(blind or "texture at the fovea again",
+                                                     level="WARN" if blind else "INFO"))

@@ -68,8 +68,9 @@ def summary(seconds: float, frames: int, lost: int, commands: int, last: Reduced
     and, where the frames carry a truth (the simulator), how far those pans were off it."""
     d, f = last.decision, last.frame
     line = (f"last {seconds:.0f} s: frames {frames} decided, {lost} dropped, commands {commands}; frame {f.frame}: "
-            f"offset {d.offset_px:+.2f} px, {'confident' if d.confident else 'abstains'} (margin {d.confidence:.2f}, "
-            f"w {f.window})")
+            f"offset {d.offset_px:+.2f} px, {'confident' if d.confident else 'abstains'}"
+            f"{'' if d.confident or last.textured else ': no texture at the fovea (a black or flat image)'} "
+            f"(margin {d.confidence:.2f}, w {f.window})")
     if window.pans:
         lo, hi = math.degrees(min(window.pans)), math.degrees(max(window.pans))
         line += f"; slave pan at capture {lo:+.3f}..{hi:+.3f} deg"

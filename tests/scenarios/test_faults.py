@@ -111,6 +111,27 @@ def test_up_with_a_frozen_slave_holds_then_follows_when_it_thaws(tmp_path):
 
 
 @pytest.mark.slow
+def test_up_with_black_frames_names_them_holds_and_then_converges(tmp_path):
+    """Issue #35: black frames are no fault ("abstain, and name it"): the loop abstains, the slave holds where it
+    started, the reducer's status names it (`no_texture`: the monitor, /diagnostics at WARN, the cockpit); when the
+    image comes back, the slave converges and the name clears. No fault throughout."""
+    truth = _truth()
+    with Procs(tmp_path) as P:
+        pans, faults = _up(P, tmp_path, f"sim:focal={FOCAL:g}:black=0-6")
+        statuses = P.collect(P.session(), P.key("status/reducer/*"))
+
+        def blind():
+            return [decode_status(b).extra.get("no_texture") for _, b, _ in statuses.snapshot()]
+
+        wait_for(lambda: True in blind(), 40, "the reducer naming no texture", logs=P.logs)
+        assert pans() and max(abs(p) for p in pans()) <= math.radians(0.1)  # held where it started (0)
+        tol = math.atan(1.0 / FOCAL)
+        wait_for(lambda: blind()[-1] is False and abs(pans()[-1] - truth) <= tol, 40,
+                 "texture again and the slave within 1 px of the truth", logs=P.logs)
+        assert not any(faults())
+
+
+@pytest.mark.slow
 def test_up_with_a_slip_in_pursuit_holds_through_the_targets_turn(tmp_path):
     """A check from outside, kept (session 37): a target on a 0.4 Hz sine about 0.75 m, 45 Hz, the coupling slipping
     from 3.3 to 5.3 s of the scene's time (from the capture's first read: a frame's id counts the reads since). Named

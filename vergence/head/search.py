@@ -55,6 +55,7 @@ class Search:
 
     def __init__(self):
         self.t_lost: float | None = None  # the first textured, unconfident exposure since the last confident one
+        self.blind = False  # the last frame's fovea had no texture (black or flat): it holds
         self.converged: float | None = None  # the last pan at which the loop was converged (within 1 px)
         self.seen: float | None = None  # the pan the last confident decision put the target at
         self.stops: list[float] = []
@@ -73,6 +74,7 @@ class Search:
     def reset(self) -> None:
         """Forget being lost (a fault began: the doubt holds; or a new target)."""
         self.t_lost = None
+        self.blind = False
         self._stop()
 
     def _stop(self) -> None:
@@ -90,6 +92,7 @@ class Search:
         angle; default pan + atan(offset_px / focal_px), the principal point's)."""
         if not (math.isfinite(t) and math.isfinite(pan)):
             return None
+        self.blind = not confident and not textured  # (said in the status: the issue's "abstain, and name it")
         if confident and math.isfinite(offset_px):
             ok = math.isfinite(focal_px) and focal_px > 0
             self.seen = at if at is not None else pan + math.atan(offset_px / focal_px) if ok else pan
@@ -172,7 +175,8 @@ class Search:
         return self.goal
 
     def status(self) -> dict:
-        """The reducer's status fields: searching, searches (begun), found (ended by a confident decision), and
-        sweeps_empty (the present search's sweeps of the range that found nothing)."""
+        """The reducer's status fields: searching, searches (begun), found (ended by a confident decision),
+        sweeps_empty (the present search's sweeps of the range that found nothing), and no_texture (the last frame's
+        fovea had none: a black or flat image, which holds)."""
         return {"searching": self.searching, "searches": self.searches, "found": self.found,
-                "sweeps_empty": self.empty}
+                "sweeps_empty": self.empty, "no_texture": self.blind}

@@ -262,6 +262,8 @@ def _status_lines(name: str, d: Status, c) -> list[str]:
                              "say; set [camera] latency_s (`vergence latency` measures it)"))
     if (note := d.search_note()) is not None:  # lost: the slave sweeps its range (vergence.head.search)
         out.append(c(YELLOW, note))
+    if (note := d.texture_note()) is not None:  # black or flat frames: it holds
+        out.append(c(YELLOW, note))
     if g:
         pending = d.number("pending", 0, 2 ** 53)
         out.append(f"{name}: " + "  ".join(f"{k} {g[k]}" for k in ("frames", "complete", "dropped",

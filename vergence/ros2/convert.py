@@ -340,7 +340,7 @@ def diagnostic(rig: str, status: Status, age_s: float, stale_s: float, bad_befor
     if bad_before is not None and status.bad_total > bad_before:
         kinds = ", ".join(f"{k} {v}" for k, v in sorted(status.bad.items()))
         return Diagnostic(WARN, name, f"bad messages: {kinds}", rig, values)
-    if (note := status.search_note()) is not None:  # lost, searching (vergence.head.search)
+    if (note := status.search_note() or status.texture_note()) is not None:  # lost, searching; or black frames
         return Diagnostic(WARN, name, note, rig, values)
     return Diagnostic(OK, name, "ok", rig, values)
 

@@ -180,6 +180,11 @@ class Reduced:
         return self._cmd
 
     @property
+    def textured(self) -> bool:
+        """The fovea had texture (False: a black or flat image, where the loop abstains and holds)."""
+        return self._textured
+
+    @property
     def message(self) -> messages.Decision:
         return decision_message(self.frame, self.decision, self.t_reduced_ns)
 

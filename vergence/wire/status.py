@@ -93,6 +93,13 @@ class Status(msgspec.Struct, frozen=True, kw_only=True):
             f"; {n} sweep{'s' if n > 1 else ''} of the pan range found nothing: is the point visible to the slave "
             "camera (hidden behind a nearer object, or out of its view)?" if n else "")
 
+    def texture_note(self) -> str | None:
+        """What a reducer says of a fovea with no texture (its last frame: black or flat), or None."""
+        if self.extra.get("no_texture") is not True:
+            return None
+        return ("no texture at the fovea (a black or flat image: a lens cap, the light off, a blank surface, a camera "
+                "sending black frames): the loop abstains and the slave holds")
+
     def fixate_rejection(self) -> tuple[int, str] | None:
         """A capture's refusal of a fixate request: (the request's t_ns, why), or None."""
         r = self.extra.get("fixate_rejection")

@@ -651,6 +651,25 @@ def test_a_search_is_a_warning_in_the_cockpit_each_time_it_says_more(tmp_path):
     assert got[1][0].startswith("searching: no confident match at the fovea; 1 sweep of the pan range found nothing")
 
 
+def test_a_fovea_with_no_texture_is_a_warning_in_the_cockpit_and_its_end_an_info(tmp_path):
+    """Issue #35 ("no texture / black: abstain, and name it"): the reducer's `no_texture` goes to `texture` as a
+    warning when it begins, once, and as an info when the fovea has texture again."""
+    import json
+
+    rec = rr.RecordingStream("vergence-test")
+    path = tmp_path / "t.rrd"
+    rec.save(str(path))
+    c = view.Cockpit(rr, rec)
+    st = {"role": "reducer", "id": "r-1", "counters": {}, "bad": {}}
+    for i, extra in enumerate([{}, {"no_texture": True}, {"no_texture": True}, {"no_texture": False}]):
+        c._status("status/reducer/r-1", json.dumps(dict(st, **extra)).encode(), 1 + i)
+    rec.disconnect()
+    got = [(r["TextLog:text"][0], r["TextLog:level"][0]) for r in read_rrd(path)["/texture"]]
+    assert [level for _, level in got] == ["WARN", "INFO"], got
+    assert got[0][0].startswith("no texture at the fovea (a black or flat image") and \
+        got[1][0] == "texture at the fovea again"
+
+
 @pytest.mark.slow
 def test_view_save_on_a_full_filesystem_stops_with_one_line(tmp_path, tiny_fs):
     """`vergence view --save` into a 1 MiB tmpfs (issue #29): Rerun's writer fails silently, so the view

@@ -86,6 +86,13 @@ def test_the_summary_gives_the_windows_pans_and_its_tracking_error_against_the_t
     assert w.pans == [] and w.errors == []  # taken: the next window begins empty
     real = summary(5.0, 1, 0, 0, last, Window())  # a camera's frames: no truth, no tracking error
     assert "truth" not in real and real.endswith("(margin 0.90, w 15)")
+    # an abstention says why where the fovea had no texture (a black or flat image), not where it had
+    flat = SimpleNamespace(decision=SimpleNamespace(offset_px=0.0, confident=False, confidence=0.0),
+                           frame=SimpleNamespace(frame=78, window=15), textured=False)
+    assert summary(5.0, 1, 0, 0, flat, Window()).endswith(
+        "frame 78: offset +0.00 px, abstains: no texture at the fovea (a black or flat image) (margin 0.00, w 15)")
+    weak = SimpleNamespace(**dict(flat.__dict__, textured=True))
+    assert summary(5.0, 1, 0, 0, weak, Window()).endswith("frame 78: offset +0.00 px, abstains (margin 0.00, w 15)")
 
 
 class _Sample:

@@ -71,7 +71,7 @@ def test_the_status_counts_the_sweeps_that_found_nothing_until_a_candidate():
     monitor` then asks whether the slave can see the point), 2 after the second; a confident decision ends the
     search and the count."""
     s = Search()
-    assert s.status() == {"searching": False, "searches": 0, "found": 0, "sweeps_empty": 0}
+    assert s.status() == {"searching": False, "searches": 0, "found": 0, "sweeps_empty": 0, "no_texture": False}
     out = run(s, 45 * DEG, 60)
     assert s.status()["searching"] and s.status()["sweeps_empty"] == 0
     pan = next(g for _, g in reversed(out) if g is not None)
@@ -85,7 +85,7 @@ def test_the_status_counts_the_sweeps_that_found_nothing_until_a_candidate():
     assert counts[0] == 0 and sorted(set(counts)) == [0, 1, 2, 3]  # three sweeps in those 15 s, as above
     assert all(b - a in (0, 1) for a, b in zip(counts, counts[1:]))
     s.observe(t + DT, pan, True, True, 0.3, F, W, LO, HI)
-    assert s.status() == {"searching": False, "searches": 1, "found": 1, "sweeps_empty": 0}
+    assert s.status() == {"searching": False, "searches": 1, "found": 1, "sweeps_empty": 0, "no_texture": False}
 
 
 def test_first_back_to_the_last_converged_pan_then_about_it_alternating_from_where_it_was():
@@ -194,11 +194,13 @@ def test_at_the_pan_the_last_confident_decision_put_the_target_waits_held_s():
 def test_black_frames_hold_and_a_confident_decision_ends_the_search():
     s = Search()
     assert all(g is None for _, g in run(s, 10 * DEG, 120, textured=False))  # 2 s of black: no search
+    assert s.status()["no_texture"] is True  # ... and named (the status says it: the monitor, /diagnostics)
     out = run(s, 10 * DEG, 60, t0=3.0)
+    assert s.status()["no_texture"] is False  # texture again
     assert s.searching and any(g is not None for _, g in out)
     assert run(s, 0.0, 1, t0=5.0, confident=True, offset=-40.0) == [(5.0, None)]
     assert not s.searching and s.found == 1 and s.status() == {"searching": False, "searches": 1, "found": 1,
-                                                        "sweeps_empty": 0}
+                                                        "sweeps_empty": 0, "no_texture": False}
 
 
 def test_the_controller_searches_only_where_the_image_can_follow_and_holds_in_a_fault():

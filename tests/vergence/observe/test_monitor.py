@@ -332,6 +332,24 @@ def test_a_search_is_a_yellow_line_that_asks_whether_the_slave_can_see_the_point
         assert "searching" not in render_text(mon.snapshot(T0 + 2_000 * MS), color=False), forged
 
 
+def test_a_fovea_with_no_texture_is_a_yellow_line_that_says_the_slave_holds():
+    """The reducer's `no_texture` (its last frame black or flat: vergence.head.search): a yellow line naming it;
+    false, or a forged value, shows nothing."""
+    mon = Monitor("head")
+    run_stream(mon, 1.0, 100.0)
+    st = {"role": "reducer", "id": "r-1", "pid": 1, "t_ns": T0, "counters": {}, "bad": {}, "gatherer": {"frames": 3},
+          "fault": None, "searching": False, "no_texture": True}
+    mon.feed("vergence/head/status/reducer/r-1", json.dumps(st).encode())
+    s = mon.snapshot(T0 + 2_000 * MS)
+    assert ("no texture at the fovea (a black or flat image: a lens cap, the light off, a blank surface, a camera "
+            "sending black frames): the loop abstains and the slave holds") in render_text(s, color=False).replace(
+                "\n  ", " ")
+    assert "\x1b[33mno texture" in render_text(s, color=True)
+    for forged in (dict(no_texture=False), dict(no_texture="yes"), dict(no_texture=1)):
+        mon.feed("vergence/head/status/reducer/r-1", json.dumps(dict(st, **forged)).encode())
+        assert "no texture" not in render_text(mon.snapshot(T0 + 2_000 * MS), color=False), forged
+
+
 def test_screen_lines_fit_the_terminal():
     """Each screen line fits the terminal's width (ANSI codes do not count): a line too wide is broken between
     its fields, the rest on the next line indented by 2, nothing lost."""

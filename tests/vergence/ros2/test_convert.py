@@ -165,6 +165,10 @@ def test_diagnostic_levels_and_values():
                                           "behind a nearer object, or out of its view)?")
     assert conv.diagnostic("head", status_of(dict(raw, searching=False, sweeps_empty=1)), 0.5, 3.0, None).level \
         == conv.OK
+    # black or flat frames (no texture at the fovea): named at WARN, the slave holds
+    blind = conv.diagnostic("head", status_of(dict(raw, no_texture=True)), 0.5, 3.0, None)
+    assert blind.level == conv.WARN and blind.message.startswith("no texture at the fovea (a black or flat image")
+    assert conv.diagnostic("head", status_of(dict(raw, no_texture="yes")), 0.5, 3.0, None).level == conv.OK
     with pytest.raises(MessageError, match="role"):
         status_of({"bad": "x"})
 
