@@ -18,6 +18,7 @@ single readings chased. Measured: docs/FAULTS.md, "The encoder's noise at rest".
 from __future__ import annotations
 
 import bisect
+import itertools
 import math
 from collections import deque
 
@@ -78,7 +79,7 @@ class Rest:
         if n < MIN_READINGS:
             return pan
         p0 = self.pan[a]
-        ds = [self.pan[k] - p0 for k in range(a, b)]  # (about the first: equal readings' mean is theirs exactly)
+        ds = [p - p0 for p in itertools.islice(self.pan, a, b)]  # (about the first: equal readings' mean is exact)
         half = n // 2
         m = sum(ds) / n
         # the encoder's scatter, from successive readings (a drift barely moves them; 0: a clean one's tick)
