@@ -40,7 +40,7 @@ import time
 from vergence.wire import keys
 from vergence.config import Settings, SuperviseSettings, load
 from vergence.motors import DRIVERS, check_driver
-from vergence.io.sources import SourceError, check_source
+from vergence.io.sources import SourceError, check_source, motor_faults
 
 from services.runtime import heartbeat, session, wake, warm
 from services.runtime.args import number, whole
@@ -68,8 +68,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--listen", "-l", default=session.DEFAULT_ROUTER, metavar="ENDPOINT",
                    help=f"the embedded router's endpoint, the one every child connects to (default "
                         f"{session.DEFAULT_ROUTER})")
-    p.add_argument("--no-actuator", action="store_true", help="do not start the actuator (a real one runs "
-                                                                "elsewhere)")
+    p.add_argument("--no-actuator", action="store_true", help="do not start the actuator (a real one runs elsewhere)")
     p.add_argument("--rig", default=None, help="rig name, the key prefix vergence/<rig>/ (default: head)")
     p.add_argument("--config", metavar="FILE", help="vergence settings (TOML), passed to every child")
     p.add_argument("--ros2", action="store_true", help="start `vergence ros2` too: the rig's topics as a ROS 2 node "
@@ -79,8 +78,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "the first dies; the capture has none with cameras, which one process holds)")
 
 
-def commands(args: argparse.Namespace, rig: str) -> list[tuple[str, list[str]]]:
-    """(name, argv) of every child, in start order: router, actuator, workers, reducer, capture."""
+def commands(args: argparse.Namespace, rig: str, lies: str = "") -> list[tuple[str, list[str]]]:
+    """(name, argv) of every child, in start order: router, actuator, workers, reducer, capture; lies: the sim
+    source's motor-side ones (vergence.io.sources.motor_faults), the sim actuator's --faults."""
     base = vergence()
     common = ["--mode", "peer", "--connect", args.listen, "--listen", "tcp/127.0.0.1:0", "--rig", rig]
     common += ["--config", args.config] if args.config else []
@@ -89,9 +89,8 @@ def commands(args: argparse.Namespace, rig: str) -> list[tuple[str, list[str]]]:
         act = base + ["actuator"] + common
         if args.driver:
             act += ["--driver", args.driver]
-        if args.port:
-            act += ["--port", args.port]
-        out.append(("actuator", act))
+        act += ["--port", args.port] if args.port else []
+        out.append(("actuator", act + (["--faults", lies] if lies else [])))
     for i in range(args.workers):
         out.append((f"worker{i + 1}", base + ["worker", "--name", f"w{i + 1}"] + common))
     out.append(("reducer", base + ["reducer"] + common))
@@ -107,8 +106,7 @@ def commands(args: argparse.Namespace, rig: str) -> list[tuple[str, list[str]]]:
 
 
 class Heartbeat:
-    """up's end of a child's heartbeat pipe (services/runtime/heartbeat.py): env and fds for its start, then when its
-    latest beat came."""
+    """up's end of a child's heartbeat pipe (services/runtime/heartbeat.py): env, fds for its start, its last beat."""
 
     def __init__(self, sup: SuperviseSettings):
         self.sup = sup
@@ -138,8 +136,8 @@ class Heartbeat:
     def silent(self, now: float) -> float | None:
         """How long it has not beaten, when longer than it may (heartbeat_s; before its first beat,
         start_grace_s); None while it beats."""
-        since, limit = ((self.started, self.sup.start_grace_s) if self.last is None
-                        else (self.last, self.sup.heartbeat_s))
+        sup = self.sup
+        since, limit = (self.started, sup.start_grace_s) if self.last is None else (self.last, sup.heartbeat_s)
         return now - since if now - since > limit else None
 
     def close(self) -> None:
@@ -241,9 +239,7 @@ class Child:
         self.backoff = self.sup.restart_s
         self.due: float | None = None  # when a dead child is started again
         self.standby: Standby | None = None
-        self.standby_due: float | None = None  # when a standby is started (None: this child has none)
-        if standby:
-            self.standby_due = 0.0
+        self.standby_due: float | None = 0.0 if standby else None  # when a standby is started (None: it has none)
 
     def start(self) -> None:
         if self.hb is not None:
@@ -376,8 +372,11 @@ def check(args: argparse.Namespace, settings: Settings) -> str | None:
             return str(e)
     try:
         check_source(args.source or settings.capture.source)
+        lies = motor_faults(args.source or settings.capture.source)
     except SourceError as e:
         return f"--source: {e}" if args.source else f"[capture] source: {e}"
+    if lies and (args.no_actuator or (args.driver or settings.actuator.driver) != "sim"):
+        return f"the source's {lies} makes the sim actuator lie: run it (--driver sim, no --no-actuator)"
     return None
 
 
@@ -428,7 +427,7 @@ def run(args: argparse.Namespace) -> int:
         # (no capture standby with cameras, which one process holds, nor with ROS 2 topics, which it would decode)
         held = source.startswith(("camera", "ros2"))
         standby = set() if args.no_standby else {"reducer"} | (set() if held else {"capture"})
-        for name, argv in commands(args, rig):
+        for name, argv in commands(args, rig, motor_faults(source)):
             if stop.is_set():
                 break
             children.append(Child(name, argv, standby=name in standby, sup=settings.supervise))

@@ -1,4 +1,6 @@
-"""`vergence actuator --driver sim|dynamixel|line|ros2 [--port URL] [--id 1] [--baud 57600]`: drive the slave pan.
+"""`vergence actuator --driver sim|dynamixel|line|ros2 [--port URL] [--id 1] [--baud 57600] [--faults SPEC]`: drive
+the slave pan. --faults stall=T0-T1:encoder_noise=DEG makes the sim motor lie (vergence/motors/simulated.py; `vergence
+up` passes a sim source's two keys on).
 
 Subscribes to vergence/<rig>/command (messages.Command: pan_rad is the absolute target pan of the slave) and
 publishes messages.MotorState on vergence/<rig>/motor_state at [actuator] state_hz and after each command.
@@ -22,6 +24,7 @@ from vergence.wire import keys
 from vergence.config import ConfigError, load
 from vergence.motors import DRIVERS, PortError, check_driver, make_driver
 from vergence.motors.runner import MotorLoop
+from vergence.sim.faults import motor_lies
 
 from services.runtime import heartbeat, session
 from services.runtime.args import number, whole
@@ -41,6 +44,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--id", type=whole(0, 252), default=None, help="motor id on the bus (Dynamixel; default 1)")
     p.add_argument("--baud", type=whole(1200, 10_000_000), default=None, help="serial speed (default 57600)")
     p.add_argument("--state-hz", type=number(0, 1000, lo_open=True), default=None, help="motor_state rate (default 50)")
+    p.add_argument("--faults", metavar="SPEC", default="",
+                   help="the sim motor's lies: stall=T0-T1 (s from the first commanded frame's exposure), "
+                        "encoder_noise=DEG (vergence/sim/faults.py)")
 
 
 class Latest:
@@ -123,11 +129,11 @@ def serve(act: Actuator, inbox: Latest, stop: session.Stop, state_hz: float) -> 
         act.node.tick(now)
 
 
-def main(settings, conf, stop: session.Stop) -> int:
+def main(settings, conf, stop: session.Stop, lies: dict | None = None) -> int:
     a = settings.actuator
     rig = settings.rig
     try:
-        driver = make_driver(a.driver, a.motor, a.port)
+        driver = make_driver(a.driver, a.motor, a.port, lies)
     except (PortError, ValueError) as e:
         print(f"vergence actuator: {e}", file=sys.stderr)
         return 2
@@ -166,8 +172,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         settings = settings_from_args(args)
         check_driver(settings.actuator.driver, settings.actuator.port, args.port)  # --port with sim: refused
+        lies = motor_lies(args.faults) if args.faults else None
+        if lies and (driver := settings.actuator.driver) != "sim":
+            raise ValueError(f"--faults makes the sim motor lie; the {driver} driver drives a real one")
     except (ConfigError, ValueError) as e:
         print(f"vergence actuator: {e}", file=sys.stderr)
         return 2
     stop = session.Stop()
-    return main(settings, session.config_from_args(args), stop)
+    return main(settings, session.config_from_args(args), stop, lies)

@@ -117,7 +117,12 @@ class Capture:
         self.history_lock = threading.Condition()  # notified on each motor state (PanLookup.ready waits on it)
         # the sim motor's replica, for a source that renders the slave (its states tell whether it is the sim)
         self.renders = getattr(source, "renders", False)  # (the ros2 source is not a vergence.io.sources.Source)
-        self.replica = Replica(settings.actuator.motor) if self.renders else None
+        lies = getattr(source, "motor_faults", None)  # (the sim source's stall= and encoder_noise=)
+        self.replica = Replica(settings.actuator.motor, lies.encoder_noise or 0.0, lies.stall) if lies is not None \
+            else Replica(settings.actuator.motor) if self.renders else None
+        if lies:
+            log.info("the sim source's %s lie about the motor: the sim actuator takes them (`vergence actuator "
+                     "--faults %s`; `vergence up` passes them on)", lies.spec(), lies.spec())
         if self.renders:  # the sim camera sits on the shaft, which turns direction x (the pan reported - offset)
             source.shaft = settings.actuator.motor.to_motor
         rate = self.cs.rate_hz
@@ -216,6 +221,9 @@ class Capture:
             self.health.reject("command", e)
             return
         with self.history_lock:
+            m, ahead = self.settings.actuator.motor, (cmd.t_capture_ns - time.time_ns()) / 1e9
+            if -(m.max_age_s or math.inf) <= ahead <= (m.max_skew_s or math.inf):  # plausible, as the actuator's Safety
+                self.replica.first_exposure(cmd.t_capture_ns)  # (a stall's time 0, from the first such command)
             if self.replica.trusted:
                 self.replica.commanded(time.monotonic_ns())
 

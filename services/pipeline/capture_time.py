@@ -62,6 +62,7 @@ class PanLookup:
         self.replica = replica
         self.seen: dict[int, float | None] = {}
         self.guessed: set[int] = set()  # instants whose pan the history extrapolated past its newest state
+        self.exact: set[int] = set()  # instants whose pan is the replica's shaft
         self.waited = False  # ready() waited for the motor to count a command
 
     def settle(self, t_ns: int, timeout: float = SETTLE_S) -> None:
@@ -104,7 +105,9 @@ class PanLookup:
         if t_ns not in self.seen:
             with self.lock:
                 pan = self.replica.at(t_ns) if self.replica is not None else None
-                if pan is None and len(self.history):  # (before any motor state the pan is not known)
+                if pan is not None:
+                    self.exact.add(t_ns)
+                elif len(self.history):  # (before any motor state the pan is not known)
                     pan = self.history.at(t_ns / 1e9)
                     if t_ns / 1e9 > self.history.t[-1]:
                         self.guessed.add(t_ns)
@@ -125,11 +128,16 @@ class PanLookup:
     def frame(self, t_slave_ns: int) -> tuple[float, bool, bool]:
         """(the frame's pan, stale, guessed): the pan at the slave's exposure, whether the history could not tell,
         and whether it told it past its newest state (extrapolated at the motor's last rate: a turn since is not in
-        it; vergence.head.scenery reads no verdict on such a pan)."""
+        it; vergence.head.scenery reads no verdict on such a pan). From the replica's shaft, the encoder's reading
+        of it (the sim source's encoder(): with encoder_noise=, each frame's pan one noisy reading)."""
         if not self.source.follows_pan:
             return self.source.start_pan_rad, False, False
         pan = self._at(t_slave_ns)
-        return (self(t_slave_ns), True, False) if pan is None else (pan, False, t_slave_ns in self.guessed)
+        if pan is None:
+            return self(t_slave_ns), True, False
+        if t_slave_ns in self.exact:  # the shaft itself: what the encoder reads of it
+            pan = getattr(self.source, "encoder", float)(pan)
+        return pan, False, t_slave_ns in self.guessed
 
 
 class ExposureClock:

@@ -270,3 +270,43 @@ def test_up_with_images_at_1_6_x_the_focal_length_told_names_it_and_tracks(tmp_p
         offs = [d.offset_px for t, b, _ in decisions.snapshot() if t > t_named + 1e9
                 and (d := Decision.from_bytes(b)).confident]
         assert len(offs) >= 60 and math.sqrt(sum(o * o for o in offs) / len(offs)) <= 2.0
+
+
+@pytest.mark.slow
+def test_up_with_a_stalled_noisy_motor_names_the_stall_holds_then_converges(tmp_path):
+    """The motor's lies through real processes (`sim:stall=0-3:encoder_noise=0.05`: `vergence up` gives both to the sim
+    actuator, `--faults`; the capture renders where the shaft is and reads each frame's pan as a noisy encoder does).
+    The slave starts 24 px off; the motor takes no goal for 3 s from the first commanded frame's exposure. The reducer
+    names `stalled` before the stall ends; from then on every command is the one back to where the motor is (the start,
+    as its noisy encoder reads it) or a probe's 0.5 deg from there, and the readings stay within the noise of 0; after
+    the stall the slave converges within 1 px and no fault is named for 3 s."""
+    from vergence.wire.messages import Command
+
+    truth = _truth()
+    with Procs(tmp_path) as P:
+        pans, faults = _up(P, tmp_path, f"sim:focal={FOCAL:g}:stall=0-3:encoder_noise=0.05")
+        s = P.session()
+        commands, states = P.collect(s, P.key("command")), P.collect(s, P.key("motor_state"))
+        statuses = P.collect(s, P.key("status/reducer/*"))
+        t0 = Command.from_bytes(commands.wait(1, 60)[0][1]).t_capture_ns  # (the stall's time 0: its first command's)
+        wait_for(lambda: any(f and f[0] == "stalled" for f in faults()), 10, "the reducer naming it", logs=P.logs)
+        named = next(t for t, b, _ in statuses.snapshot() if (f := decode_status(b).fault()) and f[0] == "stalled")
+        assert named < t0 + 3e9, (named - t0) / 1e9
+        wait_for(lambda: time.time_ns() > t0 + 3e9, 5, "the stall's end", interval=0.05, logs=P.logs)
+        cmds = [Command.from_bytes(b) for _, b, _ in commands.snapshot()]
+        hold = next(i for i, c in enumerate(cmds) if abs(math.degrees(c.pan_rad)) < 0.3)  # back where it is, named
+        during = [math.degrees(c.pan_rad - cmds[hold].pan_rad) for c in cmds[hold:] if c.t_capture_ns < t0 + 2.9e9]
+        assert cmds[hold].t_capture_ns < named and max(abs(p) for p in during) <= 0.5 + 1e-6, during
+        read = [math.degrees(m.pan_rad) for _, b, _ in states.snapshot()
+                if (m := MotorState.from_bytes(b)).t_ns < t0 + 2.9e9]
+        assert read and max(abs(p) for p in read) <= 0.3, read  # (5 deviations of the noise, and a tick)
+        spread = math.sqrt(sum(p * p for p in read) / len(read))
+        assert 0.02 <= spread <= 0.1, spread  # the noise's 0.05 deg, on whole ticks (0.088 deg)
+        tol = math.atan(1.0 / FOCAL)
+        wait_for(lambda: faults()[-1] is None and abs(sorted(pans()[-25:])[12] - truth) <= tol, 30,
+                 "the fault cleared and the slave within 1 px of the truth", logs=P.logs)
+        t_ok = statuses.snapshot()[-1][0]
+        wait_for(lambda: statuses.snapshot()[-1][0] > t_ok + 3e9, 10, "3 s of statuses", logs=P.logs)
+        assert all(decode_status(b).fault() is None for t, b, _ in statuses.snapshot() if t >= t_ok)
+        print(f"\nstalled named {(named - t0) / 1e9:.2f} s after the first command's exposure; {len(during)} commands "
+              f"in the stall, the furthest {max(abs(p) for p in during):.2f} deg; readings {spread:.3f} deg RMS")

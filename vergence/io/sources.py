@@ -216,7 +216,9 @@ class SimSource(Source):
     gives no exposure times (as a camera whose backend has none: the capture then takes [camera]
     latency_s), for measuring the latency from outside (`vergence latency`). The camera-side faults of
     vergence.sim.faults (freeze=T0-T1, freeze_master=, black=, reverse, slip=, backlash=, focal_true=, zero=) make it
-    lie as a real head's cameras do; the motor-side ones (stall, encoder_noise) are `vergence sim`'s only."""
+    lie as a real head's cameras do; the motor-side ones (stall=, encoder_noise=) are the sim actuator's, which
+    `vergence up` gives them (`motor_faults`): the frames' pans are then the encoder's readings (encoder()), each
+    with its noise, while the slave is rendered where the shaft is."""
 
     TIMING = {"latency": "latency_s", "skew": "skew_s", "exposure": "exposure_s", "jitter": "jitter_s"}
     renders = True
@@ -235,9 +237,6 @@ class SimSource(Source):
             items, timing, self.stamps = self._timing(spec)
             self.timing = self.camera_timing(timing)
             faults = Faults.take(items)
-            if faults.stall or faults.encoder_noise:
-                raise ValueError("sim source: stall and encoder_noise are the motor's lies: `vergence sim --faults` "
-                                 "has them (the sim actuator tells the truth)")
             if faults.late:
                 raise ValueError("sim source: late is `vergence sim`'s; here latency=S:stamps=no with [camera] "
                                  "latency_s unset gives images S older than the capture is told")
@@ -261,6 +260,7 @@ class SimSource(Source):
         self.t0: int | None = None  # the scene's time 0 (ns): the first exposure
         self.rng = np.random.default_rng(0)
         self.lies = Lies(faults)
+        self.motor_faults = faults.motor()  # the sim actuator's lies, which this source passes on (`vergence up`)
         # [actuator.motor] direction and offset_deg: the shaft's angle for a pan the motor reports (to_motor)
         self.shaft = float
         self._still_truth: tuple = (None, math.nan)  # (fovea, its truth) of the still scene
@@ -339,6 +339,11 @@ class SimSource(Source):
             time.sleep((start + lead - done) / 1e9)
         return pair
 
+    def encoder(self, pan: float) -> float:
+        """The encoder's reading of a shaft at `pan` (encoder_noise=), for a frame's pan where the capture knows the
+        shaft itself (its replica of the sim motor)."""
+        return self.lies.encoder(pan)
+
     def preview(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
         """The latest pair read, rendered whole at width x height without noise (a preview at the cost of a
         band, where a read of `rows` left the rest of the views black)."""
@@ -383,6 +388,13 @@ def check_source(spec: str) -> None:
         SimSource(rest).close()
     else:
         open_source(spec)  # the error naming every kind
+
+
+def motor_faults(spec: str) -> str:
+    """A sim source's motor-side lies (stall=, encoder_noise=) as the sim actuator's --faults spec; '' for none (or a
+    source other than the simulator). `vergence up` passes them on; SourceError as check_source's."""
+    kind, _, rest = (spec or "").partition(":")
+    return SimSource(rest).motor_faults.spec() if kind.strip() == "sim" else ""
 
 
 def open_source(spec: str, master: str = "left") -> Source:

@@ -25,11 +25,14 @@ def check_driver(name: str, port: str = "", given: str | None = None) -> None:
                          "[actuator] port; list ports with `python -m serial.tools.list_ports -v`")
 
 
-def make_driver(name: str, settings: MotorSettings, port: str = "") -> Driver:
-    """The driver called `name` (sim | dynamixel | line | ros2) for the motor `settings` on `port` (pyserial URL)."""
+def make_driver(name: str, settings: MotorSettings, port: str = "", lies: dict | None = None) -> Driver:
+    """The driver called `name` (sim | dynamixel | line | ros2) for the motor `settings` on `port` (pyserial URL);
+    lies: the sim motor's (SimMotor's stall, noise_deg: `vergence actuator --faults`), refused for any other."""
+    if lies and name != "sim":
+        raise ValueError(f"--faults makes the sim motor lie; the {name} driver drives a real one")
     if name == "sim":
         from .simulated import SimMotor
-        return SimMotor(settings)
+        return SimMotor(settings, **(lies or {}))
     if name == "ros2":  # a ros2_control joint; port: CONTROLLER[:joint=NAME...] (vergence/motors/ros2.py)
         from .ros2 import Ros2Driver
         return Ros2Driver(settings, port)

@@ -210,6 +210,10 @@ class Driver(ABC):
     def read_position(self) -> float:
         """The present pan in radians."""
 
+    def first_exposure(self, t_ns: int) -> None:
+        """The exposure (wall ns) of the first frame the motor is commanded for (MotorLoop, once): the sim
+        motor's lies count from it, as the sim source's from its first exposure. A real motor ignores it."""
+
     def describe(self) -> str:
         return self.name
 

@@ -67,6 +67,7 @@ class MotorLoop:
         self._said_absent = 0.0  # when its absence was last logged
         self._why_lost = ""  # what lost it (no answer for silent_s, the port gone)
         self._logged: set[str] = set()
+        self._exposed = False  # the driver was told the first commanded frame's exposure
 
     # -- lifecycle ----------------------------------------------------------------------------------------
     def start(self) -> MotorState:
@@ -106,6 +107,9 @@ class MotorLoop:
         self._last_cmd = self.clock()
         self._held = False
         v = self.safety.command(data.pan_rad, data.frame, data.t_capture_ns, self.wall_ns())
+        if not self._exposed and self.safety.last_t_capture > 0:  # (a plausible command's exposure)
+            self._exposed = True
+            self.driver.first_exposure(self.safety.last_t_capture)
         if v.goal is None:
             if v.reason and v.reason != "dead band":
                 self.note = f"ignored: {v.reason}"

@@ -14,12 +14,18 @@ layer never lets a goal past the soft ones anyway.
 The clock is the wall clock by default (time.time_ns), the clock of the motor states' t_ns: a Replica in
 another process (the capture's, for the simulator that renders the slave) then integrates on the same grid
 from the same goals at the same instants, and knows the shaft without waiting for the motor's reports.
+
+It lies as a real motor does when told (issue #35; `vergence actuator --faults`, which `vergence up` gives the sim
+source's stall= and encoder_noise=): stall (T0, T1) s, it stops where it is at T0 and takes no goal until T1 (the
+encoder tells the truth: it does not move); noise_deg, each reading off by Gaussian noise of that deviation. Their
+times count from the exposure of the first frame the motor is commanded for (Driver.first_exposure).
 """
 
 from __future__ import annotations
 
 import bisect
 import math
+import random
 import time
 from collections import deque
 from collections.abc import Callable
@@ -47,7 +53,8 @@ class SimMotor(Driver):
     name = "sim"
 
     def __init__(self, settings: MotorSettings | None = None, clock: Callable[[], float] | None = None,
-                 clock_ns: Callable[[], int] = time.time_ns):
+                 clock_ns: Callable[[], int] = time.time_ns, stall: tuple[float, float] | None = None,
+                 noise_deg: float = 0.0, seed: int = 0):
         super().__init__(settings or MotorSettings())
         s = self.settings
         self.clock_ns = clock_ns if clock is None else (lambda: round(clock() * 1e9))
@@ -67,6 +74,9 @@ class SimMotor(Driver):
         self.hard = tuple(sorted(s.to_motor(x) for x in (s.min_rad - math.radians(1), s.max_rad + math.radians(1))))
         self.vmax = math.radians(s.max_speed_deg_s) or math.inf
         self.amax = math.radians(s.max_accel_deg_s2) or math.inf
+        self.stall, self.noise_rad, self.rng = stall, math.radians(noise_deg), random.Random(seed)
+        self.stall_ns: tuple[int, int] | None = None  # the stall's instants, once the first exposure is known
+        self.stop_k: int | None = None  # the grid step the stall stops the shaft at, until it is reached
 
     def _quantise(self, pan: float) -> float:
         if not self.settings.quantise:
@@ -105,6 +115,9 @@ class SimMotor(Driver):
         while self.k < end:
             while self.pending and self.pending[0][0] <= self.k:  # every goal due by now: the newest wins
                 self.goal = self.pending.popleft()[1]
+            if self.stop_k is not None and self.stop_k <= self.k:  # a stall: it stops where it is
+                self.goal, self.stop_k = self.pan, None
+                self.pending.clear()
             if not self.torque:
                 self.vel = 0.0
             elif self.pan == self.goal and self.vel == 0.0:
@@ -116,7 +129,7 @@ class SimMotor(Driver):
                 self.k += 1
                 continue
             # at rest: skip to the next pending goal (or to now), on the grid
-            nxt = self.pending[0][0] if self.pending else end
+            nxt = min(self.pending[0][0] if self.pending else end, end if self.stop_k is None else self.stop_k)
             self.k += max(1, min(nxt, end) - self.k)
 
     def _at(self, ns: int) -> float:
@@ -140,11 +153,18 @@ class SimMotor(Driver):
         if torque_off:
             self.torque = False
 
+    def first_exposure(self, t_ns: int) -> None:
+        if self.stall is not None and self.stall_ns is None:
+            self.stall_ns = (t_ns + round(self.stall[0] * 1e9), t_ns + round(self.stall[1] * 1e9))
+            self.stop_k = max(_ceil_step(self.stall_ns[0]), self.k)
+
     def write_goal(self, pan_rad: float) -> None:
         now = self.clock_ns()
         self._advance(now)
         goal = self._quantise(pan_rad)
         self._written = now
+        if self.stall_ns is not None and self.stall_ns[0] <= now + self.latency_ns < self.stall_ns[1]:
+            return  # stalled when it would take it: it takes none
         if self.latency_ns <= 0:
             self.goal = goal
         else:
@@ -158,7 +178,7 @@ class SimMotor(Driver):
         self._written = None
         self._advance(ns)
         self.position_ns = ns
-        return self._quantise(self._at(ns))
+        return self._quantise(self._at(ns) + (self.rng.gauss(0.0, self.noise_rad) if self.noise_rad else 0.0))
 
 
 class Replica:
@@ -173,7 +193,9 @@ class Replica:
     time. A model that fails the check (other motor settings than ours, a capture started while the motor
     moved, a state lost) is not trusted until the motor is seen at rest on its goal (two states 5 ms apart
     with the encoder on an unchanged goal), where it starts again from that rest. `trusted` says whether at()
-    may be used; `mismatches` counts the failed checks. Times are the states' clock: wall nanoseconds.
+    may be used; `mismatches` counts the failed checks. Times are the states' clock: wall nanoseconds. A noisy
+    encoder (noise_deg: the sim source's encoder_noise=, which the sim actuator has too) widens both checks by 5
+    deviations of its noise.
 
     A state that comes more than latency_s after its write (a loaded machine) is known too late for the frames
     exposed meanwhile, so the commands are counted too: `commanded` for each one seen on the command key,
@@ -186,8 +208,11 @@ class Replica:
     REST_NS = 5_000_000
     ANSWER_NS = 50_000_000  # the longest a command seen waits for the motor's state that counts it
 
-    def __init__(self, settings: MotorSettings):
+    def __init__(self, settings: MotorSettings, noise_deg: float = 0.0, stall: tuple[float, float] | None = None):
         self.settings = settings
+        self.stall, self.stall_ns, self.past_stall = stall, None, False  # (stall=: the sim actuator's too)
+        # how far a reading may be off the model: a tick, and 5 deviations of the encoder's noise (encoder_noise=)
+        self.tol = 2 * math.pi / settings.ticks_per_rev * 1.01 + 5 * math.radians(noise_deg)
         self._now = 0
         # the model is the actuator's SimMotor, in the motor's own angle: the pans the states report (MotorLoop's,
         # direction and offset applied) are turned into it, and the shafts it gives back into pans
@@ -263,9 +288,22 @@ class Replica:
 
     # -- the interface --------------------------------------------------------------------------------------
 
+    def first_exposure(self, t_ns: int) -> None:
+        """The exposure of the first frame commanded (the first plausible command seen, as the sim actuator's
+        MotorLoop tells its motor): a stall's instants from it. The model is not trusted from the stall's start until
+        the motor rests on its goal after its end (the motor dropped the goals meanwhile)."""
+        if self.stall is not None and self.stall_ns is None:
+            self.stall_ns = (t_ns + round(self.stall[0] * 1e9), t_ns + round(self.stall[1] * 1e9))
+
+    def _stalled(self, t_ns: int) -> bool:
+        if self.stall_ns is None or self.past_stall or t_ns < self.stall_ns[0]:
+            return False
+        self.trusted, self._rest = False, None
+        return True
+
     def at(self, t_ns: int) -> float | None:
         """The shaft at t_ns, or None while the model is not trusted (or t_ns before what it keeps)."""
-        if not self.trusted:
+        if not self.trusted or self._stalled(t_ns):
             return None
         shaft = self._shaft(t_ns)
         return self.settings.from_motor(shaft) if math.isfinite(shaft) else None
@@ -313,6 +351,7 @@ class Replica:
         motor rests on its goal)."""
         m = self.m
         pan, goal = self.settings.to_motor(pan), self.settings.to_motor(goal)  # the model's own angle
+        self._stalled(t_ns)
         if self.trusted and goal != self.goal:
             if t_ns < m.k * H_NS and not self._rewind(t_ns):
                 self.trusted = False
@@ -325,7 +364,7 @@ class Replica:
             if not torque:
                 self._advance(t_ns)
                 m.torque = False
-            if not abs(self._shaft(t_ns) - pan) <= self.tick_rad * 1.01:
+            if not abs(self._shaft(t_ns) - pan) <= self.tol:
                 self.mismatches += 1
                 self.trusted = False
                 self._rest = None
@@ -335,9 +374,14 @@ class Replica:
         return self.trusted
 
     def _settle(self, t_ns: int, pan: float, goal: float) -> None:
-        """Not trusted: two states with the encoder on the (unchanged) goal, REST_NS apart, restart the model."""
+        """Not trusted: two states with the encoder on the (unchanged) goal, REST_NS apart, restart the model (not
+        before a stall's end)."""
+        if self.stall_ns is not None and not self.past_stall and t_ns >= self.stall_ns[0]:
+            if t_ns < self.stall_ns[1]:
+                return
+            self.past_stall = True
         q = self.m._quantise(goal)
-        if not abs(pan - q) <= 1e-9:
+        if not abs(pan - q) <= 1e-9 + self.tol - self.tick_rad * 1.01:
             self._rest = None
         elif self._rest is None or self._rest[1] != goal:
             self._rest = (t_ns, goal)

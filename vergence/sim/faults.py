@@ -6,12 +6,13 @@ freeze_master=T0-T1, black=T0-T1 (both cameras black), reverse (the camera turns
 (the encoder moves, the camera does not; after T1 it follows again, off by what slipped), backlash=DEG (the camera
 lags the shaft within a dead zone of DEG), focal_true=F (images rendered at focal length F px, while the settings
 say the spec's focal), zero=DEG (the slave camera sits DEG further than its encoder says: a pan zero that is off,
-which `vergence calibrate --distance` measures and [actuator.motor] offset_deg corrects). Motor side (`vergence sim`
-only; the service's sim actuator tells the truth): stall=T0-T1 (nothing moves; the encoder says so),
-encoder_noise=DEG (Gaussian noise on each encoder reading); and late=S (`vergence sim` only: the loop is told each
-image is S younger than it is, as an unstamped camera's latency that [camera] latency_s does not say; S at most
---camera-latency. The sim source has it as latency=S:stamps=no with latency_s unset). Times are seconds from the
-first exposure."""
+which `vergence calibrate --distance` measures and [actuator.motor] offset_deg corrects). Motor side: stall=T0-T1
+(nothing moves; the encoder says so), encoder_noise=DEG (Gaussian noise on each encoder reading): in `vergence up`
+the sim actuator's (`vergence actuator --faults`, which `up` gives a sim source's two keys; the sim source knows
+them too, for its frames' pans and its replica of the motor; their times count from the exposure of the first frame
+commanded); and late=S (`vergence sim` only: the loop is told each image is S younger than it is, as an unstamped
+camera's latency that [camera] latency_s does not say; S at most --camera-latency. The sim source has it as
+latency=S:stamps=no with latency_s unset). Times are seconds from the first exposure."""
 
 from __future__ import annotations
 
@@ -20,15 +21,16 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from ..spec import Key
+from ..spec import Key, parse
 
-__all__ = ["Faults", "Lies", "FAULT_KEYS"]
+__all__ = ["Faults", "Lies", "FAULT_KEYS", "MOTOR_KEYS", "motor_lies"]
 
 FAULT_KEYS = [Key("freeze", "range", lo=0, unit="s"), Key("freeze_master", "range", lo=0, unit="s"),
               Key("black", "range", lo=0, unit="s"), Key("reverse", "flag"), Key("slip", "range", lo=0, unit="s"),
               Key("stall", "range", lo=0, unit="s"), Key("backlash", lo=0, hi=10, unit="deg"),
               Key("focal_true", above=0, hi=1e5, unit="px"), Key("encoder_noise", lo=0, hi=5, unit="deg"),
               Key("zero", lo=-30, hi=30, unit="deg"), Key("late", lo=0, hi=1, unit="s")]
+MOTOR_KEYS = [k for k in FAULT_KEYS if k.name in ("stall", "encoder_noise")]  # the sim actuator's lies
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,10 @@ class Faults:
         """The faults among a parsed spec's items (vergence.spec.parse with FAULT_KEYS), removed from `items`."""
         return cls(**{f.name: items.pop(f.name) for f in fields(cls) if f.name in items})
 
+    def motor(self) -> Faults:
+        """The motor's lies alone (stall, encoder_noise): what the sim actuator takes in `vergence up`."""
+        return Faults(stall=self.stall, encoder_noise=self.encoder_noise)
+
     def __bool__(self) -> bool:
         return any(getattr(self, f.name) for f in fields(self))
 
@@ -67,6 +73,13 @@ class Faults:
             elif v:
                 out.append(f"{f.name}={v:g}")
         return ":".join(out)
+
+
+def motor_lies(spec: str) -> dict:
+    """The sim motor's keywords (vergence.motors.simulated.SimMotor: stall, noise_deg) for `vergence actuator --faults
+    SPEC` (MOTOR_KEYS); SpecError naming the key."""
+    f = Faults.take(parse(spec, MOTOR_KEYS, "--faults"))
+    return {"stall": f.stall, "noise_deg": f.encoder_noise or 0.0}
 
 
 def within(span: tuple[float, float] | None, t: float) -> bool:

@@ -303,6 +303,10 @@ def test_nonsense_is_refused_before_any_child_starts(tmp_path, args, says):
     (["--no-actuator", "--port", "loop://"], "", "--port applies to the actuator, which --no-actuator does not"),
     (["--no-actuator", "--driver", "line"], "", "--driver applies to the actuator, which --no-actuator does not"),
     (["--rig", "a/b"], "", "--rig: rig 'a/b'"),
+    (["--source", "sim:stall=1-2", "--driver", "ros2", "--port", "c"], "",
+     "the source's stall=1-2 makes the sim actuator lie: run it (--driver sim, no --no-actuator)"),
+    (["--source", "sim:encoder_noise=0.1", "--no-actuator"], "", "the source's encoder_noise=0.1 makes the sim actu"),
+    (["--source", "sim:stall=2-1"], "", "--source: sim source: stall"),
 ])
 def test_up_checks_what_it_would_hand_its_children(tmp_path, monkeypatch, argv, toml, says):
     """up.check: the source (without opening a camera or a file), the driver and its port, an option that does
@@ -325,6 +329,22 @@ def test_up_passes_what_its_children_take():
                ["--driver", "ros2", "--port", "ctrl", "--no-standby", "--source", "sim:focal=500", "--rate", "0"],
                ["--no-actuator", "--source", "ros2:/l,/r"]):
         assert up.check(cli.build_parser("up").parse_args(["up", *ok]), load(None)) is None, ok
+
+
+def test_up_gives_the_sim_sources_motor_lies_to_the_sim_actuator(tmp_path):
+    """`--source sim:...:stall=T0-T1:encoder_noise=DEG`: the actuator's argv carries them (--faults), the capture's the
+    whole spec (it renders where the shaft is and reads each frame's pan as the noisy encoder would); none without."""
+    from services.ops import cli, up
+    from vergence.io.sources import motor_faults
+
+    spec = "sim:focal=500:freeze=1-2:encoder_noise=0.05:stall=3-4.5"
+    args = cli.build_parser("up").parse_args(["up", "--source", spec])
+    assert motor_faults(spec) == "stall=3-4.5:encoder_noise=0.05"
+    children = dict(up.commands(args, "head", motor_faults(spec)))
+    assert children["actuator"][-2:] == ["--faults", "stall=3-4.5:encoder_noise=0.05"]
+    assert children["capture"][-2:] == ["--source", spec]
+    assert "--faults" not in dict(up.commands(args, "head", motor_faults("sim:freeze=1-2")))["actuator"]
+    assert motor_faults("files:a.png,b.png") == ""
 
 
 def test_a_bad_driver_in_the_settings_is_refused_naming_actuator_driver(tmp_path):

@@ -369,3 +369,14 @@ def test_a_port_given_to_the_sim_driver_is_refused_not_ignored():
     assert r.returncode == 2
     assert r.stderr.strip() == ("vergence actuator: --port applies to a real driver (dynamixel, line, ros2); the sim "
                                 "driver has no port")
+
+
+@pytest.mark.parametrize("argv,says", [
+    (["--faults", "stall=1-2", "--driver", "dynamixel", "--port", "loop://"],
+     "--faults makes the sim motor lie; the dynamixel driver drives a real one"),
+    (["--faults", "freeze=1-2"], "--faults: unknown key 'freeze' (item 'freeze=1-2'); keys: stall=A-B, encoder_noise"),
+    (["--faults", "encoder_noise=9"], "--faults: encoder_noise='9' must be <= 5 deg"),
+])
+def test_the_sim_motors_lies_are_refused_where_they_do_not_apply(argv, says):
+    r = run("actuator", *argv, "--connect", "tcp/127.0.0.1:9", timeout=20)
+    assert r.returncode == 2 and r.stderr.strip().startswith("vergence actuator: " + says), r.stderr

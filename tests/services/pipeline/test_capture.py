@@ -63,6 +63,34 @@ def test_a_frame_gets_the_slave_pan_at_its_exposure_or_none_where_the_history_ca
     assert PanLookup(h, lock, src).frame(1010 * MS) == (0.25, False, False)  # a still pair keeps its own pan
 
 
+def test_a_frame_from_the_sim_motors_replica_carries_what_a_noisy_encoder_reads_the_slave_rendered_on_the_shaft():
+    """The sim source with encoder_noise=0.1: the slave is rendered where the replica says the shaft is, and the frame
+    carries one noisy reading of it (as `vergence sim` gives each frame's pan); from the motor's history (its states,
+    already readings) no noise is added."""
+    from vergence.io.sources import SimSource
+    from vergence.motors import MotorSettings
+    from vergence.motors.simulated import Replica
+
+    ms = MotorSettings()
+    rep = Replica(ms, noise_deg=0.1)
+    t0 = 1_764_000_000 * 10**9
+    for k in range(3):  # at rest on its goal, 0
+        rep.observe(t0 + k * 10 * MS, 0.0, 0.0)
+    assert rep.trusted
+    src = SimSource("stall=1-2:encoder_noise=0.1:size=160x120")
+    assert src.motor_faults.spec() == "stall=1-2:encoder_noise=0.1"
+    frames = [PanLookup(PanHistory(max_gap_s=0.1), threading.Lock(), src, rep) for _ in range(400)]
+    rendered = {look(t0 + 30 * MS) for look in frames}
+    pans = [look.frame(t0 + 30 * MS)[0] for look in frames]
+    assert rendered == {0.0}
+    rms = (sum(p * p for p in pans) / len(pans)) ** 0.5
+    assert 0.08 <= rms * 180 / 3.141592653589793 <= 0.12, rms
+    h = PanHistory(max_gap_s=0.1)
+    h.add(1.0, 0.1)
+    h.add(1.02, 0.1)
+    assert PanLookup(h, threading.Lock(), src).frame(1010 * MS) == (pytest.approx(0.1), False, False)
+
+
 @pytest.mark.realtime  # times a thread or a wake-up: kept in the main process of a split run
 def test_a_rendering_source_waits_for_the_motors_report_of_its_instant_but_not_for_ever():
     h = PanHistory(max_gap_s=0.1)

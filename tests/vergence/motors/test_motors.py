@@ -577,3 +577,119 @@ def test_replica_counts_the_commands_seen_against_the_motors_own_count():
     assert rep.unanswered(late) == late
     rep.counted(3, late + ms)
     assert rep.unanswered(late + ms) is None and rep.unheard == 1
+
+
+# -- the sim motor's lies (issue #35: `vergence actuator --faults`, which `vergence up` gives a sim source's) ---------
+
+def test_sim_stall_stops_the_shaft_where_it_is_and_drops_the_goals_until_it_ends():
+    """stall=(1, 2) s from the first commanded frame's exposure (0.5 s): a move under way at 1.5 s stops there, a goal
+    written in the stall is never taken, the first one after it is; the encoder tells the truth throughout."""
+    clock = Clock(0.0)
+    m = SimMotor(MotorSettings(tau_s=0.0, max_speed_deg_s=20, **IDEAL), clock=clock, stall=(1.0, 2.0))
+    m.open()
+    m.first_exposure(round(0.5e9))
+    m.first_exposure(round(0.9e9))  # (once: the first command's)
+    clock.t = 1.3
+    m.write_goal(10 * DEG)
+    clock.t = 1.6
+    at_stall = m.read_position()
+    assert at_stall == pytest.approx(4 * DEG, abs=1e-6) and m.shaft == at_stall  # 0.2 s at 20 deg/s
+    m.write_goal(-5 * DEG)
+    clock.t = 2.45
+    assert m.read_position() == at_stall
+    m.write_goal(1 * DEG)  # (2 ms before the stall's end: it would take it after)
+    clock.t = 2.55
+    assert m.read_position() == at_stall
+    m.write_goal(2 * DEG)
+    clock.t = 2.7
+    assert m.read_position() == pytest.approx(2 * DEG, abs=1e-6)
+
+
+def test_sim_encoder_noise_scatters_the_readings_not_the_shaft():
+    clock = Clock(0.0)
+    m = SimMotor(MotorSettings(), clock=clock, noise_deg=0.05, seed=3)
+    m.open()
+    m.write_goal(3 * DEG)
+    clock.t = 1.0
+    tick = 360 / MotorSettings().ticks_per_rev
+    shaft = m.shaft / DEG
+    assert shaft == pytest.approx(3, abs=tick)
+    reads = [m.read_position() / DEG - shaft for _ in range(4000)]
+    assert abs(sum(reads) / len(reads)) < 0.005 and 0.045 <= math.sqrt(sum(r * r for r in reads) / len(reads)) <= 0.065
+    assert all(abs(r / tick - round(r / tick)) < 1e-6 for r in reads)  # whole ticks, as an encoder gives
+
+
+def test_loop_tells_its_driver_the_first_plausible_commands_exposure_once():
+    clock = Clock()
+    wall = lambda: 10**18 + round(clock.t * 1e9)  # noqa: E731
+    ms = MotorSettings()
+    m = SimMotor(ms, clock_ns=wall, stall=(0.0, 1.0))
+    loop = MotorLoop(m, ms, clock=clock, wall_ns=wall)
+    loop.start()
+    loop.command(cmd(5 * DEG, frame=1, t=wall() + 3 * 10**9))  # 3 s ahead (past max_skew_s): not believed
+    assert m.stall_ns is None
+    loop.command(cmd(5 * DEG, frame=2, t=wall() - 30_000_000))
+    assert m.stall_ns == (wall() - 30_000_000, wall() + 970_000_000)
+    clock.t += 0.5
+    assert loop.tick().pan_rad == 0.0  # the goal came in the stall: dropped
+    loop.command(cmd(6 * DEG, frame=3, t=wall() - 30_000_000))
+    assert m.stall_ns[0] == 10**18 + round(100.0 * 1e9) - 30_000_000
+
+
+def test_make_driver_refuses_lies_for_a_real_motor():
+    assert make_driver("sim", MotorSettings(), lies={"stall": (1.0, 2.0), "noise_deg": 0.1}).noise_rad == 0.1 * DEG
+    with pytest.raises(ValueError, match="--faults makes the sim motor lie; the dynamixel driver drives a real one"):
+        make_driver("dynamixel", MotorSettings(), "/dev/ttyUSB0", lies={"stall": (1.0, 2.0)})
+
+
+def _replica_run(rep_kw: dict, motor_kw: dict, seconds: float = 3.0):
+    """The sim actuator (MotorLoop, SimMotor with motor_kw's lies) at 50 Hz of states and a command every 0.25 s
+    (alternately 4 and 0 deg), each state handed at once to a Replica(**rep_kw) told the same first exposure: yields
+    (t, the shaft, the replica's pan or None) every 5 ms."""
+    from vergence.motors.simulated import Replica
+
+    ms = MotorSettings()
+    clock = Clock(50.0)
+    wall = lambda: WALL_NS + round(clock.t * 1e9)  # noqa: E731
+    motor = SimMotor(ms, clock_ns=wall, **motor_kw)
+    loop = MotorLoop(motor, ms, clock=clock, wall_ns=wall)
+    rep = Replica(ms, **rep_kw)
+
+    def feed(st):
+        rep.observe(st.t_ns, st.pan_rad, st.goal_rad)
+
+    feed(loop.start())
+    for k in range(round(seconds / 0.005)):
+        clock.t = round(50.0 + k * 0.005, 9)
+        if k % 50 == 10:
+            c = cmd((4 if k // 50 % 2 == 0 else 0) * DEG, frame=k, t=wall())
+            rep.first_exposure(c.t_capture_ns) if k == 10 else None
+            feed(loop.command(c))
+        if k % 4 == 0:
+            feed(loop.tick())
+        yield clock.t, motor.shaft, rep.at(wall()), rep
+
+
+def test_replica_knows_the_stall_it_is_told_and_trusts_again_after_it():
+    """Told the stall (stall=0.5-1.5 from the first command's exposure at 50.05 s), the replica renders nothing from
+    its model within it (None: the capture takes the motor's own states), never mismatches, and is trusted again
+    after it, on the shaft; untold, it would have claimed the goals the motor dropped."""
+    out = list(_replica_run({"stall": (0.5, 1.5)}, {"stall": (0.5, 1.5)}))
+    inside = [p for t, _, p, _ in out if 50.56 <= t < 51.55]
+    assert inside and all(p is None for p in inside)
+    after = [(s, p) for t, s, p, _ in out if t >= 51.9]
+    assert after and all(p is not None and abs(p - s) <= 2 * math.pi / 4096 for s, p in after)
+    assert out[-1][3].mismatches == 0
+    untold = list(_replica_run({}, {"stall": (0.5, 1.5)}))
+    assert untold[-1][3].mismatches >= 1
+
+
+def test_replica_of_a_noisy_encoder_stays_trusted_on_the_shaft():
+    """encoder_noise 0.05 deg on the sim actuator's readings: the replica told it stays trusted throughout (its checks
+    widened by 5 deviations) and gives the exact shaft once the first command has moved it (before, it rests where the
+    motor's first noisy reading put its goal); untold, each check fails within the first second."""
+    out = list(_replica_run({"noise_deg": 0.05}, {"noise_deg": 0.05}))
+    got = [(s, p) for t, s, p, _ in out if t >= 50.3]
+    assert all(p is not None and abs(p - s) <= 1e-9 for s, p in got) and out[-1][3].mismatches == 0
+    untold = list(_replica_run({}, {"noise_deg": 0.05}, seconds=1.0))
+    assert untold[-1][3].mismatches >= 1
