@@ -6,7 +6,10 @@ move it asks); STALL_S on it, the motor is stalled (vergence.head.doubt names it
 count too: a motor that never moves while it searches is stalled. (Armed at 0.6 deg, MIN_MOVE_DEG, and stopped by
 any nearer goal, a loop that asked 0.4 deg, 4 px, of a stalled motor every frame for seconds was never named; kept
 running by goals 0.1-0.3 deg away, a motor that moved 0.17 deg of a 0.3 deg goal the next goal took back was
-named stalled: docs/FAULTS.md.)"""
+named stalled: docs/FAULTS.md.) A noisy encoder: once the readings since the clock started go both up and down (the
+motor did not move, so that is its noise), a move is measured from their median, and one reading that far is no move
+(two in a row are): each noisy reading 0.2 deg off stopped the clock, and a stall with 0.1 deg of noise went unnamed
+in half the bench's pursuits (docs/FAULTS.md, "A stall on a noisy encoder")."""
 
 from __future__ import annotations
 
@@ -26,6 +29,8 @@ class Stall:
         self.dead_band = dead_band  # the motor's, rad ([actuator.motor] dead_band_deg)
         self.since: tuple[float, float, float] | None = None  # (t, pan, the move that says it follows) since when a
         # command far away has not moved it
+        self.still: list[float] = []  # the pans since, while it did not move (they differ: a noisy encoder's)
+        self.away = False  # the previous pan was that move away (a noisy encoder's: confirmed by the next)
 
     def commanded(self, pan: float, goal: float, t_now: float) -> None:
         """A command to `goal` at the present `pan` (rad) at t_now (s)."""
@@ -33,6 +38,7 @@ class Stall:
         if ask >= max(math.radians(STALL_ARM_DEG), 2 * self.dead_band):
             if self.since is None:
                 self.since = (t_now, pan, min(math.radians(STALL_MOVE_DEG), ask / 2))
+                self.still, self.away = [pan], False
         elif ask < math.radians(STALL_MOVE_DEG) / 2:
             self.since = None
 
@@ -42,9 +48,16 @@ class Stall:
         if self.since is None:
             return None
         t0, p0, moved = self.since
-        if abs(pan - p0) >= moved:
+        still = self.still
+        steps = [b - a for a, b in zip(still, still[1:])]  # of a motor that did not move: up and down, noise (one way:
+        noisy = any(d > 0 for d in steps) and any(d < 0 for d in steps)  # a move that ends, at 66 ms of latency)
+        away, self.away = self.away, abs(pan - (sorted(still)[len(still) // 2] if noisy else p0)) >= moved
+        if self.away and (away or not noisy):  # (a noisy encoder's one reading that far is no move; two in a row are)
             self.since = None
             return None
+        if not self.away:
+            still.append(pan)
+            del still[:-32]
         return t - t0 if t - t0 >= STALL_S else None
 
     def reset(self) -> None:
