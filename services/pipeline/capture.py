@@ -118,8 +118,8 @@ class Capture:
         # the sim motor's replica, for a source that renders the slave (its states tell whether it is the sim)
         self.renders = getattr(source, "renders", False)  # (the ros2 source is not a vergence.io.sources.Source)
         lies = getattr(source, "motor_faults", None)  # (the sim source's stall= and encoder_noise=)
-        self.replica = Replica(settings.actuator.motor, lies.encoder_noise or 0.0, lies.stall) if lies is not None \
-            else Replica(settings.actuator.motor) if self.renders else None
+        noise, stall = (lies.encoder_noise or 0.0, lies.stall) if lies is not None else (0.0, None)
+        self.replica = Replica(settings.actuator.motor, noise, stall) if self.renders else None
         if lies:
             log.info("the sim source's %s lie about the motor: the sim actuator takes them (`vergence actuator "
                      "--faults %s`; `vergence up` passes them on)", lies.spec(), lies.spec())
