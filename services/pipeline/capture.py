@@ -221,9 +221,10 @@ class Capture:
             self.health.reject("command", e)
             return
         with self.history_lock:
-            m, ahead = self.settings.actuator.motor, (cmd.t_capture_ns - time.time_ns()) / 1e9
-            if -(m.max_age_s or math.inf) <= ahead <= (m.max_skew_s or math.inf):  # plausible, as the actuator's Safety
-                self.replica.first_exposure(cmd.t_capture_ns)  # (a stall's time 0, from the first such command)
+            m, now = self.settings.actuator.motor, time.time_ns()
+            if -(m.max_age_s or math.inf) <= (cmd.t_capture_ns - now) / 1e9 <= (m.max_skew_s or math.inf):
+                # a stall's time 0: the first plausible command's exposure, as the actuator's Safety takes it
+                self.replica.first_exposure(min(cmd.t_capture_ns, now))
             if self.replica.trusted:
                 self.replica.commanded(time.monotonic_ns())
 
