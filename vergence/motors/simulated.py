@@ -153,6 +153,11 @@ class SimMotor(Driver):
         if torque_off:
             self.torque = False
 
+    def describe(self) -> str:
+        lies = ([f"stalled {self.stall[0]:g}-{self.stall[1]:g} s from the first commanded frame"] if self.stall else []
+                ) + ([f"encoder noise {math.degrees(self.noise_rad):g} deg"] if self.noise_rad else [])
+        return f"sim ({', '.join(lies)}, as --faults says)" if lies else "sim"
+
     def first_exposure(self, t_ns: int) -> None:
         if self.stall is not None and self.stall_ns is None:
             self.stall_ns = (t_ns + round(self.stall[0] * 1e9), t_ns + round(self.stall[1] * 1e9))

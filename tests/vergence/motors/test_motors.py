@@ -637,7 +637,10 @@ def test_loop_tells_its_driver_the_first_plausible_commands_exposure_once():
 
 
 def test_make_driver_refuses_lies_for_a_real_motor():
-    assert make_driver("sim", MotorSettings(), lies={"stall": (1.0, 2.0), "noise_deg": 0.1}).noise_rad == 0.1 * DEG
+    sim = make_driver("sim", MotorSettings(), lies={"stall": (1.0, 2.5), "noise_deg": 0.1})
+    assert sim.noise_rad == 0.1 * DEG and make_driver("sim", MotorSettings()).describe() == "sim"
+    assert sim.describe() == ("sim (stalled 1-2.5 s from the first commanded frame, encoder noise 0.1 deg, as --faults "
+                              "says)")  # (the actuator's first log line)
     with pytest.raises(ValueError, match="--faults makes the sim motor lie; the dynamixel driver drives a real one"):
         make_driver("dynamixel", MotorSettings(), "/dev/ttyUSB0", lies={"stall": (1.0, 2.0)})
 
