@@ -52,6 +52,7 @@ from .doubt import LEASH_DEG, PROBE_MIN_DEG, UNTRUSTED_DEG, Doubt
 from .search import Search
 from .predict import Periodic, Predictor, Referee
 from .rest import Rest
+from .shaft import Shaft
 from .scenery import MIN_MOVE_DEG, Background, Verdict
 from .timing import MAX_AGE_S
 
@@ -121,6 +122,14 @@ NEW_TARGET_PX = 3.0  # a new fovea's first decision this far off the prediction:
 log = logging.getLogger("vergence.control")
 
 
+def _ticks(s: MotorSettings) -> tuple:
+    """A pan goal as the motor takes it, on its whole ticks, and the tick (None, 0: a motor that takes any)."""
+    if not s.quantise:
+        return None, 0.0
+    tick = 2 * math.pi / s.ticks_per_rev
+    return (lambda pan: s.from_motor(round(s.to_motor(pan) / tick) * tick)), tick
+
+
 class Controller:
     """Turns decisions into absolute pan targets for the slave, each bounded by the motor's limits.
 
@@ -149,6 +158,7 @@ class Controller:
         self.fovea: tuple[int, int] | None = None  # the master point of the last decision ...
         self.fovea_new = False  # ... new since the last confident one (a new point: maybe a new target)
         self.rest = Rest()  # the motor's readings while it rests: a frame's pan then is their mean (a noisy encoder)
+        self.shaft = Shaft(*_ticks(self.limits.s))  # ... in motion, the goals sent as a servo follows them
 
     def _bounded(self, pan_at_capture: float, step: float) -> float:
         """The set-point pan_at_capture + step, as the motor's Safety bounds it (limits, step)."""
@@ -160,6 +170,7 @@ class Controller:
         (vergence.head.rest). Only plausible reports (the caller's checks)."""
         self.doubt.lag.motor(t_s, pan)
         self.rest.motor(t_s, pan)
+        self.shaft.motor(t_s, pan)
 
     def scene(self, t_s: float, pan: float, band, focal_px: float, fovea_col: float, fovea=None,
               centre_col: float | None = None) -> Verdict | None:
@@ -192,14 +203,17 @@ class Controller:
         frame, which holds; an unconfident textured one for long is lost, and searches: vergence.head.search);
         width_px: the images' width (the band's reach, which sizes the search's steps); background: the frame's
         verdict of scene() (None: none). While the motor rests, the pan is the mean of its readings since it came to
-        rest (vergence.head.rest), not the one reading the frame carries."""
+        rest (vergence.head.rest), not the one reading the frame carries; while it moves, a noisy encoder's pan is the
+        goals sent as the motor follows them (vergence.head.shaft)."""
         if t_s is not None and self.doubt.late_s is None:
-            pan_at_capture = self.rest.at(t_s, pan_at_capture)
+            rest = self.rest.at(t_s, pan_at_capture)
+            pan_at_capture = rest if rest != pan_at_capture else self.shaft.at(t_s, pan_at_capture)
         goal = self._target(pan_at_capture, offset_px, focal_px, confident, centre_px, t_s, t_now, slave, master,
                             fovea, doubt, textured, width_px, background)
         when = t_now if t_now is not None and math.isfinite(t_now) else t_s
         if goal is not None and when is not None:
             self.rest.commanded(when)
+            self.shaft.commanded(when, goal)
         return goal
 
     def _target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool, centre_px: float,

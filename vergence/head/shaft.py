@@ -1,0 +1,160 @@
+"""The slave's pan in motion from the goals sent and the encoder's readings, not one reading (a noisy encoder).
+
+A frame's pan at exposure is one encoder reading (or the line between two). While the motor rests,
+vergence.head.rest takes the mean of its readings; in motion each frame's pan kept the reading's noise (0.05 deg is
+0.44 px at f 500): pursuit at 30 Hz paid x1.5-2 of the clean run's RMS for it. But a motor in motion heads for the
+goal it was sent, after its latency, as a servo does (to first order, with a time constant), and a goal has no noise.
+So the shaft is modelled from the goals sent (on the motor's whole ticks where it takes them), the model's latency and
+time constant fitted (LATENCIES x TAUS, least squares) to the readings of the last FIT_S, and a frame's pan is the
+model's there plus the readings' mean residual over that fit (a motor's steady lag). Used only for a noisy encoder:
+its noise read off each reading against the line between its neighbours (no model in it: a stalled shaft's readings
+are on that line), less a tick's rounding, above NOISY_DEG (a clean encoder's frames keep their reading, to the
+digit); and only where the frame's reading is within SIGMAS of that noise of the model's pan and the residuals within
+BIAS_S of the frame average within SIGMAS standard errors and half a tick (a shaft stalled, blocked or pushed is
+where its readings say). Measured: docs/FAULTS.md, "The encoder's noise in motion"."""
+
+from __future__ import annotations
+
+import bisect
+import math
+from collections import deque
+
+__all__ = ["Shaft", "NOISY_DEG"]
+
+FIT_S = 1.0  # the readings the model is fitted to
+REFIT_S = 0.25  # ... refitted this often
+SETTLE_S = 0.1  # the model starts on the first reading this long before the first one it is judged by
+BIAS_S = 0.2  # the residuals within this of a frame must average near 0 (else the shaft is not the model's)
+LATENCIES = (0.0, 0.002, 0.005, 0.01, 0.02, 0.04)  # s: the motor's latency, fitted
+TAUS = (0.0, 0.005, 0.01, 0.02, 0.04, 0.08)  # s: its time constant, fitted
+NOISY_DEG = 0.03  # the encoder's noise (less the ticks' rounding) above this: a noisy one (clean: 0-0.024)
+SIGMAS = 4.0  # a frame's reading further than this many of the scatter from the model's pan: left as read
+MIN_READINGS = 20  # readings in FIT_S before the model is fitted
+KEEP_S = 2.0
+
+
+class Shaft:
+    """motor() each encoder reading, commanded() each goal sent (times on the frames' clock, pans in radians);
+    at() a frame's pan. `fit`: the servo's (latency, time constant) fitted; `sd`: the encoder's noise (rad; None:
+    not fitted); `offset`: the readings' mean residual about the model."""
+
+    def __init__(self, quantise=None, tick: float = 0.0):
+        self.quantise = quantise  # the goal as the motor takes it (whole ticks), or None: as sent
+        self.tick = tick  # the encoder's tick (rad; 0: none), whose rounding is no noise
+        self.t: deque[float] = deque()
+        self.r: deque[float] = deque()
+        self.ct: deque[float] = deque()
+        self.cg: deque[float] = deque()
+        self.fit: tuple[float, float] | None = None  # (latency, tau)
+        self.sd: float | None = None
+        self.t_fit = -math.inf
+        self.offset = 0.0
+
+    def motor(self, t: float, pan: float) -> None:
+        if not (math.isfinite(t) and math.isfinite(pan)) or (self.t and t <= self.t[-1]):
+            return
+        self.t.append(t)
+        self.r.append(pan)
+        while self.t[-1] - self.t[0] > KEEP_S:
+            self.t.popleft()
+            self.r.popleft()
+
+    def commanded(self, t: float, goal: float) -> None:
+        if not (math.isfinite(t) and math.isfinite(goal)):
+            return
+        if self.ct and t < self.ct[-1]:
+            self.ct.clear()
+            self.cg.clear()
+        self.ct.append(t)
+        self.cg.append(goal if self.quantise is None else self.quantise(goal))
+        while self.ct[-1] - self.ct[0] > KEEP_S:
+            self.ct.popleft()
+            self.cg.popleft()
+
+    def _model(self, lat: float, tau: float, t0: float, times: list[float]) -> list[float] | None:
+        """The model's pans at `times` (ascending, from t0 on), started on the reading at or before t0."""
+        i = bisect.bisect_right(self.t, t0) - 1
+        if i < 0 or not self.ct:
+            return None
+        x, tx = self.r[i], self.t[i]
+        k = bisect.bisect_right(self.ct, tx - lat) - 1
+        g = self.cg[k] if k >= 0 else x
+        k += 1
+        out = []
+        for t in times:
+            while k < len(self.ct) and self.ct[k] + lat <= t:
+                tc = self.ct[k] + lat
+                x = g + (x - g) * math.exp(-(tc - tx) / tau) if tau > 0 else g
+                tx, g = tc, self.cg[k]
+                k += 1
+            x = g + (x - g) * math.exp(-(t - tx) / tau) if tau > 0 else g
+            tx = t
+            out.append(x)
+        return out
+
+    def _refit(self, now: float) -> None:
+        self.t_fit = now
+        a = bisect.bisect_left(self.t, now - FIT_S)
+        ts = list(self.t)[a:]
+        t0 = ts[0] - SETTLE_S if ts else now
+        judged = [j for j, t in enumerate(ts) if t >= ts[0] + SETTLE_S] if ts else []
+        if len(judged) < MIN_READINGS or not self.ct or self.ct[-1] < now - FIT_S:
+            self.fit = self.sd = None
+            return
+        rs = list(self.r)[a:]
+        best = None
+        for lat in LATENCIES:
+            for tau in TAUS:
+                m = self._model(lat, tau, t0, ts)
+                if m is None:
+                    continue
+                res = [rs[j] - m[j] for j in judged]
+                mean = sum(res) / len(res)
+                var = sum((e - mean) ** 2 for e in res)
+                if best is None or var < best[0]:
+                    best = (var, lat, tau, res, mean)
+        if best is None:
+            self.fit = self.sd = None
+            return
+        self.fit, self.sd = (best[1], best[2]), _noise(ts, rs, self.tick)
+        self.offset = best[4]
+
+    def at(self, t: float, pan: float) -> float:
+        """The slave's pan at t: the model's there plus the readings' mean residual, or `pan` (the frame's)."""
+        if not (math.isfinite(t) and math.isfinite(pan)) or not self.t:
+            return pan
+        if t - self.t_fit >= REFIT_S or t < self.t_fit - KEEP_S:
+            self._refit(t)
+        if self.fit is None or self.sd < math.radians(NOISY_DEG):
+            return pan
+        lat, tau = self.fit
+        a, b = bisect.bisect_left(self.t, t - BIAS_S), bisect.bisect_right(self.t, t + BIAS_S)
+        ts = list(self.t)[a:b]
+        if not ts:
+            return pan
+        ins = bisect.bisect_left(ts, t)
+        m = self._model(lat, tau, min(ts[0], t) - SETTLE_S, ts[:ins] + [t] + ts[ins:])
+        if m is None:
+            return pan
+        here = m.pop(ins)
+        bias = sum(self.r[a + j] - m[j] for j in range(len(ts))) / len(ts)
+        if abs(bias - self.offset) > SIGMAS * self.sd / math.sqrt(len(ts)) + self.tick / 2:
+            return pan  # the shaft does not go where the model says (stalled, blocked, pushed): as read
+        est = here + self.offset
+        return est if abs(est - pan) <= SIGMAS * self.sd else pan
+
+
+def _noise(ts: list[float], rs: list[float], tick: float) -> float:
+    """The encoder's noise (rad), from the readings alone: each reading against the line between its neighbours
+    (a shaft at rest, stalled or moving smoothly is on it; their noise is not), the RMS of all but the tenth furthest
+    (a command's start is no noise) over a Gaussian's RMS within its 90 % (0.789), less the ticks' rounding."""
+    e2 = []
+    for j in range(1, len(ts) - 1):
+        w = (ts[j] - ts[j - 1]) / (ts[j + 1] - ts[j - 1])
+        e = rs[j] - ((1 - w) * rs[j - 1] + w * rs[j + 1])
+        e2.append(e * e / (1 + (1 - w) ** 2 + w * w))
+    if not e2:
+        return 0.0
+    near = sorted(e2)[:max(1, int(0.9 * len(e2)))]
+    var = sum(near) / len(near) / 0.789 ** 2
+    return math.sqrt(max(0.0, var - tick ** 2 / 12))
