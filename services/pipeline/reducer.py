@@ -270,7 +270,7 @@ class Reducer:
             return dict(gatherer=dict(self.gatherer.counters), pending=len(self.gatherer.pending),
                         shed=dict(self.inbox.shed if self.inbox else Inbox.NONE_SHED),
                         **(self.presence.fields() if self.presence else {}),
-                        **self.gatherer.controller.doubt.status(), **self.gatherer.controller.search.status())
+                        **self.gatherer.controller.status())
 
     def open(self, node: Node) -> None:
         """The subscriptions, the publishers, the inbox's rings and the alarm's thread, then the liveliness token."""

@@ -273,6 +273,10 @@ class Controller:
         gated = d.gate(pan_at_capture, goal, now)
         return None if gated is None else self.limits.limit_step(pan_at_capture, gated)
 
+    def status(self) -> dict:
+        """For the reducer's status: the doubt's fields, the search's and the encoder's noise (vergence.head.shaft)."""
+        return {**self.doubt.status(), **self.search.status(), **self.shaft.status()}
+
     def reset(self) -> None:
         """Forget the target's estimate (a fault began or ended, the focal length was named): the next decision
         starts afresh."""

@@ -144,6 +144,11 @@ class Shaft:
         return est if abs(est - pan) <= SIGMAS * self.sd else pan
 
 
+    def status(self) -> dict:
+        """For the reducer's status: the encoder's noise as read (deg; None: not yet a second of readings)."""
+        return {"encoder_noise_deg": None if self.sd is None else round(math.degrees(self.sd), 3)}
+
+
 def _noise(ts: list[float], rs: list[float], tick: float) -> float:
     """The encoder's noise (rad), from the readings alone: each reading against the line between its neighbours
     (a shaft at rest, stalled or moving smoothly is on it; their noise is not), the RMS of all but the tenth furthest

@@ -69,13 +69,15 @@ def test_a_noisy_encoder_in_motion_is_read_off_the_goals_sent(seed):
     est = _rms([got - x for _, _, x, got in frames])
     assert read == pytest.approx(0.05 * DEG, rel=0.25)
     assert est < 0.25 * read, (est / DEG, read / DEG)
-    assert shaft.sd == pytest.approx(0.05 * DEG, rel=0.3)  # the encoder's noise, measured
+    assert shaft.sd == pytest.approx(0.05 * DEG, rel=0.3)  # the encoder's noise, measured ...
+    assert shaft.status()["encoder_noise_deg"] == pytest.approx(0.05, rel=0.3)  # ... and said in the status
 
 
 def test_a_clean_encoders_frames_keep_their_reading_to_the_digit():
     shaft, frames = _pursuit(0.0, 13)
     assert all(got == r for _, r, _, got in frames)
     assert shaft.sd is not None and shaft.sd < 0.02 * DEG
+    assert Shaft().status() == {"encoder_noise_deg": None}  # (nothing read yet)
 
 
 def test_a_shaft_that_stops_while_goals_go_on_is_as_read_within_a_frame_or_two():
