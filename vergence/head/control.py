@@ -158,7 +158,7 @@ class Controller:
         self.fovea: tuple[int, int] | None = None  # the master point of the last decision ...
         self.fovea_new = False  # ... new since the last confident one (a new point: maybe a new target)
         self.rest = Rest()  # the motor's readings while it rests: a frame's pan then is their mean (a noisy encoder)
-        self.shaft = Shaft(*_ticks(self.limits.s))  # ... in motion, the goals sent as a servo follows them
+        self.shaft = Shaft(self.rest, *_ticks(self.limits.s))  # ... in motion, the goals sent as a servo follows them
 
     def _bounded(self, pan_at_capture: float, step: float) -> float:
         """The set-point pan_at_capture + step, as the motor's Safety bounds it (limits, step)."""
@@ -169,8 +169,7 @@ class Controller:
         on these (vergence.head.lag), denser than the frames' pans, and a resting motor's pan is their mean
         (vergence.head.rest). Only plausible reports (the caller's checks)."""
         self.doubt.lag.motor(t_s, pan)
-        self.rest.motor(t_s, pan)
-        self.shaft.motor(t_s, pan)
+        self.rest.motor(t_s, pan)  # (the shaft's model reads them too)
 
     def scene(self, t_s: float, pan: float, band, focal_px: float, fovea_col: float, fovea=None,
               centre_col: float | None = None) -> Verdict | None:

@@ -19,6 +19,8 @@ import bisect
 import math
 from collections import deque
 
+from .rest import KEEP_S, Rest
+
 __all__ = ["Shaft", "NOISY_DEG"]
 
 FIT_S = 1.0  # the readings the model is fitted to
@@ -30,34 +32,23 @@ TAUS = (0.0, 0.005, 0.01, 0.02, 0.04, 0.08)  # s: its time constant, fitted
 NOISY_DEG = 0.03  # the encoder's noise (less the ticks' rounding) above this: a noisy one (clean: 0-0.024)
 SIGMAS = 4.0  # a frame's reading further than this many of the scatter from the model's pan: left as read
 MIN_READINGS = 20  # readings in FIT_S before the model is fitted
-KEEP_S = 2.0
 
 
 class Shaft:
-    """motor() each encoder reading, commanded() each goal sent (times on the frames' clock, pans in radians);
-    at() a frame's pan. `fit`: the servo's (latency, time constant) fitted; `sd`: the encoder's noise (rad; None:
-    not fitted); `offset`: the readings' mean residual about the model."""
+    """The encoder's readings are the Rest's (vergence.head.rest: its motor() keeps them, times on the frames' clock,
+    pans in radians); commanded() each goal sent, at() a frame's pan. `fit`: the servo's (latency, time constant)
+    fitted; `sd`: the encoder's noise (rad; None: not fitted); `offset`: the readings' mean residual about the model."""
 
-    def __init__(self, quantise=None, tick: float = 0.0):
+    def __init__(self, readings: Rest, quantise=None, tick: float = 0.0):
         self.quantise = quantise  # the goal as the motor takes it (whole ticks), or None: as sent
         self.tick = tick  # the encoder's tick (rad; 0: none), whose rounding is no noise
-        self.t: deque[float] = deque()
-        self.r: deque[float] = deque()
+        self.t, self.r = readings.t, readings.pan  # (the Rest's own, in time order, the last KEEP_S of them)
         self.ct: deque[float] = deque()
         self.cg: deque[float] = deque()
         self.fit: tuple[float, float] | None = None  # (latency, tau)
         self.sd: float | None = None
         self.t_fit = -math.inf
         self.offset = 0.0
-
-    def motor(self, t: float, pan: float) -> None:
-        if not (math.isfinite(t) and math.isfinite(pan)) or (self.t and t <= self.t[-1]):
-            return
-        self.t.append(t)
-        self.r.append(pan)
-        while self.t[-1] - self.t[0] > KEEP_S:
-            self.t.popleft()
-            self.r.popleft()
 
     def commanded(self, t: float, goal: float) -> None:
         if not (math.isfinite(t) and math.isfinite(goal)):

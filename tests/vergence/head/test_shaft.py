@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from vergence.head.control import ControlSettings
+from vergence.head.rest import Rest
 from vergence.head.shaft import Shaft
 from vergence.head.timing import CameraTiming
 from vergence.sim.faults import FAULT_KEYS, Faults
@@ -31,7 +32,8 @@ def _pursuit(noise_deg: float, seed: int, lat: float = 0.003, tau: float = 0.012
     read at 50 Hz and at each exposure (noise_deg of Gaussian noise, then whole ticks); it stops at stall_at. Returns
     the Shaft and, per exposure after the first second, (t, the reading, the true shaft, Shaft.at then)."""
     rng = np.random.default_rng(seed)
-    shaft = Shaft(_quantise, TICK)
+    readings = Rest()
+    shaft = Shaft(readings, _quantise, TICK)
     h = 0.0005
     x, goal, pending = 0.0, 0.0, []
     events = sorted([(k / 50.0, "state") for k in range(int(seconds * 50))]
@@ -51,7 +53,7 @@ def _pursuit(noise_deg: float, seed: int, lat: float = 0.003, tau: float = 0.012
             pending.append((te + lat, g))
             continue
         r = _quantise(x + rng.normal(0.0, noise_deg * DEG)) if noise_deg else _quantise(x)
-        shaft.motor(te, r)
+        readings.motor(te, r)
         if kind == "expose" and te >= 1.0:
             out.append((te, r, x, shaft.at(te, r)))
     return shaft, out
@@ -77,7 +79,7 @@ def test_a_clean_encoders_frames_keep_their_reading_to_the_digit():
     shaft, frames = _pursuit(0.0, 13)
     assert all(got == r for _, r, _, got in frames)
     assert shaft.sd is not None and shaft.sd < 0.02 * DEG
-    assert Shaft().status() == {"encoder_noise_deg": None}  # (nothing read yet)
+    assert Shaft(Rest()).status() == {"encoder_noise_deg": None}  # (nothing read yet)
 
 
 def test_a_shaft_that_stops_while_goals_go_on_is_as_read_within_a_frame_or_two():
@@ -87,12 +89,12 @@ def test_a_shaft_that_stops_while_goals_go_on_is_as_read_within_a_frame_or_two()
     assert max(abs(got - x) for _, _, x, got in after) < 0.2 * DEG
 
 
-def test_readings_out_of_order_and_a_clock_gone_back_are_not_taken():
-    s = Shaft()
-    s.motor(1.0, 0.1)
-    s.motor(0.5, 0.2)  # older: dropped
-    s.motor(math.nan, 0.2)
-    assert list(s.t) == [1.0]
+def test_goals_on_a_clock_gone_back_are_not_taken_and_the_readings_are_the_rests():
+    readings = Rest()
+    s = Shaft(readings)
+    readings.motor(1.0, 0.1)
+    readings.motor(0.5, 0.2)  # older: dropped (by the Rest)
+    assert list(s.t) == [1.0] and list(s.r) == [0.1]
     s.commanded(2.0, 0.1)
     s.commanded(1.0, 0.3)  # a clock that went back: what was kept says nothing of the new times
     assert list(s.ct) == [1.0] and list(s.cg) == [0.3]
