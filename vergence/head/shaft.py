@@ -30,7 +30,7 @@ BIAS_S = 0.2  # the residuals within this of a frame must average near 0 (else t
 LATENCIES = (0.0, 0.002, 0.005, 0.01, 0.02, 0.04)  # s: the motor's latency, fitted
 TAUS = (0.0, 0.005, 0.01, 0.02, 0.04, 0.08)  # s: its time constant, fitted
 NOISY_DEG = 0.03  # the encoder's noise (less the ticks' rounding) above this: a noisy one (clean: 0-0.024)
-SIGMAS = 4.0  # a frame's reading further than this many of the scatter from the model's pan: left as read
+SIGMAS = 4.0  # a frame's reading further than this many of the noise from the model's pan: left as read
 MIN_READINGS = 20  # readings in FIT_S before the model is fitted
 
 
@@ -103,12 +103,12 @@ class Shaft:
                 mean = sum(res) / len(res)
                 var = sum((e - mean) ** 2 for e in res)
                 if best is None or var < best[0]:
-                    best = (var, lat, tau, res, mean)
+                    best = (var, lat, tau, mean)
         if best is None:
             self.fit = self.sd = None
             return
         self.fit, self.sd = (best[1], best[2]), _noise(ts, rs, self.tick)
-        self.offset = best[4]
+        self.offset = best[3]
 
     def at(self, t: float, pan: float) -> float:
         """The slave's pan at t: the model's there plus the readings' mean residual, or `pan` (the frame's)."""
@@ -133,7 +133,6 @@ class Shaft:
             return pan  # the shaft does not go where the model says (stalled, blocked, pushed): as read
         est = here + self.offset
         return est if abs(est - pan) <= SIGMAS * self.sd else pan
-
 
     def status(self) -> dict:
         """For the reducer's status: the encoder's noise as read (deg; None: not yet a second of readings)."""

@@ -84,6 +84,7 @@ def test_a_clean_encoders_frames_keep_their_reading_to_the_digit():
 
 def test_a_shaft_that_stops_while_goals_go_on_is_as_read_within_a_frame_or_two():
     shaft, frames = _pursuit(0.05, 14, stall_at=2.5)
+    assert sum(got != r for t, r, _, got in frames if t < 2.5) > 20  # the model's pans before it stopped ...
     after = [f for f in frames if f[0] >= 2.5]
     assert [t for t, r, _, got in after if got != r and t >= 2.5 + 0.1] == []  # as read from 0.1 s on
     assert max(abs(got - x) for _, _, x, got in after) < 0.2 * DEG
