@@ -37,7 +37,8 @@ MIN_READINGS = 20  # readings in FIT_S before the model is fitted
 class Shaft:
     """The encoder's readings are the Rest's (vergence.head.rest: its motor() keeps them, times on the frames' clock,
     pans in radians); commanded() each goal sent, at() a frame's pan. `fit`: the servo's (latency, time constant)
-    fitted; `sd`: the encoder's noise (rad; None: not fitted); `offset`: the readings' mean residual about the model."""
+    fitted (None: not fitted, or a clean encoder); `sd`: the encoder's noise (rad; None: not read yet); `offset`: the
+    readings' mean residual about the model."""
 
     def __init__(self, readings: Rest, quantise=None, tick: float = 0.0):
         self.quantise = quantise  # the goal as the motor takes it (whole ticks), or None: as sent
@@ -93,6 +94,9 @@ class Shaft:
             self.fit = self.sd = None
             return
         rs = list(self.r)[a:]
+        self.sd, self.fit = _noise(ts, rs, self.tick), None
+        if self.sd < math.radians(NOISY_DEG):
+            return  # a clean encoder: its frames keep their reading, no model is fitted
         best = None
         for lat in LATENCIES:
             for tau in TAUS:
@@ -104,11 +108,8 @@ class Shaft:
                 var = sum((e - mean) ** 2 for e in res)
                 if best is None or var < best[0]:
                     best = (var, lat, tau, mean)
-        if best is None:
-            self.fit = self.sd = None
-            return
-        self.fit, self.sd = (best[1], best[2]), _noise(ts, rs, self.tick)
-        self.offset = best[3]
+        if best is not None:
+            self.fit, self.offset = (best[1], best[2]), best[3]
 
     def at(self, t: float, pan: float) -> float:
         """The slave's pan at t: the model's there plus the readings' mean residual, or `pan` (the frame's)."""
@@ -116,7 +117,7 @@ class Shaft:
             return pan
         if t - self.t_fit >= REFIT_S or t < self.t_fit - KEEP_S:
             self._refit(t)
-        if self.fit is None or self.sd < math.radians(NOISY_DEG):
+        if self.fit is None:
             return pan
         lat, tau = self.fit
         a, b = bisect.bisect_left(self.t, t - BIAS_S), bisect.bisect_right(self.t, t + BIAS_S)
