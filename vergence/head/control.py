@@ -122,14 +122,6 @@ NEW_TARGET_PX = 3.0  # a new fovea's first decision this far off the prediction:
 log = logging.getLogger("vergence.control")
 
 
-def _ticks(s: MotorSettings) -> tuple:
-    """A pan goal as the motor takes it, on its whole ticks, and the tick (None, 0: a motor that takes any)."""
-    if not s.quantise:
-        return None, 0.0
-    tick = 2 * math.pi / s.ticks_per_rev
-    return (lambda pan: s.from_motor(round(s.to_motor(pan) / tick) * tick)), tick
-
-
 class Controller:
     """Turns decisions into absolute pan targets for the slave, each bounded by the motor's limits.
 
@@ -158,7 +150,7 @@ class Controller:
         self.fovea: tuple[int, int] | None = None  # the master point of the last decision ...
         self.fovea_new = False  # ... new since the last confident one (a new point: maybe a new target)
         self.rest = Rest()  # the motor's readings while it rests: a frame's pan then is their mean (a noisy encoder)
-        self.shaft = Shaft(self.rest, *_ticks(self.limits.s))  # ... in motion, the goals sent as a servo follows them
+        self.shaft = Shaft(self.rest, self.limits.s)  # ... in motion, the goals sent as a servo follows them
 
     def _bounded(self, pan_at_capture: float, step: float) -> float:
         """The set-point pan_at_capture + step, as the motor's Safety bounds it (limits, step)."""

@@ -19,6 +19,7 @@ import bisect
 import math
 from collections import deque
 
+from ..motors.base import MotorSettings
 from .rest import KEEP_S, Rest
 
 __all__ = ["Shaft", "NOISY_DEG"]
@@ -40,9 +41,9 @@ class Shaft:
     fitted (None: not fitted, or a clean encoder); `sd`: the encoder's noise (rad; None: not read yet); `offset`: the
     readings' mean residual about the model."""
 
-    def __init__(self, readings: Rest, quantise=None, tick: float = 0.0):
-        self.quantise = quantise  # the goal as the motor takes it (whole ticks), or None: as sent
-        self.tick = tick  # the encoder's tick (rad; 0: none), whose rounding is no noise
+    def __init__(self, readings: Rest, motor: MotorSettings | None = None):
+        self.motor = motor or MotorSettings(quantise=False)  # (its whole ticks: where it stops, what it reads)
+        self.tick = self.motor.tick_rad  # (0: none), whose rounding is no noise
         self.t, self.r = readings.t, readings.pan  # (the Rest's own, in time order, the last KEEP_S of them)
         self.ct: deque[float] = deque()
         self.cg: deque[float] = deque()
@@ -58,7 +59,7 @@ class Shaft:
             self.ct.clear()
             self.cg.clear()
         self.ct.append(t)
-        self.cg.append(goal if self.quantise is None else self.quantise(goal))
+        self.cg.append(self.motor.from_motor(self.motor.whole_ticks(self.motor.to_motor(goal))))  # as it takes it
         while self.ct[-1] - self.ct[0] > KEEP_S:
             self.ct.popleft()
             self.cg.popleft()

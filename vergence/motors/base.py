@@ -146,6 +146,16 @@ class MotorSettings:
     def from_ticks(self, ticks: int) -> float:
         return (ticks - self.zero) * 2 * math.pi / self.ticks_per_rev
 
+    @property
+    def tick_rad(self) -> float:
+        """One tick of the encoder (rad; 0: a motor of any angle, `quantise` off)."""
+        return 2 * math.pi / self.ticks_per_rev if self.quantise else 0.0
+
+    def whole_ticks(self, angle_rad: float) -> float:
+        """The motor's angle on its nearest whole tick, where it stops and what its encoder reads (`quantise`)."""
+        tick = self.tick_rad
+        return round(angle_rad / tick) * tick if tick else angle_rad
+
 
 class MotorError(Exception):
     """Base of the motor faults."""

@@ -79,9 +79,7 @@ class SimMotor(Driver):
         self.stop_k: int | None = None  # the grid step the stall stops the shaft at, until it is reached
 
     def _quantise(self, pan: float) -> float:
-        if not self.settings.quantise:
-            return pan
-        return round(pan / self.tick_rad) * self.tick_rad
+        return self.settings.whole_ticks(pan)
 
     def _step(self, h: float) -> None:
         e = self.goal - self.pan

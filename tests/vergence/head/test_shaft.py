@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from vergence.head.control import ControlSettings
+from vergence.motors.base import MotorSettings
 from vergence.head.rest import Rest
 from vergence.head.shaft import Shaft
 from vergence.head.timing import CameraTiming
@@ -33,7 +34,7 @@ def _pursuit(noise_deg: float, seed: int, lat: float = 0.003, tau: float = 0.012
     the Shaft and, per exposure after the first second, (t, the reading, the true shaft, Shaft.at then)."""
     rng = np.random.default_rng(seed)
     readings = Rest()
-    shaft = Shaft(readings, _quantise, TICK)
+    shaft = Shaft(readings, MotorSettings())  # (4096 ticks a turn: TICK)
     h = 0.0005
     x, goal, pending = 0.0, 0.0, []
     events = sorted([(k / 50.0, "state") for k in range(int(seconds * 50))]

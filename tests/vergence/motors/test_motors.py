@@ -40,6 +40,15 @@ def test_ticks_default(pan, ticks):
     assert m.to_ticks(pan) == ticks == round(2048 + pan * 4096 / (2 * math.pi))
 
 
+def test_whole_ticks_are_where_the_motor_stops_and_none_without_quantise():
+    m, tick = MotorSettings(), 2 * math.pi / 4096
+    assert m.tick_rad == tick and m.whole_ticks(2.4 * tick) == 2 * tick and m.whole_ticks(-2.6 * tick) == -3 * tick
+    assert m.whole_ticks(0.3) == pytest.approx(m.from_ticks(m.to_ticks(0.3)), abs=1e-12)  # (a Dynamixel's goal)
+    assert m.whole_ticks(0.3) == pytest.approx(0.3, abs=tick / 2)
+    free = MotorSettings(quantise=False)
+    assert free.tick_rad == 0.0 and free.whole_ticks(0.3) == 0.3
+
+
 def test_ticks_zero_and_a_direction_every_driver_honours():
     """to_ticks takes the motor's own angle; MotorLoop gives every driver direction x pan (issue #35), so a
     Dynamixel's Goal Position for pan +90 deg with direction -1 and zero 1000 of 2000 is 500, as before, and the
