@@ -34,7 +34,7 @@ import numpy as np
 
 from .follows import FOLLOWS_MAX, FOLLOWS_MIN
 
-__all__ = ["Background", "Verdict", "profile", "tile_shifts"]
+__all__ = ["Background", "Verdict", "central", "profile", "tile_shifts", "turn"]
 
 MIN_MOVE_DEG = 0.6  # the pans of a verdict's two frames at least this far apart (as the doubt's decisive pairs)
 MAX_DT_S = 0.6  # ... and at most this far apart in time
@@ -50,23 +50,57 @@ LATE_S = 0.1  # a still background that the motor's turn up to this earlier expl
 GAP_S = 0.015  # at most one verdict this often (at 250 Hz one frame in four pays the 0.1-0.2 ms of a verdict)
 
 
+def turn(before: np.ndarray, after: np.ndarray, motor: float, focal_px: float, fovea_col: float,
+         centre_col: float, about: bool = False) -> float | None:
+    """How far the background turned (rad) from the column profile `before` to `after`, the motor having turned
+    `motor` (rad) between them: the median turn of the largest group of tiles off the fovea that turned alike (None:
+    fewer than MIN_TILES). Searched over +-(the motor's shift + SLACK_PX), or with `about` over SLACK_PX about the
+    motor's shift (a turn of many pixels, known to a few: a texture's repeats are then no match)."""
+    shift = focal_px * math.tan(motor)
+    shifts = (tile_shifts(before, after, SLACK_PX, int(round(shift))) if about else
+              tile_shifts(before, after, int(abs(shift)) + SLACK_PX))
+    if not shifts:
+        return None
+    # the tiles off the fovea's and its neighbours' (the target there moves as it moves, not as the camera turns),
+    # each as the turn it shows: a column u px off the axis moves f (tan(atan(u/f) + turn) - u/f), 1 + (u/f)^2
+    # times the axis's (a 2.9 deg turn 35 deg off the scene's middle spread the tiles' shifts over 3.6 px)
+    mid, s = np.array(shifts).T
+    mid = mid + TILE / 2  # (each tile's middle column)
+    keep = np.abs(mid - fovea_col) > 1.5 * TILE
+    u, s = mid[keep] - centre_col, s[keep]
+    scenery = np.sort(np.arctan((u + s) / focal_px) - np.arctan(u / focal_px))
+    # the most of them that turned alike (within AGREE_PX on the axis): the background turns as one, a target's
+    # zoom spreads
+    ends = np.searchsorted(scenery, scenery + AGREE_PX / focal_px, side="right")
+    i = int(np.argmax(ends - np.arange(scenery.size))) if scenery.size else 0
+    if scenery.size == 0 or ends[i] - i < MIN_TILES:
+        return None
+    return float(np.median(scenery[i:ends[i]]))
+
+
+def central(band: np.ndarray) -> np.ndarray:
+    """A band's central ROWS rows (all where it has fewer)."""
+    k = (band.shape[0] - ROWS) // 2
+    return band[k:k + ROWS] if band.shape[0] > ROWS else band
+
+
 def profile(band: np.ndarray) -> np.ndarray:
     """A band's column profile: the mean of each column (a horizontal shift moves it as it moves the rows)."""
     return band.mean(axis=0, dtype=np.float32)
 
 
-def tile_shifts(b: np.ndarray, a: np.ndarray, reach: int) -> list[tuple[int, float]]:
-    """Per TILE px tile of the profile `a` (the tiles from column `reach` on, `reach` short of its end), the shift s
-    (px, sub-pixel) with a[c:c+T] ~ b[c+s:c+s+T] for |s| < reach, b the profile of a band before: [(the tile's first
-    column, s), ...] for the tiles with texture matched without doubt; every tile and shift in one normalised
-    product."""
-    starts = np.arange(reach, a.size - TILE - reach + 1, TILE)
+def tile_shifts(b: np.ndarray, a: np.ndarray, reach: int, centre: int = 0) -> list[tuple[int, float]]:
+    """Per TILE px tile of the profile `a` (the tiles from column reach - centre on, reach + centre short of its end),
+    the shift s (px, sub-pixel) with a[c:c+T] ~ b[c+s:c+s+T] for |s - centre| < reach, b the profile of a band before:
+    [(the tile's first column, s), ...] for the tiles with texture matched without doubt; every tile and shift in one
+    normalised product."""
+    starts = np.arange(max(0, reach - centre), min(a.size, b.size - centre) - TILE - reach + 1, TILE)
     if starts.size == 0:
         return []
     tiles = np.lib.stride_tricks.sliding_window_view(a, TILE)[starts]  # (tiles, T)
     tiles = tiles - tiles.mean(axis=1, keepdims=True)
     norm = np.linalg.norm(tiles, axis=1)
-    wins = np.lib.stride_tricks.sliding_window_view(b, TILE)[starts[:, None] + np.arange(-reach, reach + 1)]
+    wins = np.lib.stride_tricks.sliding_window_view(b, TILE)[starts[:, None] + centre + np.arange(-reach, reach + 1)]
     wins = wins - wins.mean(axis=2, keepdims=True)  # (tiles, shifts, T)
     r = np.einsum("it,ist->is", tiles, wins) / (norm[:, None] * np.linalg.norm(wins, axis=2) + 1e-9)
     n, m = r.shape
@@ -74,7 +108,7 @@ def tile_shifts(b: np.ndarray, a: np.ndarray, reach: int) -> list[tuple[int, flo
     kk = np.clip(k, 1, m - 2)
     best, lo, hi = (r[np.arange(n), j] for j in (k, kk - 1, kk + 1))
     d = 2 * best - lo - hi
-    shift = k - reach + np.where(d > 0, 0.5 * (hi - lo) / np.where(d > 0, d, 1.0), 0.0)
+    shift = k - reach + centre + np.where(d > 0, 0.5 * (hi - lo) / np.where(d > 0, d, 1.0), 0.0)
     # flat, no match, or at the search's edge: none
     ok = (norm >= TEXTURE * math.sqrt(TILE)) & (best >= MATCHED) & (k > 0) & (k < m - 1)
     return list(zip(starts[ok].tolist(), shift[ok].tolist()))
@@ -116,8 +150,7 @@ class Background:
         band at least MIN_MOVE_DEG away in pan (None: no verdict)."""
         if not (math.isfinite(t) and math.isfinite(pan) and focal_px > 0) or band.ndim != 2:
             return None
-        if band.shape[0] > ROWS:
-            band = band[(band.shape[0] - ROWS) // 2:(band.shape[0] - ROWS) // 2 + ROWS]
+        band = central(band)
         key = (band.shape, key)
         if self.pans and t <= self.pans[-1][0]:
             self.pans = []
@@ -136,25 +169,10 @@ class Background:
         if before is None or t - self.t_verdict < GAP_S:
             return None
         self.t_verdict = t
-        motor = focal_px * math.tan(pan - before.pan)  # the shift a camera that follows shows, px (on its axis)
-        shifts = tile_shifts(before.profile, self.bands[-1].profile, int(abs(motor)) + SLACK_PX)
-        if not shifts:
+        moved = turn(before.profile, self.bands[-1].profile, pan - before.pan, focal_px, fovea_col,
+                     (band.shape[1] - 1) / 2 if centre_col is None else centre_col)
+        if moved is None:
             return None
-        # the tiles off the fovea's and its neighbours' (the target there moves as it moves, not as the camera turns),
-        # each as the turn it shows: a column u px off the axis moves f (tan(atan(u/f) + turn) - u/f), 1 + (u/f)^2
-        # times the axis's (a 2.9 deg turn 35 deg off the scene's middle spread the tiles' shifts over 3.6 px)
-        mid, s = np.array(shifts).T
-        mid = mid + TILE / 2  # (each tile's middle column)
-        keep = np.abs(mid - fovea_col) > 1.5 * TILE
-        u, s = mid[keep] - ((band.shape[1] - 1) / 2 if centre_col is None else centre_col), s[keep]
-        scenery = np.sort(np.arctan((u + s) / focal_px) - np.arctan(u / focal_px))
-        # the most of them that turned alike (within AGREE_PX on the axis): the background turns as one, a target's
-        # zoom spreads
-        ends = np.searchsorted(scenery, scenery + AGREE_PX / focal_px, side="right")
-        i = int(np.argmax(ends - np.arange(scenery.size))) if scenery.size else 0
-        if scenery.size == 0 or ends[i] - i < MIN_TILES:
-            return None
-        moved = float(np.median(scenery[i:ends[i]]))  # rad
         r = moved / (pan - before.pan)
         return Verdict(r, r < STILL_MAX and self._late(before, self.bands[-1], moved, focal_px))
 
