@@ -220,6 +220,20 @@ def test_the_periodic_fit_predicts_a_repeating_motion_far_ahead_and_nothing_on_t
     assert p.hz == pytest.approx(0.7, rel=0.01)
 
 
+def test_the_periodic_fits_samples_moved_as_their_pans_were_off():
+    """Periodic.move: a new play (vergence.head.play) moves the targets learnt by how much each frame's pan moves."""
+    from vergence.head.predict import Periodic
+
+    p = Periodic()
+    for i in range(60):
+        p.add(i / 60, 0.01 * math.sin(2 * math.pi * i / 60))
+    fit = p.predict(1.1)
+    p.move([0.0, 0.5, 1.0], [0.001, 0.001, 0.002])  # (interpolated between, as np.interp)
+    assert list(p.z)[0] == pytest.approx(0.001) and list(p.z)[-1] == pytest.approx(0.01 * math.sin(
+        2 * math.pi * 59 / 60) + 0.001 + 0.001 * (59 / 60 - 0.5) / 0.5)
+    assert p.predict(1.1) == pytest.approx(fit + 0.002, abs=2e-4)  # fitted afresh
+
+
 def test_the_referee_trusts_the_prediction_that_predicted_best():
     from vergence.head.predict import Referee
 

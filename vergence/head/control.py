@@ -3,7 +3,9 @@
 Every measurement is referred to the instant the slave's image was exposed (vergence.head.timing): the pan it
 is given is the slave's pan then, t_s that exposure's time, t_now the time of the command. While the motor rests
 (no command for a while), that pan is the mean of the motor's readings since it came to rest, not the frame's one
-reading (vergence.head.rest): a noisy encoder's noise is not taken for the target's motion.
+reading (vergence.head.rest): a noisy encoder's noise is not taken for the target's motion. Where the play between
+the motor and the camera is measured (vergence.head.play), the pan is the camera's through it, and each set-point
+goes to the motor half the play past, on the side the camera moves to.
 
 Two modes ([control] mode):
 - "p": each confident decision sets the target pan at exposure + gain x the measured correction; an
@@ -45,15 +47,18 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 
+import numpy as np
+
 from ..motors.base import MotorSettings, Safety
 from ..choices import ControlMode, Fault
 from ..ranges import Range, check
 from .doubt import LEASH_DEG, PROBE_MIN_DEG, UNTRUSTED_DEG, Doubt
+from .play import Play
 from .search import Search
 from .predict import Periodic, Predictor, Referee
 from .rest import Rest
 from .shaft import Shaft
-from .scenery import MIN_MOVE_DEG, Background, Verdict
+from .scenery import MIN_MOVE_DEG, Background, Verdict, central, profile
 from .timing import MAX_AGE_S
 
 __all__ = ["pixels_to_angle", "ControlSettings", "Controller", "Predictor", "MODES"]
@@ -151,6 +156,7 @@ class Controller:
         self.fovea_new = False  # ... new since the last confident one (a new point: maybe a new target)
         self.rest = Rest()  # the motor's readings while it rests: a frame's pan then is their mean (a noisy encoder)
         self.shaft = Shaft(self.rest, self.limits.s)  # ... in motion, the goals sent as a servo follows them
+        self.play = Play()  # the play between the motor and the camera (backlash), measured and taken out
 
     def _bounded(self, pan_at_capture: float, step: float) -> float:
         """The set-point pan_at_capture + step, as the motor's Safety bounds it (limits, step)."""
@@ -176,6 +182,14 @@ class Controller:
         if d.late_s is not None:
             return None
         probing = d.fault in (Fault.SLAVE_FROZEN, Fault.REVERSED)
+        if d.fault is not None or self.search.searching:
+            self.play.lost()
+        elif getattr(band, "ndim", 0) == 2 and self.play.see(
+                t_s, self._shaft(t_s, pan), profile(central(band)), (central(band).shape, fovea), focal_px,
+                fovea_col, (band.shape[1] - 1) / 2 if centre_col is None else centre_col):
+            self._replay(self.play.replay())
+        if self.play.half:
+            pan = self.play.peek(self._shaft(t_s, pan))  # (the camera's: the background turns as it does)
         return self.background.see(t_s, pan, band, focal_px, fovea_col, key=fovea,
                                    min_move_deg=PROBE_MIN_DEG if probing else MIN_MOVE_DEG, centre_col=centre_col)
 
@@ -197,15 +211,24 @@ class Controller:
         rest (vergence.head.rest), not the one reading the frame carries; while it moves, a noisy encoder's pan is the
         goals sent as the motor follows them (vergence.head.shaft)."""
         if t_s is not None and self.doubt.late_s is None:
-            rest = self.rest.at(t_s, pan_at_capture)
-            pan_at_capture = rest if rest != pan_at_capture else self.shaft.at(t_s, pan_at_capture)
+            pan_at_capture = self._shaft(t_s, pan_at_capture)
+        shaft = pan_at_capture
+        if t_s is not None:
+            pan_at_capture = self.play.pan(t_s, pan_at_capture)
         goal = self._target(pan_at_capture, offset_px, focal_px, confident, centre_px, t_s, t_now, slave, master,
                             fovea, doubt, textured, width_px, background)
+        if goal is not None and self.play.half:  # (a fault's probes, a search's moves too: the camera goes as asked)
+            goal = self.limits.limit_step(shaft, self.play.goal(goal))
         when = t_now if t_now is not None and math.isfinite(t_now) else t_s
         if goal is not None and when is not None:
             self.rest.commanded(when)
             self.shaft.commanded(when, goal)
         return goal
+
+    def _shaft(self, t_s: float, pan: float) -> float:
+        """The slave's pan at t_s, `pan` the frame's: the resting motor's mean, else the noisy encoder's model."""
+        rest = self.rest.at(t_s, pan)
+        return rest if rest != pan else self.shaft.at(t_s, pan)
 
     def _target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool, centre_px: float,
                 t_s: float | None, t_now: float | None, slave: int | None, master: int | None,
@@ -265,8 +288,21 @@ class Controller:
         return None if gated is None else self.limits.limit_step(pan_at_capture, gated)
 
     def status(self) -> dict:
-        """For the reducer's status: the doubt's fields, the search's and the encoder's noise (vergence.head.shaft)."""
-        return {**self.doubt.status(), **self.search.status(), **self.shaft.status()}
+        """For the reducer's status: the doubt's fields, the search's, the encoder's noise (vergence.head.shaft) and the
+        play (vergence.head.play)."""
+        return {**self.doubt.status(), **self.search.status(), **self.shaft.status(), **self.play.status()}
+
+    def _replay(self, moved: list[tuple[float, float]]) -> None:
+        """A new play: the targets learnt (each a frame's pan plus its offset's angle) move as their frames' camera pans
+        do (vergence.head.play.Play.replay), not the predictors anew (they would chase the target for a period)."""
+        if not moved:
+            return
+        ts, ds = [m[0] for m in moved], [m[1] for m in moved]
+        if self.periodic is not None:
+            self.periodic.move(ts, ds)
+        if self.predictor is not None and self.predictor.t is not None:
+            self.predictor.x += float(np.interp(self.predictor.t, ts, ds))
+        self.last_goal = None
 
     def reset(self) -> None:
         """Forget the target's estimate (a fault began or ended, the focal length was named): the next decision

@@ -104,6 +104,12 @@ class Periodic:
         self.hz = None
         self._fit = None
 
+    def move(self, ts: list[float], ds: list[float]) -> None:
+        """Each sample moved by ds interpolated at its time (ts ascending): the pans they were read at were off."""
+        for k, t in enumerate(self.t):
+            self.z[k] += float(np.interp(t, ts, ds))
+        self._fit = None
+
     def add(self, t: float, z: float) -> None:
         if self.t and t <= self.t[-1]:
             return

@@ -1,0 +1,130 @@
+"""vergence.head.play: the play between the motor and the camera, read off the background at the motor's turns, and
+the play operator and its inverse."""
+
+import math
+
+import numpy as np
+import pytest
+
+from vergence.head.play import NAME_DEG, Play
+
+F, W = 500.0, 640  # focal length and the band's width, px
+RATE = 60.0
+
+
+def texture(seed: int):
+    """A background at infinity: its brightness as a function of the angle off the head's zero (rad)."""
+    rng = np.random.default_rng(seed)
+    grid = np.linspace(-1.0, 1.0, 20001)
+    tex = np.convolve(rng.normal(0, 200, grid.size), np.ones(61) / 61, mode="same") + 128  # (features of 3-6 px)
+    return lambda angle: np.interp(angle, grid, tex)
+
+
+def band(tex, camera: float, rng) -> np.ndarray:
+    """A slave band's column profile with the camera at pan `camera`: each column sees the angle atan(u / F) + camera
+    (a pan turns the view to the right), plus a sensor's noise."""
+    u = np.arange(W) - (W - 1) / 2
+    return (tex(np.arctan(u / F) + camera) + rng.normal(0, 0.5, W)).astype(np.float32)
+
+
+def run(play_deg: float, seconds: float = 10.0, seed: int = 3, hz: float = 0.5, amp_deg: float = 2.0) -> Play:
+    """A motor on a sine (its pan at each frame), the camera through play_deg of play, every frame's band seen."""
+    tex, rng, p = texture(seed), np.random.default_rng(seed + 1), Play()
+    half, cam = math.radians(play_deg) / 2, None
+    for k in range(int(seconds * RATE)):
+        t = k / RATE
+        shaft = math.radians(amp_deg) * math.cos(2 * math.pi * hz * t) - 0.05
+        cam = shaft if cam is None else min(max(cam, shaft - half), shaft + half)
+        p.see(t, shaft, band(tex, cam, rng), "fovea", F, 0.0, (W - 1) / 2)  # (no target: the fovea off the band)
+    return p
+
+
+@pytest.mark.parametrize("play_deg", [0.15, 0.2, 0.25])
+def test_the_play_is_read_off_the_background_at_the_turns(play_deg):
+    p = run(play_deg)
+    assert len(p.plays) >= 3
+    assert math.degrees(2 * p.half) == pytest.approx(play_deg, abs=0.02)
+    assert p.status()["play_deg"] == pytest.approx(play_deg, abs=0.02)  # (the reducer's status says it)
+
+
+def test_a_play_under_name_deg_is_measured_but_not_taken_out():
+    p = run(0.1)
+    assert math.degrees(float(np.median(p.plays))) == pytest.approx(0.1, abs=0.02)
+    assert p.half == 0.0 and p.status() == {"play_deg": 0.0}
+
+
+def test_no_play_is_named_where_there_is_none():
+    for seed in (5, 6):
+        p = run(0.0, seed=seed)
+        assert len(p.plays) >= 3
+        assert p.half == 0.0
+        assert p.status() == {"play_deg": 0.0}
+        assert max(abs(math.degrees(x)) for x in p.plays) < NAME_DEG / 2
+
+
+def test_turns_too_small_or_too_fast_are_not_read():
+    assert Play().status() == {"play_deg": None}  # (nothing read yet)
+    assert run(0.4).plays == []  # wider than TRAVEL_DEG: the camera is not yet engaged where it is read
+    assert run(0.2, amp_deg=0.1).plays == []  # the motor never 0.3 deg from a turn
+    assert run(0.2, hz=6.0, amp_deg=1.0).plays == []  # no turn slow enough
+
+
+def test_the_operator_and_its_inverse():
+    p = Play()
+    p.half = math.radians(0.1)
+    # the camera follows the shaft half the play behind it, on the side the shaft came from
+    assert p.pan(0.0, 0.0) == 0.0
+    assert math.degrees(p.pan(0.1, math.radians(1.0))) == pytest.approx(0.9)
+    assert math.degrees(p.pan(0.2, math.radians(0.85))) == pytest.approx(0.9)  # back within the play: it stays
+    assert math.degrees(p.pan(0.3, math.radians(0.5))) == pytest.approx(0.6)
+    # a goal for the camera: the motor is sent half the play past it, on the way the camera goes
+    assert math.degrees(p.goal(math.radians(0.4))) == pytest.approx(0.3)
+    assert math.degrees(p.goal(math.radians(0.7))) == pytest.approx(0.8)
+    assert math.degrees(p.goal(math.radians(0.7))) == pytest.approx(0.8)  # (the same goal again: the same side)
+
+
+def test_a_new_play_replays_the_frames_pans():
+    p = Play()
+    for k, deg in enumerate([0.0, 0.5, 1.0, 0.8, 0.4]):
+        assert p.pan(k * 0.1, math.radians(deg)) == math.radians(deg)  # none named: the shaft's
+    p.half = math.radians(0.1)
+    moved = [(round(t, 6), round(math.degrees(d), 6)) for t, d in p.replay()]
+    # through 0.2 deg of play the camera was 0.1 behind on the way up, then stayed at 0.9 until the shaft came to 0.8
+    assert moved == [(0.0, 0.0), (0.1, -0.1), (0.2, -0.1), (0.3, 0.1), (0.4, 0.1)]
+    assert math.degrees(p.cam) == pytest.approx(0.5)
+
+
+def _sim(spec: str, seed: int, caplog) -> tuple[float, list[str]]:
+    """The sim loop at 60 Hz, 66 ms, on a sine of this test's own (16 s): the slave camera's RMS from 8 s on, and the
+    plays named."""
+    import logging
+
+    from vergence.head.control import ControlSettings
+    from vergence.head.timing import CameraTiming
+    from vergence.sim.faults import FAULT_KEYS, Faults
+    from vergence.sim.loop import closed_loop
+    from vergence.sim.moving import MovingRig
+    from vergence.spec import parse
+
+    rig = MovingRig.from_options(motion="sine:z=0.78,amp=0.28,hz=0.55", focal="500", seed=str(seed), noise="1")
+    rig.start_pan_rad = rig.truth_pan(0.0)
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="vergence.play"):
+        steps = list(closed_loop(rig, int(16 * RATE), None, ControlSettings(), None, RATE,
+                                 timing=CameraTiming(0.066), faults=Faults.take(parse(spec, FAULT_KEYS, "test")),
+                                 seed=seed, focal_px=F))
+    late = [s.camera_error_px for s in steps if s.t_s >= 8.0]
+    assert not any(s.fault for s in steps)  # (no false fault)
+    return math.sqrt(sum(e * e for e in late) / len(late)), [r.getMessage() for r in caplog.records]
+
+
+@pytest.mark.slow
+def test_the_loop_takes_the_play_out_of_pursuit(caplog):
+    """0.2 deg of play with 0.05 deg of encoder noise: the play measured and taken out, and the RMS within 1.2 x the
+    clean run's (x1.12 and x1.02; x1.36 and x3.99 on these draws before it was taken out); the clean runs name none."""
+    for seed in (66, 67):
+        clean, named = _sim("", seed, caplog)
+        assert named == []
+        both, named = _sim("backlash=0.2:encoder_noise=0.05", seed, caplog)
+        assert named and 0.17 <= float(named[-1].split()[-2]) <= 0.25, named
+        assert both < 1.2 * clean, (seed, clean, both)

@@ -1,0 +1,187 @@
+"""The play between the slave's motor and its camera (backlash), measured where the motor turns back, and taken out.
+
+With play p, a camera driven through it stays put while the motor turns back across the gap: in steady motion it is
+p / 2 behind the shaft, on the side the motor comes from. So each turn of the motor moves the target's pan as the
+loop reads it (the shaft's pan plus the offset's angle) by p, a step the predictors chase for a period, and the
+camera lags by the time the motor takes to cross the gap. The target's own turns look the same to the fovea (a fit
+on the offsets in pursuit named play on clean sines: docs/FAULTS.md, "The play taken out, a third try"); the
+background does not: it stands still, so its shift between two slave bands is the camera's own turn
+(vergence.head.scenery.turn). So at each slow turn of the motor (its way in 3 x TRAVEL_DEG or more), each band
+TRAVEL_DEG to twice that from the turn, on the way in and on the way out, is read against the turn's band: on the way
+in the camera turned as the motor did, on the way out the motor's turn less p (engaged on the other side). p = s
+(the median of the way out's camera-less-motor turns - the way in's), s the motor's way into the turn; the turn's own
+band's error is in both, and so is a frame's image a few ms off its pan (the motor's rate alike on either side). Each
+turn is a measurement; the median of the last KEEP (FIRST at least) names the play where it is NAME_DEG or more.
+
+Taken out (`half` not 0): a frame's pan is the camera's, the shaft's through the play (the play operator: the camera
+moves only where the shaft pushes it, half the play either side), and each goal for the camera is sent to the motor
+half the play past it on the side the camera moves to (the operator's inverse). The Controller does both
+(vergence.head.control)."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from .scenery import turn
+
+__all__ = ["Play"]
+
+log = logging.getLogger("vergence.play")
+
+TRAVEL_DEG = 0.3  # the bands read are this to twice this from a turn (the largest play measured)
+BACK_DEG = 0.25  # the motor's pans this far back from their furthest one way: a turn (less: its dither; whole-pixel
+# decisions dither 0.1-0.2 deg about a target's turn)
+SLOW_S, SLOW_DEG = 0.1, 0.15  # a turn is read where the pans of the SLOW_S before it are within SLOW_DEG of its:
+# a slow one (at a fast one, a hunt about a target's turn, a frame's pan and its image a few ms apart differ by 0.1 deg)
+REPLAY_S = 3.5  # the frames' pans kept to replay through a new play (the periodic predictor's span, and more)
+KEEP_S = 2.0  # the bands kept; turns further apart than this start anew
+NAME_DEG = 0.12  # the play named at this or more: under it, not told from an encoder's ticks (a Dynamixel's 0.088
+# deg) read ahead of the shaft in motion (a clean sim read 0.01-0.06 deg, 0.09 with one band each side)
+AGAIN_DEG = 0.03  # a named play changes where the median moves this much
+SIDE = 2  # bands read on each side of a turn, at least
+FIRST, KEEP = 3, 7  # measurements before the play is named, and the median of the last this many
+
+
+class Play:
+    """see() every slave band (its exposure, the shaft's pan then, its column profile, ...), pan() each frame's pan
+    into the camera's, goal() each goal for the camera into the motor's; `half`: half the named play (rad, 0: none)."""
+
+    def __init__(self):
+        self.key = None  # the bands' (shape, fovea): a new one starts the turns anew
+        self.way = 0.0  # the motor's way since the last turn (+1, -1; 0: not yet known)
+        self.peak: tuple | None = None  # the furthest band that way since: (t, pan, profile, slow)
+        self.low: tuple | None = None  # (... and the least far, before a way is known)
+        self.turns: list[tuple[float, float, np.ndarray, bool]] = []  # the last turns (t, pan, profile, slow), oldest
+        # first
+        self.recent: list[tuple[float, float]] = []  # the (t, pan) of the last SLOW_S
+        self.bands: list[tuple] = []  # the bands of the last KEEP_S (t, pan, profile, slow)
+        self.pending: tuple | None = None  # the last turn, until the motor is TRAVEL_DEG from it
+        self.plays: list[float] = []  # the measurements (rad)
+        self.half = 0.0
+        self.cam: float | None = None  # the camera's pan as the frames' shaft pans push it
+        self.sent: float | None = None  # the camera's pan the goals sent leave it at
+        self.side = 0.0  # the side of the play the goals sent push the camera from (+1, -1; 0: none yet)
+        self.past: list[tuple[float, float, float]] = []  # (t, shaft, camera) of the frames of the last REPLAY_S
+
+    def see(self, t: float, pan: float, profile: np.ndarray, key, focal_px: float, fovea_col: float,
+            centre_col: float) -> bool:
+        """One slave band; True where the named play changed (what was learnt through the old one is off by the
+        change)."""
+        if not (math.isfinite(t) and math.isfinite(pan)):
+            return False
+        self.recent = [r for r in self.recent if t - r[0] <= SLOW_S and r[0] < t] + [(t, pan)]
+        slow = self.recent[0][0] <= t - SLOW_S + 0.2 * SLOW_S and all(
+            abs(r[1] - pan) <= math.radians(SLOW_DEG) for r in self.recent)
+        band = (t, pan, profile, slow)
+        self.bands = [b for b in self.bands if t - KEEP_S <= b[0] < t] + [band]
+        if key != self.key or (self.peak is not None and t <= self.peak[0]) or (self.turns and t - self.turns[-1][0]
+                                                                                > KEEP_S):
+            self.key, self.way, self.peak, self.low, self.turns, self.pending = key, 0.0, band, band, [], None
+            self.bands = [band]
+            return False
+        back = math.radians(BACK_DEG)
+        if self.way == 0.0:  # which way first: the first move of BACK_DEG from the furthest either way
+            self.peak = band if pan > self.peak[1] else self.peak
+            self.low = band if pan < self.low[1] else self.low
+            if self.peak[1] - pan >= back:
+                self.way, self.turns, self.peak = -1.0, [self.peak], band
+            elif pan - self.low[1] >= back:
+                self.way, self.turns, self.peak = 1.0, [self.low], band
+            return False
+        travel = math.radians(TRAVEL_DEG)
+        if self.way * (pan - self.peak[1]) >= 0:  # (the last of a rest there: the one after it is slow)
+            self.peak = band
+        elif self.way * (self.peak[1] - pan) >= back:  # a turn: the motor came back BACK_DEG from its furthest that way
+            self.turns, self.way, self.peak = (self.turns + [self.peak])[-2:], -self.way, band
+            x = self.turns[-1]
+            # read once the motor is 2 x TRAVEL_DEG past it: a slow turn, the way into it 3 x TRAVEL_DEG or more
+            self.pending = x if x[3] and len(self.turns) == 2 and abs(x[1] - self.turns[0][1]) >= 3 * travel else None
+        x = self.pending
+        if x is None or abs(pan - x[1]) < 2 * travel:
+            return False
+        self.pending = None
+        # each band TRAVEL_DEG to 2 x TRAVEL_DEG from the turn, on its way in and out (the camera half the play behind
+        # the shaft there, engaged: on the way in on one side, out on the other), against the turn's band: the camera
+        # turned the motor's turn, then the motor's less the play. The medians of each side: the turn's own error
+        # (an encoder's whole ticks read its furthest pan up to half a tick past the shaft's) is in both, a frame's
+        # image a few ms from its pan shows the motor's rate as much on either side, and the ticks' error in motion
+        # averages out over a range of several ticks (one band each side read a clean sim's play as 0.03-0.09 deg)
+        # (only bands at the furthest the motor had come that way since the turn before: in a dither's dip the camera
+        # may be anywhere in the play)
+        sides: tuple[list[float], list[float]] = ([], [])
+        way, furthest = math.copysign(1.0, x[1] - self.turns[0][1]), -math.inf
+        for b in self.bands:
+            if b[0] <= self.turns[0][0]:
+                continue
+            out = b[0] > x[0]
+            if b[0] == x[0]:
+                way, furthest = -way, -math.inf
+            furthest = max(furthest, way * b[1])
+            if way * b[1] >= furthest and not b[0] == x[0] and travel <= abs(b[1] - x[1]) <= 2 * travel:
+                moved = turn(x[2], b[2], b[1] - x[1], focal_px, fovea_col, centre_col, about=True)
+                if moved is not None:
+                    sides[out].append(moved - (b[1] - x[1]))
+        if min(len(sides[0]), len(sides[1])) < SIDE:
+            return False
+        p = math.copysign(1.0, x[1] - self.turns[0][1]) * float(np.median(sides[1]) - np.median(sides[0]))
+        log.debug("a turn at %.3f s: play %.3f deg", x[0], math.degrees(p))
+        if not -travel <= p <= travel:
+            return False
+        self.plays = (self.plays + [p])[-KEEP:]
+        if len(self.plays) < FIRST:
+            return False
+        med = float(np.median(self.plays))
+        half = med / 2 if med >= math.radians(NAME_DEG) else 0.0
+        if abs(half - self.half) * 2 < math.radians(AGAIN_DEG) and (half == 0) == (self.half == 0):
+            return False
+        log.info("the play between the slave's motor and its camera: %.3f deg", math.degrees(2 * half))
+        self.half = half
+        return True
+
+    def pan(self, t: float, shaft: float) -> float:
+        """The camera's pan at t, the shaft at `shaft` (rad; every frame, in order): the play operator."""
+        if not (math.isfinite(t) and math.isfinite(shaft)):
+            return shaft
+        c = shaft if self.cam is None else min(max(self.cam, shaft - self.half), shaft + self.half)
+        self.cam = c
+        self.past = [q for q in self.past if t - REPLAY_S <= q[0] < t] + [(t, shaft, c)]
+        return c
+
+    def peek(self, shaft: float) -> float:
+        """The camera's pan the next frame's pan() gives for `shaft` (rad), nothing changed."""
+        if self.cam is None or not math.isfinite(shaft):
+            return shaft
+        return min(max(self.cam, shaft - self.half), shaft + self.half)
+
+    def replay(self) -> list[tuple[float, float]]:
+        """After the named play changed: the frames' shaft pans of the last REPLAY_S through it again, and by how much
+        each one's camera pan moves [(t, change), ...] (rad): what was learnt from them moves with them."""
+        c, moved = None, []
+        for k, (t, shaft, was) in enumerate(self.past):
+            c = shaft if c is None else min(max(c, shaft - self.half), shaft + self.half)
+            moved.append((t, c - was))
+            self.past[k] = (t, shaft, c)
+        if c is not None:
+            self.cam = c
+        return moved
+
+    def goal(self, goal: float) -> float:
+        """The motor's goal that leaves the camera at `goal` (rad): half the play past it on the way the camera goes
+        from where the goals sent left it."""
+        was = self.cam if self.sent is None else self.sent
+        self.sent = goal
+        if was is not None and goal != was:  # (the same goal again: the same side)
+            self.side = math.copysign(1.0, goal - was)
+        return goal + self.side * self.half
+
+    def status(self) -> dict:
+        """For the reducer's status: the play measured (deg; None before FIRST turns were read; 0 where it is under
+        NAME_DEG, and taken out from there on)."""
+        return {"play_deg": None if len(self.plays) < FIRST else round(math.degrees(2 * self.half), 3)}
+
+    def lost(self) -> None:
+        """A fault or a search: the turns read so far say nothing of the next (a slipped camera is elsewhere)."""
+        self.key, self.pending = object(), None
