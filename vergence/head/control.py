@@ -177,19 +177,21 @@ class Controller:
         default the band's middle), its verdict for target(background=); during a fault on moves from PROBE_MIN_DEG
         (its probes are PROBE_DEG from the anchor).
         None where a camera is named late (its stamps are not its image's: no verdict), or none is due. A reducer
-        asks when the Frame arrives, while the workers compute."""
+        asks when the Frame arrives, while the workers compute. The play between the motor and the camera is read off
+        the same bands (vergence.head.play), and where it is named the verdict is on the camera's pan."""
         d = self.doubt
         if d.late_s is not None:
             return None
         probing = d.fault in (Fault.SLAVE_FROZEN, Fault.REVERSED)
+        shaft = self._shaft(t_s, pan)
         if d.fault is not None or self.search.searching:
             self.play.lost()
         elif getattr(band, "ndim", 0) == 2 and self.play.see(
-                t_s, self._shaft(t_s, pan), profile(central(band)), (central(band).shape, fovea), focal_px,
-                fovea_col, (band.shape[1] - 1) / 2 if centre_col is None else centre_col):
+                t_s, shaft, profile(central(band)), (central(band).shape, fovea), focal_px, fovea_col,
+                (band.shape[1] - 1) / 2 if centre_col is None else centre_col):
             self._replay(self.play.replay())
         if self.play.half:
-            pan = self.play.peek(self._shaft(t_s, pan))  # (the camera's: the background turns as it does)
+            pan = self.play.peek(shaft)  # (the camera's: the background turns as it does)
         return self.background.see(t_s, pan, band, focal_px, fovea_col, key=fovea,
                                    min_move_deg=PROBE_MIN_DEG if probing else MIN_MOVE_DEG, centre_col=centre_col)
 

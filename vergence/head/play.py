@@ -37,7 +37,7 @@ BACK_DEG = 0.25  # the motor's pans this far back from their furthest one way: a
 SLOW_S, SLOW_DEG = 0.1, 0.15  # a turn is read where the pans of the SLOW_S before it are within SLOW_DEG of its:
 # a slow one (at a fast one, a hunt about a target's turn, a frame's pan and its image a few ms apart differ by 0.1 deg)
 REPLAY_S = 3.5  # the frames' pans kept to replay through a new play (the periodic predictor's span, and more)
-KEEP_S = 2.0  # the bands kept; turns further apart than this start anew
+KEEP_S = 2.0  # the bands kept (the way into a turn of a target going to and fro at 0.25 Hz is in the last 0.6 s)
 NAME_DEG = 0.12  # the play named at this or more: under it, not told from an encoder's ticks (a Dynamixel's 0.088
 # deg) read ahead of the shaft in motion (a clean sim read 0.01-0.06 deg, 0.09 with one band each side)
 AGAIN_DEG = 0.03  # a named play changes where the median moves this much
@@ -77,8 +77,7 @@ class Play:
             abs(r[1] - pan) <= math.radians(SLOW_DEG) for r in self.recent)
         band = (t, pan, profile, slow)
         self.bands = [b for b in self.bands if t - KEEP_S <= b[0] < t] + [band]
-        if key != self.key or (self.peak is not None and t <= self.peak[0]) or (self.turns and t - self.turns[-1][0]
-                                                                                > KEEP_S):
+        if key != self.key or (self.peak is not None and t <= self.peak[0]):
             self.key, self.way, self.peak, self.low, self.turns, self.pending = key, 0.0, band, band, [], None
             self.bands = [band]
             return False

@@ -121,8 +121,9 @@ def _sim(spec: str, seed: int, caplog) -> tuple[float, list[str]]:
 @pytest.mark.slow
 def test_the_loop_takes_the_play_out_of_pursuit(caplog):
     """0.2 deg of play with 0.05 deg of encoder noise: the play measured and taken out, and the RMS within 1.2 x the
-    clean run's (x1.12 and x1.02; x1.36 and x3.99 on these draws before it was taken out); the clean runs name none."""
-    for seed in (66, 67):
+    clean run's (x1.12; x1.36 on this draw before it was taken out, and on seed 67 x1.02 against x3.99: docs/FAULTS.md
+    has more); the clean run names none."""
+    for seed in (66,):
         clean, named = _sim("", seed, caplog)
         assert named == []
         both, named = _sim("backlash=0.2:encoder_noise=0.05", seed, caplog)
