@@ -261,6 +261,10 @@ def _summary(args: argparse.Namespace, steps: list, segments: list, rig, timing,
         e = tracking_error(steps, first=skip)
         print(f"from frame {skip} ({e['frames']} frames): RMS {e['rms_px']:.2f} px ({e['rms_deg']:.3f} deg), "
               f"max {e['max_px']:.2f} px ({e['max_deg']:.3f} deg)")
+        own = [s.camera_error_px for s in steps if s.frame >= skip and math.isfinite(s.camera_error_px)]
+        if args.faults and own:  # (backlash, a slip, a reversed camera leave the camera elsewhere than the shaft)
+            rms = math.sqrt(sum(x * x for x in own) / len(own))
+            print(f"the slave camera's own, as the lies leave it: RMS {rms:.2f} px, max {max(map(abs, own)):.2f} px")
     elif not args.json:
         _convergence(steps, segments)
 

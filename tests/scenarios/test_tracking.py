@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import cv2
 import numpy as np
@@ -538,6 +539,21 @@ def test_cli_motion_json_and_plot(tmp_path):
     img = cv2.imread(str(png))  # the figure's values: tests/vergence/test_plots.py
     assert img is not None and img.shape == (700, 900, 3)
     assert (img < 200).any(axis=2).mean() > 0.01 and len(np.unique(img.reshape(-1, 3) // 32, axis=0)) >= 6
+
+
+@pytest.mark.slow
+def test_cli_motion_says_the_slave_cameras_own_error_where_the_sim_lies():
+    """With --faults the summary says the camera's own RMS too (backlash leaves the camera half the play from the shaft,
+    whose error the first line is): the `camera_error_px` of the same run's --json rows."""
+    run = ("--motion", "sine:z=0.8,amp=0.3,hz=1", "--focal", "500", "--rate", "60", "--frames", "30")
+    lines = vsim(*run, "--faults", "backlash=0.5").stdout.splitlines()
+    rows = vsim(*run, "--faults", "backlash=0.5", "--json").stdout.splitlines()
+    own = [json.loads(x)["camera_error_px"] for x in rows]
+    said = re.fullmatch(r"the slave camera's own, as the lies leave it: RMS ([0-9.]+) px, max ([0-9.]+) px", lines[-1])
+    assert said and lines[-2].startswith("from frame 0 (31 frames): RMS "), lines[-2:]
+    assert float(said[1]) == pytest.approx(math.sqrt(sum(x * x for x in own) / len(own)), abs=0.005)
+    assert float(said[2]) == pytest.approx(max(map(abs, own)), abs=0.005)
+    assert vsim(*run).stdout.splitlines()[-1].startswith("from frame 0")  # (no lie: the one line)
 
 
 @pytest.mark.slow
