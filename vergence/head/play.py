@@ -6,12 +6,12 @@ loop reads it (the shaft's pan plus the offset's angle) by p, a step the predict
 camera lags by the time the motor takes to cross the gap. The target's own turns look the same to the fovea (a fit
 on the offsets in pursuit named play on clean sines: docs/FAULTS.md, "The play taken out, a third try"); the
 background does not: it stands still, so its shift between two slave bands is the camera's own turn
-(vergence.head.scenery.turn). So at each slow turn of the motor (its way in 3 x TRAVEL_DEG or more), each band
+(vergence.head.scenery.turn). So at each turn of the motor (its way in 3 x TRAVEL_DEG or more), each band
 TRAVEL_DEG to twice that from the turn, on the way in and on the way out, is read against the turn's band: on the way
 in the camera turned as the motor did, on the way out the motor's turn less p (engaged on the other side). p = s
 (the median of the way out's camera-less-motor turns - the way in's), s the motor's way into the turn; the turn's own
-band's error is in both, and so is a frame's image a few ms off its pan (the motor's rate alike on either side). Each
-turn is a measurement; the median of the last KEEP (FIRST at least) names the play where it is NAME_DEG or more.
+band's error is in both, and so is a frame's image a few ms off its pan (the motor's rate alike on either side: a hunt
+about a target's turn, seen mid-move, reads as well as a slow turn). Each turn is a measurement; the median of the last KEEP (FIRST at least) names the play where it is NAME_DEG or more.
 
 Taken out (`half` not 0): a frame's pan is the camera's, the shaft's through the play (the play operator: the camera
 moves only where the shaft pushes it, half the play either side), and each goal for the camera is sent to the motor
@@ -34,8 +34,6 @@ log = logging.getLogger("vergence.play")
 TRAVEL_DEG = 0.3  # the bands read are this to twice this from a turn (the largest play measured)
 BACK_DEG = 0.25  # the motor's pans this far back from their furthest one way: a turn (less: its dither; whole-pixel
 # decisions dither 0.1-0.2 deg about a target's turn)
-SLOW_S, SLOW_DEG = 0.1, 0.15  # a turn is read where the pans of the SLOW_S before it are within SLOW_DEG of its:
-# a slow one (at a fast one, a hunt about a target's turn, a frame's pan and its image a few ms apart differ by 0.1 deg)
 REPLAY_S = 3.5  # the frames' pans kept to replay through a new play (the periodic predictor's span, and more)
 KEEP_S = 2.0  # the bands kept (the way into a turn of a target going to and fro at 0.25 Hz is in the last 0.6 s)
 NAME_DEG = 0.12  # the play named at this or more: under it, not told from an encoder's ticks (a Dynamixel's 0.088
@@ -52,12 +50,10 @@ class Play:
     def __init__(self):
         self.key = None  # the bands' (shape, fovea): a new one starts the turns anew
         self.way = 0.0  # the motor's way since the last turn (+1, -1; 0: not yet known)
-        self.peak: tuple | None = None  # the furthest band that way since: (t, pan, profile, slow)
+        self.peak: tuple | None = None  # the furthest band that way since: (t, pan, profile)
         self.low: tuple | None = None  # (... and the least far, before a way is known)
-        self.turns: list[tuple[float, float, np.ndarray, bool]] = []  # the last turns (t, pan, profile, slow), oldest
-        # first
-        self.recent: list[tuple[float, float]] = []  # the (t, pan) of the last SLOW_S
-        self.bands: list[tuple] = []  # the bands of the last KEEP_S (t, pan, profile, slow)
+        self.turns: list[tuple[float, float, np.ndarray]] = []  # the last two turns (t, pan, profile), oldest first
+        self.bands: list[tuple[float, float, np.ndarray]] = []  # the bands of the last KEEP_S (t, pan, profile)
         self.pending: tuple | None = None  # the last turn, until the motor is TRAVEL_DEG from it
         self.plays: list[float] = []  # the measurements (rad)
         self.half = 0.0
@@ -72,10 +68,7 @@ class Play:
         change)."""
         if not (math.isfinite(t) and math.isfinite(pan)):
             return False
-        self.recent = [r for r in self.recent if t - r[0] <= SLOW_S and r[0] < t] + [(t, pan)]
-        slow = self.recent[0][0] <= t - SLOW_S + 0.2 * SLOW_S and all(
-            abs(r[1] - pan) <= math.radians(SLOW_DEG) for r in self.recent)
-        band = (t, pan, profile, slow)
+        band = (t, pan, profile)
         self.bands = [b for b in self.bands if t - KEEP_S <= b[0] < t] + [band]
         if key != self.key or (self.peak is not None and t <= self.peak[0]):
             self.key, self.way, self.peak, self.low, self.turns, self.pending = key, 0.0, band, band, [], None
@@ -91,13 +84,13 @@ class Play:
                 self.way, self.turns, self.peak = 1.0, [self.low], band
             return False
         travel = math.radians(TRAVEL_DEG)
-        if self.way * (pan - self.peak[1]) >= 0:  # (the last of a rest there: the one after it is slow)
+        if self.way * (pan - self.peak[1]) >= 0:  # (the last of a rest there)
             self.peak = band
         elif self.way * (self.peak[1] - pan) >= back:  # a turn: the motor came back BACK_DEG from its furthest that way
             self.turns, self.way, self.peak = (self.turns + [self.peak])[-2:], -self.way, band
             x = self.turns[-1]
-            # read once the motor is 2 x TRAVEL_DEG past it: a slow turn, the way into it 3 x TRAVEL_DEG or more
-            self.pending = x if x[3] and len(self.turns) == 2 and abs(x[1] - self.turns[0][1]) >= 3 * travel else None
+            # read once the motor is 2 x TRAVEL_DEG past it, where the way into it was 3 x TRAVEL_DEG or more
+            self.pending = x if len(self.turns) == 2 and abs(x[1] - self.turns[0][1]) >= 3 * travel else None
         x = self.pending
         if x is None or abs(pan - x[1]) < 2 * travel:
             return False
