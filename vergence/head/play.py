@@ -11,7 +11,8 @@ TRAVEL_DEG to twice that from the turn, on the way in and on the way out, is rea
 in the camera turned as the motor did, on the way out the motor's turn less p (engaged on the other side). p = s
 (the median of the way out's camera-less-motor turns - the way in's), s the motor's way into the turn; the turn's own
 band's error is in both, and so is a frame's image a few ms off its pan (the motor's rate alike on either side: a hunt
-about a target's turn, seen mid-move, reads as well as a slow turn). Each turn is a measurement; the median of the last KEEP (FIRST at least) names the play where it is NAME_DEG or more.
+about a target's turn, seen mid-move, reads as well as a slow turn). Each turn is a measurement; the median of the
+last KEEP (FIRST at least) names the play where it is NAME_DEG or more.
 
 Taken out (`half` not 0): a frame's pan is the camera's, the shaft's through the play (the play operator: the camera
 moves only where the shaft pushes it, half the play either side), and each goal for the camera is sent to the motor
