@@ -20,14 +20,15 @@ def texture(seed: int):
     return lambda angle: np.interp(angle, grid, tex)
 
 
-def band(tex, camera: float, rng) -> np.ndarray:
-    """A slave band's column profile with the camera at pan `camera`: each column sees the angle atan(u / F) + camera
-    (a pan turns the view to the right), plus a sensor's noise."""
+def band(tex, camera: float, rng, focal: float = F) -> np.ndarray:
+    """A slave band's column profile with the camera at pan `camera`: each column sees the angle atan(u / focal) +
+    camera (a pan turns the view to the right), plus a sensor's noise."""
     u = np.arange(W) - (W - 1) / 2
-    return (tex(np.arctan(u / F) + camera) + rng.normal(0, 0.5, W)).astype(np.float32)
+    return (tex(np.arctan(u / focal) + camera) + rng.normal(0, 0.5, W)).astype(np.float32)
 
 
-def run(play_deg: float, seconds: float = 10.0, seed: int = 3, hz: float = 0.5, amp_deg: float = 2.0) -> Play:
+def run(play_deg: float, seconds: float = 10.0, seed: int = 3, hz: float = 0.5, amp_deg: float = 2.0,
+        focal: float = F) -> Play:
     """A motor on a sine (its pan at each frame), the camera through play_deg of play, every frame's band seen."""
     tex, rng, p = texture(seed), np.random.default_rng(seed + 1), Play()
     half, cam = math.radians(play_deg) / 2, None
@@ -35,7 +36,7 @@ def run(play_deg: float, seconds: float = 10.0, seed: int = 3, hz: float = 0.5, 
         t = k / RATE
         shaft = math.radians(amp_deg) * math.cos(2 * math.pi * hz * t) - 0.05
         cam = shaft if cam is None else min(max(cam, shaft - half), shaft + half)
-        p.see(t, shaft, band(tex, cam, rng), "fovea", F, 0.0, (W - 1) / 2)  # (no target: the fovea off the band)
+        p.see(t, shaft, band(tex, cam, rng, focal), "fovea", F, 0.0, (W - 1) / 2)  # (no target: the fovea off it)
     return p
 
 
@@ -45,6 +46,16 @@ def test_the_play_is_read_off_the_background_at_the_turns(play_deg):
     assert len(p.plays) >= 3
     assert math.degrees(2 * p.half) == pytest.approx(play_deg, abs=0.02)
     assert p.status()["play_deg"] == pytest.approx(play_deg, abs=0.02)  # (the reducer's status says it)
+
+
+@pytest.mark.parametrize("ratio", [0.85, 1.15])
+def test_a_focal_length_told_wrong_is_no_play(ratio):
+    """Images at 0.85 or 1.15 x the focal length told (under the 20 % the doubt names): every band is read against
+    the turn's on the same side of it in pan, so the scale error is the same on the way in and out, and cancels; a
+    play reads at that scale (its pixels read with the focal length told)."""
+    assert math.degrees(2 * run(0.2, focal=F * ratio).half) == pytest.approx(0.2 * ratio, abs=0.01)
+    p = run(0.0, focal=F * ratio)
+    assert p.half == 0.0 and max(abs(math.degrees(x)) for x in p.plays) < NAME_DEG / 2
 
 
 def test_a_play_under_name_deg_is_measured_but_not_taken_out():
