@@ -210,8 +210,8 @@ class Controller:
         width_px: the images' width (the band's reach, which sizes the search's steps); background: the frame's
         verdict of scene() (None: none). While the motor rests, the pan is the mean of its readings since it came to
         rest (vergence.head.rest), not the one reading the frame carries; while it moves, a noisy encoder's pan is the
-        goals sent as the motor follows them (vergence.head.shaft). Where a play is named (vergence.head.play) the pan is
-        the camera's through it, and the goal returned is the motor's (half the play past the camera's)."""
+        goals sent as the motor follows them (vergence.head.shaft). Where a play is named (vergence.head.play) the pan
+        is the camera's through it, and the goal returned is the motor's (half the play past the camera's)."""
         if t_s is not None and self.doubt.late_s is None:
             pan_at_capture = self._shaft(t_s, pan_at_capture)
         shaft = pan_at_capture
