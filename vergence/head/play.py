@@ -113,7 +113,7 @@ class Play:
             if b[0] == x[0]:
                 way, furthest = -way, -math.inf
             furthest = max(furthest, way * b[1])
-            if way * b[1] >= furthest and not b[0] == x[0] and travel <= abs(b[1] - x[1]) <= 2 * travel:
+            if way * b[1] >= furthest and b[0] != x[0] and travel <= abs(b[1] - x[1]) <= 2 * travel:
                 moved = turn(x[2], b[2], b[1] - x[1], focal_px, fovea_col, centre_col, about=True)
                 if moved is not None:
                     sides[out].append(moved - (b[1] - x[1]))
@@ -138,8 +138,7 @@ class Play:
         """The camera's pan at t, the shaft at `shaft` (rad; every frame, in order): the play operator."""
         if not (math.isfinite(t) and math.isfinite(shaft)):
             return shaft
-        c = shaft if self.cam is None else min(max(self.cam, shaft - self.half), shaft + self.half)
-        self.cam = c
+        c = self.cam = shaft if self.cam is None else _through(self.cam, shaft, self.half)
         self.past = [q for q in self.past if t - REPLAY_S <= q[0] < t] + [(t, shaft, c)]
         return c
 
@@ -147,14 +146,14 @@ class Play:
         """The camera's pan the next frame's pan() gives for `shaft` (rad), nothing changed."""
         if self.cam is None or not math.isfinite(shaft):
             return shaft
-        return min(max(self.cam, shaft - self.half), shaft + self.half)
+        return _through(self.cam, shaft, self.half)
 
     def replay(self) -> list[tuple[float, float]]:
         """After the named play changed: the frames' shaft pans of the last REPLAY_S through it again, and by how much
         each one's camera pan moves [(t, change), ...] (rad): what was learnt from them moves with them."""
         c, moved = None, []
         for k, (t, shaft, was) in enumerate(self.past):
-            c = shaft if c is None else min(max(c, shaft - self.half), shaft + self.half)
+            c = shaft if c is None else _through(c, shaft, self.half)
             moved.append((t, c - was))
             self.past[k] = (t, shaft, c)
         if c is not None:
@@ -178,3 +177,9 @@ class Play:
     def lost(self) -> None:
         """A fault or a search: the turns read so far say nothing of the next (a slipped camera is elsewhere)."""
         self.key, self.pending = object(), None
+
+
+def _through(camera: float, shaft: float, half: float) -> float:
+    """The camera's pan once the shaft is at `shaft`, from `camera`, through a play of 2 x half: it moves only where
+    the shaft pushes it."""
+    return min(max(camera, shaft - half), shaft + half)

@@ -144,10 +144,12 @@ class Background:
         self.pans: list[tuple[float, float]] = []  # (t, pan) of every band of the last MAX_DT_S + LATE_S, any key
 
     def see(self, t: float, pan: float, band: np.ndarray, focal_px: float, fovea_col: float,
-            key=None, min_move_deg: float = MIN_MOVE_DEG, centre_col: float | None = None) -> Verdict | None:
+            key=None, min_move_deg: float = MIN_MOVE_DEG, centre_col: float | None = None,
+            seen: np.ndarray | None = None) -> Verdict | None:
         """One frame's slave band (t its exposure, s; pan the slave's then, rad; fovea_col the fovea's column in
-        it; centre_col the principal point's, default its middle): r of its background against the latest earlier
-        band at least MIN_MOVE_DEG away in pan (None: no verdict)."""
+        it; centre_col the principal point's, default its middle; seen its central rows' profile where the caller
+        has it): r of its background against the latest earlier band at least MIN_MOVE_DEG away in pan (None: no
+        verdict)."""
         if not (math.isfinite(t) and math.isfinite(pan) and focal_px > 0) or band.ndim != 2:
             return None
         band = central(band)
@@ -159,7 +161,7 @@ class Background:
         self.bands = [b for b in self.bands if t - b.t <= MAX_DT_S + LATE_S]
         # the pans outlive a new key (a window grown and back, a new fovea): what the motor did is what it did
         self.pans = [p for p in self.pans if t - p[0] <= MAX_DT_S + LATE_S] + [(t, pan)]
-        seen = profile(band)
+        seen = profile(band) if seen is None else seen
         repeat = bool(self.bands) and np.array_equal(seen, self.bands[-1].profile)
         # a live band is read against live ones: a frozen camera's repeats are no image of their instants (a frozen
         # one against them all: it did not move)

@@ -16,6 +16,7 @@ where its readings say). Measured: docs/FAULTS.md, "The encoder's noise in motio
 from __future__ import annotations
 
 import bisect
+import itertools
 import math
 from collections import deque
 
@@ -122,7 +123,7 @@ class Shaft:
             return pan
         lat, tau = self.fit
         a, b = bisect.bisect_left(self.t, t - BIAS_S), bisect.bisect_right(self.t, t + BIAS_S)
-        ts = list(self.t)[a:b]
+        ts = list(itertools.islice(self.t, a, b))  # (not the whole deque copied, a frame at a time)
         if not ts:
             return pan
         ins = bisect.bisect_left(ts, t)
