@@ -67,7 +67,7 @@ class Play:
             centre_col: float) -> bool:
         """One slave band; True where the named play changed (what was learnt through the old one is off by the
         change)."""
-        if not (math.isfinite(t) and math.isfinite(pan)):
+        if not (math.isfinite(t) and math.isfinite(pan) and math.isfinite(focal_px) and focal_px > 0):
             return False
         band = (t, pan, profile)
         self.bands = [b for b in self.bands if t - KEEP_S <= b[0] < t] + [band]

@@ -80,6 +80,14 @@ def test_turns_too_small_or_too_fast_are_not_read():
     assert run(0.2, hz=6.0, amp_deg=1.0).plays == []  # no turn slow enough
 
 
+def test_a_band_without_a_time_pan_or_focal_length_is_not_read():
+    p = Play()
+    flat = np.zeros(W, np.float32)
+    for args in ((math.nan, 0.0, F), (0.0, math.inf, F), (0.0, 0.0, 0.0), (0.0, 0.0, math.nan)):
+        assert p.see(args[0], args[1], flat, "fovea", args[2], 0.0, (W - 1) / 2) is False
+    assert p.bands == [] and p.key is None  # (nothing kept of them)
+
+
 def test_the_operator_and_its_inverse():
     p = Play()
     p.half = math.radians(0.1)
