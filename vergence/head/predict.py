@@ -71,8 +71,8 @@ class Periodic:
     """A target that moves back and forth: its pan over the last window_s as a constant plus `harmonics`
     harmonics of one frequency (least squares), the frequency the one whose fit leaves the least residual
     (searched every `every` samples kept over a log grid from the lowest of which `cycles` periods fit in the
-    history, to max_hz, then refined over a fine grid between the best one's neighbours); predict(at)
-    extrapolates the fit. None while the history is shorter than min_s.
+    history, to max_hz, then refined over a fine grid between the neighbours of each of its REFINED deepest local
+    minima); predict(at) extrapolates the fit. None while the history is shorter than min_s.
 
     Where a target repeats its motion (a hand moving an object to and fro, a pendulum, the simulator's
     sines), this predicts far past where any polynomial holds, as primate smooth pursuit does for periodic
@@ -85,7 +85,8 @@ class Periodic:
     batch, the harmonics by the angle-addition recurrence; its figures: docs/PERFORMANCE.md)."""
 
     MIN_DT_S = 1 / 64  # the history's spacing: 3 harmonics of max_hz need 24 Hz; 64 Hz keeps a 60 Hz camera's
-    GRID, FINE = 40, 33  # the search's log grid, and its fine grid between the best point's neighbours
+    GRID, FINE = 40, 33  # the search's log grid, and its fine grid between a minimum's neighbours
+    REFINED = 2  # the grid's local minima refined (the deepest first)
 
     def __init__(self, harmonics: int = 3, window_s: float = 3.0, min_s: float = 0.4, max_hz: float = 4.0,
                  cycles: float = 0.6, every: int = 10):
@@ -155,8 +156,14 @@ class Periodic:
 
     def _search(self, tt: np.ndarray, zs: np.ndarray, span: float) -> float:
         grid = np.geomspace(self.cycles / span, self.max_hz, self.GRID)
-        i = int(np.argmin(self._fits(tt, zs, grid)[0]))
-        fine = np.linspace(grid[max(0, i - 1)], grid[min(len(grid) - 1, i + 1)], self.FINE)
+        res = self._fits(tt, zs, grid)[0]
+        # the REFINED deepest local minima, not only the deepest point: with harmonics over a window of a period or
+        # two the true frequency's well is narrower than the grid's steps, and a point on its wall can leave more than
+        # a spurious minimum's bottom (about 0.6 x the frequency, whose harmonics bracket it over so short a window)
+        low = np.flatnonzero((res <= np.r_[np.inf, res[:-1]]) & (res <= np.r_[res[1:], np.inf]))
+        best = low[np.argsort(res[low])][:self.REFINED] if len(low) else [int(np.argmin(res))]
+        fine = np.concatenate([np.linspace(grid[max(0, i - 1)], grid[min(len(grid) - 1, i + 1)], self.FINE)
+                               for i in best])
         return float(fine[int(np.argmin(self._fits(tt, zs, fine)[0]))])
 
     def predict(self, at: float) -> float | None:
