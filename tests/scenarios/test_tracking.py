@@ -259,6 +259,25 @@ def test_the_periodic_fit_finds_the_frequency_at_every_phase(spec, hz):
     assert not missed
 
 
+def test_the_periodic_fits_samples_refocused_take_their_angles_to_the_measured_focal_length():
+    """Periodic.refocus: each sample (a frame's pan plus its offset's angle read at the focal length told) gets the
+    angle at the measured one, the pans interpolated at the samples' times; a ratio that is no positive number moves
+    nothing."""
+    from vergence.head.predict import Periodic
+
+    p = Periodic()
+    pans = [(i / 60, 0.02 * i / 60) for i in range(60)]
+    for t, pan in pans:
+        p.add(t, pan + math.atan(0.01 * math.cos(t)))
+    was = list(p.z)
+    for bad in (0.0, -1.0, math.nan):
+        p.refocus([t for t, _ in pans], [q for _, q in pans], bad)
+        assert list(p.z) == was
+    p.refocus([0.0, 1.0], [0.0, 0.02], 1.6)  # (the pans on the line between)
+    for t, z in zip(p.t, p.z):
+        assert z == pytest.approx(0.02 * t + math.atan(0.01 * math.cos(t) / 1.6), abs=1e-12)
+
+
 def test_the_referee_trusts_the_prediction_that_predicted_best():
     from vergence.head.predict import Referee
 

@@ -249,13 +249,13 @@ class Controller:
             t_s, pan_at_capture = d.shift(t_s, pan_at_capture)  # (a camera named late: as its image shows it)
             ok = confident and math.isfinite(offset_px) and math.isfinite(focal_px) and focal_px > 0
             a = pixels_to_angle(offset_px, focal_px, centre_px) if ok else None
-            before = d.fault, d.focal_ratio is None
+            fault, told = d.fault, d.focal_ratio is None
             d.observe(t_s, pan_at_capture, a, slave, master, fovea, background=background,
                       off_axis=centre_px / focal_px if ok and math.isfinite(centre_px) else 0.0)
-            if (d.fault, d.focal_ratio is None) != before:
-                # what the filter learnt while the image lied (or before the fault, or at the focal length told
-                # before it was named) says nothing now
-                self.reset()
+            if d.fault == fault and told and d.focal_ratio is not None:
+                self._refocus(d.focal_ratio)
+            elif (d.fault, d.focal_ratio is None) != (fault, told):
+                self.reset()  # what the filter learnt while the image lied (or before the fault) says nothing now
             if d.focal_ratio is not None and math.isfinite(focal_px):
                 focal_px = focal_px * d.focal_ratio  # the measured focal length
         now = t_now if t_now is not None and math.isfinite(t_now) else t_s
@@ -309,9 +309,20 @@ class Controller:
             self.predictor.x += float(np.interp(self.predictor.t, ts, ds))
         self.last_goal = None
 
+    def _refocus(self, ratio: float) -> None:
+        """The focal length named: the periodic predictor's targets (each a frame's pan plus its offset's angle at the
+        focal length told) are taken to the measured one, not learnt anew (afresh, the loop chased the target for a
+        period: docs/FAULTS.md, "The focal length named"); the rate filter and the referee start again."""
+        if self.periodic is None or not self.play.past:
+            self.reset()
+            return
+        self.periodic.refocus([q[0] for q in self.play.past], [q[2] for q in self.play.past], ratio)
+        self.referee.reset()
+        self.predictor = None  # (made again at the measured focal length: its noise and gate are pixels)
+        self.last_goal = self.t_confident = None
+
     def reset(self) -> None:
-        """Forget the target's estimate (a fault began or ended, the focal length was named): the next decision
-        starts afresh."""
+        """Forget the target's estimate (a fault began or ended): the next decision starts afresh."""
         self.predictor = None  # (made again at the next decision's focal length: its noise and gate are pixels)
         if self.periodic is not None:
             self.periodic.reset()

@@ -111,6 +111,15 @@ class Periodic:
             self.z[k] += float(np.interp(t, ts, ds))
         self._fit = None
 
+    def refocus(self, ts: list[float], pans: list[float], ratio: float) -> None:
+        """The samples' angles were read at a focal length off by `ratio` (the image's motion over the one told):
+        each sample (a frame's pan, interpolated in ts and pans, plus its offset's angle) gets the angle at the
+        measured one."""
+        if not (math.isfinite(ratio) and ratio > 0) or not ts:
+            return
+        at = list(self.t)
+        self.move(at, [math.atan(math.tan(z - p) / ratio) - (z - p) for z, p in zip(self.z, np.interp(at, ts, pans))])
+
     def add(self, t: float, z: float) -> None:
         if self.t and t <= self.t[-1]:
             return
