@@ -20,21 +20,21 @@ pair that did not follow, in pursuit and at an undecided fovea too; one a late i
 doubt where the offset is under LEASH_DEG: it holds the chase a slipping camera starts (a correction's, not); and a
 fovea's pair that did not follow, on a frame whose background turned with the motor, is a doubt (the fovea misread).
 
-The leash. Until the image has been seen to follow (r in FOLLOWS_MIN..FOLLOWS_MAX; at the start, after a fault),
-no command goes further than UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there for
-BOUND_S probes back. Once it has, no command goes further than LEASH_DEG past the pan the last consistent decision
-asked for (its z, moved on at the learnt rate); after a pair that did not follow, none further from the anchor than
-the slave already is, and after SUSPECT_S a probe back toward the anchor, whose image confirms or clears it.
+The leash. Until the image has been seen to follow (at the start, after a fault), no command goes further than
+UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there BOUND_S probes back. Once it has, none
+goes further than LEASH_DEG past the pan the last consistent decision asked for (its z moved on at the learnt rate;
+wider by the target's motion since its newest image, SPEED_S); after a pair that did not follow, none further from the
+anchor than the slave is, and after SUSPECT_S a probe back toward the anchor, whose image confirms or clears it.
 
 A fault: the slave goes back to the anchor (a search's candidate never seen to follow: where the search began) and
-holds; the only moves are probes (PROBE_DEG from the anchor, one every PROBE_S, read less the target's own motion at
-the anchor: follows.Held; none whose background did not move; at an undecided fovea, its background), and when the
-image follows one again (a reversed camera's: one to either side in turn; a stalled motor: the encoder moves) the
-loop resumes by itself. A frozen master camera (vergence.head.frozen) holds until it changes. A motor commanded
-STALL_ARM_DEG or more away (past its dead band) that does not move for STALL_S is stalled, a search's commands too. A
-camera later than its frames say is told by the moves of its faults and named (vergence.head.lag): naming it clears a
-frozen or reversed fault (its image follows, later); from then on each frame goes through shift() first, and a pair's
-slack grows by the uncertainty of the pans it reads.
+holds; the only moves are probes (PROBE_DEG from the anchor, one every PROBE_S, read less the target's own motion at the
+anchor: follows.Held; none whose background did not move; at an undecided fovea, its background), and when the image
+follows one again (a reversed camera's: one to either side in turn; a stalled motor: the encoder moves) the loop resumes
+by itself. A frozen master camera (vergence.head.frozen) holds until it changes. A motor commanded STALL_ARM_DEG or more
+away (past its dead band) that does not move for STALL_S is stalled, a search's commands too. A camera later than its
+frames say is told by the moves of its faults and named (vergence.head.lag): naming it clears a frozen or reversed fault
+(its image follows, later); from then on each frame goes through shift() first, and a pair's slack grows by the
+uncertainty of the pans it reads.
 The library only: the reducer and `vergence sim` both run it through the Controller."""
 
 from __future__ import annotations
@@ -65,6 +65,7 @@ FAILS = 2  # decisive pairs that did not follow, in a row, to name a fault
 TARGET_RATE_DEG_S = 30.0  # a target's rate: what seems faster is a jump (vergence of a sine of 2 Hz, 0.5-1.1 m: 27)
 LONG_S = 0.07  # ... unless the rate over the consistent decisions of this long is not (one pair's noise)
 LEAD_S = 0.1  # the leash widens by the target's motion over this (a set-point aims ahead of the last measurement)
+SPEED_S = 1.0  # ... and by its motion since the newest image, at the fastest rate learnt over this
 REF_MAX_S = 0.3  # a reference older than this is replaced by the newest decision (the leash's centre stays)
 UNTRUSTED_DEG = 2.9  # the leash about the anchor until the image has been seen to follow
 LEASH_DEG = 1.5  # the leash past the pan the last consistent measurement asked for
@@ -89,7 +90,8 @@ class Doubt:
         self.home: float | None = None  # the anchor before a search's candidate, until its image is seen to follow
         self.trusted = False  # the image has been seen to follow since the start or the last fault
         self.ref = self.centre = None  # the next pair's reference decision; the last consistent one (leash's centre)
-        self.rate, self.trend, self.zs = 0.0, 0.0, []  # target rate, rad/s: learnt, the last pair's; (t, z) of LONG_S
+        # the target's rate, rad/s: learnt, the last pair's; (t, z) of LONG_S; (t, |rate|) as learnt over SPEED_S
+        self.rate, self.trend, self.zs, self.speeds = 0.0, 0.0, [], []
         self.fails, self.t_fail = [], 0.0  # the kinds of the pairs that did not follow, and when the last one was
         self.focal = Focal()  # the focal length's ratio, from precise pairs that followed and from pursuit
         self.t_probe, self.probe_sign, self.fit_ref = None, 1.0, None  # a fault's last probe, its side, its fit's ref
@@ -136,7 +138,8 @@ class Doubt:
             return self.fault  # out of order or not a time: nothing to learn
         self.t_last = t
         if fovea != self.fovea:
-            self.fovea, self.ref, self.centre, self.rate, self.trend, self.zs = fovea, None, None, 0.0, 0.0, []
+            self.fovea, self.ref, self.centre = fovea, None, None
+            self.rate, self.trend, self.zs, self.speeds = 0.0, 0.0, [], []
             self.focal.clear()
             self.held = Held()  # (the old point's offsets and the new one's are no motion of a target)
         self.anchor = pan if self.anchor is None else self.anchor
@@ -146,7 +149,9 @@ class Doubt:
         elif seen == "frozen" and self.fault is None:
             self._raise(t, Fault.MASTER_FROZEN, f"the same master image for {t - self.master.same_since:.2f} s")
         frozen = self.slave.frozen(t, pan, slave, seen == "changed")
-        self._stalled(t, pan)
+        if self.fault is None and (still := self.stall.stalled(t, pan)) is not None:
+            self.anchor = pan  # the encoder tells the truth: the motor is here
+            self._raise(t, Fault.STALLED, f"no move in {still:.2f} s")
         if background is not None and not background.late and background.r < STILL_MAX:
             self.t_still = t  # the background did not move with the motor: no probe over it follows
         # this frame's background turned with the motor: a fovea's pair that did not is the fovea's misreading (a doubt)
@@ -249,6 +254,7 @@ class Doubt:
             self.trend = 0.0 if jump else v
             if learn and (slow or abs(i.a) < math.radians(TRACKING_DEG)):
                 self.rate = 0.0 if jump else 0.5 * self.rate + 0.5 * v
+                self.speeds = [q for q in self.speeds if j.t - q[0] <= SPEED_S] + [(j.t, abs(self.rate))]
         self.ref = self.centre = j
         self.zs.append((j.t, j.z))
 
@@ -281,7 +287,7 @@ class Doubt:
         self.fails.clear()
         self.focal.clear()
         self.faults += 1
-        self._unprobe()  # (a probe of the leash or of a suspicion: over)
+        self.probe_ref = self.t_bound = None  # (a probe of the leash or of a suspicion: over)
         log.error("fault %s (%s): holding at %.2f deg; %s", fault, why,
                   math.degrees(self.anchor if self.anchor is not None else math.nan), ADVICE[fault])
 
@@ -296,14 +302,9 @@ class Doubt:
         self.home = None if trusted else self.anchor if self.home is None else self.home
         self.anchor, self.trusted, self.ref, self.centre = pan, trusted, None, None
         self.stall.reset()
-        self.rate, self.trend, self.zs = 0.0, 0.0, []
+        self.rate, self.trend, self.zs, self.speeds = 0.0, 0.0, [], []
         self.fails.clear()
-        self._unprobe()
-
-    def _stalled(self, t: float, pan: float) -> None:
-        if self.fault is None and (still := self.stall.stalled(t, pan)) is not None:
-            self.anchor = pan  # the encoder tells the truth: the motor is here
-            self._raise(t, Fault.STALLED, f"no move in {still:.2f} s")
+        self.probe_ref = self.t_bound = None
 
     def _probe_result(self, t: float, pan: float, a: float | None, frozen: bool, background: Verdict | None) -> None:
         """A frame during a fault: whether a probe's image followed, at the fovea, or where it is undecided (on an
@@ -354,7 +355,9 @@ class Doubt:
         if self.trusted and self.centre is not None:
             c = self.centre
             centre = c.z + self.rate * max(0.0, t_now - c.t)
-            lim = math.radians(LEASH_DEG) + abs(self.rate) * LEAD_S
+            # (the target's motion since its newest image: a 2 Hz sine 100 ms late turns within it, docs/FAULTS.md)
+            fastest = max((v for t, v in self.speeds if self.t_last - t <= SPEED_S), default=0.0)
+            lim = math.radians(LEASH_DEG) + abs(self.rate) * LEAD_S + fastest * max(0.0, t_now - self.t_last)
         elif self.anchor is not None:
             centre, lim = self.anchor, math.radians(UNTRUSTED_DEG)
             if (probe := self._stuck(pan, goal, t_now, lim)) is not None:
@@ -402,11 +405,8 @@ class Doubt:
     def _probing(self, t_now: float) -> float | None:
         """The goal of the probe under way; None where there is none or its time (2 PROBE_S) is over (ended)."""
         if self.probe_ref is not None and t_now - self.t_bound >= 2 * PROBE_S:
-            self._unprobe()
+            self.probe_ref = self.t_bound = None
         return None if self.probe_ref is None else self.probe_goal
-
-    def _unprobe(self) -> None:
-        self.probe_ref = self.t_bound = None
 
     def _probed(self, t: float, now: Seen) -> None:
         """The image of a probe (a head not yet trusted, or held by a pair that did not follow): it followed (the
@@ -415,7 +415,7 @@ class Doubt:
         if abs(p) < math.radians(PROBE_MIN_DEG) or p * (self.probe_goal - ref.pan) <= 0:
             return  # (not the probe's move yet: a frame's pan can still be on its way the other way)
         r, rt = ((-(now.a - ref.a) + v * (now.t - ref.t)) / p for v in (self.rate, self.trend))
-        self._unprobe()
+        self.probe_ref = self.t_bound = None
         if verdict(r) is None and r <= FOLLOWS_MAX and self.t_still <= ref.t:
             self._followed(now, r, False)
             self.ref = self.centre = now
