@@ -65,7 +65,8 @@ FAILS = 2  # decisive pairs that did not follow, in a row, to name a fault
 TARGET_RATE_DEG_S = 30.0  # a target's rate: what seems faster is a jump (vergence of a sine of 2 Hz, 0.5-1.1 m: 27)
 LONG_S = 0.07  # ... unless the rate over the consistent decisions of this long is not (one pair's noise)
 LEAD_S = 0.1  # the leash widens by the target's motion over this (a set-point aims ahead of the last measurement)
-SPEED_S = 1.0  # ... and by its motion since the newest image, at the fastest rate learnt over this
+SPEED_S, AGE_S = 1.0, 0.2  # ... and by its motion since the newest image (AGE_S of it at most), at the fastest rate
+# learnt over SPEED_S (a 2 Hz sine seen 100 ms late turns within that: docs/FAULTS.md)
 REF_MAX_S = 0.3  # a reference older than this is replaced by the newest decision (the leash's centre stays)
 UNTRUSTED_DEG = 2.9  # the leash about the anchor until the image has been seen to follow
 LEASH_DEG = 1.5  # the leash past the pan the last consistent measurement asked for
@@ -355,9 +356,8 @@ class Doubt:
         if self.trusted and self.centre is not None:
             c = self.centre
             centre = c.z + self.rate * max(0.0, t_now - c.t)
-            # (the target's motion since its newest image: a 2 Hz sine 100 ms late turns within it, docs/FAULTS.md)
-            fastest = max((v for t, v in self.speeds if self.t_last - t <= SPEED_S), default=0.0)
-            lim = math.radians(LEASH_DEG) + abs(self.rate) * LEAD_S + fastest * max(0.0, t_now - self.t_last)
+            fast = max((v for t, v in self.speeds if self.t_last - t <= SPEED_S), default=0.0)
+            lim = math.radians(LEASH_DEG) + abs(self.rate) * LEAD_S + fast * min(max(0.0, t_now - self.t_last), AGE_S)
         elif self.anchor is not None:
             centre, lim = self.anchor, math.radians(UNTRUSTED_DEG)
             if (probe := self._stuck(pan, goal, t_now, lim)) is not None:

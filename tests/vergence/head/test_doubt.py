@@ -135,6 +135,23 @@ def test_the_leash_lets_a_fast_target_be_followed_whose_image_is_old(hz, latency
     assert math.sqrt(sum(e * e for e in late) / len(late)) < 1.0
 
 
+@pytest.mark.parametrize("age,fast_deg_s", [(0.1, 25.0), (0.5, 25.0), (0.1, 0.0)])
+def test_the_leash_widens_by_the_targets_motion_since_its_newest_image_and_no_more_than_age_s_of_it(age, fast_deg_s):
+    """A trusted head, the last consistent decision's target at 0 moving at the learnt 5 deg/s, the fastest rate learnt
+    over SPEED_S fast_deg_s, a goal 30 deg away asked `age` after the newest image: the goal let out is LEASH_DEG +
+    5 deg/s x LEAD_S + fast_deg_s x min(age, AGE_S) past the centre (a frame 0.5 s old widens it by AGE_S of it)."""
+    from vergence.head.doubt import AGE_S, LEAD_S
+    from vergence.head.follows import Seen
+
+    d = Doubt()
+    d.trusted, d.anchor, d.t_last = True, 0.0, 10.0
+    d.centre, d.rate = Seen(10.0, 0.0, 0.0), math.radians(5.0)
+    d.speeds = [(9.5, math.radians(fast_deg_s))]
+    out = d.gate(0.0, math.radians(30.0), 10.0 + age)
+    centre = 5.0 * age
+    assert math.degrees(out) == pytest.approx(centre + LEASH_DEG + 5.0 * LEAD_S + fast_deg_s * min(age, AGE_S))
+
+
 def test_a_head_not_yet_seen_to_follow_moves_at_most_untrusted_deg_then_leash_deg_past_its_target():
     d = Doubt()
     feed(d, [(0, 10, 1)])
