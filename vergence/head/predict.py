@@ -87,6 +87,7 @@ class Periodic:
     MIN_DT_S = 1 / 64  # the history's spacing: 3 harmonics of max_hz need 24 Hz; 64 Hz keeps a 60 Hz camera's
     GRID, FINE = 40, 33  # the search's log grid, and its fine grid between a minimum's neighbours
     REFINED = 2  # the grid's local minima refined (the deepest first)
+    SUBHARMONIC = 1.5  # a refined minimum at half another's frequency wins only where its residual is under 1 / this
 
     def __init__(self, harmonics: int = 3, window_s: float = 3.0, min_s: float = 0.4, max_hz: float = 4.0,
                  cycles: float = 0.6, every: int = 10):
@@ -170,10 +171,15 @@ class Periodic:
         # two the true frequency's well is narrower than the grid's steps, and a point on its wall can leave more than
         # a spurious minimum's bottom (about 0.6 x the frequency, whose harmonics bracket it over so short a window)
         low = np.flatnonzero((res <= np.r_[np.inf, res[:-1]]) & (res <= np.r_[res[1:], np.inf]))
-        best = low[np.argsort(res[low])][:self.REFINED] if len(low) else [int(np.argmin(res))]
-        fine = np.concatenate([np.linspace(grid[max(0, i - 1)], grid[min(len(grid) - 1, i + 1)], self.FINE)
-                               for i in best])
-        return float(fine[int(np.argmin(self._fits(tt, zs, fine)[0]))])
+        picks = []
+        for i in low[np.argsort(res[low])][:self.REFINED] if len(low) else [int(np.argmin(res))]:
+            fine = np.linspace(grid[max(0, i - 1)], grid[min(len(grid) - 1, i + 1)], self.FINE)
+            r = self._fits(tt, zs, fine)[0]
+            picks.append((float(r.min()), float(fine[int(np.argmin(r))])))
+        (r0, f0), *others = sorted(picks)
+        # a subharmonic's three harmonics hold the frequency itself: where it fits little better it fits the noise
+        # (an encoder's), and its prediction goes astray; the frequency unless its half is clearly the better fit
+        return next((f for r, f in others if 1.8 <= f / f0 <= 2.2 and r <= self.SUBHARMONIC * r0), f0)
 
     def predict(self, at: float) -> float | None:
         if len(self.t) < 4 * self.k + 4 or self.t[-1] - self.t[0] < self.min_s:

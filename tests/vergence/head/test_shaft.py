@@ -114,10 +114,11 @@ def _sim(spec: str, seed: int, rate: float = 30.0, seconds: float = 16.0) -> flo
 @pytest.mark.slow
 def test_pursuit_with_a_noisy_encoder_at_30_hz_is_near_the_clean_runs():
     """The loop at 30 Hz, 0 ms, on a sine of its own with 0.05 deg of encoder noise (16 s, the RMS from 2 s on):
-    each frame's pan one reading, x1.63 and x1.79 the clean run's RMS on these draws; then x1.26 and x1.15; since the
-    periodic fit's frequency search refines two minima (2026-12-07) x1.11 and x1.41 (0.309 and 0.391 px against 0.370
-    and 0.342: the clean runs 6-7 % better, and seed 63's noisy one 0.48 px over 6-10 s, where one search read 0.21 Hz
-    for 0.4; seeds 64, 65 x1.14, x1.11)."""
+    each frame's pan one reading, x1.63 and x1.79 the clean run's RMS on these draws; then x1.26 and x1.15; with the
+    periodic fit's search refining two minima x1.11 and x1.41 (seed 63's noisy run 0.48 px over 6-10 s, where one
+    search took 0.21 Hz, the half of 0.4, for the better fit of the noise); with the half taken only where it fits
+    clearly better (2026-12-07), x1.11 and x1.23 (0.309, 0.340 px; the clean runs 0.278, 0.277; seeds 64, 65 x1.14,
+    x1.11)."""
     for seed in (62, 63):
         clean, noisy = _sim("", seed), _sim("encoder_noise=0.05", seed)
-        assert noisy < 1.5 * clean, (seed, clean, noisy)
+        assert noisy < 1.4 * clean, (seed, clean, noisy)
