@@ -186,16 +186,15 @@ class Controller:
             return None
         shaft, rows = self._shaft(t_s, pan), central(band)
         seen = profile(rows)  # (the play's and the background's)
+        centre = (band.shape[1] - 1) / 2 if centre_col is None else centre_col
         if d.fault is not None or self.search.searching:
             self.play.lost()
-        elif self.play.see(t_s, shaft, seen, (rows.shape, fovea), focal_px, fovea_col,
-                           (band.shape[1] - 1) / 2 if centre_col is None else centre_col):
+        elif self.play.see(t_s, shaft, seen, (rows.shape, fovea), focal_px, fovea_col, centre):
             self._replay(self.play.replay())
         if self.play.half:
             pan = self.play.peek(shaft)  # (the camera's: the background turns as it does)
-        return self.background.see(t_s, pan, rows, focal_px, fovea_col, key=fovea,
-                                   min_move_deg=PROBE_MIN_DEG if probing else MIN_MOVE_DEG,
-                                   centre_col=(band.shape[1] - 1) / 2 if centre_col is None else centre_col, seen=seen)
+        return self.background.see(t_s, pan, rows, focal_px, fovea_col, key=fovea, centre_col=centre, seen=seen,
+                                   min_move_deg=PROBE_MIN_DEG if probing else MIN_MOVE_DEG)
 
     def target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool = True,
                centre_px: float = 0.0, t_s: float | None = None, t_now: float | None = None,
