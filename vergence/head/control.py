@@ -193,8 +193,9 @@ class Controller:
             self._replay(self.play.replay())
         if self.play.half:
             pan = self.play.peek(shaft)  # (the camera's: the background turns as it does)
-        return self.background.see(t_s, pan, rows, focal_px, fovea_col, key=fovea, centre_col=centre, seen=seen,
-                                   min_move_deg=PROBE_MIN_DEG if probing else MIN_MOVE_DEG)
+        # (bands from before a fault cleared are no reference: the camera then may not have followed the motor)
+        return self.background.see(t_s, pan, rows, focal_px, fovea_col, key=(fovea, d.resumed), centre_col=centre,
+                                   seen=seen, min_move_deg=PROBE_MIN_DEG if probing else MIN_MOVE_DEG)
 
     def target(self, pan_at_capture: float, offset_px: float, focal_px: float, confident: bool = True,
                centre_px: float = 0.0, t_s: float | None = None, t_now: float | None = None,
