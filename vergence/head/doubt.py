@@ -28,7 +28,7 @@ anchor than the slave is, and after SUSPECT_S a probe back toward the anchor, wh
 
 A fault: the slave goes back to the anchor (a search's candidate never seen to follow: where the search began) and
 holds; the only moves are probes (PROBE_DEG from the anchor, one every PROBE_S, read less the target's own motion at the
-anchor: follows.Held; none whose background did not move; at an undecided fovea, its background), and when the image
+anchor: follows.Held; none whose background did not move; or its background, which turns with it), and when the image
 follows one again (a reversed camera's: one to either side in turn; a stalled motor: the encoder moves) the loop resumes
 by itself. A frozen master camera (vergence.head.frozen) holds until it changes. A motor commanded STALL_ARM_DEG or more
 away (past its dead band) that does not move for STALL_S is stalled, a search's commands too. A camera later than its
