@@ -22,9 +22,9 @@ fovea's pair that did not follow, on a frame whose background turned with the mo
 
 The leash. Until the image has been seen to follow (at the start, after a fault), no command goes further than
 UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there BOUND_S probes back. Once it has, none
-goes further than LEASH_DEG past the pan the last consistent decision asked for (its z moved on at the learnt rate;
-wider by the target's motion since its newest image, SPEED_S); after a pair that did not follow, none further from the
-anchor than the slave is, and after SUSPECT_S a probe back toward the anchor, whose image confirms or clears it.
+goes further than LEASH_DEG past the pan the last consistent decision asked for (its z on at the learnt rate, a cone
+past REF_MAX_S; wider by the target's motion since its newest image, SPEED_S); after a pair that did not follow, none
+further from the anchor than the slave is, and after SUSPECT_S a probe back toward the anchor confirms or clears it.
 
 A fault: the slave goes back to the anchor (a search's candidate never seen to follow: where the search began) and
 holds; the only moves are probes (PROBE_DEG from the anchor, one every PROBE_S, read less the target's own motion at the
@@ -354,10 +354,10 @@ class Doubt:
         if goal is None or not math.isfinite(goal):
             return None
         if self.trusted and self.centre is not None:
-            c = self.centre
-            centre = c.z + self.rate * max(0.0, t_now - c.t)
-            fast = max((v for t, v in self.speeds if self.t_last - t <= SPEED_S), default=0.0)
-            lim = math.radians(LEASH_DEG) + abs(self.rate) * LEAD_S + fast * min(max(0.0, t_now - self.t_last), AGE_S)
+            c, fast = self.centre, max((v for t, v in self.speeds if self.t_last - t <= SPEED_S), default=0.0)
+            dt, seen = max(0.0, t_now - c.t), min(max(0.0, t_now - self.t_last), AGE_S)
+            centre = c.z + self.rate * min(dt, REF_MAX_S)  # (past REF_MAX_S the target went on or turned: a cone)
+            lim = math.radians(LEASH_DEG) + abs(self.rate) * (LEAD_S + max(0.0, dt - REF_MAX_S)) + fast * seen
         elif self.anchor is not None:
             centre, lim = self.anchor, math.radians(UNTRUSTED_DEG)
             if (probe := self._stuck(pan, goal, t_now, lim)) is not None:

@@ -152,6 +152,32 @@ def test_the_leash_widens_by_the_targets_motion_since_its_newest_image_and_no_mo
     assert math.degrees(out) == pytest.approx(centre + LEASH_DEG + 5.0 * LEAD_S + fast_deg_s * min(age, AGE_S))
 
 
+def test_the_leash_over_a_long_gap_is_a_cone_not_the_learnt_rate_run_on():
+    """A trusted head, the last consistent decision's target at 0 moving at the learnt -4.2 deg/s, the first decision
+    after 2 s of black frames asking 0.4 deg: let out as asked (the centre run on at the learnt rate for the 2 s put
+    the leash 8.4 deg away, and the goal sent was 6.5 deg astray: `bench faults`' black rows once the head is
+    trusted); a goal 30 deg away stops at the rate over REF_MAX_S, then LEASH_DEG and the rate over the rest."""
+    from vergence.head.doubt import LEAD_S, REF_MAX_S
+    from vergence.head.follows import Seen
+
+    d = Doubt()
+    d.trusted, d.anchor, d.t_last = True, 0.0, 10.0
+    d.centre, d.rate = Seen(10.0, 0.0, 0.0), math.radians(-4.2)
+    assert d.gate(0.0, math.radians(0.4), 12.0) == pytest.approx(math.radians(0.4))
+    far = -4.2 * REF_MAX_S - LEASH_DEG - 4.2 * (LEAD_S + 2.0 - REF_MAX_S)
+    assert math.degrees(d.gate(0.0, math.radians(-30.0), 12.0)) == pytest.approx(far)
+
+
+def test_a_trusted_head_after_black_frames_is_not_sent_where_the_learnt_rate_ran_on():
+    """`vergence sim`'s rig: a sine of 0.8 +- 0.3 m at 0.5 Hz, 30 Hz, the slave converging from parallel (trusted by
+    that move), every frame black from 1 to 3 s: over the 0.5 s after, within 6 px (4.0; before the cone, the first
+    decision's command went where the leash's centre ran on at the learnt rate for 2 s: 48.8 px off)."""
+    rig = MovingRig.from_options(motion="sine:z=0.8,amp=0.3,hz=0.5", focal="500", seed="7", noise="1")
+    faults = Faults.take(parse("black=1-3", FAULT_KEYS, "test"))
+    steps = list(closed_loop(rig, 4 * 30, None, ControlSettings(), None, 30.0, faults=faults, seed=7, focal_px=500.0))
+    assert max(abs(s.camera_error_px) for s in steps if 3.0 <= s.t_s < 3.5) <= 6.0
+
+
 def test_a_head_not_yet_seen_to_follow_moves_at_most_untrusted_deg_then_leash_deg_past_its_target():
     d = Doubt()
     feed(d, [(0, 10, 1)])
