@@ -28,7 +28,7 @@ further from the anchor than the slave is, and after SUSPECT_S a probe back towa
 
 A fault: the slave goes back to the anchor (a search's candidate never seen to follow: where the search began) and
 holds; the only moves are probes (PROBE_DEG from the anchor, one every PROBE_S, read less the target's own motion at the
-anchor: follows.Held; none whose background did not move; or its background, which turns with it), and when the image
+anchor: follows.Held; none whose background did not move; at an undecided fovea, its background), and when the image
 follows one again (a reversed camera's: one to either side in turn; a stalled motor: the encoder moves) the loop resumes
 by itself. A frozen master camera (vergence.head.frozen) holds until it changes. A motor commanded STALL_ARM_DEG or more
 away (past its dead band) that does not move for STALL_S is stalled, a search's commands too. A camera later than its
@@ -77,7 +77,7 @@ PROBE_FIT_S = 0.35  # a fault's probe whose image has not followed by this long 
 SUSPECT_S = 0.1  # a pair that did not follow holds the motor this long, then probes
 BOUND_S = 0.2  # an untrusted head held at its leash's end this long probes (a slipping camera's runaway ends there)
 SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within this
-BG_FOLLOWS = 2  # a fault's background verdicts in a row that moved with the motor clear it
+BG_FOLLOWS = 2  # a fault's background verdicts in a row that moved with the motor clear it where the fovea is undecided
 PRECISE = 0.2  # a decisive pair with at most this slack per motion counts for the focal length (docs/FAULTS.md)
 
 
@@ -308,8 +308,8 @@ class Doubt:
         self.probe_ref = self.t_bound = None
 
     def _probe_result(self, t: float, pan: float, a: float | None, frozen: bool, background: Verdict | None) -> None:
-        """A frame during a fault: whether a probe's image followed: BG_FOLLOWS background verdicts in a row that moved
-        with the motor (a probe's move), or at the fovea (less the target's own motion there: follows.Held)."""
+        """A frame during a fault: whether a probe's image followed, at the fovea, or where it is undecided (on an
+        edge, a flat patch) from BG_FOLLOWS background verdicts in a row that moved with the motor (a probe's move)."""
         if self.fault is Fault.MASTER_FROZEN or self.anchor is None:
             return
         away = pan - self.anchor
@@ -320,9 +320,9 @@ class Doubt:
         if background is not None:
             follows = not frozen and background.turned
             self.bg_follows = self.bg_follows + 1 if follows else 0
-        if background is not None and self.bg_follows >= BG_FOLLOWS:  # (a fast target's probe the fovea cannot read)
-            return self._clear(t, pan, f"a probe moved the background r = {background.r:.2f}")
         if a is None or not math.isfinite(a):
+            if background is not None and self.bg_follows >= BG_FOLLOWS:
+                self._clear(t, pan, f"a probe moved the background r = {background.r:.2f}, the fovea undecided")
             return
         if abs(away) < math.radians(SAME_PAN_DEG):
             self.ref = Seen(t, pan, a)  # a fresh reference at the anchor for the next probe
