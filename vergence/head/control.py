@@ -249,15 +249,15 @@ class Controller:
             t_s, pan_at_capture = d.shift(t_s, pan_at_capture)  # (a camera named late: as its image shows it)
             ok = confident and math.isfinite(offset_px) and math.isfinite(focal_px) and focal_px > 0
             a = pixels_to_angle(offset_px, focal_px, centre_px) if ok else None
-            fault, told = d.fault, d.focal_ratio is None
+            fault, told = d.fault, d.focal.ratio is None
             d.observe(t_s, pan_at_capture, a, slave, master, fovea, background=background,
                       off_axis=centre_px / focal_px if ok and math.isfinite(centre_px) else 0.0)
-            if d.fault == fault and told and d.focal_ratio is not None:
-                self._refocus(d.focal_ratio)
-            elif (d.fault, d.focal_ratio is None) != (fault, told):
+            if d.fault == fault and told and d.focal.ratio is not None:
+                self._refocus(d.focal.ratio)
+            elif (d.fault, d.focal.ratio is None) != (fault, told):
                 self.reset()  # what the filter learnt while the image lied (or before the fault) says nothing now
-            if d.focal_ratio is not None and math.isfinite(focal_px):
-                focal_px = focal_px * d.focal_ratio  # the measured focal length
+            if d.focal.ratio is not None and math.isfinite(focal_px):
+                focal_px = focal_px * d.focal.ratio  # the measured focal length
         now = t_now if t_now is not None and math.isfinite(t_now) else t_s
         if d.fault is not None:
             self.search.reset()

@@ -21,10 +21,11 @@ doubt where the offset is under LEASH_DEG: it holds the chase a slipping camera 
 fovea's pair that did not follow, on a frame whose background turned with the motor, is a doubt (the fovea misread).
 
 The leash. Until the image has been seen to follow (at the start, after a fault), no command goes further than
-UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there BOUND_S probes back. Once it has, none
-goes further than LEASH_DEG past the pan the last consistent decision asked for (its z on at the learnt rate, a cone
-past REF_MAX_S; wider by the target's motion since its newest image, SPEED_S); after a pair that did not follow, none
-further from the anchor than the slave is, and after SUSPECT_S a probe back toward the anchor confirms or clears it.
+UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there BOUND_S probes back (read less the
+target's own motion as its offsets at rest before it show it: follows.Held). Once it has, none goes further than
+LEASH_DEG past the pan the last consistent decision asked for (its z on at the learnt rate, a cone past REF_MAX_S; wider
+by the target's motion since its newest image, SPEED_S); after a pair that did not follow, none further from the anchor
+than the slave is, and after SUSPECT_S a probe back toward the anchor confirms or clears it.
 
 A fault: the slave goes back to the anchor (a search's candidate never seen to follow: where the search began) and
 holds; the only moves are probes (PROBE_DEG from the anchor, one every PROBE_S, read less the target's own motion at the
@@ -98,9 +99,9 @@ class Doubt:
         self.t_probe, self.probe_sign, self.fit_ref = None, 1.0, None  # a fault's last probe, its side, its fit's ref
         self.sides = (0.0, -math.inf)  # a reversed fault's last probe that followed: its side, when
         self.t_still, self.turned_now = -math.inf, False  # the last still background (not late); this one turned
-        self.returned, self.held = None, Held()  # when the move back to the anchor was sent; the target's motion there
-        self.master, self.slave = Master(), Slave()  # each camera's images, frame to frame
-        self.stall = Stall()  # a motor that does not follow its commands (its dead band: the Controller's Safety's)
+        self.returned, self.held, self.still = None, Held(), Held()  # the move back's time; the target's motion at rest
+        # each camera's images, frame to frame; a motor that does not follow its commands (its dead band: the Safety's)
+        self.master, self.slave, self.stall = Master(), Slave(), Stall()
         self.t_bound: float | None = None  # since when an untrusted head is held at its leash's end; a probe's start
         self.probe_ref, self.probe_goal = None, 0.0  # a probe's decision before it (None: none under way), its goal
         self.t_held = self.last_seen = None  # since when a pair that did not follow holds the motor; the last decision
@@ -110,11 +111,7 @@ class Doubt:
 
     @property
     def note(self) -> str:  # what to check (vergence.head.follows.note)
-        return note(self.fault, self.focal_ratio, self.late_s)
-
-    @property
-    def focal_ratio(self) -> float | None:  # the image's motion over the motor's where named (vergence.head.focal)
-        return self.focal.ratio
+        return note(self.fault, self.focal.ratio, self.late_s)
 
     @property
     def late_s(self) -> float | None:  # how much later than its frames say its image shows the motor (head.lag)
@@ -142,7 +139,7 @@ class Doubt:
             self.fovea, self.ref, self.centre = fovea, None, None
             self.rate, self.trend, self.zs, self.speeds = 0.0, 0.0, [], []
             self.focal.clear()
-            self.held = Held()  # (the old point's offsets and the new one's are no motion of a target)
+            self.held, self.still = Held(), Held()  # (the old point's offsets and the new one's are no target's motion)
         self.anchor = pan if self.anchor is None else self.anchor
         seen = self.master.see(t, master, fovea)
         if seen == "changed" and self.fault is Fault.MASTER_FROZEN:
@@ -184,6 +181,8 @@ class Doubt:
             return self._fail(t, fail_kind(background.r), why)
         if still and abs(a) <= math.radians(LEASH_DEG):  # (a late image's: near the target, a chase, not a correction)
             self._fail(t, "doubt", "as a late image's might not")  # (held; the pair may say more)
+        if self.probe_ref is None or abs(pan - self.probe_ref.pan) < math.radians(SAME_PAN_DEG):
+            self.still.add(t, a, pan)  # (a probe's frames that moved are read against the run before it)
         if self.probe_ref is not None:
             self._probed(t, now)
             return self.fault
@@ -287,8 +286,7 @@ class Doubt:
         self.trusted, self.ref, self.t_held, self.sides = False, None, None, (0.0, -math.inf)
         self.fails.clear()
         self.focal.clear()
-        self.faults += 1
-        self.probe_ref = self.t_bound = None  # (a probe of the leash or of a suspicion: over)
+        self.faults, self.probe_ref, self.t_bound = self.faults + 1, None, None  # (a probe of the leash or a suspicion)
         log.error("fault %s (%s): holding at %.2f deg; %s", fault, why,
                   math.degrees(self.anchor if self.anchor is not None else math.nan), ADVICE[fault])
 
@@ -415,6 +413,8 @@ class Doubt:
         if abs(p) < math.radians(PROBE_MIN_DEG) or p * (self.probe_goal - ref.pan) <= 0:
             return  # (not the probe's move yet: a frame's pan can still be on its way the other way)
         r, rt = ((-(now.a - ref.a) + v * (now.t - ref.t)) / p for v in (self.rate, self.trend))
+        if (m := self.still.motion(ref.t, now.t, ref.pan)) is not None:
+            r = -(now.a - ref.a - m) / p  # the target's motion as its offsets at rest before the probe fit it
         self.probe_ref = self.t_bound = None
         if verdict(r) is None and r <= FOLLOWS_MAX and self.t_still <= ref.t:
             self._followed(now, r, False)
@@ -446,5 +446,5 @@ class Doubt:
         """For the reducer's status: the fault (or None), what to check, and the counts."""
         return {"fault": self.fault and str(self.fault), "fault_note": self.note, "faults": self.faults,
                 "faults_cleared": self.resumed,
-                "focal_ratio": None if self.focal_ratio is None else round(self.focal_ratio, 3),
+                "focal_ratio": None if self.focal.ratio is None else round(self.focal.ratio, 3),
                 "late_ms": None if self.late_s is None else round(self.late_s * 1e3, 1)}

@@ -85,20 +85,26 @@ class Seen:
 
 
 class Held:
-    """The target's own motion while the motor holds still (during a fault, at its anchor): the offset's angle over the
-    last WINDOW_S, a least-squares parabola where one fits (a target turning), else a line where one does; none with
-    too few frames or off both. Where the motor does not move, the offset moves with the target only, whether the
+    """The target's own motion while the motor holds still (during a fault, at its anchor; an untrusted head at its
+    leash's end, before the probe back: vergence.head.doubt): the offset's angle over the last WINDOW_S, a
+    least-squares parabola where one fits (a target turning), else a line where one does; none with too few frames or
+    off both. Where the motor does not move, the offset moves with the target only, whether the
     camera follows the motor or not, so a probe's image motion less the target's is the probe's own (a probe read
     without it during pursuit took the target's motion for the camera's: a slipping camera's fault cleared by a probe
     that had not moved it; read without the parabola, the same at a sine's turn, and the chase then ran 4.7 deg)."""
 
     WINDOW_S, MIN = 0.25, 4
     RESID_RAD = math.radians(0.1)  # a line's (a parabola's) RMS residual at most this (0.1 deg: 0.9 px at f 500)
+    SAME_RAD = math.radians(0.1)  # a frame whose pan is further than this from the run's first is a new run
 
     def __init__(self):
         self.seen: list[tuple[float, float]] = []  # (t, a) at the anchor
+        self.pan: float | None = None  # the run's first pan (None: not kept)
 
-    def add(self, t: float, a: float) -> None:
+    def add(self, t: float, a: float, pan: float | None = None) -> None:
+        """A frame's offset angle a at t; with its pan, a frame that moved starts a new run (the motor at rest)."""
+        if pan is not None and (self.pan is None or abs(pan - self.pan) > self.SAME_RAD):
+            self.seen, self.pan = [], pan
         self.seen = [s for s in self.seen if t - s[0] <= self.WINDOW_S] + [(t, a)]
 
     def ratios(self, t0: float, pan0: float, a0: float, t: float, pan: float, a: float) -> tuple[float, ...]:
@@ -108,15 +114,16 @@ class Held:
         seen = -(a - a0) / dp
         return (seen,) if m is None else (-(a - a0 - m) / dp, min(seen, FOLLOWS_MAX))
 
-    def motion(self, t0: float, t: float) -> float | None:
+    def motion(self, t0: float, t: float, pan0: float | None = None) -> float | None:
         """The target's own change of the offset's angle from t0 to t (rad), along a parabola through the last WINDOW_S
         (MIN + 1 frames or more; MIN: a line), where that leaves at most RESID_RAD RMS; None off it
         (a target that stepped: no motion to take out; the probe is read as seen). A parabola: a target turns or
         speeds up within a probe's time (the near turn of a 0.4 Hz sine at 0.5-1 m, 27 deg/s^2: a line through the
-        turn, within 0.1 deg of it, missed 0.27 deg of the target's motion over a 0.5 deg probe's 0.09 s)."""
+        turn, within 0.1 deg of it, missed 0.27 deg of the target's motion over a 0.5 deg probe's 0.09 s). With pan0
+        (the reference's pan), None where that is not the run's (frames added with their pans)."""
         n = len(self.seen)
-        if n < self.MIN:
-            return None
+        if n < self.MIN or (pan0 is not None and (self.pan is None or abs(pan0 - self.pan) > self.SAME_RAD)):
+            return None  # (too few frames, or pan0 not this run's pan)
         ts, offs = np.array(self.seen).T
         mt = ts.mean()
         c = np.polyfit(ts - mt, offs, 2 if n > self.MIN else 1)  # (off a parabola, off its line too)
