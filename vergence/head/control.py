@@ -179,7 +179,7 @@ class Controller:
         asks when the Frame arrives, while the workers compute. The play between the motor and the camera is read off
         the same bands (vergence.head.play), and where it is named the verdict is on the camera's pan."""
         d = self.doubt
-        if d.late_s is not None:
+        if d.lag.late_s is not None:
             return None
         probing = d.fault in (Fault.SLAVE_FROZEN, Fault.REVERSED)
         if getattr(band, "ndim", 0) != 2:
@@ -215,7 +215,7 @@ class Controller:
         rest (vergence.head.rest), not the one reading the frame carries; while it moves, a noisy encoder's pan is the
         goals sent as the motor follows them (vergence.head.shaft). Where a play is named (vergence.head.play) the pan
         is the camera's through it, and the goal returned is the motor's (half the play past the camera's)."""
-        if t_s is not None and self.doubt.late_s is None:
+        if t_s is not None and self.doubt.lag.late_s is None:
             pan_at_capture = self._shaft(t_s, pan_at_capture)
         shaft = pan_at_capture
         if t_s is not None:

@@ -21,11 +21,11 @@ doubt where the offset is under LEASH_DEG: it holds the chase a slipping camera 
 fovea's pair that did not follow, on a frame whose background turned with the motor, is a doubt (the fovea misread).
 
 The leash. Until the image has been seen to follow (at the start, after a fault), no command goes further than
-UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there BOUND_S probes back (read less the
-target's own motion as its offsets at rest before it show it: follows.Held). Once it has, none goes further than
-LEASH_DEG past the pan the last consistent decision asked for (its z on at the learnt rate, a cone past REF_MAX_S; wider
-by the target's motion since its newest image, SPEED_S); after a pair that did not follow, none further from the anchor
-than the slave is, and after SUSPECT_S a probe back toward the anchor confirms or clears it.
+UNTRUSTED_DEG from the last pan where it followed (the anchor); a head held there probes back after BOUND_S, or as the
+target turns back (its move), read less the target's motion as its offsets at rest show it (follows.Held). Once it has,
+none goes further than LEASH_DEG past the pan the last consistent decision asked for (its z on at the learnt rate, a
+cone past REF_MAX_S; wider by the target's motion since its newest image, SPEED_S); after a pair that did not follow,
+none further from the anchor than the slave is, and after SUSPECT_S a probe toward the anchor confirms or clears it.
 
 A fault: the slave goes back to the anchor (a search's candidate never seen to follow: where the search began) and
 holds; the only moves are probes (PROBE_DEG from the anchor, one every PROBE_S, read less the target's own motion at the
@@ -103,7 +103,8 @@ class Doubt:
         # each camera's images, frame to frame; a motor that does not follow its commands (its dead band: the Safety's)
         self.master, self.slave, self.stall = Master(), Slave(), Stall()
         self.t_bound: float | None = None  # since when an untrusted head is held at its leash's end; a probe's start
-        self.probe_ref, self.probe_goal = None, 0.0  # a probe's decision before it (None: none under way), its goal
+        self.probe_ref, self.probe_goal, self.turn = None, 0.0, False  # a probe's decision before it (None: none), its
+        # goal, and whether it is a turn's (the controller's own move back from the leash's end: _stuck)
         self.t_held = self.last_seen = None  # since when a pair that did not follow holds the motor; the last decision
         self.faults = self.resumed = self.bg_follows = 0  # faults named so far, and cleared; see _probe_result
         self.t_last, self.fovea = None, None  # the last decision's exposure and fovea
@@ -111,15 +112,11 @@ class Doubt:
 
     @property
     def note(self) -> str:  # what to check (vergence.head.follows.note)
-        return note(self.fault, self.focal.ratio, self.late_s)
-
-    @property
-    def late_s(self) -> float | None:  # how much later than its frames say its image shows the motor (head.lag)
-        return self.lag.late_s
+        return note(self.fault, self.focal.ratio, self.lag.late_s)
 
     def shift(self, t: float, pan: float) -> tuple[float, float]:
         """A frame as its stamp says it (t its slave's exposure, pan the slave's pan then) into (t, pan) as its image
-        shows it: the same, or for a camera named late, late_s earlier and the pan then. Every frame goes through
+        shows it: the same, or for a camera named late, lag.late_s earlier and the pan then. Every frame goes through
         here before observe() (the Controller does it): the pans kept are what a lag is fitted on."""
         t, pan, self.u = self.lag.shift(t, pan)
         return t, pan
@@ -155,12 +152,13 @@ class Doubt:
         # this frame's background turned with the motor: a fovea's pair that did not is the fovea's misreading (a doubt)
         self.turned_now = background is not None and background.turned
         if self.fault is not None:
-            late = self.late_s
+            late = self.lag.late_s
             if a is not None and math.isfinite(a):
                 self.lag.saw(t, a)
             self._probe_result(t, pan, a, frozen, background)
-            if self.late_s != late and self.fault in (Fault.SLAVE_FROZEN, Fault.REVERSED):  # (the image follows)
-                self._clear(t, pan, f"its image follows the motor {self.late_s * 1e3:.0f} ms later than its frames say")
+            if self.lag.late_s != late and self.fault in (Fault.SLAVE_FROZEN, Fault.REVERSED):  # (the image follows)
+                self._clear(t, pan, f"its image follows the motor {self.lag.late_s * 1e3:.0f} ms later than its frames "
+                                    "say")
             return self.fault
         if frozen:
             return self._fail(t, "frozen", f"a byte-identical slave image (a {IDENTICAL_MOVE_DEG} deg move or noise)")
@@ -168,12 +166,11 @@ class Doubt:
         why = f"the background moved {background.r:.2f} x the motor" if still else ""
         if a is None or not math.isfinite(a):  # (the fovea undecided: its background still says it)
             return self._fail(t, fail_kind(background.r), why) if still and not background.late else self.fault
-        now, late = Seen(t, pan, a, self.u), self.late_s
+        now, late = Seen(t, pan, a, self.u), self.lag.late_s
         self.last_seen = now
         self.lag.saw(t, a)
-        if self.late_s != late:  # named late: the next frames are taken at their images' instants, no pair across
-            self.ref, self.centre = None, None
-            self.fails.clear()
+        if self.lag.late_s != late:  # named late: the next frames are taken at their images' instants, no pair across
+            self.ref, self.centre, self.fails = None, None, []
             return self.fault
         self.focal.off_axis = off_axis  # (the fovea's column off the principal point over the focal length told)
         self.focal.add(t, pan, a)
@@ -274,17 +271,15 @@ class Doubt:
 
     def _raise(self, t: float, fault: Fault, why: str) -> None:
         if fault in (Fault.SLAVE_FROZEN, Fault.REVERSED) and self.last_seen is not None:
-            late = self.late_s  # the image of the move that raised it, and of the move back: a late one shows both
+            late = self.lag.late_s  # the image of the move that raised it, and of the move back: a late one shows both
             self.lag.expect(self.last_seen.t, self.last_seen.a, t + RETURN_FIT_S)
-            if self.late_s != late:  # the fit that was due named the camera late: that is what the pairs saw
-                self.lag.pending, self.ref, self.centre = None, None, None
-                self.fails.clear()
+            if self.lag.late_s != late:  # the fit that was due named the camera late: that is what the pairs saw
+                self.lag.pending, self.ref, self.centre, self.fails = None, None, None, []
                 return
         if fault in (Fault.SLAVE_FROZEN, Fault.REVERSED) and not self.trusted and self.home is not None:
             self.anchor = self.home  # a search's candidate never seen to follow: back to where the search began
         self.fault, self.t_probe, self.returned, self.bg_follows, self.home = fault, t, None, 0, None
-        self.trusted, self.ref, self.t_held, self.sides = False, None, None, (0.0, -math.inf)
-        self.fails.clear()
+        self.trusted, self.ref, self.t_held, self.sides, self.fails = False, None, None, (0.0, -math.inf), []
         self.focal.clear()
         self.faults, self.probe_ref, self.t_bound = self.faults + 1, None, None  # (a probe of the leash or a suspicion)
         log.error("fault %s (%s): holding at %.2f deg; %s", fault, why,
@@ -301,8 +296,7 @@ class Doubt:
         self.home = None if trusted else self.anchor if self.home is None else self.home
         self.anchor, self.trusted, self.ref, self.centre = pan, trusted, None, None
         self.stall.reset()
-        self.rate, self.trend, self.zs, self.speeds = 0.0, 0.0, [], []
-        self.fails.clear()
+        self.rate, self.trend, self.zs, self.speeds, self.fails = 0.0, 0.0, [], [], []
         self.probe_ref = self.t_bound = None
 
     def _probe_result(self, t: float, pan: float, a: float | None, frozen: bool, background: Verdict | None) -> None:
@@ -371,10 +365,15 @@ class Doubt:
         return goal
 
     def _stuck(self, pan: float, goal: float, t_now: float, lim: float) -> float | None:
-        """A head not yet trusted, held at its leash's end for BOUND_S: a probe back toward the anchor (or None)."""
+        """A head not yet trusted, held at its leash's end for BOUND_S: a probe back toward the anchor (or None). Held
+        there, a goal back inside the leash (the target turned) goes out, its move read as the probe (a turn's)."""
         if self.probe_ref is not None:
             return self._probing(t_now)
-        if abs(goal - self.anchor) <= lim or abs(abs(pan - self.anchor) - lim) > math.radians(SAME_PAN_DEG):
+        end = abs(abs(pan - self.anchor) - lim) <= math.radians(SAME_PAN_DEG)
+        if end and self.t_bound is not None and abs(goal - self.anchor) <= lim and self.last_seen is not None \
+                and self.still.motion(t_now, t_now, pan) is not None:  # (the target's motion there fits: vs a probe)
+            return self._probe(pan, pan - self.anchor, t_now, turn=True)
+        if abs(goal - self.anchor) <= lim or not end:
             self.t_bound = None
         elif self.t_bound is None:
             self.t_bound = t_now
@@ -394,17 +393,18 @@ class Doubt:
             return self._probe(pan, pan - self.anchor, t_now)
         return pan
 
-    def _probe(self, pan: float, away: float, t_now: float) -> float:
-        """A probe PROBE_DEG from `pan` toward the anchor (against `away`), read in _probed. Its goal."""
-        self.probe_ref, self.t_bound = self.last_seen, t_now
+    def _probe(self, pan: float, away: float, t_now: float, turn: bool = False) -> float | None:
+        """A probe PROBE_DEG from `pan` toward the anchor (against `away`), read in _probed. Its goal (a turn's: None,
+        the controller's goal goes out, and its move is read within PROBE_FIT_S, or the probe ends unread)."""
+        self.probe_ref, self.t_bound, self.turn = self.last_seen, t_now, turn
         self.probe_goal = pan - math.copysign(math.radians(PROBE_DEG), away)
-        return self.probe_goal
+        return None if turn else self.probe_goal
 
     def _probing(self, t_now: float) -> float | None:
-        """The goal of the probe under way; None where there is none or its time (2 PROBE_S) is over (ended)."""
-        if self.probe_ref is not None and t_now - self.t_bound >= 2 * PROBE_S:
+        """The goal of the probe under way; None where there is none (or a turn's) or its time (2 PROBE_S) is over."""
+        if self.probe_ref is not None and t_now - self.t_bound >= (PROBE_FIT_S if self.turn else 2 * PROBE_S):
             self.probe_ref = self.t_bound = None
-        return None if self.probe_ref is None else self.probe_goal
+        return None if self.probe_ref is None or self.turn else self.probe_goal
 
     def _probed(self, t: float, now: Seen) -> None:
         """The image of a probe (a head not yet trusted, or held by a pair that did not follow): it followed (the
@@ -447,4 +447,4 @@ class Doubt:
         return {"fault": self.fault and str(self.fault), "fault_note": self.note, "faults": self.faults,
                 "faults_cleared": self.resumed,
                 "focal_ratio": None if self.focal.ratio is None else round(self.focal.ratio, 3),
-                "late_ms": None if self.late_s is None else round(self.late_s * 1e3, 1)}
+                "late_ms": None if self.lag.late_s is None else round(self.lag.late_s * 1e3, 1)}

@@ -213,7 +213,7 @@ def _decide(rig, frame: int, seen: dict, times: tuple[float, float, float], at, 
                 offset_px=d.offset_px, confident=d.confident, k=d.k, v=d.v, window=m.window,
                 confidence=d.confidence, target_deg=None, scores=np.atleast_2d(m.scores)[d.v + params.vsearch],
                 fault=None if controller.doubt.fault is None else str(controller.doubt.fault),
-                late_ms=None if controller.doubt.late_s is None else round(controller.doubt.late_s * 1e3, 2),
+                late_ms=None if controller.doubt.lag.late_s is None else round(controller.doubt.lag.late_s * 1e3, 2),
                 focal_ratio=controller.doubt.focal.ratio)
     return step, target
 
