@@ -85,13 +85,13 @@ class Seen:
 
 
 class Held:
-    """The target's own motion while the motor holds still (during a fault, at its anchor; an untrusted head at its
-    leash's end, before the probe back: vergence.head.doubt): the offset's angle over the last WINDOW_S, a
-    least-squares parabola where one fits (a target turning), else a line where one does; none with too few frames or
-    off both. Where the motor does not move, the offset moves with the target only, whether the
-    camera follows the motor or not, so a probe's image motion less the target's is the probe's own (a probe read
-    without it during pursuit took the target's motion for the camera's: a slipping camera's fault cleared by a probe
-    that had not moved it; read without the parabola, the same at a sine's turn, and the chase then ran 4.7 deg)."""
+    """The target's own motion while the motor holds still (during a fault, at its anchor; before the leash's probes
+    of vergence.head.doubt, at the motor's last rest): the offset's angle over the last WINDOW_S, a least-squares
+    parabola where one fits (a target turning), else a line where one does; none with too few frames or off both.
+    Where the motor does not move, the offset moves with the target only, whether the camera follows the motor or
+    not, so a probe's image motion less the target's is the probe's own (a probe read without it during pursuit took
+    the target's motion for the camera's: a slipping camera's fault cleared by a probe that had not moved it; read
+    without the parabola, the same at a sine's turn, and the chase then ran 4.7 deg)."""
 
     WINDOW_S, MIN = 0.25, 4
     RESID_RAD = math.radians(0.1)  # a line's (a parabola's) RMS residual at most this (0.1 deg: 0.9 px at f 500)
