@@ -45,7 +45,7 @@ import math
 
 from ..choices import Fault
 from .focal import Focal
-from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, Held, Seen, fail_kind, note, verdict
+from .follows import ADVICE, FOLLOWS_MAX, FOLLOWS_MIN, SAME_PAN_DEG, Held, Seen, fail_kind, note, verdict
 from .frozen import IDENTICAL_MOVE_DEG, Master, Slave
 from .lag import LAG_AFTER_S, RETURN_FIT_S, Lag
 from .scenery import STILL_MAX, Verdict
@@ -77,7 +77,6 @@ PROBE_MIN_DEG = 0.3  # a probe's pair counts when the motor moved at least this 
 PROBE_FIT_S = 0.35  # a fault's probe whose image has not followed by this long after it is fitted (Lag.probe)
 SUSPECT_S = 0.1  # a pair that did not follow holds the motor this long, then probes
 BOUND_S = 0.2  # an untrusted head held at its leash's end this long probes (a slipping camera's runaway ends there)
-SAME_PAN_DEG = 0.1  # the motor is at the anchor (a probe's reference) within this
 BG_FOLLOWS = 2  # a fault's background verdicts in a row that moved with the motor clear it where the fovea is undecided
 PRECISE = 0.2  # a decisive pair with at most this slack per motion counts for the focal length (docs/FAULTS.md)
 
@@ -371,7 +370,7 @@ class Doubt:
             return self._probing(t_now)
         end = abs(abs(pan - self.anchor) - lim) <= math.radians(SAME_PAN_DEG)
         if end and self.t_bound is not None and abs(goal - self.anchor) <= lim and self.last_seen is not None \
-                and self.still.motion(t_now, t_now, pan) is not None:  # (the target's motion there fits: vs a probe)
+                and self.still.fits(pan):  # (the target's motion there fits: read against it, the move is a probe)
             return self._probe(pan, pan - self.anchor, t_now, turn=True)
         if abs(goal - self.anchor) <= lim or not end:
             self.t_bound = None

@@ -12,12 +12,13 @@ import numpy as np
 
 from ..choices import Fault
 
-__all__ = ["ADVICE", "FOLLOWS_MAX", "FOLLOWS_MIN", "REVERSED_MAX", "FOCAL_OFF", "Held", "Seen", "focal_off", "note",
-           "verdict"]
+__all__ = ["ADVICE", "FOLLOWS_MAX", "FOLLOWS_MIN", "REVERSED_MAX", "FOCAL_OFF", "SAME_PAN_DEG", "Held", "Seen",
+           "focal_off", "note", "verdict"]
 
 FOLLOWS_MIN, FOLLOWS_MAX = 0.5, 2.2  # r in this range: the image follows (r: image motion / motor motion)
 REVERSED_MAX = -0.35  # r at most this: the camera turns the other way
 FOCAL_OFF = 0.2  # |r - 1| above this: the focal length is off
+SAME_PAN_DEG = 0.1  # the motor is at one pan (at rest: a fault's anchor, a probe's reference, Held's run) within this
 
 ADVICE = {
     Fault.SLAVE_FROZEN: "the slave's image does not follow the motor: a frozen slave camera (the driver repeating "
@@ -95,7 +96,6 @@ class Held:
 
     WINDOW_S, MIN = 0.25, 4
     RESID_RAD = math.radians(0.1)  # a line's (a parabola's) RMS residual at most this (0.1 deg: 0.9 px at f 500)
-    SAME_RAD = math.radians(0.1)  # a frame whose pan is further than this from the run's first is a new run
 
     def __init__(self):
         self.seen: list[tuple[float, float]] = []  # (t, a) at the anchor
@@ -103,7 +103,7 @@ class Held:
 
     def add(self, t: float, a: float, pan: float | None = None) -> None:
         """A frame's offset angle a at t; with its pan, a frame that moved starts a new run (the motor at rest)."""
-        if pan is not None and (self.pan is None or abs(pan - self.pan) > self.SAME_RAD):
+        if pan is not None and not self._here(pan):  # (a frame SAME_PAN_DEG from the run's first pan: a new run)
             self.seen, self.pan = [], pan
         self.seen = [s for s in self.seen if t - s[0] <= self.WINDOW_S] + [(t, a)]
 
@@ -121,13 +121,24 @@ class Held:
         speeds up within a probe's time (the near turn of a 0.4 Hz sine at 0.5-1 m, 27 deg/s^2: a line through the
         turn, within 0.1 deg of it, missed 0.27 deg of the target's motion over a 0.5 deg probe's 0.09 s). With pan0
         (the reference's pan), None where that is not the run's (frames added with their pans)."""
+        fit = self._fit(pan0)
+        return None if fit is None else float(np.polyval(fit[0], t - fit[1]) - np.polyval(fit[0], t0 - fit[1]))
+
+    def fits(self, pan0: float | None = None) -> bool:
+        """Whether motion() has a fit to give (at pan0: see there)."""
+        return self._fit(pan0) is not None
+
+    def _fit(self, pan0: float | None) -> tuple[np.ndarray, float] | None:
+        """The parabola's (or line's) coefficients over the run and the times' mean they are about (None: too few
+        frames, off both, or pan0 not this run's pan)."""
         n = len(self.seen)
-        if n < self.MIN or (pan0 is not None and (self.pan is None or abs(pan0 - self.pan) > self.SAME_RAD)):
-            return None  # (too few frames, or pan0 not this run's pan)
+        if n < self.MIN or (pan0 is not None and not self._here(pan0)):
+            return None
         ts, offs = np.array(self.seen).T
         mt = ts.mean()
         c = np.polyfit(ts - mt, offs, 2 if n > self.MIN else 1)  # (off a parabola, off its line too)
-        if np.mean((np.polyval(c, ts - mt) - offs) ** 2) > self.RESID_RAD ** 2:
-            return None
-        return float(np.polyval(c, t - mt) - np.polyval(c, t0 - mt))
+        return None if np.mean((np.polyval(c, ts - mt) - offs) ** 2) > self.RESID_RAD ** 2 else (c, mt)
+
+    def _here(self, pan: float) -> bool:  # the run's pan, within SAME_PAN_DEG
+        return self.pan is not None and abs(pan - self.pan) <= math.radians(SAME_PAN_DEG)
 

@@ -446,7 +446,7 @@ def test_a_probe_at_a_targets_turn_is_read_less_the_turn():
 
 
 def test_the_targets_motion_at_rest_is_kept_for_one_pan_at_a_time():
-    """follows.Held given the frames' pans (the untrusted leash's probe: vergence.head.doubt): a frame within SAME_RAD
+    """follows.Held given the frames' pans (the leash's probes, vergence.head.doubt): a frame within SAME_PAN_DEG
     of the run's first pan joins it, one further starts a new run (another pan's offsets: no target's motion)."""
     from vergence.head.follows import Held
 
