@@ -1,7 +1,8 @@
 """The focal length's ratio (issue #35): how far the image moves per radian of the motor, over what [rig] focal_px
-predicts. Named from the check's fast pairs (vergence.head.doubt: the median of FOCAL_PAIRS precise ones), or,
-before there are that many, from pursuit: the motor's own small moves while it follows a target, where no move is
-fast enough for a pair to be judged.
+predicts. Named from the check's fast pairs (vergence.head.doubt: the median of FOCAL_PAIRS precise ones or more,
+where the middle half of them agree: a fast target turning, whose rate the check's learnt one lags, spreads them), or,
+until then, from pursuit: the motor's own small moves while it follows a target, where no move is fast enough for a
+pair to be judged.
 
 Each confident decision says a = atan(offset / focal_px) = rho (T - pan) to first order: T the target's pan, pan the
 slave's at its exposure, rho the image's motion over the motor's (1 where focal_px is right; 1.6 where the images
@@ -30,7 +31,8 @@ __all__ = ["Focal", "Pursuit", "on_axis"]
 
 log = logging.getLogger("vergence.doubt")
 
-FOCAL_PAIRS = 6  # precise fast pairs before their median names the ratio (it then stands over pursuit's)
+FOCAL_PAIRS = 6  # precise fast pairs before their median names the ratio (it then stands over pursuit's) ...
+SPREAD = 0.2  # ... where the middle half of them spans at most this x the median (the focal's 1.6: 0.06)
 
 WINDOW_S = 0.6  # the fits' span: a target's pan is a cubic over it
 MIN_SAMPLES = 12  # decisions in a window before it is fitted
@@ -102,9 +104,9 @@ class Focal:
         self.pursuit.clear()
 
     def _name(self) -> None:
-        if len(self.pairs) >= FOCAL_PAIRS:
-            med = sorted(self.pairs)[len(self.pairs) // 2]
-            ratio = med if focal_off(med) else None
+        s, n = sorted(self.pairs), len(self.pairs)
+        if n >= FOCAL_PAIRS and s[3 * n // 4] - s[n // 4] <= SPREAD * s[n // 2]:  # (the middle half agree)
+            ratio = s[n // 2] if focal_off(s[n // 2]) else None
         else:
             ratio = None if self.pursuit.ratio is None else on_axis(self.pursuit.ratio, self.off_axis)
         if ratio is not None and self.ratio is None:
