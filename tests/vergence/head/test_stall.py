@@ -1,7 +1,8 @@
 """vergence.head.stall (issue #35): a motor that does not follow its commands. The clock starts at a command
-STALL_ARM_DEG or more away (past twice the dead band), a move of STALL_MOVE_DEG or a command nearer than half that
-stops it, and STALL_S on it the motor is stalled; then `vergence sim`'s loop on a scene of this file's own, where the
-loop asked 0.4 deg every frame of a stall and it was never named."""
+STALL_ARM_DEG or more away (past twice the dead band), a move of STALL_MOVE_DEG stops it, a command nearer than half
+that pauses it (for STALL_S: stops it), and STALL_S on it the motor is stalled; then `vergence sim`'s loop on scenes
+of this file's own, where the loop asked 0.4 deg every frame of a stall, or pursued a target through the stuck pan,
+and it was never named."""
 
 from __future__ import annotations
 
@@ -45,6 +46,44 @@ def test_a_move_a_near_command_or_a_goal_within_the_dead_band_stops_or_starts_no
     assert d.stalled(1.0, 0.0) is None
     d.commanded(0.0, R(0.6), 1.0)
     assert d.stalled(1.5, 0.0) == pytest.approx(0.5)
+
+
+
+def test_a_goal_at_the_stuck_pan_pauses_the_clock_and_a_pause_of_stall_s_stops_it():
+    s = Stall()
+    s.commanded(0.0, R(1.0), 0.0)
+    s.commanded(0.0, 0.0, 0.4)  # a goal at the pan: paused (before: stopped)
+    assert s.stalled(0.45, 0.0) is None
+    s.commanded(0.0, R(-1.0), 0.45)  # resumed, 0.05 s paused
+    assert s.stalled(0.5, 0.0) is None and s.stalled(0.55, 0.0) == pytest.approx(STALL_S)
+    long = Stall()
+    long.commanded(0.0, R(1.0), 0.0)
+    long.commanded(0.0, 0.0, 0.2)
+    long.commanded(0.0, 0.0, 0.2 + STALL_S + 0.01)  # content where it is for STALL_S: stopped
+    assert long.since is None
+    long.commanded(0.0, R(1.0), 0.8)  # a clock of its own
+    assert long.stalled(0.8 + STALL_S - 0.01, 0.0) is None
+    assert long.stalled(0.8 + STALL_S, 0.0) == pytest.approx(STALL_S)
+
+
+def test_a_stall_in_pursuit_whose_target_passes_the_stuck_pan_is_named():
+    """A sine pursued at 0.93 Hz, 1.7 deg either way, 100 ms late, 30 Hz (session 48's draw 4874), the motor stalled
+    1.59-3.42 s: the goals pass the stuck pan every 0.5 s, one of them nearer than half STALL_MOVE_DEG, which stopped
+    the clock each time before STALL_S: never named. A near goal now pauses it: named within 1 s, nothing before."""
+    from vergence.head.control import ControlSettings
+    from vergence.head.timing import CameraTiming
+    from vergence.sim.faults import FAULT_KEYS, Faults
+    from vergence.sim.loop import closed_loop
+    from vergence.sim.moving import MovingRig
+    from vergence.spec import parse
+
+    rig = MovingRig.from_options(motion="sine:z=0.66,amp=0.2,hz=0.93", focal="500", seed="4874", noise="1")
+    rig.start_pan_rad = rig.truth_pan(0.0)
+    faults = Faults.take(parse("stall=1.59-3.42", FAULT_KEYS, "test"))
+    steps = list(closed_loop(rig, 3 * 30, None, ControlSettings(), None, 30.0, faults=faults, seed=4874,
+                             focal_px=500.0, timing=CameraTiming(0.1)))
+    named = next(s for s in steps if s.fault)
+    assert named.fault == "stalled" and 1.59 < named.t_s <= 2.59
 
 
 @needs_data
