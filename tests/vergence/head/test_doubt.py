@@ -592,6 +592,23 @@ def test_a_reversed_camera_from_the_start_never_leaves_3_degrees_and_then_only_p
     assert all(abs(m - start) <= PROBE_DEG + 0.1 for m in moves)  # back to the start and probes
 
 
+def test_a_reversed_cameras_probes_read_late_on_a_moving_target_never_clear_it():
+    """A reversed camera from the start, 70 px off a sine of 0.89 Hz (0.89 +- 0.18 m), 66 ms, 30 Hz (session 48's draw
+    4955). Named at once; then a probe's step fitted as a late image's (Lag.probe: the target's own motion a quadratic,
+    r free) read r 0.67 at 150 ms where none read -0.52 almost as well, twice: the camera was named 145 ms late, which
+    clears the fault, and the loop ran 17.7 deg from the start. A probe's lag counts only where no lag at which the
+    image did not follow fits within LATE_NOISE_DEG as well."""
+    rig = MovingRig.from_options(motion="sine:z=0.89,amp=0.18,hz=0.89", focal="500", seed="4955", noise="1")
+    rig.start_pan_rad = rig.truth_pan(0.0) - math.atan(70 / 500)
+    faults = Faults.take(parse("reverse", FAULT_KEYS, "test"))
+    steps = list(closed_loop(rig, 240, None, ControlSettings(), None, 30.0, timing=CameraTiming(0.066),
+                             faults=faults, seed=4955, focal_px=500.0))
+    first = next(s for s in steps if s.fault)
+    assert first.fault == "reversed" and first.t_s <= 0.2
+    assert all(s.fault == "reversed" and s.late_ms is None for s in steps if s.t_s >= first.t_s)
+    assert max(abs(s.pan_deg - steps[0].pan_deg) for s in steps) <= 3.0
+
+
 def test_a_stall_is_named_within_a_second_and_commands_stop_but_probes():
     rig = MovingRig.from_options(motion="still:z=0.8", focal="500", seed="4")
     rig.start_pan_rad = rig.truth_pan(0.0) - 40 / 500
