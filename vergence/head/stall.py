@@ -48,7 +48,7 @@ class Stall:
             if self.since is None:
                 self.since = (t_now, pan, min(math.radians(STALL_MOVE_DEG), ask / 2))
                 self.still, self.away, self.paused = [pan], False, 0.0
-        elif near and self.since is not None:
+        elif near and self.since is not None and self.near is None:
             self.near = t_now  # a goal where it is pauses the clock (a target passing the stuck motor's pan)
 
     def stalled(self, t: float, pan: float) -> float | None:

@@ -79,7 +79,6 @@ def test_precise_fast_pairs_stand_over_pursuit_and_a_clear_forgets_the_window():
     assert not g.pursuit.seen and g.ratio is None
 
 
-
 def test_fast_pairs_that_disagree_name_nothing_and_leave_it_to_pursuit():
     """A fast target turning near the head (session 48's draw 4732: 35 deg/s, 100 ms) outruns the check's learnt rate,
     and its precise pairs read 1.26, 1.21, 1.40, 0.60, 0.58, 0.69 where the image followed at 1: their median named

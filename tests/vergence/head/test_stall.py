@@ -48,7 +48,6 @@ def test_a_move_a_near_command_or_a_goal_within_the_dead_band_stops_or_starts_no
     assert d.stalled(1.5, 0.0) == pytest.approx(0.5)
 
 
-
 def test_a_goal_at_the_stuck_pan_pauses_the_clock_and_a_pause_of_stall_s_stops_it():
     s = Stall()
     s.commanded(0.0, R(1.0), 0.0)
@@ -56,10 +55,15 @@ def test_a_goal_at_the_stuck_pan_pauses_the_clock_and_a_pause_of_stall_s_stops_i
     assert s.stalled(0.45, 0.0) is None
     s.commanded(0.0, R(-1.0), 0.45)  # resumed, 0.05 s paused
     assert s.stalled(0.5, 0.0) is None and s.stalled(0.55, 0.0) == pytest.approx(STALL_S)
+    s.commanded(0.0, R(1.0), 0.6)
+    for k in range(10):  # goals at the pan a frame apart: one pause, all of it
+        s.commanded(0.0, 0.0, 0.7 + k / 60)
+    s.commanded(0.0, R(1.0), 0.9)
+    assert s.stalled(1.0, 0.0) == pytest.approx(1.0 - 0.05 - 0.2)
     long = Stall()
     long.commanded(0.0, R(1.0), 0.0)
-    long.commanded(0.0, 0.0, 0.2)
-    long.commanded(0.0, 0.0, 0.2 + STALL_S + 0.01)  # content where it is for STALL_S: stopped
+    for k in range(40):  # content where it is for STALL_S: stopped
+        long.commanded(0.0, 0.0, 0.2 + k / 60)
     assert long.since is None
     long.commanded(0.0, R(1.0), 0.8)  # a clock of its own
     assert long.stalled(0.8 + STALL_S - 0.01, 0.0) is None
