@@ -12,7 +12,8 @@ in the camera turned as the motor did, on the way out the motor's turn less p (e
 (the median of the way out's camera-less-motor turns - the way in's), s the motor's way into the turn; the turn's own
 band's error is in both, and so is a frame's image a few ms off its pan (the motor's rate alike on either side: a hunt
 about a target's turn, seen mid-move, reads as well as a slow turn). Each turn is a measurement; the median of the
-last KEEP (FIRST at least) names the play where it is NAME_DEG or more.
+last KEEP (from the first turn read on: a target going to and fro in depth has background at its far turns only, one
+turn in two, and waiting for three left the play in for 5-9 s) names the play where it is NAME_DEG or more.
 
 Taken out (`half` not 0): a frame's pan is the camera's, the shaft's through the play (the play operator: the camera
 moves only where the shaft pushes it, half the play either side), and each goal for the camera is sent to the motor
@@ -41,7 +42,7 @@ NAME_DEG = 0.12  # the play named at this or more: under it, not told from an en
 # deg) read ahead of the shaft in motion (a clean sim read 0.01-0.06 deg, 0.09 with one band each side)
 AGAIN_DEG = 0.03  # a named play changes where the median moves this much
 SIDE = 2  # bands read on each side of a turn, at least
-FIRST, KEEP = 3, 7  # measurements before the play is named, and the median of the last this many
+KEEP = 7  # the play named: the median of the last this many measurements
 
 
 class Play:
@@ -124,8 +125,6 @@ class Play:
         if not -travel <= p <= travel:
             return False
         self.plays = (self.plays + [p])[-KEEP:]
-        if len(self.plays) < FIRST:
-            return False
         med = float(np.median(self.plays))
         half = med / 2 if med >= math.radians(NAME_DEG) else 0.0
         if abs(half - self.half) * 2 < math.radians(AGAIN_DEG) and (half == 0) == (self.half == 0):
@@ -170,9 +169,9 @@ class Play:
         return goal + self.side * self.half
 
     def status(self) -> dict:
-        """For the reducer's status: the play measured (deg; None before FIRST turns were read; 0 where it is under
+        """For the reducer's status: the play measured (deg; None before a turn was read; 0 where it is under
         NAME_DEG, and taken out from there on)."""
-        return {"play_deg": None if len(self.plays) < FIRST else round(math.degrees(2 * self.half), 3)}
+        return {"play_deg": None if not self.plays else round(math.degrees(2 * self.half), 3)}
 
     def lost(self) -> None:
         """A fault or a search: the turns read so far say nothing of the next (a slipped camera is elsewhere)."""

@@ -48,6 +48,16 @@ def test_the_play_is_read_off_the_background_at_the_turns(play_deg):
     assert p.status()["play_deg"] == pytest.approx(play_deg, abs=0.02)  # (the reducer's status says it)
 
 
+def test_the_first_turn_read_names_the_play():
+    """A target going to and fro in depth shows background at its far turns only: one turn in two is read, so the
+    play is named from the first one (waiting for three left it in for 5-9 s), and the median of the next ones."""
+    p = run(0.2, seconds=1.6)  # (the motor's turns at 0 and 1 s: the one at 1 s read once it is 0.6 deg past it)
+    assert len(p.plays) == 1
+    assert math.degrees(2 * p.half) == pytest.approx(0.2, abs=0.02)
+    assert p.status()["play_deg"] == pytest.approx(0.2, abs=0.02)
+    assert run(0.2, seconds=0.9).status() == {"play_deg": None}  # (no turn read yet)
+
+
 @pytest.mark.parametrize("ratio", [0.85, 1.15])
 def test_a_focal_length_told_wrong_is_no_play(ratio):
     """Images at 0.85 or 1.15 x the focal length told (under the 20 % the doubt names): every band is read against
