@@ -188,7 +188,8 @@ class Controller:
         seen = profile(rows)  # (the play's and the background's)
         centre = (band.shape[1] - 1) / 2 if centre_col is None else centre_col
         if d.fault is not None or self.search.searching:
-            self.play.lost()
+            if self.play.lost(t_s if d.fault is not None else None):
+                self._replay(self.play.replay())
         elif self.play.see(t_s, shaft, seen, (rows.shape, fovea), focal_px, fovea_col, centre):
             self._replay(self.play.replay())
         if self.play.half:

@@ -43,6 +43,7 @@ NAME_DEG = 0.12  # the play named at this or more: under it, not told from an en
 AGAIN_DEG = 0.03  # a named play changes where the median moves this much
 SIDE = 2  # bands read on each side of a turn, at least
 KEEP = 7  # the play named: the median of the last this many measurements
+WITHDRAW_S = 1.0  # a fault named: the measurements this long before it are withdrawn (a stall's is named within 1 s)
 
 
 class Play:
@@ -58,6 +59,7 @@ class Play:
         self.bands: list[tuple[float, float, np.ndarray]] = []  # the bands of the last KEEP_S (t, pan, profile)
         self.pending: tuple | None = None  # the last turn, until the motor is TRAVEL_DEG from it
         self.plays: list[float] = []  # the measurements (rad)
+        self.when: list[float] = []  # ... and when each was read (s)
         self.half = 0.0
         self.cam: float | None = None  # the camera's pan as the frames' shaft pans push it
         self.sent: float | None = None  # the camera's pan the goals sent leave it at
@@ -124,8 +126,12 @@ class Play:
         log.debug("a turn at %.3f s: play %.3f deg", x[0], math.degrees(p))
         if not -travel <= p <= travel:
             return False
-        self.plays = (self.plays + [p])[-KEEP:]
-        med = float(np.median(self.plays))
+        self.plays, self.when = (self.plays + [p])[-KEEP:], (self.when + [t])[-KEEP:]
+        return self._name()
+
+    def _name(self) -> bool:
+        """The play the measurements name (the median of them; none: 0); True where it changed."""
+        med = float(np.median(self.plays)) if self.plays else 0.0
         half = med / 2 if med >= math.radians(NAME_DEG) else 0.0
         if abs(half - self.half) * 2 < math.radians(AGAIN_DEG) and (half == 0) == (self.half == 0):
             return False
@@ -173,9 +179,19 @@ class Play:
         NAME_DEG, and taken out from there on)."""
         return {"play_deg": None if not self.plays else round(math.degrees(2 * self.half), 3)}
 
-    def lost(self) -> None:
-        """A fault or a search: the turns read so far say nothing of the next (a slipped camera is elsewhere)."""
+    def lost(self, t: float | None = None) -> bool:
+        """A fault or a search: the turns read so far say nothing of the next (a slipped camera is elsewhere). t: a
+        fault's frame (s): the measurements of the WITHDRAW_S before it are withdrawn too (the lie may have been under
+        way, not yet named, over them: a slip's first 0.2 s read as a play of 0.29 deg where there was none); True where
+        the named play changed."""
         self.key, self.pending = object(), None
+        if t is None or not self.when or self.when[-1] < t - WITHDRAW_S:
+            return False
+        keep = [k for k, w in enumerate(self.when) if w < t - WITHDRAW_S]
+        log.info("a fault: the play's %d measurements of the last %.1f s withdrawn", len(self.when) - len(keep),
+                 WITHDRAW_S)
+        self.plays, self.when = [self.plays[k] for k in keep], [self.when[k] for k in keep]
+        return self._name()
 
 
 def _through(camera: float, shaft: float, half: float) -> float:

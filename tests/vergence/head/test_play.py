@@ -58,6 +58,18 @@ def test_the_first_turn_read_names_the_play():
     assert run(0.2, seconds=0.9).status() == {"play_deg": None}  # (no turn read yet)
 
 
+def test_a_fault_withdraws_the_measurements_of_the_second_before_it():
+    """A lie is named some time after it began (a slip within 0.5 s, a stall within 1 s): a turn read meanwhile may be
+    the lie's (a slip's first 0.2 s read a play of 0.29 deg where there was none, named from that one turn). A fault
+    withdraws the measurements of the WITHDRAW_S before it; older ones stand, and a search withdraws none."""
+    p = run(0.2, seconds=1.6)
+    read = p.when[-1]
+    assert p.half > 0 and p.lost() is False and p.half > 0  # (a search: nothing withdrawn)
+    assert p.lost(read + 5.0) is False and p.half > 0  # (read long before the fault)
+    assert p.lost(read + 0.5) is True  # (read 0.5 s before it)
+    assert p.half == 0.0 and p.plays == [] and p.status() == {"play_deg": None}
+
+
 @pytest.mark.parametrize("ratio", [0.85, 1.15])
 def test_a_focal_length_told_wrong_is_no_play(ratio):
     """Images at 0.85 or 1.15 x the focal length told (under the 20 % the doubt names): every band is read against
