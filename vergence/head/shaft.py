@@ -30,7 +30,8 @@ REFIT_S = 0.25  # ... refitted this often
 SETTLE_S = 0.1  # the model starts on the first reading this long before the first one it is judged by
 BIAS_S = 0.2  # the residuals within this of a frame must average near 0 (else the shaft is not the model's)
 LATENCIES = (0.0, 0.002, 0.005, 0.01, 0.02, 0.04)  # s: the motor's latency, fitted
-TAUS = (0.0, 0.005, 0.01, 0.02, 0.04, 0.08)  # s: its time constant, fitted
+TAUS = (0.005, 0.01, 0.02, 0.04, 0.08)  # s: its time constant, fitted (none of 0: a servo at its goal at once, which a
+# second of noisy readings at 60 Hz chose now and then among near-equal pairs, its frames up to 0.056 deg off in a move)
 NOISY_DEG = 0.03  # the encoder's noise (less the ticks' rounding) above this: a noisy one (clean: 0-0.024)
 SIGMAS = 4.0  # a frame's reading further than this many of the noise from the model's pan: left as read
 MIN_READINGS = 20  # readings in FIT_S before the model is fitted
