@@ -31,7 +31,7 @@ from reaper import pytest_configure, pytest_runtest_setup, pytest_unconfigure  #
 import background  # noqa: E402
 import split  # noqa: E402
 
-if split.is_child():  # the other half of a whole run (tests/split.py): idle priority
+if split.is_child():  # the in-process tests' pytest beside a whole run (tests/split.py): idle priority
     split.idle()
 from services.runtime import warm  # noqa: E402  (no numba: compiled() only looks at the cache)
 

@@ -14,6 +14,7 @@ each other's nodes, nor anything on the network, and send nothing off this machi
 from __future__ import annotations
 
 import collections
+import os
 import random
 import threading
 import time
@@ -34,8 +35,9 @@ def require():
 
 
 def ros_env(monkeypatch) -> int:
-    """A ROS domain of this test's own (and localhost-only discovery) for the test and its processes."""
-    domain = random.randint(1, 100)
+    """A ROS domain of this test's own (and localhost-only discovery) for the test and its processes: 51-100 in
+    the scenarios' pytest of a whole run, 1-50 in the others (tests/split.py: the two run at once)."""
+    domain = random.randint(51, 100) if os.environ.get("VERGENCE_TESTS_CHILD") == "scenarios" else random.randint(1, 50)
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     monkeypatch.delenv("ROS_LOCALHOST_ONLY", raising=False)

@@ -1,19 +1,23 @@
-"""The whole suite in two processes at once (issue #33: CI under 10 minutes on 2 cores).
+"""The whole suite in three processes at once (issue #33: CI under 10 minutes on 2 cores).
 
-The slow tier (real processes: routers, services, ROS 2 nodes) mostly waits on real time: the machine is 40-45 %
-busy while it runs. The rest (what runs in the test's own process and times nothing, `-m "not slow and not realtime"`:
-CPU, no waiting; a `realtime` test, in-process but timing something, a thread's wake-up say, stays here) runs beside it,
-in a pytest of its own at idle priority (SCHED_IDLE: it runs only on a core nothing else wants, so the timings under
-test are not disturbed, as tests/background.py's sweeps are not), and its outcome joins this run's: its summary line,
-its failures in full, and this run's exit status (1 when it failed). Measured on this machine (2026-12-06, a fresh
-clone's `.ci/run`): 455 s of pytest, the 988 tests beside it done in 219 s at idle priority, against 534-549 s for
-the whole suite in one process.
+The slow tier (real processes: routers, services, ROS 2 nodes) mostly waits on real time: the machine is 10-50 %
+busy while it runs (measured 2026-12-07: 44 % on average over its 537 s, the first 100 s the background sweeps'
+at idle priority). So it runs in two pytests at normal priority: this one, and beside it one of its own on the
+slow and realtime tests of the scenarios folder (tests/scenarios: whole services end to end, 45 % of the tier's time).
+The rest (what runs in the test's own process and times nothing, `-m "not slow and not realtime"`: CPU, no waiting;
+a `realtime` test, in-process but timing something, a thread's wake-up say, stays at normal priority) runs in a
+third, at idle priority (SCHED_IDLE: it runs only on a core nothing else wants, so the timings under test are not
+disturbed, as tests/background.py's sweeps are not). The outcomes of both join this run's: their summary lines,
+their failures in full, and this run's exit status (1 when one failed). The two pytests of real processes share
+the machine's ports (each test takes free ones) and its ROS 2 network (each picks its domains from a half of its
+own: tests/rosnode.py). Measured on this machine (2026-12-07, a fresh clone's `.ci/run`): 542 s of pytest in two
+processes (the scenarios in this one), see README.md for the three.
 
 Only a run of the whole suite is split (`python -m pytest [-q]`, no paths, no -m, -k, --lf, -x and the like: what
 README.md and .ci/run run); any selection runs as before, in one process. VERGENCE_TESTS_SPLIT=0 runs the whole
-suite in one process too. tests/conftest.py calls these at its hooks; the reaper ends the other pytest with the run
-(it is a descendant), a SIGKILLed run ends it by its parent-death signal (SIGTERM: its own reaper runs), and a run
-that ends waits for it (at most WAIT_S)."""
+suite in one process too. tests/conftest.py calls these at its hooks; the reaper ends the other pytests with the run
+(they are descendants), a SIGKILLed run ends them by their parent-death signal (SIGTERM: their own reaper runs), and
+a run that ends waits for them (at most WAIT_S)."""
 
 from __future__ import annotations
 
@@ -21,17 +25,21 @@ import os
 import subprocess
 import sys
 import tempfile
+from pathlib import Path
 
-CHILD = "VERGENCE_TESTS_CHILD"  # set in the other pytest's environment
-BESIDE = "not slow and not realtime"  # the tests it runs: in-process ones that measure no wall-clock time
+CHILD = "VERGENCE_TESTS_CHILD"  # in the other pytests' environment: IDLE or SCENARIOS
+IDLE, SCENARIOS = "1", "scenarios"
+BESIDE = "not slow and not realtime"  # the idle pytest's tests: in-process ones that measure no wall-clock time
 KEEP = ("slow", "realtime")  # this process's: real processes, and in-process tests that time something
+FOLDER = "scenarios"  # ...but those of a folder of this name go to a pytest of their own, at normal priority
 WAIT_S = 1800.0
 
-_child: dict = {}  # "proc", "out" (its output file), "n" (its tests)
+_children: dict[str, dict] = {}  # IDLE / SCENARIOS -> "argv", "n" (its tests), "proc", "out" (its output file)
 
 
 def is_child() -> bool:
-    return os.environ.get(CHILD) == "1"
+    """The idle pytest (the scenarios' pytest is not: it runs at normal priority)."""
+    return os.environ.get(CHILD) == IDLE
 
 
 def idle() -> None:
@@ -57,60 +65,70 @@ def _whole_suite(config) -> bool:
 
 def modify(config, items: list) -> None:
     """pytest_collection_modifyitems: in a run of the whole suite, this process keeps the slow and the realtime
-    tests; the others are counted for the pytest that start() makes."""
-    if is_child() or not _whole_suite(config):
+    tests but the scenarios'; the others are counted for the pytests that start() makes."""
+    if os.environ.get(CHILD) or not _whole_suite(config):
         return
+    root = Path(str(config.rootpath))
 
     def kept(it) -> bool:
         return any(it.get_closest_marker(m) is not None for m in KEEP)
 
+    def scenario(it) -> bool:
+        return FOLDER in Path(str(it.path)).relative_to(root).parts[:-1]
+
     fast = [it for it in items if not kept(it)]
+    scenes = [it for it in items if kept(it) and scenario(it)]
     if fast and len(fast) < len(items):
-        items[:] = [it for it in items if kept(it)]
-        _child["n"] = len(fast)
+        _children[IDLE] = dict(n=len(fast), argv=["-m", BESIDE])
+    if scenes and len(scenes) < len(items) - len(fast):
+        files = sorted({str(Path(str(it.path)).relative_to(root)) for it in scenes})
+        _children[SCENARIOS] = dict(n=len(scenes), argv=["-m", " or ".join(KEEP), *files])
+    items[:] = [it for it in items if not (IDLE in _children and not kept(it))
+                and not (SCENARIOS in _children and kept(it) and scenario(it))]
 
 
 def start(rootdir) -> None:
-    """pytest_collection_finish (after the kernels are compiled): the other pytest, on the tests `modify` left out."""
-    if "n" not in _child:
-        return
+    """pytest_collection_finish (after the kernels are compiled): the other pytests, on the tests `modify` left out."""
     from services.ops import launch
 
-    out = tempfile.TemporaryFile(mode="w+")
-    argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", BESIDE]
     launch._prctl()  # (resolved here, before the fork: the child only calls it)
-    _child.update(proc=subprocess.Popen(argv, cwd=str(rootdir), stdout=out, stderr=subprocess.STDOUT,
-                                        env=dict(os.environ, **{CHILD: "1"}), preexec_fn=launch._die_with_parent),
-                  out=out)
+    for name, c in _children.items():
+        out = tempfile.TemporaryFile(mode="w+")
+        argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *c["argv"]]
+        c.update(proc=subprocess.Popen(argv, cwd=str(rootdir), stdout=out, stderr=subprocess.STDOUT,
+                                       env=dict(os.environ, **{CHILD: name}), preexec_fn=launch._die_with_parent),
+                 out=out)
 
 
 def finish(session) -> None:
-    """pytest_sessionfinish: wait for the other pytest; its failure is this run's."""
-    proc = _child.get("proc")
-    if proc is None:
-        return
-    try:
-        proc.wait(WAIT_S)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-    if proc.returncode != 0 and session.exitstatus == 0:
-        session.exitstatus = 1
+    """pytest_sessionfinish: wait for the other pytests; a failure of theirs is this run's."""
+    for c in _children.values():
+        proc = c.get("proc")
+        if proc is None:
+            continue
+        try:
+            proc.wait(WAIT_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        if proc.returncode != 0 and session.exitstatus == 0:
+            session.exitstatus = 1
 
 
 def summary(terminalreporter) -> None:
-    """pytest_terminal_summary: the other pytest's outcome (its whole output when it failed)."""
-    proc = _child.get("proc")
-    if proc is None:
-        return
-    out = _child["out"]
-    out.seek(0)
-    text = out.read()
-    lines = [ln for ln in text.splitlines() if ln.strip()]
+    """pytest_terminal_summary: the other pytests' outcomes (the whole output of one that failed)."""
     tr = terminalreporter
-    if proc.returncode != 0:
-        tr.section(f"the {_child['n']} tests that ran beside this run (-m '{BESIDE}'): exit {proc.returncode}")
-        tr.write(text)
-    last = lines[-1].strip("= ") if lines else "no output"
-    tr.write_line(f"beside this run, in a pytest of its own at idle priority, the {_child['n']} tests of "
-                  f"-m '{BESIDE}': {last}")
+    for name, c in _children.items():
+        proc = c.get("proc")
+        if proc is None:
+            continue
+        c["out"].seek(0)
+        text = c["out"].read()
+        lines = [ln for ln in text.splitlines() if ln.strip()]
+        which = f"-m '{BESIDE}'" if name == IDLE else f"the {FOLDER} folder's -m '{' or '.join(KEEP)}'"
+        if proc.returncode != 0:
+            tr.section(f"the {c['n']} tests that ran beside this run ({which}): exit {proc.returncode}")
+            tr.write(text)
+        last = lines[-1].strip("= ") if lines else "no output"
+        how = "at idle priority" if name == IDLE else "at normal priority"
+        tr.write_line(f"beside this run, in a pytest of its own {how}, the {c['n']} tests of {which}: {last}")

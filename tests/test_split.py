@@ -1,6 +1,7 @@
 """tests/split.py: a run of the whole suite runs its in-process tests beside it, in a pytest of their own at idle
-priority, and their outcome is the run's. A real pytest run of a tiny tree (its conftest wires tests/split.py as
-tests/conftest.py does) with a slow test, a fast one that records where it ran, and a fast one that fails on demand."""
+priority, and the slow tests of its scenarios folder in another at normal priority, and their outcomes are the run's.
+A real pytest run of a tiny tree (its conftest wires tests/split.py as tests/conftest.py does) with slow, realtime
+and fast tests that record where they ran, at its top and in a scenarios folder, and two that fail on demand."""
 
 from __future__ import annotations
 
@@ -62,6 +63,20 @@ def test_fast_fails_on_demand():
     assert os.environ.get("INNER_FAIL") != "1", "failed on demand"
 """
 
+SCENARIO_PY = """
+import os
+import pytest
+from test_inner import _where
+
+@pytest.mark.slow
+def test_scenario_slow():
+    _where("scenario_slow")
+    assert os.environ.get("INNER_FAIL_SCENARIO") != "1", "a scenario failed on demand"
+
+def test_scenario_fast():
+    _where("scenario_fast")
+"""
+
 
 def _tree(tmp_path: Path) -> Path:
     """The tiny tree: its pytest.ini (the markers), its conftest (tests/split.py wired in) and its tests."""
@@ -70,6 +85,8 @@ def _tree(tmp_path: Path) -> Path:
     (inner / "pytest.ini").write_text("[pytest]\nmarkers =\n    slow: real processes\n    realtime: timing\n")
     (inner / "conftest.py").write_text(CONFTEST)
     (inner / "test_inner.py").write_text(TESTS_PY)
+    (inner / "scenarios").mkdir(exist_ok=True)
+    (inner / "scenarios" / "test_scenario.py").write_text(SCENARIO_PY)
     return inner
 
 
@@ -91,7 +108,11 @@ def test_the_whole_run_runs_the_in_process_tests_beside_it_at_idle_priority(tmp_
     assert by["fast"]["child"] == "1" and by["fast"]["policy"] == os.SCHED_IDLE
     assert by["realtime"]["child"] is None and by["realtime"]["pid"] == by["slow"]["pid"]
     assert by["fast"]["pid"] != by["slow"]["pid"]
-    assert "the 2 tests of -m 'not slow and not realtime': 2 passed" in r.stdout
+    assert by["scenario_slow"]["child"] == "scenarios" and by["scenario_slow"]["policy"] == os.SCHED_OTHER
+    assert by["scenario_slow"]["pid"] not in (by["slow"]["pid"], by["fast"]["pid"])
+    assert by["scenario_fast"]["pid"] == by["fast"]["pid"]  # the scenarios' in-process tests: with the others
+    assert "at idle priority, the 3 tests of -m 'not slow and not realtime': 3 passed" in r.stdout
+    assert "at normal priority, the 1 tests of the scenarios folder's -m 'slow or realtime': 1 passed" in r.stdout
     assert "2 passed" in r.stdout.strip().splitlines()[-1]  # this process's own: the slow and the realtime one
 
 
@@ -99,8 +120,14 @@ def test_the_whole_run_runs_the_in_process_tests_beside_it_at_idle_priority(tmp_
 def test_a_failure_beside_the_run_fails_the_run_and_is_shown_in_full(tmp_path):
     r, _ = _run(tmp_path, VERGENCE_TESTS_SPLIT="1", INNER_FAIL="1")
     assert r.returncode == 1, r.stdout + r.stderr
-    assert "the 2 tests that ran beside this run (-m 'not slow and not realtime'): exit 1" in r.stdout
-    assert "failed on demand" in r.stdout and "1 failed, 1 passed" in r.stdout
+    assert "the 3 tests that ran beside this run (-m 'not slow and not realtime'): exit 1" in r.stdout
+    assert "failed on demand" in r.stdout and "1 failed, 2 passed" in r.stdout
+    assert "2 passed" in r.stdout.strip().splitlines()[-1]
+    r, _ = _run(tmp_path, VERGENCE_TESTS_SPLIT="1", INNER_FAIL_SCENARIO="1")
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert ("the 1 tests that ran beside this run (the scenarios folder's -m 'slow or realtime'): exit 1"
+            in r.stdout)
+    assert "a scenario failed on demand" in r.stdout and "3 passed" in r.stdout
     assert "2 passed" in r.stdout.strip().splitlines()[-1]
 
 
@@ -114,7 +141,7 @@ def test_a_selection_or_split_0_runs_in_one_process(tmp_path):
 
 @pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="the split needs two cores")
 def test_the_pytest_beside_a_sigkilled_run_ends_with_it(tmp_path):
-    """SIGKILL runs no reaper: the pytest beside the run ends by its parent-death signal (SIGTERM) within 5 s."""
+    """SIGKILL runs no reaper: the pytests beside the run end by their parent-death signal (SIGTERM) within 5 s."""
     import psutil
 
     inner = _tree(tmp_path)
@@ -126,17 +153,18 @@ def test_the_pytest_beside_a_sigkilled_run_ends_with_it(tmp_path):
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
             where = [json.loads(line) for line in out.read_text().splitlines()] if out.exists() else []
-            if {w["test"] for w in where} >= {"slow", "fast"}:
+            if {w["child"] for w in where} >= {None, "1", "scenarios"}:  # (each hangs in its first test)
                 break
             time.sleep(0.05)
-        child = next(w["pid"] for w in where if w["test"] == "fast")
-        assert child != run.pid and psutil.pid_exists(child)
+        children = {w["pid"] for w in where if w["child"] is not None}
+        assert len(children) == 2 and run.pid not in children and all(map(psutil.pid_exists, children))
         run.send_signal(signal.SIGKILL)
         run.wait(10)
         deadline = time.monotonic() + 5
-        while psutil.pid_exists(child) and psutil.Process(child).status() != psutil.STATUS_ZOMBIE:
-            assert time.monotonic() < deadline, "the pytest beside the run outlived it by 5 s"
-            time.sleep(0.05)
+        for child in children:
+            while psutil.pid_exists(child) and psutil.Process(child).status() != psutil.STATUS_ZOMBIE:
+                assert time.monotonic() < deadline, "a pytest beside the run outlived it by 5 s"
+                time.sleep(0.05)
     finally:
         run.kill()
         run.wait(10)
