@@ -78,7 +78,8 @@ def test_sim_actuator(tmp_path):
         assert max(m.goal_rad for m in states(col)) == pytest.approx(0.1 + math.radians(10))
         act.signal(signal.SIGINT)
         assert act.wait(10) == 0
-        assert states(col)[-1].status == "stopped"
+        # its last state, put before it exited, reaches the test through the router: waited for, with a deadline
+        wait_for(lambda: states(col)[-1].status == "stopped", 5, "the last state: stopped", logs=P.logs)
 
 
 def test_missing_port_exits_with_hint():
