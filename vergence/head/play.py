@@ -43,6 +43,8 @@ NAME_DEG = 0.12  # the play named at this or more: under it, not told from an en
 AGAIN_DEG = 0.03  # a named play changes where the median moves this much
 SIDE = 2  # bands read on each side of a turn, at least
 KEEP = 7  # the play named: the median of the last this many measurements
+BACK_GOAL_DEG = 0.015  # a goal this far back from the furthest one sent, or less, keeps the side: a noisy encoder's
+# set-points step back 0.006 deg in pursuit, and each side taken anew costs the motor the play's crossing twice
 WITHDRAW_S = 1.0  # a fault named: the measurements this long before it are withdrawn (a stall's is named within 1 s)
 
 
@@ -64,6 +66,7 @@ class Play:
         self.cam: float | None = None  # the camera's pan as the frames' shaft pans push it
         self.sent: float | None = None  # the camera's pan the goals sent leave it at
         self.side = 0.0  # the side of the play the goals sent push the camera from (+1, -1; 0: none yet)
+        self.far: float | None = None  # the goal sent furthest that side since the side was taken
         self.past: list[tuple[float, float, float]] = []  # (t, shaft, camera) of the frames of the last REPLAY_S
 
     def see(self, t: float, pan: float, profile: np.ndarray, key, focal_px: float, fovea_col: float,
@@ -170,8 +173,13 @@ class Play:
         from where the goals sent left it."""
         was = self.cam if self.sent is None else self.sent
         self.sent = goal
-        if was is not None and goal != was:  # (the same goal again: the same side)
-            self.side = math.copysign(1.0, goal - was)
+        if self.far is None or self.side == 0.0:
+            if was is not None and goal != was:  # (the same goal again: the same side)
+                self.side, self.far = math.copysign(1.0, goal - was), goal
+        elif self.side * (goal - self.far) >= 0:
+            self.far = goal
+        elif self.side * (self.far - goal) > math.radians(BACK_GOAL_DEG):
+            self.side, self.far = -self.side, goal
         return goal + self.side * self.half
 
     def status(self) -> dict:

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from vergence.head.play import NAME_DEG, Play
+from vergence.head.play import BACK_GOAL_DEG, NAME_DEG, Play
 
 F, W = 500.0, 640  # focal length and the band's width, px
 RATE = 60.0
@@ -122,6 +122,14 @@ def test_the_operator_and_its_inverse():
     assert math.degrees(p.goal(math.radians(0.4))) == pytest.approx(0.3)
     assert math.degrees(p.goal(math.radians(0.7))) == pytest.approx(0.8)
     assert math.degrees(p.goal(math.radians(0.7))) == pytest.approx(0.8)  # (the same goal again: the same side)
+    # a step back of BACK_GOAL_DEG or less from the furthest goal (a noisy encoder's set-points in pursuit) keeps the
+    # side: the motor does not cross the play and back for it; further back, the camera is pushed from the other side
+    assert math.degrees(p.goal(math.radians(0.69))) == pytest.approx(0.79)
+    assert math.degrees(p.goal(math.radians(0.701 - BACK_GOAL_DEG))) == pytest.approx(0.801 - BACK_GOAL_DEG)
+    assert math.degrees(p.goal(math.radians(0.75))) == pytest.approx(0.85)
+    assert math.degrees(p.goal(math.radians(0.73))) == pytest.approx(0.63)  # 0.02 deg back from 0.75
+    assert math.degrees(p.goal(math.radians(0.74))) == pytest.approx(0.74 - 0.1)  # (0.01 past it the other way)
+    assert math.degrees(p.goal(math.radians(0.76))) == pytest.approx(0.86)  # 0.03 past the furthest that way
 
 
 def test_a_new_play_replays_the_frames_pans():
