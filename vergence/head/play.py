@@ -170,7 +170,8 @@ class Play:
 
     def goal(self, goal: float) -> float:
         """The motor's goal that leaves the camera at `goal` (rad): half the play past it on the way the camera goes
-        from where the goals sent left it."""
+        from where the goals sent left it (the way turns where a goal is more than BACK_GOAL_DEG back from the
+        furthest sent that way; a smaller step back leaves the camera at most that much past it)."""
         was = self.cam if self.sent is None else self.sent
         self.sent = goal
         if self.far is None or self.side == 0.0:
