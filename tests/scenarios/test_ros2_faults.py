@@ -124,9 +124,17 @@ def test_a_frozen_ros2_slave_camera_while_look_at_asks_a_move_is_named_held_and_
             def faults(after_ns: int = 0) -> list[tuple[int, object]]:
                 return [(a, decode_status(b).fault()) for a, b, _ in statuses.snapshot() if a >= after_ns]
 
+            def settled() -> bool:
+                """Within 1 px of the target, and no fault in the reducer's statuses of the last second: on a loaded
+                machine the test's camera node can render its first frames at joint states that reached it late,
+                which the check rightly names (a slave image that does not follow the motor) and clears by itself."""
+                fs, now = faults(), time.time_ns()
+                old = [k for k, (a, _) in enumerate(fs) if a <= now - 1e9]
+                return bool(pans() and abs(rig.error_px(pans()[-1][1])) <= 1.0 and old
+                            and all(f is None for _, f in fs[old[-1]:]))
+
             decisions.wait(1, 90)
-            wait_for(lambda: pans() and abs(rig.error_px(pans()[-1][1])) <= 1.0, 10, "converged on the target",
-                     logs=P.logs)
+            wait_for(settled, 30, "converged on the target, no fault for 1 s", logs=P.logs)
             t_conv = time.time_ns()
             wait_for(lambda: time.time_ns() - t_conv >= 1e9, 5, "1 s on the target", interval=0.05)
             limits = MotorState.from_bytes(states.snapshot()[-1][1])
