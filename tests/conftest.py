@@ -66,6 +66,14 @@ def pytest_collection_finish(session):
     background.start(session.items)
 
 
+@pytest.fixture(autouse=True)
+def _turn(request):
+    """In a whole run, a test marked `alone` has no test of the other pytest of real processes beside it
+    (split.turn)."""
+    with split.turn(request.node.get_closest_marker("alone") is not None):
+        yield
+
+
 def pytest_collection_modifyitems(session, config, items):
     split.modify(config, items)  # a run of the whole suite: the tests of real processes here, the others beside
 

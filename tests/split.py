@@ -14,6 +14,11 @@ own: tests/rosnode.py). Measured on this machine (2026-12-07, a fresh clone's `.
 pytest's 205 tests 347-403 s, the scenarios' 91 283-313 s beside it, the 1104 in-process tests 307-382 s; with the
 scenarios in this pytest 542 s of pytest, about 600 s in all.
 
+A test marked `alone` (the ROS 2 ones: their DDS discovery and the test's own camera and joint nodes, starved by a
+second pytest of real processes beside them, made the loop name a false slave_frozen in 2 of 4 CI runs) runs with no
+test of the other pytest of real processes beside it: each test of the two holds a lock on a file of the run's (`turn`),
+shared, an `alone` one exclusive.
+
 Only a run of the whole suite is split (`python -m pytest [-q]`, no paths, no -m, -k, --lf, -x and the like: what
 README.md and .ci/run run); any selection runs as before, in one process. VERGENCE_TESTS_SPLIT=0 runs the whole
 suite in one process too. tests/conftest.py calls these at its hooks; the reaper ends the other pytests with the run
@@ -22,6 +27,8 @@ a run that ends waits for them (at most WAIT_S)."""
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
 import subprocess
 import sys
@@ -34,6 +41,7 @@ BESIDE = "not slow and not realtime"  # the idle pytest's tests: in-process ones
 KEEP = ("slow", "realtime")  # this process's: real processes, and in-process tests that time something
 FOLDER = "scenarios"  # ...but those of a folder of this name go to a pytest of their own, at normal priority
 WAIT_S = 1800.0
+LOCK = "VERGENCE_TESTS_LOCK"  # the run's lock file and its pytest's pid ("PATH:PID"), for `turn`
 
 _children: dict[str, dict] = {}  # IDLE / SCENARIOS -> "argv", "n" (its tests), "proc", "out" (its output file)
 
@@ -84,8 +92,28 @@ def modify(config, items: list) -> None:
     if scenes and len(scenes) < len(items) - len(fast):
         files = sorted({str(Path(str(it.path)).relative_to(root)) for it in scenes})
         _children[SCENARIOS] = dict(n=len(scenes), argv=["-m", " or ".join(KEEP), *files])
+    if SCENARIOS in _children:
+        fd, path = tempfile.mkstemp(prefix="vergence-tests-", suffix=".lock")
+        os.close(fd)
+        os.environ[LOCK] = f"{path}:{os.getpid()}"
     items[:] = [it for it in items if not (IDLE in _children and not kept(it))
                 and not (SCENARIOS in _children and kept(it) and scenario(it))]
+
+
+@contextlib.contextmanager
+def turn(alone: bool):
+    """Around each test of the two pytests of real processes in a whole run: a shared lock on the run's file, or an
+    exclusive one for a test that runs alone (elsewhere, as in any other run: nothing)."""
+    path, _, pid = os.environ.get(LOCK, "").rpartition(":")
+    if not path or not (os.environ.get(CHILD) == SCENARIOS or pid == str(os.getpid())):
+        yield
+        return
+    with open(path) as f:
+        fcntl.flock(f, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def start(rootdir) -> None:
@@ -102,7 +130,7 @@ def start(rootdir) -> None:
 
 
 def finish(session) -> None:
-    """pytest_sessionfinish: wait for the other pytests; a failure of theirs is this run's."""
+    """pytest_sessionfinish: wait for the other pytests; a failure of theirs is this run's; the lock file goes."""
     for c in _children.values():
         proc = c.get("proc")
         if proc is None:
@@ -114,6 +142,10 @@ def finish(session) -> None:
             proc.wait()
         if proc.returncode != 0 and session.exitstatus == 0:
             session.exitstatus = 1
+    path, _, pid = os.environ.get(LOCK, "").rpartition(":")
+    if path and pid == str(os.getpid()):
+        with contextlib.suppress(OSError):
+            os.unlink(path)
 
 
 def summary(terminalreporter) -> None:

@@ -26,6 +26,11 @@ sys.path.insert(0, {str(TESTS)!r})
 import split
 if split.is_child():
     split.idle()
+import pytest
+@pytest.fixture(autouse=True)
+def _turn(request):
+    with split.turn(request.node.get_closest_marker("alone") is not None):
+        yield
 def pytest_collection_modifyitems(session, config, items):
     split.modify(config, items)
 def pytest_collection_finish(session):
@@ -40,10 +45,13 @@ TESTS_PY = """
 import json, os
 import pytest
 
-def _where(name):
+def _where(name, span=0.0):
+    import time
+    t0 = time.time()
+    time.sleep(span)
     with open(os.environ["INNER_OUT"], "a") as f:
         f.write(json.dumps({"test": name, "pid": os.getpid(), "child": os.environ.get("VERGENCE_TESTS_CHILD"),
-                            "policy": os.sched_getscheduler(0)}) + "\\n")
+                            "policy": os.sched_getscheduler(0), "t0": t0, "t1": time.time()}) + "\\n")
     if os.environ.get("INNER_HANG") == "1":  # until the outer test kills the run
         import time
         time.sleep(60)
@@ -59,6 +67,11 @@ def test_fast():
 def test_realtime():
     _where("realtime")
 
+@pytest.mark.slow
+@pytest.mark.alone
+def test_alone():
+    _where("alone", 0.6)
+
 def test_fast_fails_on_demand():
     assert os.environ.get("INNER_FAIL") != "1", "failed on demand"
 """
@@ -70,7 +83,7 @@ from test_inner import _where
 
 @pytest.mark.slow
 def test_scenario_slow():
-    _where("scenario_slow")
+    _where("scenario_slow", 0.6)
     assert os.environ.get("INNER_FAIL_SCENARIO") != "1", "a scenario failed on demand"
 
 def test_scenario_fast():
@@ -82,7 +95,8 @@ def _tree(tmp_path: Path) -> Path:
     """The tiny tree: its pytest.ini (the markers), its conftest (tests/split.py wired in) and its tests."""
     inner = tmp_path / "inner"
     inner.mkdir(exist_ok=True)
-    (inner / "pytest.ini").write_text("[pytest]\nmarkers =\n    slow: real processes\n    realtime: timing\n")
+    (inner / "pytest.ini").write_text("[pytest]\nmarkers =\n    slow: real processes\n    realtime: timing\n"
+                                      "    alone: no other test of real processes beside it\n")
     (inner / "conftest.py").write_text(CONFTEST)
     (inner / "test_inner.py").write_text(TESTS_PY)
     (inner / "scenarios").mkdir(exist_ok=True)
@@ -113,7 +127,10 @@ def test_the_whole_run_runs_the_in_process_tests_beside_it_at_idle_priority(tmp_
     assert by["scenario_fast"]["pid"] == by["fast"]["pid"]  # the scenarios' in-process tests: with the others
     assert "at idle priority, the 3 tests of -m 'not slow and not realtime': 3 passed" in r.stdout
     assert "at normal priority, the 1 tests of the scenarios folder's -m 'slow or realtime': 1 passed" in r.stdout
-    assert "2 passed" in r.stdout.strip().splitlines()[-1]  # this process's own: the slow and the realtime one
+    assert "3 passed" in r.stdout.strip().splitlines()[-1]  # this process's own: the slow, realtime and alone ones
+    # the alone test had no test of the scenarios' pytest beside it (each sleeps 0.6 s: they would overlap)
+    alone, other = by["alone"], by["scenario_slow"]
+    assert alone["t1"] <= other["t0"] or other["t1"] <= alone["t0"], (alone, other)
 
 
 @pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="the split needs two cores")
@@ -122,13 +139,13 @@ def test_a_failure_beside_the_run_fails_the_run_and_is_shown_in_full(tmp_path):
     assert r.returncode == 1, r.stdout + r.stderr
     assert "the 3 tests that ran beside this run (-m 'not slow and not realtime'): exit 1" in r.stdout
     assert "failed on demand" in r.stdout and "1 failed, 2 passed" in r.stdout
-    assert "2 passed" in r.stdout.strip().splitlines()[-1]
+    assert "3 passed" in r.stdout.strip().splitlines()[-1]
     r, _ = _run(tmp_path, VERGENCE_TESTS_SPLIT="1", INNER_FAIL_SCENARIO="1")
     assert r.returncode == 1, r.stdout + r.stderr
     assert ("the 1 tests that ran beside this run (the scenarios folder's -m 'slow or realtime'): exit 1"
             in r.stdout)
     assert "a scenario failed on demand" in r.stdout and "3 passed" in r.stdout
-    assert "2 passed" in r.stdout.strip().splitlines()[-1]
+    assert "3 passed" in r.stdout.strip().splitlines()[-1]
 
 
 def test_a_selection_or_split_0_runs_in_one_process(tmp_path):

@@ -20,7 +20,7 @@ from procs import Procs, free_port, wait_for
 from vergence.wire.messages import Decision, MotorState
 from vergence.wire.status import decode_status
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.alone]  # (alone: tests/split.py)
 
 F, CX = 256.0, 160
 

@@ -22,7 +22,7 @@ from vergence.stages.frames import make_frame
 from vergence.wire.messages import Fixate, MotorState, Preview, Profile, Decision
 from vergence.network.params import Params
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.alone]  # (alone: tests/split.py)
 
 # RIHS01 hashes as rclpy 7.1.6 (Jazzy) reports them (../shared/docs/ROS2.md), for the types that table names
 HASHES = {"sensor_msgs/msg/JointState": "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e",
