@@ -346,7 +346,8 @@ def _verdicts(c, after_ns: int = 0) -> list[tuple[int, Decision]]:
 
 def _converges_within_3_s(P, t, decisions, fixes, t_first: int, error_px, z_true: float) -> int:
     """Five decisions in a row within 1 px and the slave within 1 px of the truth (error_px()) no later than 3 s
-    after the first decision; then a fixation at the depth z_true (within 2 %), which it returns."""
+    after the first decision; then the next 5 fixations at the depth z_true (their median within 2 %): the first
+    returned."""
 
     def converged():
         v = _verdicts(decisions, t_first)
@@ -358,10 +359,16 @@ def _converges_within_3_s(P, t, decisions, fixes, t_first: int, error_px, z_true
     took = (t_conv - t_first) / 1e9
     print(f"converged {took:.2f} s after the first decision")
     assert took <= 3.0
-    _, fx = t.wait_until(lambda: [f for f in fixes if f[0] > t_conv][:1], 5, "a fixation", P.logs)[0]
+    # the fixations of the 5 frames after it, their median at the depth (one frame's alone may be off: the test's
+    # camera node renders at the joint states it heard, which a loaded CI once delivered late: 0.766 m of 0.8)
+    def five():
+        after = [f for f in fixes if f[0] > t_conv]
+        return after[:5] if len(after) >= 5 else None
+
+    got = t.wait_until(five, 5, "5 fixations", P.logs)
     if z_true is not None:
-        assert fx.point.z == pytest.approx(z_true, rel=0.02)
-    return fx
+        assert float(np.median([f.point.z for _, f in got])) == pytest.approx(z_true, rel=0.02)
+    return got[0][1]
 
 
 def _look_at_through_the_loop(P, t, decisions, fixes, z_true: float) -> None:
