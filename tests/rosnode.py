@@ -21,6 +21,8 @@ import time
 
 import pytest
 
+import split
+
 __all__ = ["require", "ros_env", "TestNode"]
 
 
@@ -37,7 +39,7 @@ def require():
 def ros_env(monkeypatch) -> int:
     """A ROS domain of this test's own (and localhost-only discovery) for the test and its processes: 51-100 in
     the scenarios' pytest of a whole run, 1-50 in the others (tests/split.py: the two run at once)."""
-    domain = random.randint(51, 100) if os.environ.get("VERGENCE_TESTS_CHILD") == "scenarios" else random.randint(1, 50)
+    domain = random.randint(51, 100) if os.environ.get(split.CHILD) == split.SCENARIOS else random.randint(1, 50)
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     monkeypatch.delenv("ROS_LOCALHOST_ONLY", raising=False)

@@ -174,7 +174,7 @@ class Play:
         furthest sent that way; a smaller step back leaves the camera at most that much past it)."""
         was = self.cam if self.sent is None else self.sent
         self.sent = goal
-        if self.far is None or self.side == 0.0:
+        if self.far is None:  # (no side yet)
             if was is not None and goal != was:  # (the same goal again: the same side)
                 self.side, self.far = math.copysign(1.0, goal - was), goal
         elif self.side * (goal - self.far) >= 0:
