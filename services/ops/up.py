@@ -118,9 +118,11 @@ class Heartbeat:
         self.last: float | None = None  # time.monotonic() of the latest beat read
 
     def spawned(self) -> None:
-        """The child has its copy of the write end: close up's (its end of file is then the child's exit)."""
+        """The child has its copy of the write end: close up's (its end of file is then the child's exit). Its start
+        grace counts from now (a loaded machine's fork and exec took 0.1 s)."""
         os.close(self._w)
         self._w = -1
+        self.started = time.monotonic()
 
     def poll(self, now: float) -> None:
         """Read the beats that came (every byte there: one read can be short)."""
@@ -245,7 +247,7 @@ class Child:
         if self.hb is not None:
             self.hb.close()
         self.p, self.hb = spawn(self.name, self.argv, self.sup)
-        self.started, self.due, self.why = time.monotonic(), None, ""
+        self.started, self.due, self.why = self.hb.started, None, ""  # (the clock its start grace counts on)
         if self.standby_due is not None:
             self.standby_due = max(self.standby_due, self.started + STANDBY_DELAY_S)
 

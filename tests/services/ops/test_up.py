@@ -204,6 +204,29 @@ def test_a_child_whose_heartbeat_stops_is_killed_and_restarted(caplog):
     assert 0.6 + 0.3 - 0.15 <= ran["stalls"] < 0.6 + 0.3 + 1.0  # stall_s after its progress, then heartbeat_s
 
 
+def test_a_slow_spawn_does_not_eat_the_start_grace(caplog, monkeypatch):
+    """The start grace counts from when the child exists, as its "after N s" does: a fork and exec that took 0.3 s
+    (a loaded machine's 0.1 s once killed a mute child "after 0.9 s" of its 1 s grace) leave it its whole grace."""
+    from vergence.config import SuperviseSettings
+    from services.runtime import session
+    from services.ops import up
+
+    slow = up.Proc
+
+    def proc(*a, **k):
+        time.sleep(0.3)
+        return slow(*a, **k)
+
+    monkeypatch.setattr(up, "Proc", proc)
+    mute = up.Child("mute", [sys.executable, "-c", RUNS_ON], sup=SuperviseSettings(heartbeat_s=0.3, start_grace_s=0.5))
+    mute.start()
+    pid = mute.p.pid
+    with caplog.at_level(logging.INFO, logger="vergence.up"):
+        assert _supervise_until([mute], session.Stop(install=False), lambda: mute.restarts >= 1, 30) == 0
+    ran = float(re.search(rf"mute \(pid {pid}\) was killed by up \(no first heartbeat within 0\.[5-9] s of its start\) "
+                          r"after ([\d.]+) s", "\n".join(r.getMessage() for r in caplog.records))[1])
+    assert 0.5 <= ran < 1.5
+
 def test_a_busy_child_that_beats_is_not_killed(caplog):
     """A child busy in Python (a compile, a heavy frame: the main thread never sleeps) for 2 s, 6 times its
     heartbeat_s, keeps beating from its thread: it ends by itself, never killed."""
