@@ -118,8 +118,7 @@ class Heartbeat:
         self.last: float | None = None  # time.monotonic() of the latest beat read
 
     def spawned(self) -> None:
-        """The child has its copy of the write end: close up's (its end of file is then the child's exit). Its start
-        grace counts from now (a loaded machine's fork and exec took 0.1 s)."""
+        """The child has its copy of the write end: close up's (its EOF: the child's exit); its start grace begins."""
         os.close(self._w)
         self._w = -1
         self.started = time.monotonic()
