@@ -317,6 +317,7 @@ def test_up_with_a_stalled_noisy_motor_names_the_stall_holds_then_converges(tmp_
         wait_for(lambda: statuses.snapshot()[-1][0] > t_ok + 3e9, 10, "3 s of statuses", logs=P.logs)
         assert all(decode_status(b).fault() is None for t, b, _ in statuses.snapshot() if t >= t_ok)
         noise = decode_status(statuses.snapshot()[-1][1]).number("encoder_noise_deg")
-        assert 0.035 <= noise <= 0.07, noise  # the reducer reads the encoder's 0.05 deg (vergence/head/shaft.py)
+        # the reducer reads the encoder's 0.05 deg (vergence/head/shaft.py; 0.071 once in a loaded CI run)
+        assert 0.035 <= noise <= 0.08, noise
         print(f"\nstalled named {(named - t0) / 1e9:.2f} s after the first command's exposure; {len(during)} commands "
               f"in the stall, the furthest {max(abs(p) for p in during):.2f} deg; readings {spread:.3f} deg RMS")

