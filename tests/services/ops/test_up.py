@@ -227,6 +227,7 @@ def test_a_slow_spawn_does_not_eat_the_start_grace(caplog, monkeypatch):
                           r"after ([\d.]+) s", "\n".join(r.getMessage() for r in caplog.records))[1])
     assert 0.5 <= ran < 1.5
 
+
 def test_a_busy_child_that_beats_is_not_killed(caplog):
     """A child busy in Python (a compile, a heavy frame: the main thread never sleeps) for 2 s, 6 times its
     heartbeat_s, keeps beating from its thread: it ends by itself, never killed."""
