@@ -11,7 +11,7 @@ disturbed, as tests/background.py's sweeps are not). The outcomes of both join t
 their failures in full, and this run's exit status (1 when one failed). The two pytests of real processes share
 the machine's ports (each test takes free ones) and its ROS 2 network (each picks its domains from a half of its
 own: tests/rosnode.py). Measured on this machine (2026-12-07, a fresh clone's `.ci/run`, headless Chromium
-installed): 493-558 s in all, this pytest's 206 tests 440-494 s, the scenarios' 91 339-398 s beside it, the 1104
+installed): 489-558 s in all, this pytest's 206 tests 430-494 s, the scenarios' 91 339-398 s beside it, the 1104
 in-process tests 287-395 s; with the scenarios in this pytest 542 s of pytest, about 600 s in all.
 
 A test marked `alone` (the ROS 2 ones: their DDS discovery and the test's own camera and joint nodes, starved by a
