@@ -100,12 +100,18 @@ def modify(config, items: list) -> None:
                 and not (SCENARIOS in _children and kept(it) and scenario(it))]
 
 
+def _lock() -> tuple[str, bool]:
+    """The run's lock file ("" outside a split run), and whether this pytest made it (the run's own)."""
+    path, _, pid = os.environ.get(LOCK, "").rpartition(":")
+    return path, pid == str(os.getpid())
+
+
 @contextlib.contextmanager
 def turn(alone: bool):
     """Around each test of the two pytests of real processes in a whole run: a shared lock on the run's file, or an
     exclusive one for a test that runs alone (elsewhere, as in any other run: nothing)."""
-    path, _, pid = os.environ.get(LOCK, "").rpartition(":")
-    if not path or not (os.environ.get(CHILD) == SCENARIOS or pid == str(os.getpid())):
+    path, mine = _lock()
+    if not path or not (os.environ.get(CHILD) == SCENARIOS or mine):
         yield
         return
     with open(path) as f:
@@ -142,8 +148,8 @@ def finish(session) -> None:
             proc.wait()
         if proc.returncode != 0 and session.exitstatus == 0:
             session.exitstatus = 1
-    path, _, pid = os.environ.get(LOCK, "").rpartition(":")
-    if path and pid == str(os.getpid()):
+    path, mine = _lock()
+    if path and mine:
         with contextlib.suppress(OSError):
             os.unlink(path)
 
