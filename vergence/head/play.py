@@ -59,7 +59,7 @@ class Play:
         self.low: tuple | None = None  # (... and the least far, before a way is known)
         self.turns: list[tuple[float, float, np.ndarray]] = []  # the last two turns (t, pan, profile), oldest first
         self.bands: list[tuple[float, float, np.ndarray]] = []  # the bands of the last KEEP_S (t, pan, profile)
-        self.pending: tuple | None = None  # the last turn, until the motor is TRAVEL_DEG from it
+        self.pending: tuple | None = None  # (the last turn, the one before) until the motor is 2 x TRAVEL_DEG out
         self.plays: list[float] = []  # the measurements (rad)
         self.when: list[float] = []  # ... and when each was read (s)
         self.half = 0.0
@@ -96,11 +96,16 @@ class Play:
         elif self.way * (self.peak[1] - pan) >= back:  # a turn: the motor came back BACK_DEG from its furthest that way
             self.turns, self.way, self.peak = (self.turns + [self.peak])[-2:], -self.way, band
             x = self.turns[-1]
-            # read once the motor is 2 x TRAVEL_DEG past it, where the way into it was 3 x TRAVEL_DEG or more
-            self.pending = x if len(self.turns) == 2 and abs(x[1] - self.turns[0][1]) >= 3 * travel else None
-        x = self.pending
-        if x is None or abs(pan - x[1]) < 2 * travel:
+            # read once the motor is 2 x TRAVEL_DEG out of it, where the way into it was 3 x TRAVEL_DEG or more; a
+            # shorter turn on its way out (a hunt about the target's turn while the play is not yet taken out) leaves
+            # it pending: its bands are read only where the motor is at its furthest from it
+            if len(self.turns) == 2 and abs(x[1] - self.turns[0][1]) >= 3 * travel:
+                self.pending = (x, self.turns[0])
+            elif self.pending is not None and _way(self.pending) * (x[1] - self.pending[0][1]) >= 0:
+                self.pending = None  # (back past it: it was no turn)
+        if self.pending is None or _way(self.pending) * (self.pending[0][1] - pan) < 2 * travel:
             return False
+        x, before = self.pending
         self.pending = None
         # each band TRAVEL_DEG to 2 x TRAVEL_DEG from the turn, on its way in and out (the camera half the play behind
         # the shaft there, engaged: on the way in on one side, out on the other), against the turn's band: the camera
@@ -111,9 +116,9 @@ class Play:
         # (only bands at the furthest the motor had come that way since the turn before: in a dither's dip the camera
         # may be anywhere in the play)
         sides: tuple[list[float], list[float]] = ([], [])
-        way, furthest = math.copysign(1.0, x[1] - self.turns[0][1]), -math.inf
+        way, furthest = _way((x, before)), -math.inf
         for b in self.bands:
-            if b[0] <= self.turns[0][0]:
+            if b[0] <= before[0]:
                 continue
             out = b[0] > x[0]
             if b[0] == x[0]:
@@ -125,7 +130,7 @@ class Play:
                     sides[out].append(moved - (b[1] - x[1]))
         if min(len(sides[0]), len(sides[1])) < SIDE:
             return False
-        p = math.copysign(1.0, x[1] - self.turns[0][1]) * float(np.median(sides[1]) - np.median(sides[0]))
+        p = _way((x, before)) * float(np.median(sides[1]) - np.median(sides[0]))
         log.debug("a turn at %.3f s: play %.3f deg", x[0], math.degrees(p))
         if not -travel <= p <= travel:
             return False
@@ -201,6 +206,12 @@ class Play:
                  WITHDRAW_S)
         self.plays, self.when = [self.plays[k] for k in keep], [self.when[k] for k in keep]
         return self._name()
+
+
+def _way(pending: tuple) -> float:
+    """The way the motor came into a pending turn (x, the turn before it): +1, -1."""
+    x, before = pending
+    return math.copysign(1.0, x[1] - before[1])
 
 
 def _through(camera: float, shaft: float, half: float) -> float:

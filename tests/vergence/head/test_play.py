@@ -28,13 +28,16 @@ def band(tex, camera: float, rng, focal: float = F) -> np.ndarray:
 
 
 def run(play_deg: float, seconds: float = 10.0, seed: int = 3, hz: float = 0.5, amp_deg: float = 2.0,
-        focal: float = F) -> Play:
-    """A motor on a sine (its pan at each frame), the camera through play_deg of play, every frame's band seen."""
+        focal: float = F, dip=None) -> Play:
+    """A motor on a sine (its pan at each frame), the camera through play_deg of play, every frame's band seen; dip:
+    (t0, t1, deg), a move back of that much and forth again over t0-t1 (a hunt)."""
     tex, rng, p = texture(seed), np.random.default_rng(seed + 1), Play()
     half, cam = math.radians(play_deg) / 2, None
     for k in range(int(seconds * RATE)):
         t = k / RATE
         shaft = math.radians(amp_deg) * math.cos(2 * math.pi * hz * t) - 0.05
+        if dip is not None and dip[0] <= t <= dip[1]:
+            shaft -= math.radians(dip[2]) * math.sin(math.pi * (t - dip[0]) / (dip[1] - dip[0]))
         cam = shaft if cam is None else min(max(cam, shaft - half), shaft + half)
         p.see(t, shaft, band(tex, cam, rng, focal), "fovea", F, 0.0, (W - 1) / 2)  # (no target: the fovea off it)
     return p
@@ -56,6 +59,15 @@ def test_the_first_turn_read_names_the_play():
     assert math.degrees(2 * p.half) == pytest.approx(0.2, abs=0.02)
     assert p.status()["play_deg"] == pytest.approx(0.2, abs=0.02)
     assert run(0.2, seconds=0.9).status() == {"play_deg": None}  # (no turn read yet)
+
+
+def test_a_hunt_on_the_way_out_of_a_turn_leaves_it_read():
+    """Before the play is taken out the loop may hunt about the target's turn: the motor 0.6 deg out of it goes back
+    0.4 deg (more than the play, a turn of its own) and out again. The turn is read all the same, off the bands where
+    the motor is at its furthest from it (the way the first measurement on a noisy encoder was lost for 2 s)."""
+    p = run(0.2, seconds=1.6, dip=(1.25, 1.35, 0.6))
+    assert len(p.plays) == 1 and math.degrees(2 * p.half) == pytest.approx(0.2, abs=0.02)
+    assert run(0.2, seconds=1.6, dip=(1.25, 1.35, 1.2)).plays == []  # back past the turn: it was no turn
 
 
 def test_a_fault_withdraws_the_measurements_of_the_second_before_it():
