@@ -76,9 +76,11 @@ def start_up(P: Procs, tmp_path, *extra: str, source: str | None = None, rate: s
 
 
 def pause_around(decisions, t_kill: int) -> float:
-    """The longest pause between two decisions, from the last one before t_kill to the 10th after."""
+    """The longest pause from t_kill to the first decision (or command) after it and between the next 10. (From
+    t_kill, not from the last one before it: a loop holding its commands inside its dead band at the target's far
+    turn sent none for 0.5 s before the router's SIGSTOP, and that pause was counted in the stop's.)"""
     times = [t for t, *_ in decisions.snapshot()]
-    seq = [t for t in times if t <= t_kill][-1:] + [t for t in times if t > t_kill][:10]
+    seq = [t_kill] + [t for t in times if t > t_kill][:10]
     return max((b - a) / 1e9 for a, b in itertools.pairwise(seq))
 
 
