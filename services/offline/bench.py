@@ -180,7 +180,7 @@ def _faults(args) -> int:
                     f"{_fmt(r.get('focal_ratio'), '5.3f')}  later steps' overshoot "
                     f"{_fmt(r.get('overshoot_px'), '5.1f')} px")
         elif r["lie"] == "backlash":
-            body = f"RMS / the clean run's {_fmt(r.get('rms_vs_clean'), '5.2f')}"
+            body = f"RMS / the clean runs' (4 lattice shifts) {_fmt(r.get('rms_vs_clean'), '5.2f')}"
         else:
             body = (f"fault {_fmt(r.get('fault'), '14s')} after {_fmt(r.get('diagnosed_s'), '5.3f')} s  excursion "
                     f"{_fmt(r.get('excursion_deg'), '5.2f')} deg {_fmt(r.get('excursion_px'), '6.1f')} px  commands "
