@@ -7,7 +7,7 @@ after a slip the shaft stays off by what the motor moved while the coupling slip
 without a lie, whose faults are false ones. Two lies that are no faults, each from the start: `focal_true` (the
 images at 1.6 x the focal length the loop is told, on a third scene too, a target stepping between 0.6 and 1.0 m
 every second): when the loop named the focal length and the ratio it measured, and how far the steps after that
-overshot; `backlash` (0.2 deg, with encoder noise 0.05 deg): its tracking error against the clean run's, both pooled
+overshot; `backlash` (0.2 deg, with encoder noise 0.05 deg): its tracking error against the clean runs', both pooled
 over the camera turned rigidly by each of SHIFTS_DEG from its encoder (`zero=`: where the motor's whole ticks fall on
 the target's path; one such draw alone moved a clean run's RMS by up to 40 %, docs/FAULTS.md). Every row has the RMS
 error of the slave camera (its own pan, not the shaft's) over its last 3 s. One dict per row."""
