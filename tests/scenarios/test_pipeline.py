@@ -102,7 +102,11 @@ def test_profile_equals_correlate_with_1_2_3_workers(tmp_path, pair):
             seen = wait_for(lambda: [m for _, m in by_frame(profiles.snapshot()[start:], Profile).values()
                                      if len(m.workers) == n][:3] or None, 20, f"profiles from {n} workers",
                             logs=P.logs)
-            fr = by_frame(frames.snapshot(), Frame)
+            def heard(seen=seen):  # (the test's own frame subscriber may lag the profiles)
+                got = by_frame(frames.snapshot(), Frame)
+                return got if all(m.frame in got for m in seen) else None
+
+            fr = wait_for(heard, 10, "the profiles' frames", logs=P.logs)
             params = load(cfg).network
             for prof in seen:
                 f = fr[prof.frame][1]
@@ -308,10 +312,11 @@ def test_the_service_falls_back_to_the_unclipped_master_as_match_does(tmp_path):
         _, v = wait_for(lambda: next(((t, m) for t, m in (
             (t, Decision.from_bytes(b)) for t, b, _ in decisions.snapshot()) if m.confident), None), 30,
             "a confident decision", logs=P.logs)
-        fr = {f.frame: f for f in (Frame.from_bytes(b) for _, b, _ in frames.snapshot())}
         d = want.decision
         assert (v.window, v.k, v.k_sub, v.v_shift, v.offset_px) == (want.window, d.k, d.k_sub, d.v, d.offset_px)
-        f = fr[v.frame]
+        # (the test's own frame subscriber may hear the frame after the reducer's decision on it, under load)
+        f = wait_for(lambda: next((f for f in (Frame.from_bytes(b) for _, b, _ in frames.snapshot())
+                                   if f.frame == v.frame), None), 10, f"frame {v.frame}", logs=P.logs)
         for clip in (False, True):
             g = make_frame(left, slave, rig=f.rig, frame=f.frame, pan_rad=0.0, focal_px=1.0, params=params,
                            plan=f.plan, at=(41, 164), window=f.window, clip=clip)
