@@ -106,7 +106,7 @@ class Play:
         if self.pending is None or _way(self.pending) * (self.pending[0][1] - pan) < 2 * travel:
             return False
         x, before = self.pending
-        self.pending = None
+        into, self.pending = _way(self.pending), None
         # each band TRAVEL_DEG to 2 x TRAVEL_DEG from the turn, on its way in and out (the camera half the play behind
         # the shaft there, engaged: on the way in on one side, out on the other), against the turn's band: the camera
         # turned the motor's turn, then the motor's less the play. The medians of each side: the turn's own error
@@ -116,7 +116,7 @@ class Play:
         # (only bands at the furthest the motor had come that way since the turn before: in a dither's dip the camera
         # may be anywhere in the play)
         sides: tuple[list[float], list[float]] = ([], [])
-        way, furthest = _way((x, before)), -math.inf
+        way, furthest = into, -math.inf
         for b in self.bands:
             if b[0] <= before[0]:
                 continue
@@ -130,7 +130,7 @@ class Play:
                     sides[out].append(moved - (b[1] - x[1]))
         if min(len(sides[0]), len(sides[1])) < SIDE:
             return False
-        p = _way((x, before)) * float(np.median(sides[1]) - np.median(sides[0]))
+        p = into * float(np.median(sides[1]) - np.median(sides[0]))
         log.debug("a turn at %.3f s: play %.3f deg", x[0], math.degrees(p))
         if not -travel <= p <= travel:
             return False
