@@ -43,17 +43,27 @@ class Freezable:
         return master, slave
 
 
+HEAR_S = 0.15  # the test's camera waits this long at most for the joint state of its exposure
+
+
 def _joint_pan_at(t, P, behind_ns: int = 0):
     """The slave's pan behind_ns before t_ns, from the rig's /vergence/<rig>/joint_states as the test's node heard
-    them (interpolated between two; before the first heard, None, or with behind_ns the first)."""
+    them (interpolated between two; before the first heard, None, or with behind_ns the first). A camera on the shaft
+    sees where the shaft is: so it waits (up to HEAR_S) for a state stamped at or after that instant, else a loaded
+    machine's late joint states had it render the pan of tens of ms before (a reversed camera's image then moved
+    half the motor's turn, r -0.5, and was named slave_frozen in a CI run)."""
     from sensor_msgs.msg import JointState
     from vergence.ros2.convert import pan_at as interpolate
 
     joints = t.collect(JointState, f"/vergence/{P.rig}/joint_states")
 
+    def stamp(m) -> int:
+        return m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+
     def pan_at(t_ns: int) -> float | None:
         with t.cond:
-            states = [(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m.position[0]) for _, m in joints[-99:]]
+            t.cond.wait_for(lambda: joints and stamp(joints[-1][1]) >= t_ns - behind_ns, HEAR_S)
+            states = [(stamp(m), m.position[0]) for _, m in joints[-99:]]
         t_ns -= behind_ns
         if not states or (t_ns < states[0][0] and not behind_ns):
             return None
