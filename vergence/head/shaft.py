@@ -5,13 +5,16 @@ vergence.head.rest takes the mean of its readings; in motion each frame's pan ke
 0.44 px at f 500): pursuit at 30 Hz paid x1.5-2 of the clean run's RMS for it. But a motor in motion heads for the
 goal it was sent, after its latency, as a servo does (to first order, with a time constant), and a goal has no noise.
 So the shaft is modelled from the goals sent (on the motor's whole ticks where it takes them), the model's latency and
-time constant fitted (LATENCIES x TAUS, least squares) to the readings of the last FIT_S, and a frame's pan is the
-model's there plus the readings' mean residual over that fit (a motor's steady lag). Used only for a noisy encoder:
-its noise read off each reading against the line between its neighbours (no model in it: a stalled shaft's readings
-are on that line), less a tick's rounding, above NOISY_DEG (a clean encoder's frames keep their reading, to the
-digit); and only where the frame's reading is within SIGMAS of that noise of the model's pan and the residuals within
-BIAS_S of the frame average within SIGMAS standard errors and half a tick (a shaft stalled, blocked or pushed is
-where its readings say). Measured: docs/FAULTS.md, "The encoder's noise in motion"."""
+time constant fitted (LATENCIES x TAUS, least squares) to the readings of the last FIT_S at each refit, each pair's
+residual variance summed over the refits with a HALF_LIFE_S memory where the best pair's is within SERVO_SD of the
+noise (a servo does not change from one second to the next: a second alone often chose a pair 3-5 ms off, its frames
+0.2 px off the shaft in a fast pursuit), and a frame's pan is the model's there plus the readings' mean residual over
+that refit (a motor's steady lag). Used only for a noisy encoder: its noise read off each reading against the line
+between its neighbours (no model in it: a stalled shaft's readings are on that line), less a tick's rounding, above
+NOISY_DEG (a clean encoder's frames keep their reading, to the digit); and only where the frame's reading is within
+SIGMAS of that noise of the model's pan and the residuals within BIAS_S of the frame average within SIGMAS standard
+errors and half a tick (a shaft stalled, blocked or pushed is where its readings say). Measured: docs/FAULTS.md, "The
+encoder's noise in motion" and "The servo's fit remembered where it fits"."""
 
 from __future__ import annotations
 
@@ -35,6 +38,10 @@ TAUS = (0.005, 0.01, 0.02, 0.04, 0.08)  # s: its time constant, fitted (none of 
 NOISY_DEG = 0.03  # the encoder's noise (less the ticks' rounding) above this: a noisy one (clean: 0-0.024)
 SIGMAS = 4.0  # a frame's reading further than this many of the noise from the model's pan: left as read
 MIN_READINGS = 20  # readings in FIT_S before the model is fitted
+HALF_LIFE_S = 3.0  # a pair's residuals of a refit weigh half as much this much later (docs/FAULTS.md, "The servo's
+# fit remembered where it fits": one second of readings alone chose the true pair in 10-50 % of the refits)
+SERVO_SD = 1.5  # ... remembered only where the best pair's residuals are within this many of the noise (a loop's
+# first large moves, where the servo's acceleration limit shows, chose a pair 5 ms late that the memory then held)
 
 
 class Shaft:
@@ -53,6 +60,8 @@ class Shaft:
         self.sd: float | None = None
         self.t_fit = -math.inf
         self.offset = 0.0
+        self.scores: dict[tuple[float, float], float] = {}  # each pair's residual variance, summed over the refits
+        self.t_scored: float | None = None  # ... as of this refit
 
     def commanded(self, t: float, goal: float) -> None:
         if not (math.isfinite(t) and math.isfinite(goal)):
@@ -100,19 +109,26 @@ class Shaft:
         self.sd, self.fit = _noise(ts, rs, self.tick), None
         if self.sd < math.radians(NOISY_DEG):
             return  # a clean encoder: its frames keep their reading, no model is fitted
-        best = None
+        if self.t_scored is not None and now < self.t_scored:
+            self.scores, self.t_scored = {}, None  # (a clock gone back: what was summed says nothing of the new one)
+        keep = 0.0 if self.t_scored is None else 0.5 ** ((now - self.t_scored) / HALF_LIFE_S)
+        means, var = {}, {}
         for lat in LATENCIES:
             for tau in TAUS:
                 m = self._model(lat, tau, t0, ts)
                 if m is None:
                     continue
                 res = [rs[j] - m[j] for j in judged]
-                mean = sum(res) / len(res)
-                var = sum((e - mean) ** 2 for e in res)
-                if best is None or var < best[0]:
-                    best = (var, lat, tau, mean)
-        if best is not None:
-            self.fit, self.offset = (best[1], best[2]), best[3]
+                means[(lat, tau)] = mean = sum(res) / len(res)
+                var[(lat, tau)] = sum((e - mean) ** 2 for e in res) / len(res)
+        if not var:
+            return
+        if min(var.values()) <= (SERVO_SD * self.sd) ** 2:  # (else no pair is this servo here: not remembered)
+            self.t_scored = now
+            for pair, v in var.items():
+                self.scores[pair] = keep * self.scores.get(pair, 0.0) + v
+        best = min(var, key=lambda pair: (self.scores.get(pair, math.inf), var[pair]))
+        self.fit, self.offset = best, means[best]
 
     def at(self, t: float, pan: float) -> float:
         """The slave's pan at t: the model's there plus the readings' mean residual, or `pan` (the frame's)."""
