@@ -41,7 +41,9 @@ KEEP_S = 2.0  # the bands kept (the way into a turn of a target going to and fro
 NAME_DEG = 0.12  # the play named at this or more: under it, not told from an encoder's ticks (a Dynamixel's 0.088
 # deg) read ahead of the shaft in motion (a clean sim read 0.01-0.06 deg, 0.09 with one band each side)
 AGAIN_DEG = 0.03  # a named play changes where the median moves this much
-SIDE = 2  # bands read on each side of a turn, at least
+SIDE = 1  # bands read on each side of a turn, at least (2 until session 54: a loop 100 ms late, before the play is
+# taken out, leaves a turn's way out in one band, 0.25 to 0.6 deg in two frames, and read the play two turns later;
+# one band's error, up to 0.09 deg on a clean sim, is the median's of KEEP to take out: 72 clean runs named none)
 KEEP = 7  # the play named: the median of the last this many measurements
 BACK_GOAL_DEG = 0.015  # a goal this far back from the furthest one sent, or less, keeps the side: a noisy encoder's
 # set-points step back 0.006 deg in pursuit, and each side taken anew costs the motor the play's crossing twice
