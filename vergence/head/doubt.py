@@ -35,8 +35,7 @@ by itself. A frozen master camera (vergence.head.frozen) holds until it changes.
 away (past its dead band) that does not move for STALL_S is stalled, a search's commands too. A camera later than its
 frames say is told by the moves of its faults and named (vergence.head.lag): naming it clears a frozen or reversed fault
 (its image follows, later); from then on each frame goes through shift() first, and a pair's slack grows by the
-uncertainty of the pans it reads.
-The library only: the reducer and `vergence sim` both run it through the Controller."""
+uncertainty of the pans it reads. The library only: the reducer and `vergence sim` both run it (the Controller)."""
 
 from __future__ import annotations
 
@@ -238,19 +237,17 @@ class Doubt:
         """j agrees with i (or the target moved by itself between them): j is the next reference and the leash's
         centre, and, while tracking (i's offset small) or where the motor moved slowly, the target's rate is learnt
         (a correction's image could teach the motor's own motion: a slipping coupling's does). A pair faster than any
-        target is a jump (rates 0) unless the rate since LONG_S ago is not and the pair's is within TARGET_RATE_DEG_S of
-        the one up to i (one pair's noise on a fast target), which it then gives (a 2.3 deg step of the target, spread
-        over LONG_S, was learnt as 17 deg/s, and the fast pairs of the correction after it read 1.27 x)."""
-        dt = j.t - i.t
+        target is a jump (rates 0) unless the rate since LONG_S ago is not and the pair's is within TARGET_RATE_DEG_S
+        of the one up to i (one pair's noise on a fast target: docs/FAULTS.md, "A step of the target is no rate")."""
+        dt, fast = j.t - i.t, math.radians(TARGET_RATE_DEG_S)
         slow = abs(j.pan - i.pan) < math.radians(LEARN_RATE_DEG_S) * dt
         self.zs = [(t, z) for t, z in self.zs if j.t - t <= LONG_S]
         if dt > 0:
             v = (j.z - i.z) / dt
-            if abs(v) > math.radians(TARGET_RATE_DEG_S) and self.zs and j.t - self.zs[0][0] >= 2 * dt:
+            if abs(v) > fast and self.zs and j.t - self.zs[0][0] >= 2 * dt:
                 t0, z0 = self.zs[0]
-                if i.t <= t0 or abs(v - (i.z - z0) / (i.t - t0)) <= math.radians(TARGET_RATE_DEG_S):
-                    v = (j.z - z0) / (j.t - t0)
-            jump = abs(v) > math.radians(TARGET_RATE_DEG_S)
+                v = (j.z - z0) / (j.t - t0) if i.t <= t0 or abs(v - (i.z - z0) / (i.t - t0)) <= fast else v
+            jump = abs(v) > fast
             self.trend = 0.0 if jump else v
             if learn and (slow or abs(i.a) < math.radians(TRACKING_DEG)):
                 self.rate = 0.0 if jump else 0.5 * self.rate + 0.5 * v
