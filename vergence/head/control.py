@@ -190,7 +190,8 @@ class Controller:
         if d.fault is not None or self.search.searching:
             if self.play.lost(t_s if d.fault is not None else None):
                 self._replay(self.play.replay())
-        elif self.play.see(t_s, shaft, seen, (rows.shape, fovea), focal_px, fovea_col, centre):
+        elif self.play.see(t_s, shaft, seen, (rows.shape, fovea), focal_px, fovea_col, centre,
+                           repan=self.shaft.past, ready=not self.shaft.raw(t_s)):
             self._replay(self.play.replay())
         if self.play.half:
             pan = self.play.peek(shaft)  # (the camera's: the background turns as it does)

@@ -46,9 +46,10 @@ SERVO_SD = 1.5  # ... remembered only where the best pair's residuals are within
 
 class Shaft:
     """The encoder's readings are the Rest's (vergence.head.rest: its motor() keeps them, times on the frames' clock,
-    pans in radians); commanded() each goal sent, at() a frame's pan. `fit`: the servo's (latency, time constant)
-    fitted (None: not fitted, or a clean encoder); `sd`: the encoder's noise (rad; None: not read yet); `offset`: the
-    readings' mean residual about the model."""
+    pans in radians); commanded() each goal sent, at() a frame's pan; then() and past() a past frame's as the model now
+    has it, raw() whether the frames' pans may still be a noisy encoder's readings (the play's turns wait for it).
+    `fit`: the servo's (latency, time constant) fitted (None: not fitted, or a clean encoder); `sd`: the encoder's noise
+    (rad; None: not read yet); `offset`: the readings' mean residual about the model."""
 
     def __init__(self, readings: Rest, motor: MotorSettings | None = None):
         self.motor = motor or MotorSettings(quantise=False)  # (its whole ticks: where it stops, what it reads)
@@ -136,7 +137,17 @@ class Shaft:
             return pan
         if t - self.t_fit >= REFIT_S or t < self.t_fit - KEEP_S:
             self._refit(t)
-        if self.fit is None:
+        return self.then(t, pan)
+
+    def then(self, t: float, pan: float) -> float:
+        """at() without a refit: a past frame's pan as the model now has it (`pan` where none is fitted)."""
+        est = self.past(t, pan)
+        return pan if est is None else est
+
+    def past(self, t: float, pan: float) -> float | None:
+        """then(), but None where a fitted model has no reading before the frame to start from (a noisy encoder's first
+        frames: their pans are its readings)."""
+        if not (math.isfinite(t) and math.isfinite(pan)) or self.fit is None or not self.t:
             return pan
         lat, tau = self.fit
         a, b = bisect.bisect_left(self.t, t - BIAS_S), bisect.bisect_right(self.t, t + BIAS_S)
@@ -146,13 +157,22 @@ class Shaft:
         ins = bisect.bisect_left(ts, t)
         m = self._model(lat, tau, min(ts[0], t) - SETTLE_S, ts[:ins] + [t] + ts[ins:])
         if m is None:
-            return pan
+            return None
         here = m.pop(ins)
         bias = sum(self.r[a + j] - m[j] for j in range(len(ts))) / len(ts)
         if abs(bias - self.offset) > SIGMAS * self.sd / math.sqrt(len(ts)) + self.tick / 2:
             return pan  # the shaft does not go where the model says (stalled, blocked, pushed): as read
         est = here + self.offset
         return est if abs(est - pan) <= SIGMAS * self.sd else pan
+
+    def raw(self, t: float) -> bool:
+        """The frames' pans at t may be raw readings of a noisy encoder: within FIT_S + SETTLE_S of the first reading
+        kept (the noise not read yet), or its noise read over NOISY_DEG and no model fitted."""
+        if not self.t:
+            return False
+        if self.sd is None:
+            return t - self.t[0] < FIT_S + SETTLE_S
+        return self.sd >= math.radians(NOISY_DEG) and self.fit is None
 
     def status(self) -> dict:
         """For the reducer's status: the encoder's noise as read (deg; None: not yet a second of readings)."""

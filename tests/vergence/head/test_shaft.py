@@ -107,6 +107,29 @@ def test_the_servos_fit_is_remembered_over_the_refits(seed, servo):
     assert _rms([got - x for _, _, x, got in late]) < 0.25 * _rms([r - x for _, r, x, _ in late])
 
 
+@pytest.mark.parametrize("seed", [13, 14])
+def test_a_past_frames_pan_is_the_models_where_it_has_one(seed):
+    """The play reads a turn's bands once the model is fitted (vergence.head.play: a noisy encoder's readings read
+    0.24-0.3 deg of a play of 0.2): past() gives a past frame's pan as the model now has it, then() the same or its
+    reading, and past() None where the model has no reading to start from (the first frames: their pans would be the
+    readings)."""
+    shaft, frames = _pursuit(0.05, seed, seconds=3.0)
+    assert shaft.fit is not None and not shaft.raw(frames[-1][0])  # (fitted: its pans are the model's)
+    back = [(t, r, x) for t, r, x, _ in frames if 1.5 <= t <= 2.5]
+    est = [shaft.past(t, r) for t, r, _ in back]
+    assert all(e is not None for e in est)
+    assert _rms([e - x for e, (_, _, x) in zip(est, back)]) < 0.25 * _rms([r - x for _, r, x in back])
+    assert [shaft.then(t, r) for t, r, _ in back] == est
+    first = shaft.t[0]
+    assert shaft.past(first + 0.05, 0.01) is None and shaft.then(first + 0.05, 0.01) == 0.01
+    readings = Rest()
+    early = Shaft(readings, MotorSettings())
+    assert early.raw(0.0) is False  # (no readings at all: the frames' pans are all there is)
+    readings.motor(0.0, 0.0)
+    readings.motor(0.02, 0.0)
+    assert early.raw(1.0) is True and early.raw(1.2) is False  # (the noise not read within FIT_S + SETTLE_S: a guess)
+
+
 def test_a_clean_encoders_frames_keep_their_reading_to_the_digit():
     shaft, frames = _pursuit(0.0, 13)
     assert all(got == r for _, r, _, got in frames)
