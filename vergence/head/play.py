@@ -159,11 +159,13 @@ class Play:
                 moved = turn(x[2], b[2], b[1] - x[1], focal_px, fovea_col, centre_col, about=True)
                 if moved is not None:
                     sides[out].append((moved - (b[1] - x[1]), abs(b[1] - x[1])))
-        reads = []
-        line = _line(sides[0])
+        line, reads = _line(sides[0]), []
+        if line is None:
+            return False
         for m, d in sides[1]:
-            if line is not None and into * (m - line(d)) <= d - math.radians(MARGIN_DEG):
-                reads.append(into * (m - line(d)))
+            q = into * (m - line(d))
+            if q <= d - math.radians(MARGIN_DEG):
+                reads.append(q)
         if len(reads) < SIDE:
             return False
         p = float(np.median(reads))
